@@ -1,0 +1,28 @@
+"""Errors a user can cause. The CLI prints them as one line and exits with status 2."""
+
+
+class BlockrayError(Exception):
+    """Base class of every error caused by bad input or impossible parameters."""
+
+
+class SceneError(BlockrayError):
+    """A scene file is unreadable or malformed. The message names the file and line."""
+
+    def __init__(self, message, *, path=None, line=None):
+        self.path = path
+        self.line = line
+        where = ""
+        if path is not None:
+            where = f"{path}:{line}: " if line is not None else f"{path}: "
+        super().__init__(f"{where}{message}")
+
+
+class ParameterError(BlockrayError):
+    """A parameter (command-line option or hardware parameter) is out of range or inconsistent.
+
+    The message names the parameter.
+    """
+
+
+class CapacityError(BlockrayError):
+    """A scene does not fit the chosen widths or memories."""
