@@ -1,0 +1,49 @@
+"""Built-in scenes, shipped as OBJ + MTL files in ``scenes/`` and read by the ordinary loader.
+
+``cornell``
+    The Cornell box (Cornell Program of Computer Graphics' published geometry, mm) with the
+    published camera: position (278, 273, -800) looking along +z, vertical field of view
+    2 atan(0.0125 / 0.035) = 39.3 degrees (focal length 0.035, film 0.025). 23 polygons become
+    46 triangles; the default subdivision, ``max_edge=100`` (mm), gives 928 patches.
+``room``
+    A furnished 6 m x 2.7 m x 5 m room in the spirit of the paper's 3013-patch room: white
+    ceiling light, six yellow up-lights, table, chairs, bookshelf, sofa. The default
+    subdivision, ``max_edge=0.63`` (m), gives 3032 patches (480 triangles before subdivision).
+
+``scenes/make_scenes.py`` generates the files.
+"""
+
+import math
+from pathlib import Path
+
+from .objload import load_obj, subdivide
+from .scene import Camera
+
+__all__ = ["NAMES", "DEFAULT_MAX_EDGE", "CAMERAS", "load", "path"]
+
+NAMES = ("cornell", "room")
+
+#: Subdivision used when no ``--max-edge`` is given (scene units: mm for cornell, m for room).
+DEFAULT_MAX_EDGE = {"cornell": 100.0, "room": 0.63}
+
+CAMERAS = {
+    "cornell": Camera(position=(278.0, 273.0, -800.0), look_at=(278.0, 273.0, 0.0),
+                      up=(0.0, 1.0, 0.0), fov=math.degrees(2.0 * math.atan(0.0125 / 0.035))),
+    "room": Camera(position=(0.35, 1.75, 0.35), look_at=(4.2, 0.9, 4.0),
+                   up=(0.0, 1.0, 0.0), fov=70.0),
+}
+
+
+def path(name):
+    """The OBJ file of a built-in scene."""
+    return Path(__file__).resolve().parent / "scenes" / f"{name}.obj"
+
+
+def load(name, *, max_edge=None):
+    """Load a built-in scene, subdivided to ``max_edge`` (default ``DEFAULT_MAX_EDGE[name]``)."""
+    if name not in NAMES:
+        raise KeyError(name)
+    scene = load_obj(path(name), name=name)
+    scene.camera = CAMERAS[name]
+    scene.source = f"builtin:{name}"
+    return subdivide(scene, DEFAULT_MAX_EDGE[name] if max_edge is None else max_edge)

@@ -1,0 +1,474 @@
+"""Wavefront OBJ + MTL loader, subdivision, and scene lookup by name or path.
+
+What is read:
+
+- OBJ: ``v x y z [w]`` (``w`` and the 6-number ``v x y z r g b`` colour extension are accepted
+  and ignored), ``f`` with ``v``, ``v/vt``, ``v//vn`` or ``v/vt/vn`` corners and positive or
+  negative (relative) indices, ``o``/``g`` (the group of the triangles that follow), ``mtllib``
+  and ``usemtl``. Texture coordinates and vertex normals are checked for range and otherwise
+  ignored: the patch normal is the right-handed normal of the corner order. Lines, points,
+  smoothing groups and other display statements are ignored; free-form geometry and any unknown
+  statement is an error.
+- MTL: ``newmtl``, ``Kd`` (RGB reflectance, each in [0, 1)) and ``Ke`` (RGB emission, >= 0).
+  Other statements (``Ka``, ``Ks``, ``map_*``, ...) are ignored. A material without ``Kd``, and
+  faces before any ``usemtl``, get :data:`DEFAULT_REFLECTANCE`; without ``Ke`` emission is 0.
+
+Polygons are triangulated: a fan for convex polygons (a non-planar quad such as the Cornell red
+wall becomes two triangles), ear clipping in the polygon's best-fit plane otherwise. Every
+triangle is one patch. Exactly coincident vertex positions are merged, so faces that repeat a
+vertex instead of sharing its index still share the edge (this keeps :func:`subdivide`
+crack-free across them). Unused vertices are dropped.
+
+Bad input raises :class:`~blockray.errors.SceneError` naming the file and line. Zero-area
+triangles are dropped with one :class:`SceneWarning` (a :mod:`warnings` warning) that counts them;
+the CLI prints it.
+"""
+
+import math
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from blockray.errors import ParameterError, SceneError
+
+from .scene import Scene
+
+__all__ = ["DEFAULT_REFLECTANCE", "SceneWarning", "load_obj", "load_scene", "subdivide"]
+
+#: Reflectance of a material without ``Kd`` and of faces before any ``usemtl`` (the usual
+#: exporter default, e.g. Blender's).
+DEFAULT_REFLECTANCE = (0.8, 0.8, 0.8)
+
+#: A triangle is degenerate when twice its area is at most this fraction of its longest edge
+#: squared (i.e. its height is below ~1e-12 of its longest edge).
+_DEGENERATE = 1e-12
+
+_OBJ_IGNORED = {
+    "vp", "s", "l", "p", "mg", "usemap", "maplib", "shadow_obj", "trace_obj", "lod", "bevel",
+    "c_interp", "d_interp",
+}
+_OBJ_FREEFORM = {"cstype", "deg", "bmat", "step", "curv", "curv2", "surf", "parm", "trim",
+                 "hole", "scrv", "sp", "end", "con"}
+
+
+class SceneWarning(UserWarning):
+    """A scene was loaded, but something in it was dropped or repaired."""
+
+
+class _Material:
+    __slots__ = ("name", "reflectance", "emission")
+
+    def __init__(self, name):
+        self.name = name
+        self.reflectance = DEFAULT_REFLECTANCE
+        self.emission = (0.0, 0.0, 0.0)
+
+
+def _numbers(fields, counts, path, lineno, what):
+    if len(fields) not in counts:
+        expected = " or ".join(str(c) for c in counts)
+        raise SceneError(f"'{what}' needs {expected} numbers, got {len(fields)}",
+                         path=path, line=lineno)
+    try:
+        values = [float(f) for f in fields]
+    except ValueError:
+        raise SceneError(f"'{what}' has a value that is not a number: {' '.join(fields)}",
+                         path=path, line=lineno) from None
+    return values
+
+
+def _read_lines(path, error_path=None, error_line=None):
+    """Yield (line number, keyword, fields) of a text file, joining backslash continuations."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read()
+    except OSError as e:
+        raise SceneError(f"cannot read {path}: {e.strerror or e}",
+                         path=error_path if error_path is not None else path,
+                         line=error_line) from None
+    pending, start = "", None
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.split("#", 1)[0].rstrip()
+        if line.endswith("\\"):
+            if start is None:
+                start = lineno
+            pending += line[:-1] + " "
+            continue
+        line = pending + line
+        first, pending, start = (start or lineno), "", None
+        fields = line.split()
+        if fields:
+            yield first, fields[0], fields[1:]
+
+
+def _load_mtl(path, materials, obj_path, obj_line):
+    """Read materials from ``path`` into ``materials`` (name -> (_Material, path, line))."""
+    current = None
+    for lineno, key, fields in _read_lines(path, obj_path, obj_line):
+        if key == "newmtl":
+            if not fields:
+                raise SceneError("'newmtl' needs a name", path=path, line=lineno)
+            current = _Material(" ".join(fields))
+            materials[current.name] = current
+        elif key in ("Kd", "Ke"):
+            if current is None:
+                raise SceneError(f"'{key}' before any 'newmtl'", path=path, line=lineno)
+            if fields and fields[0] in ("spectral", "xyz"):
+                raise SceneError(f"'{key} {fields[0]}' is not supported; give RGB values",
+                                 path=path, line=lineno)
+            values = _numbers(fields, (1, 3), path, lineno, key)
+            if len(values) == 1:
+                values = values * 3
+            if key == "Kd":
+                if not all(0.0 <= c < 1.0 for c in values):  # also rejects NaN
+                    raise SceneError(
+                        f"material '{current.name}': reflectance Kd {' '.join(fields)} is "
+                        f"outside [0, 1)", path=path, line=lineno)
+                current.reflectance = tuple(values)
+            else:
+                if not all(0.0 <= c < math.inf for c in values):
+                    raise SceneError(
+                        f"material '{current.name}': emission Ke {' '.join(fields)} must be "
+                        f"finite and >= 0", path=path, line=lineno)
+                current.emission = tuple(values)
+
+
+def _triangulate(poly, coords):
+    """Split a polygon (list of vertex indices) into triangles (list of index triples)."""
+    n = len(poly)
+    if n == 3:
+        return [tuple(poly)]
+    p = coords[poly]
+    # Newell normal: robust best-fit plane normal of a (possibly non-planar) polygon.
+    q = np.roll(p, -1, axis=0)
+    normal = np.array([
+        np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
+        np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
+        np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
+    ])
+    axis = int(np.argmax(np.abs(normal)))
+    u, v = [(1, 2), (2, 0), (0, 1)][axis]
+    xy = p[:, [u, v]].copy()
+    if normal[axis] < 0:
+        xy[:, 1] = -xy[:, 1]
+    # xy is now counter-clockwise (positive area) when seen along the normal.
+
+    def turn(a, b, c):
+        return (xy[b, 0] - xy[a, 0]) * (xy[c, 1] - xy[a, 1]) - \
+               (xy[b, 1] - xy[a, 1]) * (xy[c, 0] - xy[a, 0])
+
+    if all(turn(i, (i + 1) % n, (i + 2) % n) >= 0 for i in range(n)):
+        return [(poly[0], poly[i], poly[i + 1]) for i in range(1, n - 1)]
+
+    # Ear clipping for a concave polygon.
+    remaining = list(range(n))
+    triangles = []
+    while len(remaining) > 3:
+        m = len(remaining)
+        for k in range(m):
+            a, b, c = remaining[k - 1], remaining[k], remaining[(k + 1) % m]
+            if turn(a, b, c) <= 0:
+                continue
+            if any(turn(a, b, d) >= 0 and turn(b, c, d) >= 0 and turn(c, a, d) >= 0
+                   for d in remaining if d not in (a, b, c)):
+                continue
+            triangles.append((poly[a], poly[b], poly[c]))
+            del remaining[k]
+            break
+        else:   # self-intersecting or degenerate: fall back to a fan of what is left
+            triangles += [(poly[remaining[0]], poly[remaining[i]], poly[remaining[i + 1]])
+                          for i in range(1, len(remaining) - 1)]
+            return triangles
+    triangles.append(tuple(poly[i] for i in remaining))
+    return triangles
+
+
+def load_obj(path, *, max_edge=None, name=None):
+    """Load a Wavefront OBJ file (and its MTL files) as a :class:`Scene`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The OBJ file. ``mtllib`` paths are relative to its folder.
+    max_edge : float, optional
+        If given, :func:`subdivide` the scene so no edge is longer than this.
+    name : str, optional
+        Scene name; the file's stem by default.
+
+    Raises
+    ------
+    SceneError
+        Unreadable or malformed file, index out of range, non-finite coordinate, reflectance
+        outside [0, 1), negative emission, unknown material, missing MTL file, no triangles.
+        The message names the file and line.
+    ParameterError
+        ``max_edge`` is not a positive number.
+
+    Warns
+    -----
+    SceneWarning
+        Zero-area triangles were dropped (the message counts them).
+    """
+    path = Path(path)
+    folder = path.parent
+    vertices, texcoords, normals = [], 0, 0
+    faces, face_group, face_mat = [], [], []   # faces: list of index triples
+    group_names, group_ids = [], {}
+    materials = {}
+    usemtl_lines = {}                          # material name -> first OBJ line using it
+    group, material = None, None
+
+    def group_id(gname):
+        if gname not in group_ids:
+            group_ids[gname] = len(group_names)
+            group_names.append(gname)
+        return group_ids[gname]
+
+    def resolve(token, count, lineno, kind):
+        try:
+            i = int(token)
+        except ValueError:
+            raise SceneError(f"bad {kind} index '{token}' in 'f'", path=path, line=lineno) from None
+        if i > 0 and i <= count:
+            return i - 1
+        if i < 0 and -i <= count:
+            return count + i
+        raise SceneError(f"{kind} index {i} out of range (there are {count} {kind}s so far)",
+                         path=path, line=lineno)
+
+    coords = None
+    for lineno, key, fields in _read_lines(path):
+        if key == "v":
+            values = _numbers(fields, (3, 4, 6), path, lineno, "v")
+            if not all(math.isfinite(c) for c in values[:3]):
+                raise SceneError(f"vertex coordinate is not finite: {' '.join(fields[:3])}",
+                                 path=path, line=lineno)
+            vertices.append(values[:3])
+            coords = None
+        elif key == "vt":
+            _numbers(fields, (1, 2, 3), path, lineno, "vt")
+            texcoords += 1
+        elif key == "vn":
+            _numbers(fields, (3,), path, lineno, "vn")
+            normals += 1
+        elif key == "f":
+            if len(fields) < 3:
+                raise SceneError(f"'f' needs at least 3 corners, got {len(fields)}",
+                                 path=path, line=lineno)
+            poly = []
+            for corner in fields:
+                parts = corner.split("/")
+                if len(parts) > 3 or not parts[0]:
+                    raise SceneError(f"bad face corner '{corner}'", path=path, line=lineno)
+                poly.append(resolve(parts[0], len(vertices), lineno, "vertex"))
+                if len(parts) > 1 and parts[1]:
+                    resolve(parts[1], texcoords, lineno, "texture coordinate")
+                if len(parts) > 2 and parts[2]:
+                    resolve(parts[2], normals, lineno, "normal")
+            if coords is None:
+                coords = np.array(vertices, dtype=np.float64)
+            g = group_id(group if group is not None else "default")
+            for tri in _triangulate(poly, coords):
+                faces.append(tri)
+                face_group.append(g)
+                face_mat.append(material)
+        elif key in ("o", "g"):
+            group = " ".join(fields) if fields else "default"
+        elif key == "mtllib":
+            if not fields:
+                raise SceneError("'mtllib' needs a file name", path=path, line=lineno)
+            whole = " ".join(fields)
+            names = [whole] if (folder / whole).is_file() else fields
+            for mtl in names:
+                mtl_path = folder / mtl
+                if not mtl_path.is_file():
+                    raise SceneError(f"material library '{mtl}' not found", path=path, line=lineno)
+                _load_mtl(mtl_path, materials, path, lineno)
+        elif key == "usemtl":
+            if not fields:
+                raise SceneError("'usemtl' needs a material name", path=path, line=lineno)
+            material = " ".join(fields)
+            usemtl_lines.setdefault(material, lineno)
+        elif key in _OBJ_IGNORED:
+            pass
+        elif key in _OBJ_FREEFORM:
+            raise SceneError(f"free-form geometry ('{key}') is not supported", path=path, line=lineno)
+        else:
+            raise SceneError(f"unknown statement '{key}'", path=path, line=lineno)
+
+    for mname, lineno in usemtl_lines.items():
+        if mname not in materials:
+            raise SceneError(f"unknown material '{mname}'", path=path, line=lineno)
+
+    if not faces:
+        raise SceneError("the scene has no triangles", path=path)
+
+    coords = np.array(vertices, dtype=np.float64) + 0.0   # + 0.0 turns -0.0 into 0.0 for unique
+    tris = np.array(faces, dtype=np.int64)
+    # Merge exactly coincident positions and drop unused vertices.
+    unique, inverse = np.unique(coords, axis=0, return_inverse=True)
+    tris = inverse.reshape(-1)[tris]
+    used, tris = np.unique(tris, return_inverse=True)
+    tris = tris.reshape(-1, 3)
+    coords = unique[used]
+
+    refl = np.array([materials[m].reflectance if m is not None else DEFAULT_REFLECTANCE
+                     for m in face_mat], dtype=np.float64)
+    emis = np.array([materials[m].emission if m is not None else (0.0, 0.0, 0.0)
+                     for m in face_mat], dtype=np.float64)
+    groups = np.array(face_group, dtype=np.int64)
+
+    keep = ~_degenerate(coords[tris])
+    dropped = int(np.count_nonzero(~keep))
+    if dropped:
+        warnings.warn(f"{path}: dropped {dropped} zero-area triangle{'s' if dropped > 1 else ''}",
+                      SceneWarning, stacklevel=2)
+        if not keep.any():
+            raise SceneError("the scene has no triangles of non-zero area", path=path)
+        tris, refl, emis, groups = tris[keep], refl[keep], emis[keep], groups[keep]
+        used, tris = np.unique(tris, return_inverse=True)
+        tris = tris.reshape(-1, 3)
+        coords = coords[used]
+
+    scene = Scene(name=name if name is not None else path.stem, vertices=coords, triangles=tris,
+                  reflectance=refl, emission=emis, group=groups, group_names=group_names,
+                  source=str(path))
+    if max_edge is not None:
+        scene = subdivide(scene, max_edge)
+    return scene
+
+
+def _degenerate(tri_vertices):
+    """(N,) bool: triangles whose area is zero relative to their size (see ``_DEGENERATE``)."""
+    v = tri_vertices
+    cross = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], axis=1)
+    longest2 = np.max(np.sum(edges * edges, axis=2), axis=1)
+    return cross <= _DEGENERATE * longest2
+
+
+def _check_max_edge(max_edge):
+    try:
+        value = float(max_edge)
+    except (TypeError, ValueError):
+        raise ParameterError(f"--max-edge must be a positive number, not {max_edge!r}") from None
+    if not value > 0:                      # also rejects NaN
+        raise ParameterError(f"--max-edge must be a positive number, not {max_edge!r}")
+    return value
+
+
+def subdivide(scene, max_edge):
+    """Split the triangles of ``scene`` until no edge is longer than ``max_edge``.
+
+    Conforming longest-edge bisection (Rivara): each pass marks the longest edge of every
+    triangle that is too long, then propagates marks so every triangle with a marked edge also
+    has its longest edge marked; a marked triangle is bisected at the midpoint of its longest
+    edge and each half is bisected again at its other marked edge. Midpoints are shared per edge
+    (vertex-index pair), so triangles sharing an edge split it at the same vertex: no cracks and
+    no T-junctions. Angles stay bounded away from 0. Children keep the group, reflectance and
+    emission of their parent and its orientation (normal direction). Ties between equally long
+    edges are broken by vertex indices, so the choice depends on the edge only.
+
+    Raises
+    ------
+    ParameterError
+        ``max_edge`` is not a positive number (names ``--max-edge``).
+    """
+    limit = _check_max_edge(max_edge)
+    limit2 = limit * limit
+    verts = [tuple(v) for v in scene.vertices]
+    tris = [tuple(int(i) for i in t) for t in scene.triangles]
+    parent = list(range(len(tris)))
+    midpoint = {}
+
+    def length2(a, b):
+        pa, pb = verts[a], verts[b]
+        return (pa[0] - pb[0]) ** 2 + (pa[1] - pb[1]) ** 2 + (pa[2] - pb[2]) ** 2
+
+    def key(a, b):
+        return (a, b) if a < b else (b, a)
+
+    def longest(t):
+        """Index k of the longest edge (t[k], t[k+1]) with a deterministic tie-break."""
+        return max(range(3), key=lambda k: (length2(t[k], t[(k + 1) % 3]),
+                                            key(t[k], t[(k + 1) % 3])))
+
+    def mid(a, b):
+        k = key(a, b)
+        m = midpoint.get(k)
+        if m is None:
+            pa, pb = verts[a], verts[b]
+            verts.append(((pa[0] + pb[0]) * 0.5, (pa[1] + pb[1]) * 0.5, (pa[2] + pb[2]) * 0.5))
+            m = midpoint[k] = len(verts) - 1
+        return m
+
+    while True:
+        longest_edge = [longest(t) for t in tris]
+        marked = set()
+        for t, k in zip(tris, longest_edge):
+            a, b = t[k], t[(k + 1) % 3]
+            if length2(a, b) > limit2:
+                marked.add(key(a, b))
+        if not marked:
+            break
+        # Propagate: a triangle with any marked edge must have its longest edge marked.
+        edge_tris = {}
+        for i, t in enumerate(tris):
+            for k in range(3):
+                edge_tris.setdefault(key(t[k], t[(k + 1) % 3]), []).append(i)
+        todo = [i for e in marked for i in edge_tris[e]]
+        while todo:
+            i = todo.pop()
+            t, k = tris[i], longest_edge[i]
+            e = key(t[k], t[(k + 1) % 3])
+            if e not in marked:
+                marked.add(e)
+                todo.extend(edge_tris[e])
+        new_tris, new_parent = [], []
+        for t, k, p in zip(tris, longest_edge, parent):
+            # Rotate so the longest edge is (a, b), c opposite.
+            a, b, c = t[k], t[(k + 1) % 3], t[(k + 2) % 3]
+            if key(a, b) not in marked:
+                new_tris.append(t)
+                new_parent.append(p)
+                continue
+            m = mid(a, b)
+            # halves (a, m, c) and (m, b, c) keep the orientation of (a, b, c)
+            for half, (x, y) in (((a, m, c), (c, a)), ((m, b, c), (b, c))):
+                if key(x, y) in marked:    # the half's other original edge is marked too
+                    n = mid(x, y)
+                    if x == c:      # half (a, m, c), edge (c, a): split into (a, m, n), (m, c, n)
+                        new_tris += [(a, m, n), (m, c, n)]
+                    else:           # half (m, b, c), edge (b, c): split into (m, b, n), (m, n, c)
+                        new_tris += [(m, b, n), (m, n, c)]
+                    new_parent += [p, p]
+                else:
+                    new_tris.append(half)
+                    new_parent.append(p)
+        tris, parent = new_tris, new_parent
+
+    parent = np.array(parent, dtype=np.int64)
+    return Scene(name=scene.name, vertices=np.array(verts, dtype=np.float64),
+                 triangles=np.array(tris, dtype=np.int64).reshape(-1, 3),
+                 reflectance=scene.reflectance[parent].copy(),
+                 emission=scene.emission[parent].copy(), group=scene.group[parent].copy(),
+                 group_names=list(scene.group_names), camera=scene.camera, source=scene.source)
+
+
+def load_scene(spec, *, max_edge=None):
+    """A built-in scene by name (``cornell``, ``room``) or an OBJ file by path.
+
+    For a built-in scene ``max_edge=None`` means its documented default subdivision
+    (see :mod:`blockray.host_driver.builtin`); for a file it means no subdivision.
+    """
+    from . import builtin
+    if max_edge is not None:
+        _check_max_edge(max_edge)
+    if spec in builtin.NAMES:
+        return builtin.load(spec, max_edge=max_edge)
+    if not os.path.exists(spec):
+        raise SceneError(f"no such scene file or built-in scene (built-ins: "
+                         f"{', '.join(builtin.NAMES)})", path=spec)
+    return load_obj(spec, max_edge=max_edge)
