@@ -1,0 +1,132 @@
+"""The ``blockray`` command. Subcommands are thin: the work is in the library.
+
+Errors a user can cause (bad scenes, bad parameters, scenes that do not fit) print one line,
+``blockray: error: ...``, and exit with status 2.
+"""
+
+import argparse
+import logging
+import sys
+import warnings
+
+from .errors import BlockrayError
+
+__all__ = ["main"]
+
+
+def _positive_float(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or value != value or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, not {text!r}")
+    return value
+
+
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def _add_board_options(p):
+    g = p.add_argument_group("board")
+    g.add_argument("--board", default="model", help="board back-end: golden (float64 reference) or "
+                   "model (bit-exact model of the hardware; default)")
+    g.add_argument("--bits", type=int, default=None, metavar="B",
+                   help="coordinate bits of the quantised scene (default: chosen per scene)")
+    g.add_argument("--rows", type=_positive_int, default=8, metavar="R", help="receivers per block (array rows)")
+    g.add_argument("--cols", type=_positive_int, default=8, metavar="S", help="shooter samples per block (array columns)")
+    g.add_argument("--boards", type=_positive_int, default=8, metavar="P", help="boards (patch partitions)")
+
+
+def _render_parser(sub):
+    p = sub.add_parser("render", help="solve and render the radiosity of a scene",
+                       description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
+                                   "OBJ file with its MTL) with every visibility query answered by a board.")
+    p.add_argument("scene", help="built-in scene name (cornell, room) or path to an .obj file")
+    p.add_argument("--max-edge", type=_positive_float, default=None, metavar="LEN",
+                   help="subdivide triangles until no edge is longer than LEN (scene units)")
+    p.add_argument("--voxels", type=_positive_int, default=None, metavar="V",
+                   help="voxels per axis (default: chosen from the paper's cost model)")
+    p.add_argument("--samples", type=_positive_int, default=8, metavar="K",
+                   help="sample points per shooter patch (rays per patch pair)")
+    p.add_argument("--traversal", default="block", choices=["block", "ray"],
+                   help="block-ray traverse (default) or per-ray 3D-DDA")
+    p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel"])
+    p.add_argument("--tolerance", type=_positive_float, default=1e-3,
+                   help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
+    p.add_argument("--max-shots", type=_positive_int, default=None, help="progressive refinement: at most this many shots")
+    _add_board_options(p)
+    out = p.add_argument_group("output")
+    out.add_argument("--image", metavar="PNG", help="write a picture from the scene's camera")
+    out.add_argument("--size", type=_positive_int, default=512, metavar="PX", help="image width and height")
+    out.add_argument("--patches", metavar="CSV", help="write per-patch radiosity")
+    out.add_argument("--report", metavar="JSON", help="write run statistics")
+    out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.set_defaults(func=_cmd_render)
+    return p
+
+
+def _cmd_render(args):
+    from .params import BoardParams
+    from .host_driver.objload import load_scene
+    from .host_driver.render import render
+    from .host_driver.output import write_patches_csv, write_report_json
+
+    scene = load_scene(args.scene, max_edge=args.max_edge)
+    params = BoardParams(rows=args.rows, cols=args.cols, boards=args.boards,
+                         **({"bits": args.bits} if args.bits is not None else {}))
+    progress = not args.quiet and sys.stderr.isatty()
+    result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
+                    samples=args.samples, solver=args.solver, tolerance=args.tolerance,
+                    max_shots=args.max_shots, traversal=args.traversal, progress=progress)
+    if args.image:
+        from .host_driver.image import render_image, save_png
+        img = render_image(scene, result.radiosity, width=args.size, height=args.size)
+        save_png(args.image, img)
+    if args.patches:
+        write_patches_csv(args.patches, scene, result.radiosity)
+    if args.report:
+        write_report_json(args.report, result.report)
+    if not args.quiet:
+        r = result.report
+        print(f"{r['scene']}: {r['patches']} patches, {r['voxels']}^3 voxels, board {r['board']}, "
+              f"{r['solver']} ({r['shots'] or r['iterations']} {'shots' if r['shots'] else 'iterations'}), "
+              f"{r['rays']} rays, {r['tests']} tests, residual {r['residual']:.2e}, "
+              f"{r['seconds']['total']:.1f} s", file=sys.stderr)
+    return 0
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog="blockray", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _render_parser(sub)
+    return parser
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(format="blockray: %(levelname)s: %(message)s", level=logging.WARNING)
+
+    def _warn(message, category, filename, lineno, file=None, line=None):
+        print(f"blockray: warning: {message}", file=sys.stderr)
+    warnings.showwarning = _warn
+    try:
+        return args.func(args)
+    except BlockrayError as e:
+        print(f"blockray: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("blockray: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

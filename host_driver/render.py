@@ -1,0 +1,248 @@
+"""The render loop: scene -> board -> form factors -> solver -> outputs.
+
+This is the host of the paper's machine: it voxelises, walks block rays through the grid, sends
+them to a board (any :class:`~blockray.host_driver.board.Board` back-end), turns the blocked bits
+into visible form factors and solves for radiosity.
+
+Visibility of a (shooter i, receiver j) pair is the fraction of the K rays from i's sample points
+to j's centroid that the board reports clear; the form factor is the analytic point-to-triangle
+factor from j's centroid to triangle i times that fraction. Rays are cast only for pairs that can
+exchange light (:func:`~blockray.host_driver.formfactor.exchange_mask`).
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..params import BoardParams
+from ..samples import SampleScheme
+from ..errors import ParameterError
+from .board import BlockRay
+from . import formfactor, solver as solvers
+from .voxel import VoxelGrid, default_voxels, TraversalStats
+
+__all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
+
+BOARDS = ("golden", "model")
+SOLVERS = ("progressive", "jacobi", "gauss-seidel")
+TRAVERSALS = ("block", "ray")
+
+
+def make_board(name, params=None, *, bits=None):
+    """Build a board back-end by name. ``bits=None`` lets the board choose B for the scene."""
+    if name == "golden":
+        from .golden import GoldenBoard
+        return GoldenBoard()
+    if name == "model":
+        from ..sim.model import ModelBoard
+        return ModelBoard(params or BoardParams(), bits=bits)
+    raise ParameterError(f"--board must be one of {', '.join(BOARDS)}, not {name!r}")
+
+
+class Phases:
+    """Wall-clock seconds spent per phase."""
+
+    def __init__(self):
+        self.seconds = {}
+
+    def add(self, phase, dt):
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + dt
+
+    def timed(self, phase):
+        phases = self
+
+        class _T:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                phases.add(phase, time.perf_counter() - self.t0)
+        return _T()
+
+
+class Visibility:
+    """Casts the rays of one shooter to many receivers through the board, as block rays.
+
+    Receivers are grouped by the voxel that holds their end point (the paper's block): each group
+    of at most R receivers and each chunk of at most S shooter samples is one block ray.
+    ``traversal="ray"`` sends one block per ray with its 3D-DDA voxels instead (the per-ray
+    reference, for measuring what block traversal saves).
+    """
+
+    def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", phases=None,
+                 stats=None):
+        if traversal not in TRAVERSALS:
+            raise ParameterError(f"--traversal must be one of {', '.join(TRAVERSALS)}, not {traversal!r}")
+        self.scene, self.board, self.grid, self.samples = scene, board, grid, samples
+        self.rows, self.cols, self.traversal = rows, cols, traversal
+        self.phases = phases or Phases()
+        self.stats = stats
+        self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
+        self.centroids = scene.centroids
+        self.end_voxel = grid.voxel_of(self.centroids)
+        self.nonempty = grid.count > 0
+        self.rays = 0
+        self.blocks = 0
+
+    def _blocks_for(self, i, receivers):
+        K = self.samples.count
+        starts_all = self.sample_points[i]
+        blocks = []
+        if self.traversal == "ray":
+            for j in receivers:
+                for k in range(K):
+                    vox = self.grid.ray_voxels(starts_all[k], self.centroids[j])
+                    vox = vox[self.nonempty[vox]]
+                    blocks.append(BlockRay(np.array([i]), np.array([k]), np.array([j]), vox))
+            return blocks
+        order = np.argsort(self.end_voxel[receivers], kind="stable")
+        rec = receivers[order]
+        keys = self.end_voxel[rec]
+        cuts = np.flatnonzero(np.diff(keys)) + 1
+        for group in np.split(rec, cuts):
+            for r0 in range(0, len(group), self.rows):
+                rgroup = group[r0:r0 + self.rows]
+                ends = self.centroids[rgroup]
+                for s0 in range(0, K, self.cols):
+                    ks = np.arange(s0, min(K, s0 + self.cols))
+                    vox = self.grid.block_voxels(starts_all[ks], ends)
+                    vox = vox[self.nonempty[vox]]
+                    blocks.append(BlockRay(np.full(len(ks), i), ks, rgroup, vox))
+                    if self.stats is not None:
+                        self.stats.add_block(vox, starts_all[ks], ends)
+        return blocks
+
+    def clear_fraction(self, i, receivers):
+        """Fraction of the K rays from shooter i to each receiver that is not blocked."""
+        receivers = np.asarray(receivers, dtype=np.int64)
+        if len(receivers) == 0:
+            return np.zeros(0)
+        with self.phases.timed("traverse"):
+            blocks = self._blocks_for(i, receivers)
+        with self.phases.timed("board"):
+            bits = self.board.run(blocks)
+        clear = np.zeros(len(receivers))
+        index = {int(j): n for n, j in enumerate(receivers)}
+        for block, blocked in zip(blocks, bits):
+            rows = np.fromiter((index[int(j)] for j in block.receiver_patch), dtype=np.int64,
+                               count=len(block.receiver_patch))
+            np.add.at(clear, rows, (~np.asarray(blocked, dtype=bool)).sum(axis=1))
+            self.rays += block.rays
+        self.blocks += len(blocks)
+        return clear / self.samples.count
+
+
+@dataclass
+class RenderResult:
+    scene: object
+    radiosity: np.ndarray
+    solve: object
+    report: dict = field(default_factory=dict)
+
+
+def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
+           solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
+           traversal="block", progress=False, stats_fraction=0.02):
+    """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
+
+    Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
+    """
+    if solver not in SOLVERS:
+        raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ParameterError(f"--tolerance must be a positive number, not {tolerance!r}")
+    if max_shots is not None and max_shots < 1:
+        raise ParameterError(f"--max-shots must be at least 1, not {max_shots!r}")
+    params = params or BoardParams()
+    samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
+    phases = Phases()
+    t_start = time.perf_counter()
+    board_obj = make_board(board, params, bits=bits) if isinstance(board, str) else board
+    board_name = board if isinstance(board, str) else board_obj.name
+
+    with phases.timed("prepare"):
+        board_obj.prepare(scene, samples)
+    parallelism = params.processors * params.boards if board_name != "golden" else 1
+    if voxels is None:
+        voxels = default_voxels(scene.patches, parallelism=params.processors * params.boards)
+    elif not isinstance(voxels, int) or voxels < 1 or voxels > 256:
+        raise ParameterError(f"--voxels must be an integer from 1 to 256, not {voxels!r}")
+    with phases.timed("voxelise"):
+        grid = VoxelGrid(scene.patch_vertices, voxels, margin=board_obj.margin)
+    with phases.timed("load"):
+        board_obj.load(grid)
+
+    stats = TraversalStats(grid, sample_fraction=stats_fraction)
+    vis = Visibility(scene, board_obj, grid, samples, rows=params.rows, cols=params.cols,
+                     traversal=traversal, phases=phases, stats=stats)
+
+    def shoot(i):
+        with phases.timed("formfactor"):
+            mask = formfactor.exchange_mask(scene, i)
+            receivers = np.flatnonzero(mask)
+            f = formfactor.triangle_to_points(scene.patch_vertices[i], scene.centroids[receivers],
+                                              scene.normals[receivers])
+            keep = f > 0
+            receivers, f = receivers[keep], f[keep]
+        frac = vis.clear_fraction(i, receivers)
+        out = np.zeros(scene.patches)
+        out[receivers] = f * frac
+        return out
+
+    bar = _progress(progress, solver, scene.patches if solver != "progressive" else max_shots)
+    with phases.timed("solve"):
+        if solver == "progressive":
+            result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance,
+                                                    max_shots=max_shots, progress=bar)
+        else:
+            F = np.zeros((scene.patches, scene.patches))
+            for i in range(scene.patches):
+                F[:, i] = shoot(i)
+                if bar is not None:
+                    bar.update(1)
+            fn = solvers.jacobi if solver == "jacobi" else solvers.gauss_seidel
+            result = fn(scene, F, tolerance=tolerance, max_iterations=max_iterations)
+    if bar is not None:
+        bar.close()
+    for phase in ("formfactor", "traverse", "board"):
+        phases.seconds.setdefault(phase, 0.0)
+    # time inside shoot() is also inside "solve": report the solver's own arithmetic separately
+    phases.seconds["solve"] -= sum(phases.seconds[p] for p in ("formfactor", "traverse", "board"))
+    seconds = dict(phases.seconds)
+    seconds["total"] = time.perf_counter() - t_start
+
+    counters = board_obj.counters()
+    report = {
+        "scene": scene.name,
+        "source": scene.source,
+        "patches": int(scene.patches),
+        "voxels": int(voxels),
+        "board": board_name,
+        "board_params": {"rows": params.rows, "cols": params.cols, "boards": params.boards},
+        "samples": samples.count,
+        "traversal": traversal,
+        "solver": solver,
+        "tolerance": tolerance,
+        "shots": int(getattr(result, "shots", 0) or 0),
+        "iterations": int(getattr(result, "iterations", 0) or 0),
+        "rays": int(vis.rays),
+        "blocks": int(vis.blocks),
+        "tests": int(counters.get("tests", 0)),
+        "tests_per_ray": float(counters.get("tests", 0)) / max(1, vis.rays),
+        "residual": float(result.residual),
+        "seconds": seconds,
+        "host_seconds_per_ray": (seconds["traverse"] + seconds["board"]) / max(1, vis.rays),
+        "traversal_stats": stats.summary(),
+    }
+    for key, value in counters.items():
+        report.setdefault(key, value)
+    return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
+
+
+def _progress(enabled, solver, total):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    unit = "shot" if solver == "progressive" else "column"
+    return tqdm(total=total, unit=unit, desc=f"{solver}", leave=False)

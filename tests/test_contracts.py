@@ -1,0 +1,112 @@
+"""The shared definitions every layer relies on: records, widths, the exact predicate, samples."""
+
+import numpy as np
+import pytest
+
+from blockray.errors import ParameterError
+from blockray.exact import blocked_block, blocked_reference, orient3d, patch_normals, block_terms
+from blockray.params import BoardParams, Widths
+from blockray.records import patch_layout, point_layout, pack, unpack, pack_array, unpack_array, patch_columns
+from blockray.samples import SampleScheme
+
+
+@pytest.mark.parametrize("bits", [4, 12, 20])
+def test_pack_matches_amaranth_const(bits):
+    seed = 1000 + bits
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    layout = patch_layout(bits)
+    w = Widths(bits)
+    assert layout.size == 9 * bits + 3 * w.cross
+    for _ in range(50):
+        v = rng.integers(0, 1 << bits, (3, 3))
+        n = rng.integers(-(1 << (w.cross - 1)), 1 << (w.cross - 1), 3)
+        value = {f"v{k}": dict(zip("xyz", map(int, v[k]))) for k in range(3)}
+        value["normal"] = dict(zip("xyz", map(int, n)))
+        bits_int = pack(layout, value)
+        assert bits_int == layout.const(value).as_bits()
+        assert unpack(layout, bits_int) == value
+        words = pack_array(layout, patch_columns(v[None], n[None]))
+        assert words == [bits_int]
+        cols = unpack_array(layout, words)
+        assert cols[("normal", "x")][0] == n[0]
+
+
+def test_pack_rejects_out_of_range():
+    with pytest.raises(ValueError, match="v0.x"):
+        pack(patch_layout(4),
+             {"v0": {"x": 16, "y": 0, "z": 0}, "v1": {"x": 0, "y": 0, "z": 0},
+              "v2": {"x": 0, "y": 0, "z": 0}, "normal": {"x": 0, "y": 0, "z": 0}})
+
+
+@pytest.mark.parametrize("bad", [dict(rows=0), dict(bits=3), dict(bits=21), dict(cols=1.5), dict(boards=True)])
+def test_board_params_validated(bad):
+    name = next(iter(bad))
+    with pytest.raises(ParameterError, match=name):
+        BoardParams(**bad)
+
+
+def test_widths_bound_orient3d_at_cube_corners():
+    # |orient3d| <= 2 L**3 < 2**(3B+1): reached by the largest tetrahedron in the cube
+    bits = 10
+    L = (1 << bits) - 1
+    corners = [(x, y, z) for x in (0, L) for y in (0, L) for z in (0, L)]
+    best = max(abs(orient3d(a, b, c, d)) for a in corners for b in corners for c in corners for d in corners[:1])
+    assert best == 2 * L ** 3
+    assert best < 1 << (Widths(bits).orient - 1)
+
+
+@pytest.mark.parametrize("bits", [6, 16, 20])
+def test_block_predicate_equals_reference(bits):
+    seed = 2000 + bits
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    top = 1 << bits
+    V = rng.integers(0, top, (40, 3, 3))
+    # some degenerate and some axis-aligned patches
+    V[0, 2] = V[0, 1]
+    V[1, :, 2] = V[1, 0, 2]
+    P = rng.integers(0, top, (5, 3))
+    Q = rng.integers(0, top, (4, 3))
+    got = blocked_block(P, Q, V, patch_normals(V))
+    for r in range(4):
+        for s in range(5):
+            for t in range(40):
+                assert got[r, s, t] == blocked_reference(P[s], Q[r], *V[t]), (r, s, t)
+
+
+def test_block_terms_fit_their_widths():
+    bits = 20
+    L = (1 << bits) - 1
+    w = Widths(bits)
+    V = np.array([[[0, 0, 0], [L, 0, 0], [0, L, 0]], [[L, L, L], [0, L, 0], [L, 0, L]]])
+    P = np.array([[0, 0, L], [L, L, 0]])
+    Q = np.array([[L, L, L], [0, 0, 0]])
+    pP, pQ, sides = block_terms(P, Q, V, patch_normals(V))
+    for x in (pP, pQ, sides):
+        assert int(np.abs(x).max()) < 1 << (w.orient - 1)
+    assert int(np.abs(patch_normals(V)).max()) < 1 << (w.cross - 1)
+
+
+@pytest.mark.parametrize("count", [1, 4, 8, 9, 16])
+def test_samples_lie_exactly_on_their_patch(count):
+    seed = 3000 + count
+    print(f"seed={seed}")
+    scheme = SampleScheme(count)
+    rng = np.random.default_rng(seed)
+    D = scheme.denominator
+    V = rng.integers(0, 1000, (20, 3, 3)) * D
+    pts = scheme.points_int(V)
+    cen = scheme.centroids_int(V)
+    for t in range(20):
+        for k in range(count):
+            assert orient3d(V[t, 0], V[t, 1], V[t, 2], pts[t, k]) == 0
+        assert orient3d(V[t, 0], V[t, 1], V[t, 2], cen[t]) == 0
+    # strictly inside: positive barycentric weights
+    assert (scheme.weights > 0).all() and (scheme.weights.sum(axis=1) == D).all()
+    assert len({tuple(w) for w in scheme.weights}) == count
+
+
+def test_sample_scheme_validated():
+    with pytest.raises(ParameterError, match="samples"):
+        SampleScheme(0)
