@@ -179,12 +179,10 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
 
     def shoot(i):
         with phases.timed("formfactor"):
-            mask = formfactor.exchange_mask(scene, i)
-            receivers = np.flatnonzero(mask)
-            f = formfactor.triangle_to_points(scene.patch_vertices[i], scene.centroids[receivers],
-                                              scene.normals[receivers])
-            keep = f > 0
-            receivers, f = receivers[keep], f[keep]
+            # exchange mask applied inside; near receivers averaged over 9 points (reciprocity)
+            f_all = formfactor.unoccluded_factors(scene, i)
+            receivers = np.flatnonzero(f_all > 0)
+            f = f_all[receivers]
         frac = vis.clear_fraction(i, receivers)
         out = np.zeros(scene.patches)
         out[receivers] = f * frac

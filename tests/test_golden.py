@@ -1,0 +1,199 @@
+"""The float64 golden board against the exact predicate and against plain geometry.
+
+The voxel grid is replaced by stand-ins (one voxel holding every patch, or hand-made CSR tables)
+so these tests depend only on the board.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from blockray.exact import blocked_block, blocked_reference, patch_normals
+from blockray.host_driver.board import BlockRay
+from blockray.host_driver.golden import GoldenBoard
+from blockray.samples import SampleScheme
+
+from test_formfactor import make_scene, rectangle
+
+
+def one_voxel(n):
+    """Grid stand-in: a single voxel (index 0) holding every patch."""
+    return SimpleNamespace(v=1, start=np.array([0]), count=np.array([n]), patches=np.arange(n))
+
+
+def board_for(triangles, samples=SampleScheme(8), grid=None):
+    scene = make_scene(triangles)
+    board = GoldenBoard()
+    board.prepare(scene, samples)
+    board.load(grid or one_voxel(scene.patches))
+    return scene, board
+
+
+def rotation(seed):
+    q = np.random.default_rng(seed).normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _reference_bits(P, Q, V):
+    return np.array([[any(blocked_reference(p, q, *v) for v in V) for p in P] for q in Q])
+
+
+def test_agrees_with_exact_on_integer_scenes():
+    """Random integer triangles (multiples of D, so sample points are exact) on a small lattice,
+    where shared edges, coplanar patches and rays through vertices are common."""
+    samples = SampleScheme(8)
+    D = samples.denominator
+    seed = 424242
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    total = blocked_rays = 0
+    for trial in range(6):
+        N = 24
+        V = (rng.integers(0, 6, (N, 1, 3)) + rng.integers(-2, 3, (N, 3, 3))) * D
+        V = V[np.linalg.norm(patch_normals(V), axis=1) > 0]                # the scene drops zero-area
+        scene, board = board_for(V, samples)
+        P_all = samples.points_int(V)                                      # (N, K, 3) exact ints
+        Q_all = samples.centroids_int(V)
+        blocks = []
+        for _ in range(4):
+            sp = rng.integers(0, len(V), 5)
+            ss = rng.integers(0, samples.count, 5)
+            rp = rng.integers(0, len(V), 6)
+            blocks.append(BlockRay(sp, ss, rp, np.array([0])))
+        for block, bits in zip(blocks, board.run(blocks)):
+            P = P_all[block.shooter_patch, block.shooter_sample]
+            Q = Q_all[block.receiver_patch]
+            ref = _reference_bits(P, Q, V)
+            assert np.array_equal(bits, ref), f"trial {trial}"
+            assert np.array_equal(bits, blocked_block(P, Q, V, patch_normals(V)).any(axis=-1))
+            total += bits.size
+            blocked_rays += int(bits.sum())
+    print(f"{total} rays, {blocked_rays} blocked, all equal to the exact predicate")
+    assert 0.2 * total < blocked_rays < 0.8 * total
+
+
+def test_agrees_with_exact_through_edges_and_vertices():
+    """Integer rays aimed exactly through the edges and vertices of an integer wall mesh: every
+    integer point of the z = 10 wall's square lies on an edge (grid lines, diagonals) or a vertex."""
+    seed = 99
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    wall = rectangle([0, 0, 10], [0, 8, 0], [8, 0, 0], 4, 4).astype(np.int64)   # step 2, diagonals (1, 1)
+    block = rectangle([2, 2, 4], [4, 0, 0], [0, 4, 0], 2, 2).astype(np.int64)   # a second layer below
+    tris = np.concatenate([wall, block])
+    scene, board = board_for(tris)
+    inside = 0
+    for _ in range(400):
+        X = np.append(rng.integers(-2, 11, 2), 10)                         # crossing point
+        d = np.append(rng.integers(-3, 4, 2), rng.integers(1, 8))
+        P, Q = X - d, X + d
+        got = board.blocked(P[None].astype(float), Q[None].astype(float), np.arange(len(tris)))[0, 0]
+        assert got == any(blocked_reference(P, Q, *v) for v in tris), (P, Q)
+        if (0 <= X[:2]).all() and (X[:2] <= 8).all():
+            assert got, (P, Q)                                             # watertight
+            inside += 1
+    assert inside > 100
+
+
+def test_watertight_on_float_meshes():
+    """A rotated, translated wall in float coordinates: segments through the (rounded) midpoints
+    of its inner edges and through its inner vertices are always blocked."""
+    for seed in (1, 2, 3):
+        print(f"seed={seed}")
+        rng = np.random.default_rng(seed)
+        R, t = rotation(seed), rng.normal(size=3) * 10
+        flat = rectangle([-1, -1, 0], [2, 0, 0], [0, 2.0, 0], 7, 5)
+        wall = flat @ R.T + t
+        scene, board = board_for(wall)
+        points = np.concatenate([((flat + np.roll(flat, -1, axis=1)) / 2).reshape(-1, 3), flat.reshape(-1, 3)])
+        points = points[(np.abs(points[:, 0]) < 1 - 1e-9) & (np.abs(points[:, 1]) < 1 - 1e-9)]
+        X = points @ R.T + t
+        dirs = rng.normal(size=(len(X), 3))
+        dirs *= np.sign(dirs @ R[:, 2])[:, None]
+        dirs += 0.3 * R[:, 2]
+        P = X - dirs * rng.uniform(0.2, 2, (len(X), 1))
+        Q = X + dirs * rng.uniform(0.2, 2, (len(X), 1))
+        every = np.arange(len(wall))
+        leaks = sum(not board.blocked(p[None], q[None], every)[0, 0] for p, q in zip(P, Q))
+        print(f"{len(X)} segments through edges and vertices, {leaks} leaked")
+        assert leaks == 0
+
+
+def test_own_patch_and_coplanar_neighbours_never_block():
+    """A rotated plane of many patches (float coordinates: samples are off the plane by rounding)
+    and one receiver above it: nothing blocks, in any direction."""
+    R = rotation(5)
+    floor = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 6, 6) @ R.T + [0.3, 0.7, 0.1]
+    lamp = rectangle([0.4, 0.4, 0.8], [0, 0.2, 0], [0.2, 0, 0], 1, 1) @ R.T + [0.3, 0.7, 0.1]
+    tris = np.concatenate([floor, lamp])
+    scene, board = board_for(tris)
+    n = len(tris)
+    S = np.repeat(np.arange(n), 8)
+    K = np.tile(np.arange(8), n)
+    blocks = [BlockRay(S[a:a + 8], K[a:a + 8], np.arange(n), np.array([0])) for a in range(0, len(S), 8)]
+    bits = board.run(blocks)
+    assert not any(b.any() for b in bits)
+    counters = board.counters()
+    assert counters["blocks"] == len(blocks) and counters["rays"] == len(S) * n
+    assert counters["tests"] == counters["rays"] * n                # every patch once per block
+    assert counters["crossings"] == 0                                 # no ray even crosses a plane
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_wall_between_patches(half):
+    """Floor and ceiling with a wall between: full wall blocks every ray; a half wall blocks
+    exactly the rays whose crossing point lies on it (plain geometry as the oracle)."""
+    R = rotation(11)
+    shift = np.array([10.0, -3.0, 7.0])
+    floor = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 2, 2)
+    ceiling = rectangle([0, 0, 1], [0, 1, 0], [1, 0, 0], 2, 2)
+    wall = rectangle([-0.5, -0.5, 0.5], [0, 0.85 if half else 2, 0], [2, 0, 0], 3, 3)
+    tris = np.concatenate([floor, ceiling, wall]) @ R.T + shift
+    scene, board = board_for(tris)
+    shooters = np.arange(8)                                            # floor patches
+    blocks = [BlockRay(np.full(8, i), np.arange(8), np.arange(8, 16), np.array([0])) for i in shooters]
+    bits = np.stack(board.run(blocks))                                 # (shooter, R, S)
+    if not half:
+        assert bits.all()
+    else:
+        P = (SampleScheme(8).points(floor))                            # unrotated frame
+        Q = ceiling.mean(axis=1)
+        X = (P[:, None, :, :] + Q[None, :, None, :]) / 2               # crossing at z = 0.5
+        expected = (X[..., 1] >= -0.5) & (X[..., 1] <= 0.35)
+        assert 0 < expected.sum() < expected.size
+        assert np.array_equal(bits, expected)
+    # and without the wall nothing is blocked
+    scene, board = board_for(np.concatenate([floor, ceiling]) @ R.T + shift)
+    assert not np.stack(board.run(blocks)).any()
+
+
+def test_registration_union_and_counters():
+    """Only patches registered in the visited voxels are tested, each once per block."""
+    floor = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 1, 1)
+    ceiling = rectangle([0, 0, 1], [0, 1, 0], [1, 0, 0], 1, 1)
+    wall = rectangle([-1, -1, 0.5], [0, 3, 0], [3, 0, 0], 1, 1)         # patches 4, 5
+    tris = np.concatenate([floor, ceiling, wall])
+    # voxel 0: floor + wall patch 4; voxel 1: wall patches 4 and 5 (4 in both); voxel 2: ceiling
+    grid = SimpleNamespace(v=2, start=np.array([0, 3, 5]), count=np.array([3, 2, 2]),
+                           patches=np.array([0, 1, 4, 4, 5, 2, 3]))
+    scene, board = board_for(tris, grid=grid)
+    block = lambda voxels: BlockRay(np.array([0, 1]), np.array([0, 3]), np.array([2, 3]), np.array(voxels))
+    assert not board.run([block([0, 2])])[0].all()                     # half the wall is unseen
+    assert board.counters()["tests"] == 4 * 5
+    assert board.run([block([0, 1, 2])])[0].all()
+    assert board.counters()["tests"] == 4 * 5 + 4 * 6                 # patch 4 counted once
+    assert not board.run([block([2])])[0].any()
+    assert board.counters()["voxels"] == 2 + 3 + 1 and board.counters()["blocks"] == 3
+    assert board.run([BlockRay(np.zeros(0, int), np.zeros(0, int), np.array([2]), np.array([0]))])[0].shape == (1, 0)
+
+
+def test_margin_and_prepare():
+    scene, board = board_for(rectangle([0, 0, 0], [1000, 0, 0], [0, 10, 0], 1, 1))
+    assert 0 < board.margin <= 1e-6 * 1000
+    with pytest.raises(RuntimeError):
+        GoldenBoard().run([])
