@@ -1,0 +1,216 @@
+"""Quantise a scene onto the board's B-bit integer grid.
+
+Coordinates on the board are unsigned B-bit integers ``0 .. 2**B - 1`` over the scene's own
+bounding box, with one uniform step on all three axes (so angles and planarity are kept up to
+rounding). A sample point is ``sum_k w_k V_k / D`` with integer weights summing to the sample
+denominator ``D`` (:attr:`blockray.samples.SampleScheme.denominator`), so vertices are put on the
+coarser lattice of multiples of ``D``::
+
+    step = extent / floor((2**B - 1) / D)        scene units between lattice points (largest extent)
+    h    = step / D                              scene units per integer unit
+    V_int = D * round((x - lo) / step)           a multiple of D in [0, 2**B - 1]
+
+Then every shooter sample point and every receiver centroid is an exact integer on its patch's
+plane (no epsilon, no origin offset). Shared vertices of a mesh are quantised once (from the
+scene's vertex array), so a closed mesh stays closed.
+
+**Error.** A vertex moves by at most ``sqrt(3) * step / 2`` (half a lattice step per axis); a
+sample point or centroid is a convex combination of its vertices with the same weights before and
+after, so it moves by at most the largest displacement of its vertices, and so does every point of a
+triangle. :attr:`QuantisedScene.displacement` is the measured maximum.
+
+**Choosing B** (:func:`choose_bits`, "model only what a scene needs"): the fewest bits such that
+(1) no triangle of nonzero float area degenerates (integer normal 0: it would silently stop
+blocking anything) and (2) the measured displacement is at most ``max_error`` times the bounding-box
+diagonal (default ``1e-4``). See docs/fixed-point.md for why the bound is relative to the diagonal.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import CapacityError, ParameterError
+from .exact import patch_normals
+from .params import MIN_BITS, MAX_BITS, Widths
+
+__all__ = ["QuantisedScene", "quantise", "choose_bits", "resolve_bits", "DEFAULT_MAX_ERROR",
+           "MAX_DEGENERATE_FRACTION"]
+
+#: default bound of choose_bits: max vertex displacement / bounding-box diagonal
+DEFAULT_MAX_ERROR = 1e-4
+#: a forced --bits is refused when more than this fraction of the nonzero-area patches degenerate
+MAX_DEGENERATE_FRACTION = 0.01
+
+
+@dataclass(eq=False)
+class QuantisedScene:
+    """A scene on the B-bit integer grid, as the board holds it.
+
+    bits              B
+    D                 sample denominator: every vertex coordinate is a multiple of D
+    lo                (3,) float: scene point of integer (0, 0, 0)
+    h                 scene units per integer unit
+    points            (V, 3) int64: the scene's vertex array on the grid
+    vertices          (N, 3, 3) int64: patch corners
+    normals           (N, 3) int64: (V1 - V0) x (V2 - V0), the host-precomputed patch constant
+    shooters          (N, K, 3) int64: shooter sample points (exact, on the patch plane)
+    receivers         (N, 3) int64: receiver end points (patch centroids, exact)
+    displacement      max distance (scene units) a vertex moved
+    end_displacement  max distance (scene units) a sample point or centroid moved
+    collapsed         list of int arrays: groups of distinct float vertices sharing one int point
+    degenerate        int array: patches of nonzero float area whose int normal is 0
+    """
+
+    bits: int
+    D: int
+    lo: np.ndarray
+    h: float
+    points: np.ndarray
+    vertices: np.ndarray
+    normals: np.ndarray
+    shooters: np.ndarray
+    receivers: np.ndarray
+    displacement: float
+    end_displacement: float
+    diagonal: float
+    collapsed: list = field(default_factory=list)
+    degenerate: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    nonzero_area: int = 0
+
+    @property
+    def widths(self):
+        return Widths(self.bits)
+
+    @property
+    def step(self):
+        """Scene units between vertex lattice points (D integer units)."""
+        return self.D * self.h
+
+    def to_scene(self, points):
+        """Integer grid points (..., 3) -> scene coordinates (float64)."""
+        return self.lo + np.asarray(points, dtype=np.float64) * self.h
+
+    @property
+    def relative_error(self):
+        """Max vertex displacement / bounding-box diagonal."""
+        return self.displacement / self.diagonal if self.diagonal > 0 else 0.0
+
+    def report(self):
+        """Summary dict (for --report and logs)."""
+        return {
+            "bits": self.bits,
+            "denominator": self.D,
+            "h": self.h,
+            "max_displacement": self.displacement,
+            "max_end_displacement": self.end_displacement,
+            "relative_error": self.relative_error,
+            "collapsed_vertex_groups": len(self.collapsed),
+            "collapsed_vertices": int(sum(len(g) for g in self.collapsed)),
+            "degenerate_patches": int(len(self.degenerate)),
+        }
+
+
+def _nonzero_area(scene):
+    return np.any(scene.cross != 0, axis=1)
+
+
+def quantise(scene, samples, bits):
+    """Put ``scene`` on the ``bits``-bit grid with the denominator of ``samples``.
+
+    Raises :class:`ParameterError` (naming --bits) when B is outside the limits or too small to
+    hold even one lattice step of D.
+    """
+    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not MIN_BITS <= bits <= MAX_BITS:
+        raise ParameterError(f"--bits must be an integer from {MIN_BITS} to {MAX_BITS}, not {bits!r}")
+    bits = int(bits)
+    D = int(samples.denominator)
+    cells = ((1 << bits) - 1) // D
+    if cells < 1:
+        raise ParameterError(f"--bits {bits} is too small for {samples.count} samples per patch "
+                             f"(denominator {D} needs at least {D.bit_length()} bits)")
+    if scene.patches == 0:
+        raise CapacityError("the scene has no patches to quantise")
+    vx = np.asarray(scene.vertices, dtype=np.float64)
+    used = np.unique(scene.triangles)
+    if not np.isfinite(vx[used]).all():
+        raise CapacityError("the scene has non-finite vertex coordinates")
+    lo, hi = scene.bbox
+    lo = np.asarray(lo, dtype=np.float64)
+    extent = float(np.max(hi - lo))
+    diagonal = float(np.linalg.norm(hi - lo))
+    step = extent / cells if extent > 0 else 1.0
+    h = step / D
+    lattice = np.clip(np.rint((vx - lo) / step), 0, cells).astype(np.int64)
+    points = lattice * D
+    V = points[scene.triangles]                                          # (N, 3, 3)
+    normals = patch_normals(V)
+    shooters = samples.points_int(V)
+    receivers = samples.centroids_int(V)
+
+    w = Widths(bits)
+    assert V.min() >= 0 and V.max() < (1 << w.coord)
+    assert np.abs(normals).max(initial=0) < (1 << (w.cross - 1))
+
+    moved = np.linalg.norm(lo + points[used] * h - vx[used], axis=1)
+    displacement = float(moved.max(initial=0.0))
+    fv = scene.patch_vertices
+    ends = np.concatenate([
+        np.linalg.norm(lo + shooters * h - samples.points(fv), axis=-1).ravel(),
+        np.linalg.norm(lo + receivers * h - scene.centroids, axis=-1)])
+    end_displacement = float(ends.max(initial=0.0))
+
+    # distinct float vertices that land on one integer point
+    upts, inv = np.unique(points[used], axis=0, return_inverse=True)
+    collapsed = []
+    if len(upts) < len(np.unique(vx[used], axis=0)):
+        inv = inv.ravel()
+        order = np.argsort(inv, kind="stable")
+        cuts = np.flatnonzero(np.diff(inv[order])) + 1
+        for g in np.split(order, cuts):
+            if len(g) > 1 and len(np.unique(vx[used[g]], axis=0)) > 1:
+                collapsed.append(used[g])
+    nz = _nonzero_area(scene)
+    degenerate = np.flatnonzero(nz & ~np.any(normals != 0, axis=1))
+    return QuantisedScene(bits=bits, D=D, lo=lo, h=h, points=points, vertices=V, normals=normals,
+                          shooters=shooters, receivers=receivers, displacement=displacement,
+                          end_displacement=end_displacement, diagonal=diagonal, collapsed=collapsed,
+                          degenerate=degenerate, nonzero_area=int(nz.sum()))
+
+
+def choose_bits(scene, samples, *, max_error=DEFAULT_MAX_ERROR):
+    """The fewest bits that keep every nonzero-area patch non-degenerate and the max vertex
+    displacement within ``max_error`` x the bounding-box diagonal.
+
+    Raises :class:`CapacityError` when even ``MAX_BITS`` bits do not.
+    """
+    if not (np.isfinite(max_error) and max_error > 0):
+        raise ParameterError(f"max_error must be a positive number, not {max_error!r}")
+    D = samples.denominator
+    first = max(MIN_BITS, D.bit_length())
+    q = None
+    for bits in range(first, MAX_BITS + 1):
+        q = quantise(scene, samples, bits)
+        if len(q.degenerate) == 0 and q.displacement <= max_error * q.diagonal:
+            return bits
+    why = (f"{len(q.degenerate)} patches degenerate" if len(q.degenerate)
+           else f"max vertex displacement {q.displacement:.3g} > {max_error:g} x diagonal {q.diagonal:.3g}")
+    raise CapacityError(f"scene {scene.name!r} cannot be represented with at most {MAX_BITS} "
+                        f"coordinate bits: at {MAX_BITS} bits {why}")
+
+
+def resolve_bits(scene, samples, bits=None, *, max_error=DEFAULT_MAX_ERROR):
+    """Quantise with forced ``bits`` (``--bits``) or with :func:`choose_bits`.
+
+    A forced B is refused (:class:`ParameterError` naming --bits) when more than
+    :data:`MAX_DEGENERATE_FRACTION` of the nonzero-area patches degenerate, or when every
+    nonzero-area patch does. Fewer degenerate patches are only reported (``q.degenerate``).
+    """
+    if bits is None:
+        return quantise(scene, samples, choose_bits(scene, samples, max_error=max_error))
+    q = quantise(scene, samples, bits)
+    bad = len(q.degenerate)
+    if bad and (bad > MAX_DEGENERATE_FRACTION * q.nonzero_area or bad == q.nonzero_area):
+        raise ParameterError(
+            f"--bits {bits} is too few for scene {scene.name!r}: {bad} of {q.nonzero_area} patches "
+            f"degenerate to zero area (more than {MAX_DEGENERATE_FRACTION:.0%}); use more bits or omit --bits")
+    return q

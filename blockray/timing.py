@@ -1,0 +1,102 @@
+"""The board's cycle contract: what every command costs, in one place.
+
+The bit-exact model counts cycles with this and the RTL testbenches assert it. The board executes
+the host's command stream in order; a command costs exactly:
+
+=============== ======================================================================
+WRITE_PATCH     1 (one patch record into patch memory)
+WRITE_VOXEL     1 (one (start, count) entry into the voxel table)
+BEGIN_BLOCK     1 (clears the R x S accumulators and the row/column ray-valid masks)
+LOAD_RECEIVER   1 per point (a receiver end point into one row's receiver unit)
+LOAD_SHOOTER    1 per point (a shooter sample point into one column's shooter unit)
+VOXEL v         max(1, count_v): the voxel's patch records stream out of memory, one per
+                cycle, broadcast to all R x S processors; an empty voxel costs one bubble
+END_BLOCK       drain_latency + 1: the pipeline drains, then the R x S result word goes out
+READ_COUNTERS   1 (a snapshot of the counters goes out; it covers the commands before it)
+=============== ======================================================================
+
+``drain_latency = memory_latency + processor_latency - 1`` (the last record issued before
+END_BLOCK reaches the accumulators in END_BLOCK's last cycle). Cycles spent waiting for the host
+(an empty command stream, or a result nobody reads) are stalls, not board cycles.
+:meth:`BoardTiming.for_bits` gives the RTL's latencies (tests assert them against the RTL).
+"""
+
+import enum
+from dataclasses import dataclass
+
+from .errors import ParameterError
+from .params import Widths
+
+__all__ = ["Op", "BoardTiming"]
+
+
+class Op(enum.IntEnum):
+    """Board command opcodes (the RTL's command stream uses the same values)."""
+    WRITE_PATCH = 0
+    WRITE_VOXEL = 1
+    BEGIN_BLOCK = 2
+    LOAD_RECEIVER = 3
+    LOAD_SHOOTER = 4
+    VOXEL = 5
+    END_BLOCK = 6
+    READ_COUNTERS = 7
+
+
+#: RTL latencies (asserted against blockray.rtl in tests/test_board_sim.py)
+MEMORY_LATENCY = 2      # patch-memory read + broadcast register
+UNIT_LATENCY = 3        # ShooterUnit / ReceiverUnit
+CELL_LATENCY = 4        # Processor (cell), including the OR into the accumulator
+
+
+@dataclass(frozen=True)
+class BoardTiming:
+    """Cycle costs of the board's commands (see the module docstring).
+
+    processor_latency  cycles from a patch record on the array's input to its blocked bits in the
+                       accumulators (receiver/shooter units + processor + OR)
+    memory_latency     cycles from a record's issue (its address to patch memory) to the array's
+                       input
+    """
+
+    processor_latency: int
+    memory_latency: int = MEMORY_LATENCY
+
+    def __post_init__(self):
+        for name in ("processor_latency", "memory_latency"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ParameterError(f"timing parameter {name} must be a non-negative integer, not {v!r}")
+
+    @classmethod
+    def for_bits(cls, bits, *, memory_latency=MEMORY_LATENCY):
+        """The latencies of the RTL (:class:`blockray.rtl.board.BoardTop`) for B coordinate bits.
+
+        memory_latency 2: patch-memory read (1) + the broadcast register that fans the record out
+        to the array (1). processor_latency 7: shooter/receiver units (3: differences, products,
+        sums) + processor (4: operand registers, products, sums, decision and OR). Both are
+        independent of B at B <= 20 (every multiplier is one pipeline stage); a test asserts them
+        against the RTL's properties.
+        """
+        Widths(bits)
+        return cls(processor_latency=UNIT_LATENCY + CELL_LATENCY, memory_latency=memory_latency)
+
+    @property
+    def drain_latency(self):
+        """END_BLOCK's waiting cycles. END_BLOCK starts the cycle after the last record's issue;
+        that record reaches the accumulators memory_latency + processor_latency cycles after its
+        issue, which is END_BLOCK's last cycle (the one that forms the result word)."""
+        return self.processor_latency + self.memory_latency - 1
+
+    def cost(self, op, count=0):
+        """Cycles of one command; ``count`` is the voxel's record count for VOXEL."""
+        op = Op(op)
+        if op is Op.VOXEL:
+            return max(1, int(count))
+        if op is Op.END_BLOCK:
+            return self.drain_latency + 1
+        return 1
+
+    def block_cycles(self, receivers, shooters, voxel_counts):
+        """Cycles of BEGIN_BLOCK, the loads, one VOXEL per entry of ``voxel_counts``, END_BLOCK."""
+        streamed = sum(max(1, int(c)) for c in voxel_counts)
+        return 1 + int(receivers) + int(shooters) + streamed + self.drain_latency + 1

@@ -1,0 +1,378 @@
+"""The bit-exact board model: exactly what the hardware computes, with the same cycle counts.
+
+Two levels:
+
+* :class:`BoardModel` is **one board** driven by its command stream, the RTL-facing contract. An
+  RTL testbench feeds the same list of :class:`Command` to the RTL and to
+  :meth:`BoardModel.execute` and compares result words and cycle counts with zero tolerance.
+* :class:`ModelBoard` is the host's :class:`~blockray.host_driver.board.Board`: ``P`` boards,
+  each holding a disjoint partition of the patches (patch id % P), run block rays and OR their
+  bits. It computes the same memories, bits and cycles as building each board's command stream and
+  executing it (a test checks that), but gathers a whole block's records at once.
+
+Command stream (one board; opcodes :class:`blockray.timing.Op`; costs :class:`blockray.timing.BoardTiming`)::
+
+    WRITE_PATCH   index=address  value=packed patch record (patch_layout(B), an int)
+    WRITE_VOXEL   index=voxel    value=(start, count)     voxel-table entry: records start..start+count-1
+    BEGIN_BLOCK                                           clear accumulators and row/column valid masks
+    LOAD_RECEIVER index=row      value=(x, y, z)          receiver end point Q of row r; row r valid
+    LOAD_SHOOTER  index=col      value=(x, y, z)          shooter sample point P of column s; column s valid
+    VOXEL         index=voxel                             stream the voxel's records to all R x S processors
+    END_BLOCK                                             drain; emit the R x S result word
+    READ_COUNTERS                                         emit a counter snapshot covering the commands before it
+
+Result word: bit ``r * S + s`` is 1 when the ray from shooter column s to receiver row r is blocked
+by some streamed record (rows/columns not loaded in the block are 0).
+
+Memory layout of a board: patch records in voxel order (a patch registered in k voxels occupies k
+words; within a voxel in increasing patch id) and a voxel table of (start, count) per voxel.
+Voxel linear index: ``(ix * v + iy) * v + iz``.
+
+Counters: ``tests_issued`` = R x S per record streamed (every processor sees every broadcast, used
+or not); ``tests_useful`` = real rays x records streamed; ``utilization`` = useful / (processors x
+cycles). A block's machine time is the slowest board's block cycles (the host waits for all result
+words); ``board_cycles`` sums that over blocks. Memory loading is counted apart (``load_cycles``).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import CapacityError, ParameterError
+from ..exact import blocked_block
+from ..fixedpoint import DEFAULT_MAX_ERROR, resolve_bits
+from ..params import BoardParams
+from ..records import patch_layout, patch_columns, pack_array, unpack_array
+from ..timing import BoardTiming, Op
+from ..host_driver.board import Board
+
+__all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration"]
+
+#: records per blocked_block call (bounds the (R, S, N, 3) int64 temporaries)
+CHUNK = 4096
+
+
+@dataclass(frozen=True)
+class Command:
+    op: Op
+    index: int = 0
+    value: object = None
+
+
+@dataclass
+class ExecResult:
+    words: list = field(default_factory=list)        # one int per END_BLOCK (bit r*S + s)
+    blocked: list = field(default_factory=list)      # the same as (R, S) bool arrays
+    cycles: int = 0                                   # board cycles of the whole stream
+    starts: list = field(default_factory=list)       # cycle at which each command began
+    tests_issued: int = 0
+    tests_useful: int = 0
+    busy: int = 0                                     # cycles that issued a patch record
+    counters: list = field(default_factory=list)     # one dict per READ_COUNTERS (cycles, busy, tests_issued, tests_useful)
+
+
+def result_word(bits):
+    """(R, S) bool -> int with bit r*S + s set where blocked."""
+    flat = np.asarray(bits, dtype=bool).ravel()
+    return int(sum(1 << int(i) for i in np.flatnonzero(flat)))
+
+
+def _any_blocked(P, Q, V, n):
+    """OR over records of blocked_block, chunked: (R, S) bool."""
+    out = np.zeros((len(Q), len(P)), dtype=bool)
+    for c in range(0, len(V), CHUNK):
+        out |= blocked_block(P, Q, V[c:c + CHUNK], n[c:c + CHUNK]).any(axis=2)
+    return out
+
+
+def _ranges(starts, counts):
+    """Concatenation of arange(start, start + count) for each pair, vectorised."""
+    counts = np.asarray(counts, dtype=np.int64)
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    offsets = np.cumsum(counts) - counts
+    return np.repeat(np.asarray(starts, dtype=np.int64) - offsets, counts) + np.arange(total)
+
+
+class BoardModel:
+    """One board: patch memory, voxel table, an R x S processor array, driven by commands.
+
+    Memory contents are the unpacked patch records (``vertices``, ``normals``), so what the model
+    tests is what the packed memory image holds.
+    """
+
+    def __init__(self, params, timing=None):
+        self.params = params
+        self.timing = timing or BoardTiming.for_bits(params.bits)
+        self.layout = patch_layout(params.bits)
+        self.vertices = np.zeros((params.patch_depth, 3, 3), dtype=np.int64)
+        self.normals = np.zeros((params.patch_depth, 3), dtype=np.int64)
+        self.start = np.zeros(params.voxel_depth, dtype=np.int64)
+        self.count = np.zeros(params.voxel_depth, dtype=np.int64)
+        self._begin()
+
+    def _begin(self):
+        R, S = self.params.rows, self.params.cols
+        self.receivers = np.zeros((R, 3), dtype=np.int64)
+        self.shooters = np.zeros((S, 3), dtype=np.int64)
+        self.row_valid = np.zeros(R, dtype=bool)
+        self.col_valid = np.zeros(S, dtype=bool)
+        self.pending = []
+
+    def load_memory(self, vertices, normals, start, count):
+        """Bulk memory load (same state as the WRITE_PATCH / WRITE_VOXEL commands)."""
+        n, v = len(vertices), len(start)
+        self.vertices[:n] = vertices
+        self.normals[:n] = normals
+        self.start[:v] = start
+        self.count[:v] = count
+
+    def _check_voxel(self, v):
+        if not 0 <= v < self.params.voxel_depth:
+            raise ParameterError(f"voxel {v} is outside the voxel table (voxel_depth {self.params.voxel_depth})")
+
+    def execute(self, commands):
+        """Run a command stream; return an :class:`ExecResult` (results, cycles, per-command starts)."""
+        p, t = self.params, self.timing
+        R, S = p.rows, p.cols
+        res = ExecResult()
+        for cmd in commands:
+            op = Op(cmd.op)
+            res.starts.append(res.cycles)
+            count = 0
+            if op is Op.WRITE_PATCH:
+                if not 0 <= cmd.index < p.patch_depth:
+                    raise ParameterError(f"patch address {cmd.index} is outside patch memory (patch_depth {p.patch_depth})")
+                cols = unpack_array(self.layout, [cmd.value])
+                self.vertices[cmd.index] = [[cols[(k, a)][0] for a in "xyz"] for k in ("v0", "v1", "v2")]
+                self.normals[cmd.index] = [cols[("normal", a)][0] for a in "xyz"]
+            elif op is Op.WRITE_VOXEL:
+                self._check_voxel(cmd.index)
+                start, n = cmd.value
+                if start < 0 or n < 0 or start + n > p.patch_depth:
+                    raise ParameterError(f"voxel entry ({start}, {n}) is outside patch memory (patch_depth {p.patch_depth})")
+                self.start[cmd.index], self.count[cmd.index] = start, n
+            elif op is Op.BEGIN_BLOCK:
+                self._begin()
+            elif op is Op.LOAD_RECEIVER:
+                self.receivers[cmd.index] = cmd.value
+                self.row_valid[cmd.index] = True
+            elif op is Op.LOAD_SHOOTER:
+                self.shooters[cmd.index] = cmd.value
+                self.col_valid[cmd.index] = True
+            elif op is Op.VOXEL:
+                self._check_voxel(cmd.index)
+                count = int(self.count[cmd.index])
+                self.pending.append((int(self.start[cmd.index]), count))
+                res.tests_issued += R * S * count
+                res.busy += count
+                res.tests_useful += int(self.row_valid.sum()) * int(self.col_valid.sum()) * count
+            elif op is Op.END_BLOCK:
+                bits = self._evaluate()
+                res.blocked.append(bits)
+                res.words.append(result_word(bits))
+            elif op is Op.READ_COUNTERS:
+                res.counters.append({"cycles": res.cycles, "busy": res.busy,
+                                     "tests_issued": res.tests_issued, "tests_useful": res.tests_useful})
+            res.cycles += t.cost(op, count)
+        return res
+
+    def _evaluate(self):
+        rows, cols = np.flatnonzero(self.row_valid), np.flatnonzero(self.col_valid)
+        out = np.zeros((self.params.rows, self.params.cols), dtype=bool)
+        if self.pending and len(rows) and len(cols):
+            starts, counts = zip(*self.pending)
+            idx = _ranges(starts, counts)
+            sub = _any_blocked(self.shooters[cols], self.receivers[rows], self.vertices[idx], self.normals[idx])
+            out[np.ix_(rows, cols)] = sub
+        return out
+
+
+def registration(grid):
+    """A voxel grid's registration as ``(voxel, patch)`` int64 arrays sorted by voxel, then patch,
+    and the number of voxels.
+
+    Accepts a grid with CSR arrays (``start``/``count``/``patches``, or ``offsets``/``patches``)
+    or ``voxel_patches`` (a list of patch-id arrays, one per voxel).
+    """
+    count = getattr(grid, "count", None)
+    if hasattr(grid, "voxel_patches"):
+        lists = [np.asarray(x, dtype=np.int64) for x in grid.voxel_patches]
+        nvox = len(lists)
+        vox = np.repeat(np.arange(nvox), [len(x) for x in lists])
+        pat = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int64)
+    elif hasattr(grid, "patches") and (hasattr(grid, "start") or hasattr(grid, "offsets")) and count is not None:
+        count = np.asarray(count, dtype=np.int64)
+        start = np.asarray(grid.start if hasattr(grid, "start") else grid.offsets[:-1], dtype=np.int64)
+        nvox = len(count)
+        vox = np.repeat(np.arange(nvox), count)
+        pat = np.asarray(grid.patches, dtype=np.int64)[_ranges(start, count)]
+    else:
+        raise TypeError(f"cannot read the patch registration of {type(grid).__name__}")
+    order = np.lexsort((pat, vox))
+    return vox[order], pat[order], nvox
+
+
+class ModelBoard(Board):
+    """P bit-exact boards behind the host's Board interface (``--board model``).
+
+    ``bits=None`` chooses B per scene (:func:`blockray.fixedpoint.choose_bits`); an int forces it
+    (``--bits``). ``params.bits`` is replaced by the B actually used.
+    """
+
+    name = "model"
+
+    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR):
+        self.params = params or BoardParams()
+        self.bits = bits
+        self.max_error = max_error
+        self._timing = timing
+        self.timing = None
+        self.quantised = None
+        self.margin = 0.0
+        self.memories = None
+        self._reset_counters()
+
+    # -- Board interface -------------------------------------------------------------------------
+
+    def prepare(self, scene, samples):
+        q = resolve_bits(scene, samples, self.bits, max_error=self.max_error)
+        self.quantised = q
+        self.samples = samples
+        self.params = self.params.with_(bits=q.bits)
+        self.timing = self._timing or BoardTiming.for_bits(q.bits)
+        # The host registers float triangles and traverses float rays; the quantised triangle and
+        # segment lie within max(displacement) of them (convex combinations with the same weights),
+        # so a margin of that much covers every hit point. The slack covers float rounding.
+        self.margin = max(q.displacement, q.end_displacement) * (1 + 1e-9) + 1e-12 * q.diagonal
+        self.memories = None
+        self._reset_counters()
+
+    def load(self, grid):
+        if self.quantised is None:
+            raise RuntimeError("prepare() before load()")
+        q, p = self.quantised, self.params
+        vox, pat, nvox = registration(grid)
+        if nvox > p.voxel_depth:
+            raise CapacityError(f"voxel table: {nvox} voxels do not fit voxel_depth {p.voxel_depth}")
+        self.memories = []
+        for b in range(p.boards):
+            mine = pat % p.boards == b
+            rec = pat[mine]
+            if len(rec) > p.patch_depth:
+                raise CapacityError(
+                    f"patch memory of board {b}: {len(rec)} patch records (registrations) do not fit "
+                    f"patch_depth {p.patch_depth}")
+            count = np.bincount(vox[mine], minlength=nvox).astype(np.int64)
+            start = np.cumsum(count) - count
+            self.memories.append({"patch": rec, "start": start, "count": count})
+        # all boards' records in one array (board b at offset[b]) for one gather per block
+        self._offset = np.cumsum([0] + [len(m["patch"]) for m in self.memories])
+        allrec = np.concatenate([m["patch"] for m in self.memories])
+        self._V = q.vertices[allrec]
+        self._n = q.normals[allrec]
+        self._start = np.stack([m["start"] + o for m, o in zip(self.memories, self._offset)])   # (P, nvox)
+        self._count = np.stack([m["count"] for m in self.memories])                          # (P, nvox)
+        self.load_cycles = [len(m["patch"]) + nvox for m in self.memories]
+
+    def run(self, blocks):
+        if self.memories is None:
+            raise RuntimeError("load() before run()")
+        q, p, t = self.quantised, self.params, self.timing
+        out = []
+        for block in blocks:
+            Rb, Sb = len(block.receiver_patch), len(block.shooter_patch)
+            if Rb > p.rows or Sb > p.cols:
+                raise ParameterError(f"block of {Rb} receivers x {Sb} shooter points exceeds the "
+                                     f"{p.rows} x {p.cols} array (--rows/--cols); the host must split it")
+            P = q.shooters[block.shooter_patch, block.shooter_sample]
+            Q = q.receivers[block.receiver_patch]
+            vox = np.asarray(block.voxels, dtype=np.int64)
+            counts = self._count[:, vox]                                     # (P, K)
+            records = counts.sum(axis=1)                                    # per board
+            cycles = 1 + Rb + Sb + np.maximum(counts, 1).sum(axis=1) + t.drain_latency + 1
+            self._cycles_b += cycles
+            self._cycles += int(cycles.max())
+            self._issued_b += p.processors * records
+            self._useful_b += Rb * Sb * records
+            self._blocks += 1
+            self._rays += Rb * Sb
+            idx = _ranges(self._start[:, vox].ravel(), counts.ravel())
+            if len(idx) and Rb and Sb:
+                out.append(_any_blocked(P, Q, self._V[idx], self._n[idx]))
+            else:
+                out.append(np.zeros((Rb, Sb), dtype=bool))
+        return out
+
+    def counters(self):
+        p = self.params
+        procs = p.processors
+        util_b = [float(u) / (procs * c) if c else 0.0 for u, c in zip(self._useful_b, self._cycles_b)]
+        useful = int(self._useful_b.sum())
+        return {
+            "tests": useful,
+            "tests_useful": useful,
+            "tests_issued": int(self._issued_b.sum()),
+            "board_cycles": int(self._cycles),
+            "utilization": useful / (procs * p.boards * self._cycles) if self._cycles else 0.0,
+            "board_cycles_per_board": [int(c) for c in self._cycles_b],
+            "tests_issued_per_board": [int(c) for c in self._issued_b],
+            "tests_useful_per_board": [int(c) for c in self._useful_b],
+            "utilization_per_board": util_b,
+            "load_cycles_per_board": list(getattr(self, "load_cycles", [])),
+            "blocks": self._blocks,
+            "rays": self._rays,
+            "bits": p.bits,
+            "drain_latency": self.timing.drain_latency if self.timing else None,
+            "quantisation": self.quantised.report() if self.quantised else None,
+        }
+
+    # -- RTL-facing helpers ----------------------------------------------------------------------
+
+    def _reset_counters(self):
+        P = self.params.boards
+        self._cycles = 0
+        self._cycles_b = np.zeros(P, dtype=np.int64)
+        self._issued_b = np.zeros(P, dtype=np.int64)
+        self._useful_b = np.zeros(P, dtype=np.int64)
+        self._blocks = 0
+        self._rays = 0
+
+    def memory_image(self, board):
+        """Board ``board``'s memory as the RTL loads it: packed patch words (patch_layout(B)),
+        voxel-table starts and counts, and the patch id of each word."""
+        m = self.memories[board]
+        q = self.quantised
+        words = pack_array(patch_layout(self.params.bits),
+                           patch_columns(q.vertices[m["patch"]], q.normals[m["patch"]]))
+        return {"patch": words, "start": m["start"].copy(), "count": m["count"].copy(),
+                "patch_id": m["patch"].copy()}
+
+    def load_commands(self, board):
+        """WRITE_PATCH / WRITE_VOXEL commands that fill board ``board``'s memories."""
+        img = self.memory_image(board)
+        cmds = [Command(Op.WRITE_PATCH, a, w) for a, w in enumerate(img["patch"])]
+        cmds += [Command(Op.WRITE_VOXEL, v, (int(s), int(c)))
+                 for v, (s, c) in enumerate(zip(img["start"], img["count"]))]
+        return cmds
+
+    def block_commands(self, block):
+        """The command stream of one block ray (the same for every board)."""
+        q = self.quantised
+        P = q.shooters[block.shooter_patch, block.shooter_sample]
+        Q = q.receivers[block.receiver_patch]
+        cmds = [Command(Op.BEGIN_BLOCK)]
+        cmds += [Command(Op.LOAD_RECEIVER, r, tuple(int(c) for c in pt)) for r, pt in enumerate(Q)]
+        cmds += [Command(Op.LOAD_SHOOTER, s, tuple(int(c) for c in pt)) for s, pt in enumerate(P)]
+        cmds += [Command(Op.VOXEL, int(v)) for v in block.voxels]
+        cmds.append(Command(Op.END_BLOCK))
+        return cmds
+
+    def board_model(self, board):
+        """A :class:`BoardModel` whose memories hold board ``board``'s partition (bulk-loaded)."""
+        m = self.memories[board]
+        q = self.quantised
+        bm = BoardModel(self.params, self.timing)
+        bm.load_memory(q.vertices[m["patch"]], q.normals[m["patch"]], m["start"], m["count"])
+        return bm

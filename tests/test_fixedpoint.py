@@ -1,0 +1,171 @@
+"""Quantisation onto the B-bit grid (blockray.fixedpoint) and the cycle contract (blockray.timing)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from blockray.errors import CapacityError, ParameterError
+from blockray.exact import orient3d
+from blockray.fixedpoint import quantise, choose_bits, resolve_bits, DEFAULT_MAX_ERROR
+from blockray.host_driver.scene import Scene
+from blockray.params import Widths
+from blockray.samples import SampleScheme
+from blockray.timing import BoardTiming, Op
+
+
+def make_scene(vertices, triangles, name="t"):
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n = len(t)
+    return Scene(name, v, t, np.full((n, 3), 0.5), np.zeros((n, 3)), np.zeros(n, dtype=np.int64))
+
+
+def random_scene(seed, n=40, scale=7.3):
+    rng = np.random.default_rng(seed)
+    print(f"seed={seed}")
+    v = rng.random((3 * n, 3)) * scale - 2.0
+    return make_scene(v, np.arange(3 * n))
+
+
+@pytest.mark.parametrize("bits", [6, 10, 16, 20])
+@pytest.mark.parametrize("count", [1, 4, 8, 9])
+def test_grid_points_exact_and_on_plane(bits, count):
+    s = SampleScheme(count)
+    if (1 << bits) - 1 < s.denominator:
+        pytest.skip("B too small for this denominator (tested in test_bits_too_small_for_denominator)")
+    q = quantise(random_scene(bits * 100 + count), s, bits)
+    assert q.D == s.denominator
+    assert (q.vertices % q.D == 0).all()
+    assert q.vertices.min() >= 0 and q.vertices.max() <= (1 << bits) - 1
+    # the largest extent spans the whole lattice: nothing is wasted
+    assert q.points.max() == ((1 << bits) - 1) // q.D * q.D
+    w = Widths(bits)
+    assert np.abs(q.normals).max() < 1 << (w.cross - 1)
+    for i in range(0, len(q.vertices), 7):
+        v0, v1, v2 = q.vertices[i]
+        for p in list(q.shooters[i]) + [q.receivers[i]]:
+            assert orient3d(v0, v1, v2, p) == 0                # exactly on the patch plane
+        # the integer sample point is the same barycentric combination of the integer vertices
+        expect = s.weights @ q.vertices[i].astype(object)
+        assert all(int(e) == int(p) * q.D for e, p in zip(expect.ravel(), q.shooters[i].ravel()))
+
+
+def test_displacement_measured_and_bounded():
+    sc = random_scene(5)
+    s = SampleScheme(8)
+    for bits in (8, 12, 16):
+        q = quantise(sc, s, bits)
+        moved = np.linalg.norm(q.to_scene(q.points) - sc.vertices, axis=1)
+        assert q.displacement == pytest.approx(moved.max())
+        assert q.displacement <= math.sqrt(3) * q.step / 2 * (1 + 1e-12)
+        assert q.end_displacement <= q.displacement * (1 + 1e-12)
+        np.testing.assert_allclose(q.to_scene(q.receivers), q.to_scene(q.vertices).mean(axis=1), atol=1e-9)
+
+
+def test_uniform_step_on_all_axes():
+    sc = make_scene([[0, 0, 0], [10, 0, 0], [0, 1, 0], [0, 0, 0.1]], [[0, 1, 2], [0, 2, 3]])
+    q = quantise(sc, SampleScheme(1), 12)
+    # x spans the lattice; y and z use the same step, so 1 and 0.1 scene units keep their ratio
+    assert q.points[1, 0] == 4095
+    np.testing.assert_allclose(q.to_scene(q.points), sc.vertices, atol=q.step)
+    assert abs(q.points[2, 1] - 409.5) <= q.D / 2
+
+
+def test_collapsed_vertices_and_degenerate_patches_reported():
+    # two vertices 1e-7 apart and a sliver that degenerates on a coarse grid
+    v = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1e-7, 1, 0], [0.31, 0.31, 1], [0.31, 0.31 + 1e-6, 1], [1, 1, 1]]
+    sc = make_scene(v, [[0, 1, 2], [0, 1, 3], [4, 5, 6]])
+    q = quantise(sc, SampleScheme(1), 8)
+    groups = [sorted(g.tolist()) for g in q.collapsed]
+    assert [2, 3] in groups
+    assert q.degenerate.tolist() == [2]            # the sliver 4-5-6 collapses to a line
+    assert q.report()["degenerate_patches"] == 1
+    assert q.report()["collapsed_vertex_groups"] == len(q.collapsed) >= 1
+    # duplicated float vertices (same coordinates) are not a collapse
+    sc2 = make_scene([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 1, 3]])
+    assert quantise(sc2, SampleScheme(1), 10).collapsed == []
+
+
+def test_zero_area_triangle_is_not_degenerate_report():
+    sc = make_scene([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], [[0, 1, 2], [0, 1, 3]])
+    q = quantise(sc, SampleScheme(8), 10)
+    assert q.degenerate.tolist() == []        # zero float area: nothing lost
+    assert (q.normals[0] == 0).all()
+
+
+def test_choose_bits_is_the_fewest_that_meet_the_bound():
+    s = SampleScheme(8)
+    for seed in range(3):
+        sc = random_scene(seed)
+        b = choose_bits(sc, s)
+        q = quantise(sc, s, b)
+        assert len(q.degenerate) == 0 and q.relative_error <= DEFAULT_MAX_ERROR
+        qb = quantise(sc, s, b - 1)
+        assert len(qb.degenerate) > 0 or qb.relative_error > DEFAULT_MAX_ERROR
+        # a looser bound never needs more bits
+        assert choose_bits(sc, s, max_error=1e-2) <= b
+
+
+def test_choose_bits_models_only_what_the_scene_needs():
+    # a unit cube's corners are on every lattice: the smallest B that holds D is enough
+    cube = make_scene([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)],
+                      [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5]])
+    s = SampleScheme(8)
+    assert choose_bits(cube, s) == max(4, s.denominator.bit_length())
+    # a tiny triangle beside a huge one needs more bits than the huge one alone
+    big = [[0, 0, 0], [1000, 0, 0], [0, 1000, 0]]
+    tiny = [[500, 500, 1], [500.05, 500, 1], [500, 500.05, 1]]
+    alone = make_scene(big + [[1000, 1000, 1000]], [[0, 1, 2]])
+    both = make_scene(big + [[1000, 1000, 1000]] + tiny, [[0, 1, 2], [4, 5, 6]])
+    assert choose_bits(both, s) > choose_bits(alone, s)
+
+
+def test_choose_bits_capacity_error():
+    # a triangle 1e-9 thin in a unit scene degenerates at every B <= 20
+    sc = make_scene([[0, 0, 0], [1, 0, 0], [0.5, 1e-9, 0], [0, 1, 1]], [[0, 1, 2], [0, 1, 3]])
+    with pytest.raises(CapacityError, match="20"):
+        choose_bits(sc, SampleScheme(8))
+
+
+@pytest.mark.parametrize("bad", [3, 21, 0, -1, 16.0, "16", True])
+def test_forced_bits_validated(bad):
+    with pytest.raises(ParameterError, match="--bits"):
+        resolve_bits(random_scene(0), SampleScheme(8), bad)
+
+
+def test_bits_too_small_for_denominator():
+    with pytest.raises(ParameterError, match="--bits"):
+        quantise(random_scene(0), SampleScheme(64), 4)     # D = 24 > 15
+
+
+def test_forced_bits_refused_when_scene_degenerates_badly():
+    rng = np.random.default_rng(11)
+    print("seed=11")
+    # 50 small triangles in a large box: at 6 bits most of them collapse
+    base = rng.random((50, 1, 3)) * 100
+    tris = base + rng.random((50, 3, 3)) * 0.5
+    v = np.concatenate([tris.reshape(-1, 3), [[0, 0, 0], [100, 100, 100], [0, 100, 0]]])
+    t = np.concatenate([np.arange(150).reshape(-1, 3), [[150, 151, 152]]])
+    sc = make_scene(v, t)
+    with pytest.raises(ParameterError, match="--bits 6"):
+        resolve_bits(sc, SampleScheme(8), 6)
+    q = resolve_bits(sc, SampleScheme(8), 20)
+    assert q.bits == 20 and len(q.degenerate) == 0
+    # the chosen B is accepted as well
+    assert resolve_bits(sc, SampleScheme(8)).bits == choose_bits(sc, SampleScheme(8))
+
+
+def test_timing_contract():
+    t = BoardTiming(processor_latency=7, memory_latency=2)
+    assert t.drain_latency == 8        # memory + processor - 1: END_BLOCK starts after the last issue
+    assert [t.cost(op) for op in (Op.WRITE_PATCH, Op.WRITE_VOXEL, Op.BEGIN_BLOCK,
+                                  Op.LOAD_RECEIVER, Op.LOAD_SHOOTER)] == [1, 1, 1, 1, 1]
+    assert t.cost(Op.VOXEL, 0) == 1 and t.cost(Op.VOXEL, 5) == 5
+    assert t.cost(Op.END_BLOCK) == 9
+    # BEGIN + 3 receivers + 2 shooters + (4 + 1 + 2) + END
+    assert t.block_cycles(3, 2, [4, 0, 2]) == 1 + 3 + 2 + 7 + 9
+    with pytest.raises(ParameterError, match="processor_latency"):
+        BoardTiming(processor_latency=-1)
+    lat = [BoardTiming.for_bits(b).processor_latency for b in range(4, 21)]
+    assert lat == sorted(lat) and lat[0] >= 4        # wider operands never make the pipeline shorter

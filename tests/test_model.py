@@ -1,0 +1,298 @@
+"""The bit-exact board model (blockray.sim.model): memories, bits, cycles and counters."""
+
+import numpy as np
+import pytest
+
+from blockray.errors import CapacityError, ParameterError
+from blockray.exact import blocked_reference, blocked_block
+from blockray.host_driver.board import BlockRay
+from blockray.host_driver.scene import Scene
+from blockray.params import BoardParams
+from blockray.records import patch_layout, unpack_array
+from blockray.samples import SampleScheme
+from blockray.sim.model import BoardModel, Command, ModelBoard, registration, result_word
+from blockray.timing import BoardTiming, Op
+
+
+def make_scene(vertices, triangles, name="t"):
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n = len(t)
+    return Scene(name, v, t, np.full((n, 3), 0.5), np.zeros((n, 3)), np.zeros(n, dtype=np.int64))
+
+
+def random_scene(seed, n=30):
+    rng = np.random.default_rng(seed)
+    print(f"seed={seed}")
+    centres = rng.random((n, 1, 3)) * 8
+    v = centres + (rng.random((n, 3, 3)) - 0.5) * 3
+    return make_scene(v.reshape(-1, 3), np.arange(3 * n))
+
+
+class BoxGrid:
+    """Test grid: a patch is registered in every voxel its bounding box (plus margin) overlaps."""
+
+    def __init__(self, patch_vertices, v, margin=0.0):
+        lo = patch_vertices.reshape(-1, 3).min(axis=0)
+        hi = patch_vertices.reshape(-1, 3).max(axis=0)
+        size = (hi - lo) / v
+        lists = [[] for _ in range(v ** 3)]
+        for i, tri in enumerate(patch_vertices):
+            a = np.clip(((tri.min(axis=0) - margin - lo) // size).astype(int), 0, v - 1)
+            b = np.clip(((tri.max(axis=0) + margin - lo) // size).astype(int), 0, v - 1)
+            for ix in range(a[0], b[0] + 1):
+                for iy in range(a[1], b[1] + 1):
+                    for iz in range(a[2], b[2] + 1):
+                        lists[(ix * v + iy) * v + iz].append(i)
+        self.voxel_patches = [np.array(x, dtype=np.int64) for x in lists]
+        self.count = np.array([len(x) for x in lists])
+
+
+def random_blocks(rng, scene, samples, params, nblocks, nvox):
+    blocks = []
+    for _ in range(nblocks):
+        Rb = int(rng.integers(1, params.rows + 1))
+        Sb = int(rng.integers(1, params.cols + 1))
+        blocks.append(BlockRay(
+            shooter_patch=rng.integers(0, scene.patches, Sb),
+            shooter_sample=rng.integers(0, samples.count, Sb),
+            receiver_patch=rng.integers(0, scene.patches, Rb),
+            voxels=rng.choice(nvox, int(rng.integers(0, nvox + 1)), replace=False)))
+    return blocks
+
+
+def setup_board(seed=0, v=3, params=None, bits=None, samples=SampleScheme(8)):
+    scene = random_scene(seed)
+    board = ModelBoard(params or BoardParams(rows=4, cols=3, boards=3), bits=bits)
+    board.prepare(scene, samples)
+    grid = BoxGrid(scene.patch_vertices, v, margin=board.margin)
+    board.load(grid)
+    return scene, board, grid
+
+
+def test_run_equals_independent_exact_evaluation():
+    samples = SampleScheme(8)
+    scene, board, grid = setup_board(seed=1, bits=12, samples=samples)
+    q = board.quantised
+    rng = np.random.default_rng(2)
+    blocks = random_blocks(rng, scene, samples, board.params, 60, len(grid.voxel_patches))
+    bits = board.run(blocks)
+    seen_blocked = 0
+    for block, out in zip(blocks, bits):
+        assert out.shape == (len(block.receiver_patch), len(block.shooter_patch))
+        patches = sorted({int(t) for v in block.voxels for t in grid.voxel_patches[v]})
+        for r, j in enumerate(block.receiver_patch):
+            for s, (i, k) in enumerate(zip(block.shooter_patch, block.shooter_sample)):
+                P, Q = q.shooters[i, k].tolist(), q.receivers[j].tolist()
+                expect = any(blocked_reference(P, Q, *q.vertices[t].tolist()) for t in patches)
+                assert out[r, s] == expect
+                seen_blocked += expect
+    assert seen_blocked > 20          # the scene is dense enough that blocking is exercised
+
+
+def test_run_equals_command_streams_per_board():
+    samples = SampleScheme(8)
+    scene, board, grid = setup_board(seed=3, samples=samples)
+    rng = np.random.default_rng(4)
+    blocks = random_blocks(rng, scene, samples, board.params, 12, len(grid.voxel_patches))
+    bits = board.run(blocks)
+    c = board.counters()
+    stream = [cmd for b in blocks for cmd in board.block_commands(b)]
+    ored = [np.zeros_like(b) for b in bits]
+    for b in range(board.params.boards):
+        bm = BoardModel(board.params, board.timing)
+        loaded = bm.execute(board.load_commands(b))           # memory filled through WRITE_* commands
+        assert loaded.cycles == c["load_cycles_per_board"][b]
+        res = bm.execute(stream)
+        assert res.cycles == c["board_cycles_per_board"][b]
+        assert res.tests_issued == c["tests_issued_per_board"][b]
+        assert res.tests_useful == c["tests_useful_per_board"][b]
+        for k, (blk, word) in enumerate(zip(blocks, res.blocked)):
+            Rb, Sb = len(blk.receiver_patch), len(blk.shooter_patch)
+            assert not word[Rb:].any() and not word[:, Sb:].any()   # unloaded rows/cols stay 0
+            ored[k] |= word[:Rb, :Sb]
+        assert res.words == [result_word(w) for w in res.blocked]
+    for a, b in zip(ored, bits):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_memory_layout_and_partition():
+    scene, board, grid = setup_board(seed=5, v=3)
+    P = board.params.boards
+    layout = patch_layout(board.params.bits)
+    q = board.quantised
+    reg_total = sum(len(x) for x in grid.voxel_patches)
+    ids = []
+    for b in range(P):
+        img = board.memory_image(b)
+        assert len(img["patch"]) <= board.params.patch_depth
+        assert all(int(w) < 1 << layout.size for w in img["patch"])
+        cols = unpack_array(layout, img["patch"])
+        for k, name in enumerate(("v0", "v1", "v2")):
+            for a, axis in enumerate("xyz"):
+                np.testing.assert_array_equal(cols[(name, axis)], q.vertices[img["patch_id"], k, a])
+        for a, axis in enumerate("xyz"):
+            np.testing.assert_array_equal(cols[("normal", axis)], q.normals[img["patch_id"], a])
+        # voxel v's records are exactly board b's patches registered in v, contiguous, in id order
+        for v, members in enumerate(grid.voxel_patches):
+            got = img["patch_id"][img["start"][v]:img["start"][v] + img["count"][v]]
+            np.testing.assert_array_equal(got, np.sort(members[members % P == b]))
+        assert (img["patch_id"] % P == b).all()
+        ids.append(img["patch_id"])
+    assert sum(len(x) for x in ids) == reg_total        # a patch in k voxels occupies k words
+    assert layout.size == 15 * board.params.bits + 6
+
+
+def test_registration_accepts_csr_grid():
+    class CSR:
+        count = np.array([2, 0, 1])
+        start = np.array([0, 2, 2])
+        patches = np.array([7, 3, 5])
+    vox, pat, nvox = registration(CSR())
+    assert nvox == 3 and vox.tolist() == [0, 0, 2] and pat.tolist() == [3, 7, 5]
+
+
+def test_cycle_counts_and_counters_by_hand():
+    # P = 2 boards: board 0 holds patch 0, board 1 patch 1; voxel 0 holds 0 and 1, voxel 1 holds 1
+    scene = make_scene([[0, 0, 0], [4, 0, 0], [0, 4, 0], [0, 0, 4], [4, 0, 4], [0, 4, 4]],
+                       [[0, 1, 2], [3, 4, 5]])
+
+    class G:
+        voxel_patches = [np.array([0, 1]), np.array([1]), np.array([], dtype=np.int64)]
+
+    params = BoardParams(rows=4, cols=2, boards=2)
+    timing = BoardTiming(processor_latency=5, memory_latency=2)
+    board = ModelBoard(params, bits=8, timing=timing)
+    board.prepare(scene, SampleScheme(1))
+    board.load(G())
+    # receiver: centroid of patch 1 (z = 4); shooter: the sample of patch 0 (z = 0): crosses nothing
+    blk = BlockRay(np.array([0]), np.array([0]), np.array([1, 1, 1]), np.array([0, 1, 2]))
+    out = board.run([blk])
+    assert out[0].shape == (3, 1) and not out[0].any()
+    c = board.counters()
+    drain_end = (5 + 2 - 1) + 1        # drain_latency = processor + memory - 1, then the result
+    # board 0 holds patch 0: voxel counts (1, 0, 0); board 1 holds patch 1: (1, 1, 0)
+    assert c["board_cycles_per_board"] == [1 + 3 + 1 + (1 + 1 + 1) + drain_end,
+                                           1 + 3 + 1 + (1 + 1 + 1) + drain_end]
+    assert c["board_cycles"] == max(c["board_cycles_per_board"])
+    assert c["tests_issued_per_board"] == [8 * 1, 8 * 2]
+    assert c["tests_useful_per_board"] == [3 * 1, 3 * 2]
+    assert c["tests_useful"] == c["tests"] == 9 and c["tests_issued"] == 24
+    assert c["utilization"] == pytest.approx(9 / (8 * 2 * c["board_cycles"]))
+    assert c["utilization_per_board"][1] == pytest.approx(6 / (8 * c["board_cycles_per_board"][1]))
+    assert c["blocks"] == 1 and c["rays"] == 3
+    assert c["load_cycles_per_board"] == [1 + 3, 2 + 3]
+
+
+def test_blocking_across_boards_is_ored():
+    # a wall (patch 1, on board 1) between a shooter (patch 0, board 0) and a receiver (patch 2, board 0)
+    scene = make_scene([[0, 0, 0], [4, 0, 0], [0, 4, 0],
+                        [-5, -5, 2], [9, -5, 2], [-5, 9, 2],
+                        [0, 0, 4], [0, 4, 4], [4, 0, 4]],
+                       [[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+
+    class G:
+        voxel_patches = [np.array([0, 1, 2])]
+
+    board = ModelBoard(BoardParams(rows=2, cols=2, boards=2), bits=10)
+    board.prepare(scene, SampleScheme(4))
+    board.load(G())
+    blk = BlockRay(np.array([0, 0]), np.array([0, 3]), np.array([2]), np.array([0]))
+    assert board.run([blk])[0].tolist() == [[True, True]]
+    blk0 = BlockRay(np.array([0, 0]), np.array([0, 3]), np.array([2]), np.array([], dtype=np.int64))
+    assert board.run([blk0])[0].tolist() == [[False, False]]    # no voxel visited: nothing tested
+
+
+def test_capacity_errors_name_the_memory():
+    scene = random_scene(6)
+    grid = BoxGrid(scene.patch_vertices, 2)
+    board = ModelBoard(BoardParams(boards=2, patch_depth=8))
+    board.prepare(scene, SampleScheme(8))
+    with pytest.raises(CapacityError, match="patch memory.*patch_depth 8"):
+        board.load(grid)
+    board = ModelBoard(BoardParams(boards=2, voxel_depth=7))
+    board.prepare(scene, SampleScheme(8))
+    with pytest.raises(CapacityError, match="voxel table.*8 voxels.*voxel_depth 7"):
+        board.load(grid)
+
+
+def test_block_larger_than_array_is_refused():
+    scene, board, grid = setup_board(seed=7)
+    blk = BlockRay(np.zeros(4, dtype=np.int64), np.arange(4), np.arange(2), np.array([0]))
+    with pytest.raises(ParameterError, match="--rows/--cols"):
+        board.run([blk])      # 4 shooter points > 3 columns
+
+
+def test_margin_covers_quantisation():
+    for bits in (8, 10, 16):
+        scene, board, grid = setup_board(seed=8, bits=bits)
+        q = board.quantised
+        assert board.margin >= q.displacement and board.margin >= q.end_displacement
+        assert board.params.bits == bits
+        moved = np.linalg.norm(q.to_scene(q.shooters) - SampleScheme(8).points(scene.patch_vertices), axis=-1)
+        assert moved.max() <= board.margin
+
+
+def test_bits_chosen_when_not_forced():
+    scene, board, grid = setup_board(seed=9, bits=None)
+    from blockray.fixedpoint import choose_bits
+    assert board.params.bits == choose_bits(scene, SampleScheme(8))
+    assert board.counters()["bits"] == board.params.bits
+
+
+def test_execute_rejects_bad_addresses():
+    bm = BoardModel(BoardParams(rows=2, cols=2, patch_depth=4, voxel_depth=4))
+    with pytest.raises(ParameterError, match="voxel_depth"):
+        bm.execute([Command(Op.VOXEL, 9)])
+    with pytest.raises(ParameterError, match="patch_depth"):
+        bm.execute([Command(Op.WRITE_VOXEL, 0, (2, 3))])
+    with pytest.raises(ParameterError, match="patch_depth"):
+        bm.execute([Command(Op.WRITE_PATCH, 4, 0)])
+
+
+@pytest.mark.parametrize("bits", [8, 10, 14])
+def test_margin_keeps_host_voxel_traversal_conservative(bits):
+    """With the host's VoxelGrid grown by board.margin, the blocks' voxels hold every patch that
+    blocks a quantised ray: the answer equals testing all patches (coarse B: large displacement)."""
+    from blockray.host_driver.voxel import VoxelGrid
+    samples = SampleScheme(8)
+    scene = random_scene(10 + bits, n=60)
+    board = ModelBoard(BoardParams(rows=8, cols=8, boards=4), bits=bits)
+    board.prepare(scene, samples)
+    grid = VoxelGrid(scene.patch_vertices, 24, margin=board.margin)
+    board.load(grid)
+    q = board.quantised
+    fpts = samples.points(scene.patch_vertices)
+    rng = np.random.default_rng(bits)
+    print(f"seed={bits}")
+    blocks = []
+    for _ in range(40):
+        i = int(rng.integers(scene.patches))
+        ks = rng.choice(samples.count, 4, replace=False)
+        rec = rng.choice(scene.patches, 5, replace=False)
+        vox = grid.block_voxels(fpts[i, ks], scene.centroids[rec])
+        blocks.append(BlockRay(np.full(4, i), ks, rec, vox))
+    got = board.run(blocks)
+    misses = 0
+    for blk, out in zip(blocks, got):
+        full = blocked_block(q.shooters[blk.shooter_patch, blk.shooter_sample], q.receivers[blk.receiver_patch],
+                             q.vertices, q.normals).any(axis=2)
+        np.testing.assert_array_equal(out, full)
+        misses += int(full.sum())
+    assert misses > 10
+
+
+def test_read_counters_snapshot_covers_the_commands_before_it():
+    bm = BoardModel(BoardParams(rows=2, cols=3, patch_depth=8, voxel_depth=2),
+                    BoardTiming(processor_latency=7, memory_latency=2))
+    V = np.array([[[0, 0, 5], [9, 0, 5], [0, 9, 5]]] * 4)
+    bm.load_memory(V, np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0]), [0, 3], [3, 0])
+    cmds = [Command(Op.READ_COUNTERS), Command(Op.BEGIN_BLOCK), Command(Op.LOAD_RECEIVER, 0, (1, 1, 9)),
+            Command(Op.LOAD_SHOOTER, 2, (1, 1, 0)), Command(Op.VOXEL, 0), Command(Op.VOXEL, 1),
+            Command(Op.END_BLOCK), Command(Op.READ_COUNTERS)]
+    res = bm.execute(cmds)
+    assert res.counters[0] == {"cycles": 0, "busy": 0, "tests_issued": 0, "tests_useful": 0}
+    assert res.counters[1] == {"cycles": 1 + 1 + 1 + 1 + 3 + 1 + (7 + 2 - 1) + 1, "busy": 3,
+                               "tests_issued": 3 * 6, "tests_useful": 3 * 1}
+    assert res.cycles == res.counters[1]["cycles"] + 1
+    assert res.words == [1 << (0 * 3 + 2)]            # row 0, column 2 blocked by the z = 5 triangles
