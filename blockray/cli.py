@@ -74,14 +74,17 @@ def _render_parser(sub):
 
 
 def _cmd_render(args):
-    from .params import BoardParams
+    from .errors import ParameterError
+    from .params import BoardParams, MIN_BITS, MAX_BITS
     from .host_driver.objload import load_scene
     from .host_driver.render import render
     from .host_driver.output import write_patches_csv, write_report_json
 
     scene = load_scene(args.scene, max_edge=args.max_edge)
-    params = BoardParams(rows=args.rows, cols=args.cols, boards=args.boards,
-                         **({"bits": args.bits} if args.bits is not None else {}))
+    if args.bits is not None and not MIN_BITS <= args.bits <= MAX_BITS:
+        raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
+                             f"needs 3*B+2 <= 62 bits), not {args.bits}")
+    params = BoardParams(rows=args.rows, cols=args.cols, boards=args.boards)
     progress = not args.quiet and sys.stderr.isatty()
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,

@@ -1,0 +1,156 @@
+"""End-to-end: scene file -> CLI/render loop -> board -> solver -> outputs."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from blockray.cli import main
+from blockray.host_driver.objload import load_obj
+from blockray.host_driver.render import render
+
+
+def box_faces(lo, hi, inward):
+    """Six quads of an axis-aligned box, oriented so normals point in (inward) or out."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    c = (lo + hi) / 2
+    faces = []
+    for axis in range(3):
+        for side in (lo, hi):
+            u, w = [a for a in range(3) if a != axis]
+            quad = []
+            for du, dw in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                p = np.empty(3)
+                p[axis] = side[axis]
+                p[u] = (lo, hi)[du][u]
+                p[w] = (lo, hi)[dw][w]
+                quad.append(p)
+            n = np.cross(quad[1] - quad[0], quad[2] - quad[0])
+            towards_centre = np.dot(n, c - quad[0]) > 0
+            if towards_centre != inward:
+                quad = quad[::-1]
+            faces.append(quad)
+    return faces
+
+
+def write_obj(tmp_path, objects, *, name="scene"):
+    """objects: list of (group, material, faces); materials: dict name -> (Kd, Ke)."""
+    lines, mtl, nv = [f"mtllib {name}.mtl"], [], 0
+    mats = {}
+    for group, (mat, kd, ke), faces in objects:
+        mats[mat] = (kd, ke)
+        lines += [f"o {group}", f"usemtl {mat}"]
+        for quad in faces:
+            for p in quad:
+                lines.append("v " + " ".join(repr(float(x)) for x in p))
+            lines.append("f " + " ".join(str(nv + k + 1) for k in range(len(quad))))
+            nv += len(quad)
+    for mat, (kd, ke) in mats.items():
+        mtl += [f"newmtl {mat}", "Kd " + " ".join(map(str, kd)), "Ke " + " ".join(map(str, ke))]
+    (tmp_path / f"{name}.mtl").write_text("\n".join(mtl) + "\n")
+    path = tmp_path / f"{name}.obj"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+RHO, E = 0.5, 1.0
+
+
+@pytest.fixture
+def closed_box(tmp_path):
+    path = write_obj(tmp_path, [("box", ("wall", (RHO,) * 3, (E,) * 3), box_faces((0, 0, 0), (1, 1, 1), True))])
+    return load_obj(path, max_edge=0.5)
+
+
+@pytest.mark.parametrize("board", ["golden", "model"])
+@pytest.mark.parametrize("solver", ["progressive", "gauss-seidel"])
+def test_closed_box_uniform_emission(closed_box, board, solver):
+    # Sum_j F_ij = 1 in a closed enclosure, so B = E + rho B: B = E / (1 - rho) on every patch.
+    res = render(closed_box, board=board, solver=solver, tolerance=1e-5, voxels=3)
+    expect = E / (1 - RHO)
+    err = np.abs(res.radiosity / expect - 1)
+    print(f"{board} {solver}: max relative error {err.max():.2e} over {closed_box.patches} patches")
+    assert err.max() < 0.01
+    assert res.report["rays"] > 0 and res.report["tests"] > 0
+
+
+def test_energy_balance_with_occluder(tmp_path):
+    # A closed room, uniform reflectance, one emitting face, and a box inside that casts shadows.
+    # Energy balance: sum A B = sum A E / (1 - rho) whatever the occlusion.
+    room = box_faces((0, 0, 0), (2, 2, 2), True)
+    light, walls = room[3:4], room[:3] + room[4:]       # the y = 2 face emits
+    inner = box_faces((0.6, 0.0, 0.6), (1.4, 0.8, 1.4), False)
+    path = write_obj(tmp_path, [("walls", ("white", (RHO,) * 3, (0,) * 3), walls),
+                                ("light", ("lamp", (RHO,) * 3, (E,) * 3), light),
+                                ("block", ("white", (RHO,) * 3, (0,) * 3), inner)])
+    scene = load_obj(path, max_edge=0.5)
+    res = render(scene, board="model", tolerance=1e-4, voxels=4)
+    A = scene.areas[:, None]
+    lhs = (A * res.radiosity).sum(0)
+    rhs = (A * scene.emission).sum(0) / (1 - RHO)
+    print("energy balance ratio", lhs / rhs, "blocked rays present:", res.report["tests"])
+    assert np.allclose(lhs / rhs, 1, atol=0.03)
+    # the block casts a shadow: the floor under it is darker than the floor beside it
+    floor = np.flatnonzero(np.abs(scene.centroids[:, 1]) < 1e-9)
+    under = floor[(np.abs(scene.centroids[floor, 0] - 1) < 0.35) & (np.abs(scene.centroids[floor, 2] - 1) < 0.35)]
+    beside = floor[(np.abs(scene.centroids[floor, 0] - 1) > 0.6)]
+    assert len(under) and len(beside)
+    assert res.radiosity[under].mean() < 0.9 * res.radiosity[beside].mean()
+
+
+def test_cli_outputs(tmp_path, closed_box):
+    path = write_obj(tmp_path, [("box", ("wall", (RHO,) * 3, (E,) * 3), box_faces((0, 0, 0), (1, 1, 1), True))],
+                     name="cli")
+    csv_path, json_path, png = tmp_path / "p.csv", tmp_path / "r.json", tmp_path / "i.png"
+    rc = main(["render", str(path), "--max-edge", "0.5", "--voxels", "2", "--image", str(png),
+               "--patches", str(csv_path), "--report", str(json_path), "--quiet", "--size", "64"])
+    assert rc == 0
+    rows = list(csv.DictReader(open(csv_path)))
+    assert list(rows[0]) == ["patch", "group", "area", "cx", "cy", "cz", "B_r", "B_g", "B_b"]
+    assert len(rows) == closed_box.patches
+    assert abs(sum(float(r["area"]) for r in rows) - 6.0) < 1e-9
+    report = json.loads(json_path.read_text())
+    for key in ("scene", "patches", "voxels", "board", "solver", "shots", "rays", "tests", "residual",
+                "seconds", "traversal_stats", "board_cycles", "tests_issued", "tests_useful", "utilization"):
+        assert key in report, key
+    for key in ("l", "n", "L", "overhead"):
+        assert key in report["traversal_stats"], key
+    assert report["residual"] < 1e-3 and report["board"] == "model"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _run_cli(capsys, argv):
+    with pytest.raises(SystemExit) as e:
+        raise SystemExit(main(argv))
+    err = capsys.readouterr().err
+    return e.value.code, err
+
+
+@pytest.mark.parametrize("obj, mtl, needle", [
+    ("mtllib s.mtl\nusemtl m\nv 0 0 0\nv 1 0 0\nv 0 nan 0\nf 1 2 3\n", "newmtl m\nKd 0.5 0.5 0.5\n", "s.obj:5"),
+    ("mtllib s.mtl\nusemtl m\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", "newmtl m\nKd 0.5 0.5 0.5\n", "s.obj:6"),
+    ("mtllib s.mtl\nusemtl m\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "newmtl m\nKd 1.0 0.5 0.5\n", "s.mtl:2"),
+    ("mtllib s.mtl\nusemtl m\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "newmtl m\nKd 0.5 0.5\nKe x 1 1\n", "s.mtl:"),
+])
+def test_cli_bad_scene_exits_2_with_location(tmp_path, capsys, obj, mtl, needle):
+    (tmp_path / "s.obj").write_text(obj)
+    (tmp_path / "s.mtl").write_text(mtl)
+    code, err = _run_cli(capsys, ["render", str(tmp_path / "s.obj"), "--quiet"])
+    assert code == 2
+    assert needle in err and err.startswith("blockray: error:") and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["render", "/nonexistent/x.obj"], "x.obj"),
+    (["render", "cornell", "--bits", "30"], "--bits"),
+    (["render", "cornell", "--board", "nonsense"], "--board"),
+    (["render", "cornell", "--voxels", "0"], "--voxels"),
+    (["render", "cornell", "--max-edge", "-1"], "--max-edge"),
+    (["render", "cornell", "--tolerance", "nan"], "--tolerance"),
+])
+def test_cli_bad_parameters_exit_2(capsys, argv, needle):
+    code, err = _run_cli(capsys, argv + ["--quiet"])
+    assert code == 2
+    assert needle in err and "Traceback" not in err
