@@ -58,6 +58,9 @@ def _render_parser(sub):
                    help="sample points per shooter patch (rays per patch pair)")
     p.add_argument("--traversal", default="block", choices=["block", "ray"],
                    help="block-ray traverse (default) or per-ray 3D-DDA")
+    p.add_argument("--packing", default="voxel", choices=["voxel", "fill"],
+                   help="receivers of a block: those whose end points share a voxel (the paper; default) "
+                        "or runs of R receivers in Z-order of their voxels (fills every array row)")
     p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel"])
     p.add_argument("--tolerance", type=_positive_float, default=1e-3,
                    help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
@@ -88,7 +91,8 @@ def _cmd_render(args):
     progress = not args.quiet and sys.stderr.isatty()
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
-                    max_shots=args.max_shots, traversal=args.traversal, progress=progress)
+                    max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
+                    progress=progress)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)

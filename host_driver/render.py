@@ -27,6 +27,17 @@ __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLV
 BOARDS = ("golden", "model")
 SOLVERS = ("progressive", "jacobi", "gauss-seidel")
 TRAVERSALS = ("block", "ray")
+PACKINGS = ("voxel", "fill")
+
+
+def _morton(ijk):
+    """Interleave the bits of voxel coordinates (M, 3) -> (M,) int64 (Z-order)."""
+    ijk = np.asarray(ijk, dtype=np.int64)
+    code = np.zeros(len(ijk), dtype=np.int64)
+    for bit in range(9):
+        for axis in range(3):
+            code |= ((ijk[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
+    return code
 
 
 def make_board(name, params=None, *, bits=None):
@@ -70,8 +81,8 @@ class Visibility:
     reference, for measuring what block traversal saves).
     """
 
-    def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", phases=None,
-                 stats=None):
+    def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", packing="voxel",
+                 phases=None, stats=None):
         if traversal not in TRAVERSALS:
             raise ParameterError(f"--traversal must be one of {', '.join(TRAVERSALS)}, not {traversal!r}")
         self.scene, self.board, self.grid, self.samples = scene, board, grid, samples
@@ -81,6 +92,10 @@ class Visibility:
         self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
         self.centroids = scene.centroids
         self.end_voxel = grid.voxel_of(self.centroids)
+        self.end_morton = _morton(grid.cell_of(self.centroids))
+        if packing not in PACKINGS:
+            raise ParameterError(f"--packing must be one of {', '.join(PACKINGS)}, not {packing!r}")
+        self.packing = packing
         self.nonempty = grid.count > 0
         self.rays = 0
         self.blocks = 0
@@ -97,12 +112,19 @@ class Visibility:
                     vox = vox[self.nonempty[vox]]
                     blocks.append(BlockRay(np.array([i]), np.array([k]), np.array([j]), vox))
             return blocks
-        order = np.argsort(self.end_voxel[receivers], kind="stable")
-        rec = receivers[order]
-        keys = self.end_voxel[rec]
-        cuts = np.flatnonzero(np.diff(keys)) + 1
+        if self.packing == "fill":
+            # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
+            # A block then spans neighbouring voxels; its bundle is a little wider.
+            order = np.argsort(self.end_morton[receivers], kind="stable")
+            groups = [receivers[order]]
+        else:
+            # The paper's block: the receivers whose end points share a voxel.
+            order = np.argsort(self.end_voxel[receivers], kind="stable")
+            rec = receivers[order]
+            cuts = np.flatnonzero(np.diff(self.end_voxel[rec])) + 1
+            groups = np.split(rec, cuts)
         pieces = []
-        for group in np.split(rec, cuts):
+        for group in groups:
             for r0 in range(0, len(group), self.rows):
                 rgroup = group[r0:r0 + self.rows]
                 for s0 in range(0, K, self.cols):
@@ -148,7 +170,7 @@ class RenderResult:
 
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
-           traversal="block", progress=False, stats_fraction=0.02):
+           traversal="block", packing="voxel", progress=False, stats_fraction=0.02):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
@@ -186,7 +208,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
 
     stats = TraversalStats(grid, sample_fraction=stats_fraction)
     vis = Visibility(scene, board_obj, grid, samples, rows=params.rows, cols=params.cols,
-                     traversal=traversal, phases=phases, stats=stats)
+                     traversal=traversal, packing=packing, phases=phases, stats=stats)
 
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
@@ -240,6 +262,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         "board_params": {"rows": params.rows, "cols": params.cols, "boards": params.boards},
         "samples": samples.count,
         "traversal": traversal,
+        "packing": packing,
         "solver": solver,
         "tolerance": tolerance,
         "shots": int(getattr(result, "shots", 0) or 0),
