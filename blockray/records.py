@@ -45,20 +45,32 @@ def leaves(layout, prefix=(), offset=0):
         yield prefix, offset, Shape.cast(layout)
 
 
-def _get(value, path):
-    for key in path:
-        value = value[key]
-    return value
+def _value_leaves(layout, value, prefix=(), offset=0):
+    """Like :func:`leaves`, but guided by ``value``: a union packs only the member given."""
+    if isinstance(layout, data.UnionLayout):
+        given = [key for key, _ in layout if key in value]
+        if len(given) > 1:
+            raise ValueError(f"union {'.'.join(map(str, prefix)) or 'value'} given more than one "
+                             f"member: {', '.join(given)}")
+        for key in given:
+            yield from _value_leaves(layout[key].shape, value[key], prefix + (key,), offset)
+    elif isinstance(layout, data.Layout):
+        for key, field in layout:
+            yield from _value_leaves(field.shape, value[key], prefix + (key,), offset + field.offset)
+    else:
+        yield prefix, offset, Shape.cast(layout), value
 
 
 def pack(layout, value):
     """Pack a nested dict/sequence ``value`` into an int, using the layout's own offsets.
 
-    Equivalent to ``layout.const(value).as_bits()`` (tests check that) but much faster.
+    A :class:`~amaranth.lib.data.UnionLayout` takes a dict with at most one member (none: zero
+    bits), as ``layout.const`` does. Equivalent to ``layout.const(value).as_bits()`` (tests
+    check that) but much faster.
     """
     bits = 0
-    for path, offset, shape in leaves(layout):
-        v = int(_get(value, path))
+    for path, offset, shape, v in _value_leaves(layout, value):
+        v = int(v)
         lo, hi = (-(1 << (shape.width - 1)), 1 << (shape.width - 1)) if shape.signed else (0, 1 << shape.width)
         if not lo <= v < hi:
             raise ValueError(f"field {'.'.join(map(str, path))} = {v} does not fit {shape!r}")
@@ -67,7 +79,10 @@ def pack(layout, value):
 
 
 def unpack(layout, bits):
-    """Unpack an int into a nested dict (lists for array layouts) of Python ints."""
+    """Unpack an int into a nested dict (lists for array layouts) of Python ints.
+
+    Every member of a union is unpacked (each is a view of the same bits, as in Amaranth).
+    """
     out = {}
     for path, offset, shape in leaves(layout):
         v = (int(bits) >> offset) & ((1 << shape.width) - 1)

@@ -1,0 +1,84 @@
+"""Small random board workloads for the board's RTL tests (Amaranth simulator and cocotb).
+
+Everything is seeded by the caller. Patches are biased to sit across the block's rays so that
+blocked and clear results both occur; voxel registrations include empty voxels and patches
+registered in several voxels.
+"""
+
+import numpy as np
+
+from blockray.exact import patch_normals
+from blockray.records import pack_array, patch_columns, patch_layout
+from blockray.sim.model import Command
+from blockray.timing import Op
+
+__all__ = ["crossing_patches", "random_memory", "load_commands", "random_block", "random_points"]
+
+
+def random_points(rng, bits, n):
+    return rng.integers(0, 1 << bits, (n, 3)).astype(np.int64)
+
+
+def crossing_patches(rng, bits, P, Q, n, *, crossing=0.7):
+    """``n`` triangles (n, 3, 3) int64; a fraction ``crossing`` sit around a point of a ray P_s -> Q_r."""
+    top = 1 << bits
+    V = rng.integers(0, top, (n, 3, 3)).astype(np.int64)
+    for i in range(n):
+        if rng.random() < crossing:
+            s, r = rng.integers(len(P)), rng.integers(len(Q))
+            x = P[s] + rng.random() * (Q[r] - P[s])
+            size = top * rng.uniform(0.01, 0.3)
+            V[i] = np.clip(np.rint(x + rng.normal(0.0, size, (3, 3))), 0, top - 1).astype(np.int64)
+    if n >= 4:                               # a degenerate and an axis-aligned one
+        V[0, 2] = V[0, 1]
+        V[1, :, 2] = V[1, 0, 2]
+    return V
+
+
+def random_memory(rng, bits, vertices, voxels, *, empty=0.3, max_registrations=3):
+    """Register each patch in 1..max_registrations random voxels (a fraction ``empty`` of the
+    voxels gets none) and lay the records out in voxel order.
+
+    Returns ``(patch_ids, start, count)``: ``patch_ids`` the patch of each memory word.
+    """
+    n = len(vertices)
+    occupied = np.flatnonzero(rng.random(voxels) >= empty)
+    if len(occupied) == 0:
+        occupied = np.array([0])
+    regs = []
+    for t in range(n):
+        k = int(rng.integers(1, max_registrations + 1))
+        for v in rng.choice(occupied, size=min(k, len(occupied)), replace=False):
+            regs.append((int(v), t))
+    regs.sort()
+    vox = np.array([v for v, _ in regs], dtype=np.int64)
+    ids = np.array([t for _, t in regs], dtype=np.int64)
+    count = np.bincount(vox, minlength=voxels).astype(np.int64)
+    start = np.cumsum(count) - count
+    return ids, start, count
+
+
+def load_commands(bits, vertices, patch_ids, start, count):
+    """WRITE_PATCH for every memory word, then WRITE_VOXEL for every voxel."""
+    V = vertices[patch_ids]
+    words = pack_array(patch_layout(bits), patch_columns(V, patch_normals(V)))
+    cmds = [Command(Op.WRITE_PATCH, a, w) for a, w in enumerate(words)]
+    cmds += [Command(Op.WRITE_VOXEL, v, (int(s), int(c))) for v, (s, c) in enumerate(zip(start, count))]
+    return cmds
+
+
+def random_block(rng, rows, cols, P, Q, voxels, *, max_voxels=6):
+    """One well-formed block: BEGIN_BLOCK, LOADs of a random subset of rows and columns, VOXELs
+    (random, repeats and empty voxels allowed), END_BLOCK."""
+    cmds = [Command(Op.BEGIN_BLOCK)]
+    nr = int(rng.integers(0, rows + 1)) if rng.random() < 0.3 else rows
+    nc = int(rng.integers(0, cols + 1)) if rng.random() < 0.3 else cols
+    loads = [Command(Op.LOAD_RECEIVER, int(r), tuple(int(c) for c in Q[rng.integers(len(Q))]))
+             for r in rng.permutation(rows)[:nr]]
+    loads += [Command(Op.LOAD_SHOOTER, int(s), tuple(int(c) for c in P[rng.integers(len(P))]))
+              for s in rng.permutation(cols)[:nc]]
+    rng.shuffle(loads)
+    cmds += loads
+    cmds += [Command(Op.VOXEL, int(v)) for v in rng.integers(0, voxels, int(rng.integers(0, max_voxels + 1)))]
+    cmds.append(Command(Op.END_BLOCK))
+    return cmds
