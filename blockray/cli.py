@@ -36,13 +36,19 @@ def _positive_int(text):
 
 def _add_board_options(p):
     g = p.add_argument_group("board")
-    g.add_argument("--board", default="model", help="board back-end: golden (float64 reference) or "
-                   "model (bit-exact model of the hardware; default)")
+    g.add_argument("--board", default="model", help="board back-end: golden (float64 reference), "
+                   "model (bit-exact model of the hardware; default), amaranth (the board's RTL in the "
+                   "Amaranth simulator: small scenes, debugging) or verilator (the board's Verilog under "
+                   "Verilator + cocotb; builds once per design, cached)")
     g.add_argument("--bits", type=int, default=None, metavar="B",
                    help="coordinate bits of the quantised scene (default: chosen per scene)")
     g.add_argument("--rows", type=_positive_int, default=8, metavar="R", help="receivers per block (array rows)")
     g.add_argument("--cols", type=_positive_int, default=8, metavar="S", help="shooter samples per block (array columns)")
     g.add_argument("--boards", type=_positive_int, default=8, metavar="P", help="boards (patch partitions)")
+    g.add_argument("--vcd", default=None, metavar="FILE",
+                   help="write a waveform (VCD) of every clock cycle of the simulated boards; --board amaranth "
+                        "or verilator only (verilator builds a traced simulation); use it on a short run "
+                        "(e.g. --max-shots 1)")
 
 
 def _render_parser(sub):
@@ -92,7 +98,7 @@ def _cmd_render(args):
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    progress=progress)
+                    progress=progress, vcd=args.vcd)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
@@ -110,10 +116,99 @@ def _cmd_render(args):
     return 0
 
 
+_UNIT_HELP = ("processor (one processor cell with its shooter and receiver units, stream ports), "
+              "cell (a processor cell alone), array (R x S cells and their units), board (the board top)")
+
+
+def _add_unit_options(p):
+    from .params import BoardParams
+    d = BoardParams()
+    p.add_argument("unit", help=_UNIT_HELP)
+    g = p.add_argument_group("parameters")
+    g.add_argument("--rows", type=int, default=d.rows, metavar="R", help=f"array rows (receivers; default {d.rows})")
+    g.add_argument("--cols", type=int, default=d.cols, metavar="S", help=f"array columns (shooters; default {d.cols})")
+    g.add_argument("--bits", type=int, default=d.bits, metavar="B", help=f"coordinate bits (default {d.bits})")
+    g.add_argument("--patch-depth", type=int, default=d.patch_depth, metavar="N",
+                   help=f"patch memory words of the board (default {d.patch_depth})")
+    g.add_argument("--voxel-depth", type=int, default=d.voxel_depth, metavar="N",
+                   help=f"voxel table entries of the board (default {d.voxel_depth})")
+
+
+def _unit_params(args):
+    """BoardParams from the unit options; a bad value raises ParameterError naming the option."""
+    from .errors import ParameterError
+    from .params import BoardParams
+    from .synth.verilog import UNITS
+    if args.unit not in UNITS:
+        raise ParameterError(f"UNIT must be one of {', '.join(UNITS)}, not {args.unit!r}")
+    options = {"rows": "--rows", "cols": "--cols", "bits": "--bits",
+               "patch_depth": "--patch-depth", "voxel_depth": "--voxel-depth"}
+    values = {name: getattr(args, name) for name in options}
+    try:
+        return BoardParams(**values)
+    except ParameterError as e:
+        bad = [opt for name, opt in options.items() if f"parameter {name} " in str(e)]
+        bad += [options[name] for name in ("rows", "cols") if values[name] > 64]
+        raise ParameterError(f"{bad[0] if bad else 'parameters'}: {e}") from None
+
+
+def _verilog_parser(sub):
+    p = sub.add_parser("verilog", help="write the Verilog of a unit",
+                       description="Write readable Verilog (Amaranth back-end, no source attributes) "
+                                   "of one unit for the given parameters.")
+    _add_unit_options(p)
+    p.add_argument("--out", required=True, metavar="FILE", help="Verilog file to write")
+    p.set_defaults(func=_cmd_verilog)
+
+
+def _cmd_verilog(args):
+    from .synth.verilog import write_verilog
+    params = _unit_params(args)
+    write_verilog(args.out, args.unit, params)
+    return 0
+
+
+def _synth_parser(sub):
+    p = sub.add_parser("synth", help="synthesise (and place and route) a unit; JSON resource/timing report",
+                       description="Run Yosys (synth_ecp5) and nextpnr-ecp5 from the YoWASP packages on one "
+                                   "unit, wrapped so its inputs come from on-chip LFSRs and its outputs are "
+                                   "XOR-reduced to one pin, and write LUTs, FFs, DSPs, block RAMs, Fmax, "
+                                   "utilisation and whether it fits.")
+    _add_unit_options(p)
+    p.add_argument("--target", default="ecp5", choices=["ecp5", "generic"],
+                   help="ecp5: synth_ecp5 + nextpnr (default); generic: Yosys synth only (cells, multipliers)")
+    p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
+    p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
+                   help="nextpnr target clock (default 100)")
+    p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
+    p.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
+    p.add_argument("--router", default="router2", choices=["router1", "router2"], help="nextpnr router")
+    p.add_argument("--workdir", metavar="DIR", help="keep the Verilog, netlist and tool logs here")
+    p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
+    p.set_defaults(func=_cmd_synth)
+
+
+def _cmd_synth(args):
+    from .synth.nextpnr import synth_report, write_report
+    params = _unit_params(args)
+    report = synth_report(args.unit, params, target=args.target, device=args.device, freq=args.freq,
+                          seed=args.seed, workdir=args.workdir, place=not args.no_pnr,
+                          router=args.router)
+    write_report(args.report, report)
+    res = report["resources"]
+    fmax = report.get("fmax_mhz")
+    print(f"{args.unit} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
+          + (f", fits {report.get('device')}: {report['fits']}" if report["fits"] is not None else "")
+          + (f", Fmax {fmax:.1f} MHz" if fmax else ""), file=sys.stderr)
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="blockray", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _render_parser(sub)
+    _verilog_parser(sub)
+    _synth_parser(sub)
     return parser
 
 

@@ -44,7 +44,7 @@ class Op(enum.IntEnum):
 
 #: RTL latencies (asserted against blockray.rtl in tests/test_board_sim.py)
 MEMORY_LATENCY = 2      # patch-memory read + broadcast register
-UNIT_LATENCY = 3        # ShooterUnit / ReceiverUnit
+UNIT_LATENCY = 4        # ShooterUnit / ReceiverUnit
 CELL_LATENCY = 4        # Processor (cell), including the OR into the accumulator
 
 
@@ -72,8 +72,9 @@ class BoardTiming:
         """The latencies of the RTL (:class:`blockray.rtl.board.BoardTop`) for B coordinate bits.
 
         memory_latency 2: patch-memory read (1) + the broadcast register that fans the record out
-        to the array (1). processor_latency 7: shooter/receiver units (3: differences, products,
-        sums) + processor (4: operand registers, products, sums, decision and OR). Both are
+        to the array (1). processor_latency 8: shooter/receiver units (4: differences, partial
+        products, partial sums, the sum joining the pieces) + processor (4: operand registers,
+        partial products, partial sums, the joined sum with the decision and OR). Both are
         independent of B at B <= 20 (every multiplier is one pipeline stage); a test asserts them
         against the RTL's properties.
         """

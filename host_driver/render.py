@@ -24,7 +24,7 @@ from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
 
-BOARDS = ("golden", "model")
+BOARDS = ("golden", "model", "amaranth", "verilator")
 SOLVERS = ("progressive", "jacobi", "gauss-seidel")
 TRAVERSALS = ("block", "ray")
 PACKINGS = ("voxel", "fill")
@@ -40,8 +40,17 @@ def _morton(ijk):
     return code
 
 
-def make_board(name, params=None, *, bits=None):
-    """Build a board back-end by name. ``bits=None`` lets the board choose B for the scene."""
+def make_board(name, params=None, *, bits=None, vcd=None):
+    """Build a board back-end by name. ``bits=None`` lets the board choose B for the scene.
+
+    ``amaranth`` / ``verilator``: the board's RTL in the Amaranth simulator or as Verilog under
+    Verilator + cocotb (:class:`blockray.sim.rtl_board.RTLBoard`); ``vcd`` (a path) writes their
+    waveform."""
+    if vcd is not None and name not in ("amaranth", "verilator"):
+        raise ParameterError(f"--vcd needs a simulated RTL board (--board amaranth or verilator), not {name!r}")
+    if name in ("amaranth", "verilator"):
+        from ..sim.rtl_board import RTLBoard
+        return RTLBoard(params or BoardParams(), bits=bits, backend=name, vcd=vcd)
     if name == "golden":
         from .golden import GoldenBoard
         return GoldenBoard()
@@ -170,7 +179,7 @@ class RenderResult:
 
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
-           traversal="block", packing="voxel", progress=False, stats_fraction=0.02):
+           traversal="block", packing="voxel", progress=False, stats_fraction=0.02, vcd=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
@@ -187,7 +196,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
     t_start = time.perf_counter()
-    board_obj = make_board(board, params, bits=bits) if isinstance(board, str) else board
+    board_obj = make_board(board, params, bits=bits, vcd=vcd) if isinstance(board, str) else board
     board_name = board if isinstance(board, str) else board_obj.name
 
     with phases.timed("prepare"):
@@ -251,6 +260,8 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     seconds["total"] = time.perf_counter() - t_start
 
     counters = board_obj.counters()
+    if isinstance(board, str) and hasattr(board_obj, "close"):
+        board_obj.close()                   # a simulated board stops its simulator
     report = {
         "scene": scene.name,
         "source": scene.source,

@@ -16,7 +16,9 @@ fits (see :class:`blockray.params.Widths`).
 
 Timing rule of the array (:class:`ArrayTiming`): both units have the same latency, so the
 outputs of a column unit and a row unit fed on the same cycle meet at the processor on the same
-cycle. Every stage registers its multiplier inputs and outputs (DSP pipeline registers).
+cycle. Every multiplier has registered inputs and its output goes straight into registers
+(products wider than one 18 x 18 DSP are split into DSP-sized pieces, each registered, and the
+pieces are added in the following stages): no stage has a DSP and an adder in series.
 
 ``Intersector`` is the 1 x 1 array behind a stream interface, the unit tested against the model.
 """
@@ -96,16 +98,72 @@ def _delay(m, value, cycles, name):
 _AXES = ("x", "y", "z")
 _VERTICES = ("v0", "v1", "v2")
 
+#: operand width of one ECP5 MULT18X18D (signed 18 x 18)
+DSP_OPERAND_BITS = 18
+_CHUNK = DSP_OPERAND_BITS - 1    # unsigned low chunks of a split operand (zero-extended to 18)
+
+
+def _chunks(value):
+    """Split a signed operand wider than one DSP input into (chunk, shift) pieces:
+    ``value = sum(chunk << shift)``, low chunks unsigned 17 bits, the top chunk signed.
+    An operand of at most 18 bits is one piece."""
+    if len(value) <= DSP_OPERAND_BITS:
+        return [(value, 0)]
+    pieces, shift = [], 0
+    while len(value) - shift > DSP_OPERAND_BITS:
+        pieces.append((value[shift:shift + _CHUNK], shift))          # unsigned slice
+        shift += _CHUNK
+    pieces.append((value[shift:].as_signed(), shift))
+    return pieces
+
+
+def _partial_products(m, pairs, width, name):
+    """Register the partial products of ``sum(a * b for a, b in pairs)`` modulo 2**width.
+
+    Each product is split along ``b`` (:func:`_chunks`) so that every multiplication fits one
+    DSP and its output goes straight into registers (no adder between a DSP and its register):
+    this stage is DSP-only. Returns ``{shift: [registers]}``; a partial of shift ``k`` is kept
+    modulo 2**(width - k), which is all the final sum modulo 2**width needs.
+    """
+    groups = {}
+    for i, (a, b) in enumerate(pairs):
+        for chunk, shift in _chunks(b):
+            reg = Signal(signed(min(len(a) + len(chunk) + 1, width - shift)), name=f"{name}_{i}_p{shift}")
+            m.d.sync += reg.eq(a * chunk)                    # wraps: ring arithmetic
+            groups.setdefault(shift, []).append(reg)
+    return groups
+
+
+def _dot_sums(m, pairs, width, name):
+    """Two pipeline stages of ``sum(a * b for a, b in pairs)`` modulo 2**width: the partial
+    products (:func:`_partial_products`, one stage), then per shift their sum (one stage, at most
+    two chained adders). Returns ``{shift: register}``; :func:`_combine` finishes the sum."""
+    sums = {}
+    for shift, terms in _partial_products(m, pairs, width, name).items():
+        reg = Signal(signed(width - shift), name=f"{name}_sum_p{shift}")
+        m.d.sync += reg.eq(sum(terms))
+        sums[shift] = reg
+    return sums
+
+
+def _combine(groups, width):
+    """``sum(term << shift)`` of ``{shift: term}`` (a value; callers truncate it to ``width``)."""
+    total = 0
+    for shift, term in sorted(groups.items()):
+        total = total + (term << shift) if shift else total + term
+    return total
+
 
 # -- units ------------------------------------------------------------------------------------
 
 class ShooterUnit(wiring.Component):
     """Column unit: the terms of a block ray that depend on the shooter point P and the patch.
 
-    Stage 1 registers d_k = P - V_k and the normal n (multiplier inputs), stage 2 the three
-    products n_c (P - V0)_c (multiplier outputs), stage 3 their sum pP and d_k.
+    Stage 1 registers d_k = P - V_k and the normal n (multiplier inputs), stage 2 the partial
+    products of n_c (P - V0)_c (DSP outputs; at B >= 9 each product is two 18-bit-operand
+    pieces), stage 3 their sums per piece, stage 4 pP (one adder joining the pieces) and d_k.
 
-    Latency :attr:`latency` = 3 cycles, throughput one patch per cycle (fully pipelined, no
+    Latency :attr:`latency` = 4 cycles, throughput one patch per cycle (fully pipelined, no
     stalls). ``valid`` travels through a register chain of the same length as ``terms``.
 
     Ports: ``point`` (:func:`~blockray.records.point_layout`), ``patch``
@@ -113,7 +171,7 @@ class ShooterUnit(wiring.Component):
     (:func:`shooter_terms_layout`), ``terms_valid`` out.
     """
 
-    latency = 3
+    latency = 4
 
     def __init__(self, bits):
         self._bits = _check_bits(bits)
@@ -140,14 +198,12 @@ class ShooterUnit(wiring.Component):
                 m.d.sync += d1[k][c].eq(self.point[c] - self.patch[vertex][c])
         m.d.sync += n1.eq(self.patch.normal)
 
-        prod2 = [Signal(signed(w.orient), name=f"pp_{c}_2") for c in _AXES]
-        for i, c in enumerate(_AXES):
-            m.d.sync += prod2[i].eq(d1[0][c] * n1[c])       # wraps mod 2**orient: ring arithmetic
-        d2 = [_delay(m, d1[k], 1, f"d{k}") for k in range(3)]
+        sums3 = _dot_sums(m, [(d1[0][c], n1[c]) for c in _AXES], w.orient, "pp")
+        d3 = [_delay(m, d1[k], 2, f"d{k}") for k in range(3)]
 
-        m.d.sync += self.terms.pp.eq(prod2[0] + prod2[1] + prod2[2])
+        m.d.sync += self.terms.pp.eq(_combine(sums3, w.orient))
         for k in range(3):
-            m.d.sync += self.terms.d[k].eq(d2[k])
+            m.d.sync += self.terms.d[k].eq(d3[k])
         m.d.comb += self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))
         return m
 
@@ -156,17 +212,17 @@ class ReceiverUnit(wiring.Component):
     """Row unit: the terms of a block ray that depend on the receiver point Q and the patch.
 
     Stage 1 registers dQ_k = Q - V_k, e_k = V_{k+1} - V_k and n (multiplier inputs), stage 2 the
-    18 cross-product terms and the three products of pQ (multiplier outputs), stage 3 the
-    differences w_k = dQ_k x e_k and the sum pQ.
+    18 cross-product terms and the partial products of pQ (DSP outputs), stage 3 the differences
+    w_k = dQ_k x e_k and the per-piece sums of pQ, stage 4 pQ (joining the pieces) and w_k.
 
-    Latency :attr:`latency` = 3 cycles (equal to :attr:`ShooterUnit.latency`), throughput one
+    Latency :attr:`latency` = 4 cycles (equal to :attr:`ShooterUnit.latency`), throughput one
     patch per cycle. ``valid`` travels through a register chain of the same length as ``terms``.
 
     Ports: ``point``, ``patch``, ``valid`` in; ``terms`` (:func:`receiver_terms_layout`),
     ``terms_valid`` out.
     """
 
-    latency = 3
+    latency = 4
 
     def __init__(self, bits):
         self._bits = _check_bits(bits)
@@ -208,14 +264,16 @@ class ReceiverUnit(wiring.Component):
                     plus2[k][i].eq(dq1[k][a] * e1[k][b]),
                     minus2[k][i].eq(dq1[k][b] * e1[k][a]),
                 ]
-        prod2 = [Signal(signed(w.orient), name=f"pq_{c}_2") for c in _AXES]
-        for i, c in enumerate(_AXES):
-            m.d.sync += prod2[i].eq(dq1[0][c] * n1[c])
+        sums3 = _dot_sums(m, [(dq1[0][c], n1[c]) for c in _AXES], w.orient, "pq")
 
+        w3 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_3")
         for k in range(3):
             for i, c in enumerate(_AXES):
-                m.d.sync += self.terms.w[k][c].eq(plus2[k][i] - minus2[k][i])   # |w| <= 2 L**2
-        m.d.sync += self.terms.pq.eq(prod2[0] + prod2[1] + prod2[2])
+                m.d.sync += w3[k][c].eq(plus2[k][i] - minus2[k][i])   # |w| <= 2 L**2
+        m.d.sync += [
+            self.terms.w.eq(w3),
+            self.terms.pq.eq(_combine(sums3, w.orient)),
+        ]
         m.d.comb += self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))
         return m
 
@@ -224,8 +282,9 @@ class Processor(wiring.Component):
     """Array cell: the decision for one (shooter, receiver, patch) test per cycle.
 
     Stage 1 registers d_k and w_k (multiplier inputs) and the plane-crossing bit
-    sign(pP) * sign(pQ) < 0, stage 2 the nine products (d_k)_c (w_k)_c modulo 2**(3B+2)
-    (multiplier outputs), stage 3 the sums s_k, stage 4 the decision.
+    sign(pP) * sign(pQ) < 0, stage 2 the partial products of the nine (d_k)_c (w_k)_c modulo
+    2**(3B+2) (DSP outputs; two pieces each at B >= 9), stage 3 their sums per k and piece,
+    stage 4 s_k (one adder joining the pieces) and the decision.
 
     Latency :attr:`latency` = 4 cycles from ``valid`` (with its terms) to ``result_valid``,
     throughput one test per cycle.
@@ -275,16 +334,15 @@ class Processor(wiring.Component):
             crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
         ]
 
-        prod2 = [[Signal(signed(w.orient), name=f"s{k}_{c}_2") for c in _AXES] for k in range(3)]
-        for k in range(3):
-            for i, c in enumerate(_AXES):
-                m.d.sync += prod2[k][i].eq(d1[k][c] * w1[k][c])   # wraps mod 2**orient
-        crossing2 = _delay(m, crossing1, 1, "crossing")
+        # stage 2: partial products only (each straight from a DSP into registers);
+        # stage 3: per shift, their sum over the three axes
+        sums3 = [_dot_sums(m, [(d1[k][c], w1[k][c]) for c in _AXES], w.orient, f"s{k}") for k in range(3)]
+        crossing3 = _delay(m, crossing1, 2, "crossing")
 
-        s3 = [Signal(signed(w.orient), name=f"s{k}_3") for k in range(3)]
+        # stage 4: s_k = the shifted sums combined (one adder at B >= 9), then the decision
+        s3 = [Signal(signed(w.orient), name=f"s{k}_4") for k in range(3)]
         for k in range(3):
-            m.d.sync += s3[k].eq(prod2[k][0] + prod2[k][1] + prod2[k][2])
-        crossing3 = _delay(m, crossing2, 1, "crossing")
+            m.d.comb += s3[k].eq(_combine(sums3[k], w.orient))
 
         nonneg = (s3[0] >= 0) & (s3[1] >= 0) & (s3[2] >= 0)
         nonpos = (s3[0] <= 0) & (s3[1] <= 0) & (s3[2] <= 0)
@@ -330,7 +388,7 @@ class Intersector(wiring.Component):
     and ``i.ready`` depends on registers only (no path from ``o.ready`` or ``i.valid``).
     ``o.valid`` comes from the FIFO's output register.
 
-    Latency :attr:`latency` = 9 cycles (array datapath 7, FIFO write and output register 2): a
+    Latency :attr:`latency` = 10 cycles (array datapath 8, FIFO write and output register 2): a
     test presented and accepted in cycle c is on ``o`` (valid) in cycle c + 9 when the FIFO is
     empty. Throughput one test per cycle while ``o.ready`` stays high (the FIFO depth covers
     the credit loop).

@@ -231,7 +231,7 @@ def test_latency_and_throughput():
     bits = 8
     tests = random_tests(bits, 64, np.random.default_rng(SEED))
     out, cycles, dut = run_intersector(bits, tests[:1], seed=SEED)
-    assert dut.latency == dut.timing.latency + 2 == 9
+    assert dut.latency == dut.timing.latency + 2 == 10
     assert cycles == dut.latency + 1                   # sampled on the edge after it appears
     check_results(out, tests[:1])
     out, cycles, _ = run_intersector(bits, tests, seed=SEED)

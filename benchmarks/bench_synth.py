@@ -1,0 +1,87 @@
+"""Full synthesis runs for docs/synthesis.md (Yosys synth_ecp5 + nextpnr-ecp5, YoWASP).
+
+    python benchmarks/bench_synth.py                      # everything (about 15-40 min on 2 cores)
+    python benchmarks/bench_synth.py --only processor     # one processor at B = 12, 14, 16
+    python benchmarks/bench_synth.py --only array         # largest R x S array on the 85k at B = 16
+    python benchmarks/bench_synth.py --only board         # the 8 x 8 board, Yosys only
+
+Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``); the JSON
+reports go to ``--out`` (default ``synth-reports/``), a summary table to stdout.
+
+Array search: every R x S with R, S <= 8 whose DSP count (``dsp_estimate``, checked against
+Yosys in tests/test_synth.py) fits the part is ranked by processors (then squareness); Yosys runs
+on the candidates from the largest down (resources only) until one fits the part by every
+resource, and that one goes through place and route.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from blockray.params import BoardParams
+from blockray.synth.nextpnr import DEVICES, dsp_estimate, synth_report
+
+
+def _row(name, r):
+    res = r["resources"]
+    fmax = r.get("fmax_mhz")
+    return (f"{name:28s} LUT {res['luts']:7d}  FF {res['ffs']:7d}  DSP {res['dsps']:5d}  BRAM {res['brams']:4d}  "
+            f"fits {str(r['fits']):5s}  Fmax {fmax if fmax else '-':>7}  "
+            f"({', '.join(f'{k} {v}s' for k, v in r['seconds'].items())})")
+
+
+def run(name, unit, params, out, **kw):
+    start = time.perf_counter()
+    r = synth_report(unit, params, workdir=out / f"{name}.work", **kw)
+    (out / f"{name}.json").write_text(json.dumps(r, indent=2) + "\n")
+    print(_row(name, r), f"total {time.perf_counter() - start:.0f} s", flush=True)
+    return r
+
+
+def processors(out, args):
+    for bits in (12, 14, 16):
+        run(f"processor-B{bits}", "processor", BoardParams(bits=bits), out, device=args.device, freq=args.freq)
+
+
+def largest_array(out, args):
+    bits = args.bits
+    shapes = sorted(((r, s) for r in range(1, 9) for s in range(1, 9)),
+                    key=lambda rs: (-rs[0] * rs[1], abs(rs[0] - rs[1])))
+    for rows, cols in shapes:
+        if dsp_estimate(bits, rows, cols) > DEVICES[args.device]["dsps"]:
+            continue
+        params = BoardParams(rows=rows, cols=cols, bits=bits)
+        r = run(f"array-{rows}x{cols}-B{bits}-yosys", "array", params, out, device=args.device, place=False)
+        if r["fits"]:
+            return run(f"array-{rows}x{cols}-B{bits}", "array", params, out, device=args.device, freq=args.freq)
+    return None
+
+
+def board(out, args):
+    run("board-8x8-B16", "board", BoardParams(), out, device=args.device, place=False)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--only", choices=["processor", "array", "board"], action="append")
+    p.add_argument("--out", default="synth-reports", help="directory for the JSON reports and tool files")
+    p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"])
+    p.add_argument("--freq", type=float, default=100.0)
+    p.add_argument("--bits", type=int, default=BoardParams().bits, help="B of the array search")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    todo = args.only or ["processor", "array", "board"]
+    if "processor" in todo:
+        processors(out, args)
+    if "array" in todo:
+        largest_array(out, args)
+    if "board" in todo:
+        board(out, args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

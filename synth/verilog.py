@@ -1,0 +1,67 @@
+"""The synthesisable units, built from :class:`~blockray.params.BoardParams`, and their Verilog.
+
+Units (``UNITS``):
+
+``processor``  :class:`~blockray.rtl.processor.Intersector`: one processor cell with its shooter
+               and receiver units (the 1 x 1 array) behind stream ports. Uses ``bits``.
+``cell``       :class:`~blockray.rtl.processor.Processor` alone (its terms come from the units of
+               its row and column). Uses ``bits``.
+``array``      :class:`~blockray.rtl.array.ProcessorArray`: R x S cells, S shooter units, R
+               receiver units. Uses ``bits``, ``rows``, ``cols``.
+``board``      :class:`~blockray.rtl.board.BoardTop`: command/result streams, patch memory and
+               voxel table, the R x S array. Uses every parameter but ``boards``.
+
+    text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
+"""
+
+from amaranth.back import verilog
+
+from ..errors import ParameterError
+from ..params import BoardParams
+
+__all__ = ["UNITS", "build_unit", "unit_verilog", "write_verilog"]
+
+UNITS = ("processor", "cell", "array", "board")
+
+
+def _check_unit(unit):
+    if unit not in UNITS:
+        raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
+    return unit
+
+
+def build_unit(unit, params=None):
+    """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`)."""
+    _check_unit(unit)
+    params = BoardParams() if params is None else params
+    if not isinstance(params, BoardParams):
+        raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
+    if unit == "processor":
+        from ..rtl.processor import Intersector
+        return Intersector(params.bits)
+    if unit == "cell":
+        from ..rtl.processor import Processor
+        return Processor(params.bits)
+    if unit == "array":
+        from ..rtl.array import ProcessorArray
+        return ProcessorArray(params.bits, params.rows, params.cols)
+    from ..rtl.board import BoardTop
+    return BoardTop(params)
+
+
+def unit_verilog(unit, params=None, *, name=None):
+    """Readable Verilog (no source attributes) of ``unit``; the top module is ``name`` (default
+    ``blockray_<unit>``)."""
+    component = build_unit(unit, params)
+    return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False)
+
+
+def write_verilog(path, unit, params=None, *, name=None):
+    """Write :func:`unit_verilog` to ``path``; returns the text."""
+    text = unit_verilog(unit, params, name=name)
+    try:
+        with open(path, "w") as f:
+            f.write(text)
+    except OSError as e:
+        raise ParameterError(f"cannot write Verilog to {path}: {e.strerror}") from None
+    return text

