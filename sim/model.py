@@ -34,6 +34,7 @@ cycles). A block's machine time is the slowest board's block cycles (the host wa
 words); ``board_cycles`` sums that over blocks. Memory loading is counted apart (``load_cycles``).
 """
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,6 +46,10 @@ from ..params import BoardParams
 from ..records import patch_layout, patch_columns, pack_array, unpack_array
 from ..timing import BoardTiming, Op
 from ..host_driver.board import Board
+
+
+class QuantisationWarning(UserWarning):
+    """The chosen bits merge vertices or flatten patches of the scene."""
 
 __all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration"]
 
@@ -238,6 +243,12 @@ class ModelBoard(Board):
 
     def prepare(self, scene, samples):
         q = resolve_bits(scene, samples, self.bits, max_error=self.max_error)
+        if len(q.collapsed) or len(q.degenerate):
+            # reported, not ignored: such patches never block and vertices merged at this grid
+            warnings.warn(
+                f"scene {scene.name!r} at B = {q.bits} bits: {sum(len(g) for g in q.collapsed)} vertices "
+                f"collapse onto {len(q.collapsed)} grid points and {len(q.degenerate)} patches degenerate "
+                f"to zero area (they never block); use more --bits to keep them", QuantisationWarning)
         self.quantised = q
         self.samples = samples
         self.params = self.params.with_(bits=q.bits)

@@ -296,3 +296,19 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
                                "tests_issued": 3 * 6, "tests_useful": 3 * 1}
     assert res.cycles == res.counters[1]["cycles"] + 1
     assert res.words == [1 << (0 * 3 + 2)]            # row 0, column 2 blocked by the z = 5 triangles
+
+
+def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
+    # A sliver far thinner than the grid step at B = 6 flattens; the user is told, not left guessing.
+    from blockray.host_driver.objload import load_obj
+    from blockray.samples import SampleScheme
+    from blockray.sim.model import ModelBoard, QuantisationWarning
+    obj = ["v 0 0 0", "v 100 0 0", "v 0 100 0", "v 100 100 0", "v 50 50 0.001", "v 60 50 0.001", "v 55 50.0001 0.002",
+           "f 1 2 3", "f 2 4 3", "f 5 6 7"]
+    (tmp_path / "s.obj").write_text("\n".join(obj) + "\n")
+    scene = load_obj(tmp_path / "s.obj", max_edge=10.0)     # ~400 patches: the sliver is under 1%
+    assert scene.patches > 100
+    board = ModelBoard(bits=8)
+    with pytest.warns(QuantisationWarning, match=r"1 patches degenerate"):
+        board.prepare(scene, SampleScheme(4))
+    assert len(board.quantised.degenerate) == 1
