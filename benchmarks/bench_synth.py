@@ -1,9 +1,9 @@
 """Full synthesis runs for docs/synthesis.md (Yosys synth_ecp5 + nextpnr-ecp5, YoWASP).
 
-    python benchmarks/bench_synth.py                      # everything (about 15-40 min on 2 cores)
+    python benchmarks/bench_synth.py                      # everything (over an hour on 2 cores)
     python benchmarks/bench_synth.py --only processor     # one processor at B = 12, 14, 16
     python benchmarks/bench_synth.py --only array         # largest R x S array on the 85k at B = 16
-    python benchmarks/bench_synth.py --only board         # the 8 x 8 board, Yosys only
+    python benchmarks/bench_synth.py --only board         # the 8 x 8 board, Yosys only (~27 min)
 
 Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``); the JSON
 reports go to ``--out`` (default ``synth-reports/``), a summary table to stdout.

@@ -11,7 +11,7 @@ so changing a point affects only the records presented after the change. ``first
 first record of a block: it travels with the record and clears the accumulators as that record's
 result arrives, so blocks follow each other without a bubble.
 
-Latency :attr:`latency` = unit latency + processor latency (7 cycles): a record presented in
+Latency :attr:`latency` = unit latency + processor latency (4 + 4 = 8 cycles): a record presented in
 cycle c is ORed into ``hit`` as seen in cycle c + latency. Throughput one record (R x S tests)
 per cycle.
 """
