@@ -156,7 +156,28 @@ def _combine(groups, width):
 
 # -- units ------------------------------------------------------------------------------------
 
-class ShooterUnit(wiring.Component):
+class _TermsUnit(wiring.Component):
+    """The ports every array-edge unit shares: a held end point and the broadcast patch in,
+    that point's terms out after :attr:`latency` cycles (subclasses set ``terms_layout``)."""
+
+    latency = 4
+
+    def __init__(self, bits):
+        self._bits = _check_bits(bits)
+        super().__init__({
+            "point": In(point_layout(bits)),
+            "patch": In(patch_layout(bits)),
+            "valid": In(1),
+            "terms": Out(self.terms_layout(bits)),
+            "terms_valid": Out(1),
+        })
+
+    @property
+    def bits(self):
+        return self._bits
+
+
+class ShooterUnit(_TermsUnit):
     """Column unit: the terms of a block ray that depend on the shooter point P and the patch.
 
     Stage 1 registers d_k = P - V_k and the normal n (multiplier inputs), stage 2 the partial
@@ -171,21 +192,7 @@ class ShooterUnit(wiring.Component):
     (:func:`shooter_terms_layout`), ``terms_valid`` out.
     """
 
-    latency = 4
-
-    def __init__(self, bits):
-        self._bits = _check_bits(bits)
-        super().__init__({
-            "point": In(point_layout(bits)),
-            "patch": In(patch_layout(bits)),
-            "valid": In(1),
-            "terms": Out(shooter_terms_layout(bits)),
-            "terms_valid": Out(1),
-        })
-
-    @property
-    def bits(self):
-        return self._bits
+    terms_layout = staticmethod(shooter_terms_layout)
 
     def elaborate(self, platform):
         m = Module()
@@ -208,7 +215,7 @@ class ShooterUnit(wiring.Component):
         return m
 
 
-class ReceiverUnit(wiring.Component):
+class ReceiverUnit(_TermsUnit):
     """Row unit: the terms of a block ray that depend on the receiver point Q and the patch.
 
     Stage 1 registers dQ_k = Q - V_k, e_k = V_{k+1} - V_k and n (multiplier inputs), stage 2 the
@@ -222,21 +229,7 @@ class ReceiverUnit(wiring.Component):
     ``terms_valid`` out.
     """
 
-    latency = 4
-
-    def __init__(self, bits):
-        self._bits = _check_bits(bits)
-        super().__init__({
-            "point": In(point_layout(bits)),
-            "patch": In(patch_layout(bits)),
-            "valid": In(1),
-            "terms": Out(receiver_terms_layout(bits)),
-            "terms_valid": Out(1),
-        })
-
-    @property
-    def bits(self):
-        return self._bits
+    terms_layout = staticmethod(receiver_terms_layout)
 
     def elaborate(self, platform):
         m = Module()
