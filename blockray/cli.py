@@ -1,4 +1,6 @@
-"""The ``blockray`` command. Subcommands are thin: the work is in the library.
+"""blockray: a special-purpose computer for radiosity (render scenes, write Verilog, synthesise).
+
+Subcommands are thin: the work is in the library.
 
 Errors a user can cause (bad scenes, bad parameters, scenes that do not fit) print one line,
 ``blockray: error: ...``, and exit with status 2.

@@ -48,6 +48,16 @@ from ..timing import BoardTiming, Op
 from ..host_driver.board import Board
 
 
+def _cube_root_floor(n):
+    """The largest v with v**3 <= n."""
+    v = round(n ** (1 / 3))
+    while v ** 3 > n:
+        v -= 1
+    while (v + 1) ** 3 <= n:
+        v += 1
+    return v
+
+
 class QuantisationWarning(UserWarning):
     """The chosen bits merge vertices or flatten patches of the scene."""
 
@@ -266,7 +276,8 @@ class ModelBoard(Board):
         q, p = self.quantised, self.params
         vox, pat, nvox = registration(grid)
         if nvox > p.voxel_depth:
-            raise CapacityError(f"voxel table: {nvox} voxels do not fit voxel_depth {p.voxel_depth}")
+            raise CapacityError(f"voxel table: {nvox} voxels do not fit the board's "
+                                f"voxel_depth {p.voxel_depth}; use --voxels {_cube_root_floor(p.voxel_depth)} or fewer")
         self.memories = []
         for b in range(p.boards):
             mine = pat % p.boards == b
@@ -274,7 +285,8 @@ class ModelBoard(Board):
             if len(rec) > p.patch_depth:
                 raise CapacityError(
                     f"patch memory of board {b}: {len(rec)} patch records (registrations) do not fit "
-                    f"patch_depth {p.patch_depth}")
+                    f"patch_depth {p.patch_depth}; use more --boards or fewer --voxels (each voxel a patch "
+                    f"touches costs a record)")
             count = np.bincount(vox[mine], minlength=nvox).astype(np.int64)
             start = np.cumsum(count) - count
             self.memories.append({"patch": rec, "start": start, "count": count})
