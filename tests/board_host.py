@@ -28,6 +28,15 @@ class RunLog:
     answered_at_reset: list = field(default_factory=list)   # host.answered at each reset
     order: list = field(default_factory=list)       # original indices in the order kept
 
+    def receive(self, host, word, cycle):
+        """A result word arrived in ``cycle``: hand it to the host; log it if the host keeps it."""
+        index = host.receive(word)
+        if index is not None:
+            self.results[index] = word
+            self.received[index] = cycle
+            self.epoch[index] = host.resets
+            self.order.append(index)
+
 
 def expected_results(params, commands, timing=None):
     """{original index: ("blocked", word) | ("counters", dict)} from the model."""

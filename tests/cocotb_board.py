@@ -74,12 +74,7 @@ async def _run(dut, proto, run):
             log.accepted[offer[0]] = cycle
             offer = None
         if rvalid and rready:
-            index = host.receive(rword)
-            if index is not None:
-                log.results[index] = rword
-                log.received[index] = cycle
-                log.epoch[index] = host.resets
-                log.order.append(index)
+            log.receive(host, rword, cycle)
         cycle += 1
     return log, total
 

@@ -90,12 +90,7 @@ def run_board(params, commands, *, seed, idle=0.0, backpressure=0.0, reset_at=No
                 log.accepted[offer[0]] = cycle
                 offer = None
             if rvalid and rready:
-                index = host.receive(rword)
-                if index is not None:
-                    log.results[index] = rword
-                    log.received[index] = cycle
-                    log.epoch[index] = host.resets
-                    log.order.append(index)
+                log.receive(host, rword, cycle)
             cycle += 1
         state["cycles"] = total
 
