@@ -86,6 +86,39 @@ class VerilatorBuild:
     cached: bool
 
 
+def cached_build(*, name, toplevel, files, build_args, build, cache=None, key_extra=()):
+    """Build a Verilator simulation once per content: the shared cache of every blockray build.
+
+    ``files`` maps file names to their text; the key hashes them with ``build_args``,
+    ``key_extra`` and the Verilator and cocotb versions. ``build(staging, sources)`` runs the
+    build in a staging directory, which is renamed into place only when it is complete, so a
+    half-built directory is never reused. Returns ``(build_dir, seconds, cached)``.
+    """
+    key = hashlib.sha256("\n".join([
+        *(f"{n}\n{t}" for n, t in files.items()), repr(tuple(build_args)), *map(repr, key_extra),
+        _version("verilator"), _version("cocotb"),
+    ]).encode()).hexdigest()[:16]
+    root = Path(cache) if cache is not None else cache_dir() / "verilator"
+    build_dir = root / f"{name}-{key}"
+    if (build_dir / toplevel).exists():
+        return build_dir, 0.0, True
+    staging = root / f"{name}-{key}.tmp{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    for file_name, text in files.items():
+        (staging / file_name).write_text(text)
+    start = time.perf_counter()
+    build(staging, [staging / n for n in files])
+    seconds = time.perf_counter() - start
+    try:
+        staging.rename(build_dir)
+    except OSError:                         # another process finished the same build first
+        shutil.rmtree(staging, ignore_errors=True)
+    if not (build_dir / toplevel).exists():
+        raise RuntimeError(f"Verilator build of {toplevel} left no executable in {build_dir}")
+    return build_dir, seconds, False
+
+
 def build_verilator(component, *, name, build_args=DEFAULT_BUILD_ARGS, cache=None):
     """Convert ``component`` to Verilog as module ``name`` and build it with Verilator, reusing a
     previous build of identical Verilog and arguments. Returns a :class:`VerilatorBuild`."""
@@ -93,32 +126,14 @@ def build_verilator(component, *, name, build_args=DEFAULT_BUILD_ARGS, cache=Non
 
     verilator_env()
     text = verilog.convert(component, name=name, emit_src=False)
-    key = hashlib.sha256("\n".join([
-        text, repr(tuple(build_args)), _version("verilator"), _version("cocotb"),
-    ]).encode()).hexdigest()[:16]
-    root = Path(cache) if cache is not None else cache_dir() / "verilator"
-    build_dir = root / f"{name}-{key}"
-    source = build_dir / f"{name}.v"
-    if (build_dir / name).exists():
-        return VerilatorBuild(name, build_dir, source, 0.0, True)
 
-    # build beside the final place and rename it there, so a half-built directory is never reused
-    staging = root / f"{name}-{key}.tmp{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    (staging / f"{name}.v").write_text(text)
-    start = time.perf_counter()
-    runner = get_runner("verilator")
-    runner.build(sources=[staging / f"{name}.v"], hdl_toplevel=name, build_dir=staging,
-                 build_args=list(build_args), waves=False, always=True)
-    seconds = time.perf_counter() - start
-    try:
-        staging.rename(build_dir)
-    except OSError:                         # another process finished the same build first
-        shutil.rmtree(staging, ignore_errors=True)
-    if not (build_dir / name).exists():
-        raise RuntimeError(f"Verilator build of {name} left no executable in {build_dir}")
-    return VerilatorBuild(name, build_dir, source, seconds, False)
+    def build(staging, sources):
+        get_runner("verilator").build(sources=sources, hdl_toplevel=name, build_dir=staging,
+                                      build_args=list(build_args), waves=False, always=True)
+
+    build_dir, seconds, cached = cached_build(name=name, toplevel=name, files={f"{name}.v": text},
+                                              build_args=build_args, build=build, cache=cache)
+    return VerilatorBuild(name, build_dir, build_dir / f"{name}.v", seconds, cached)
 
 
 def run_cocotb(build, test_module, *, module_dir, env=None, test_dir=None, testcase=None):

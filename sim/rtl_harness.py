@@ -24,17 +24,14 @@ Control registers (the only signals visible through VPI; the design is built wit
 """
 
 import contextlib
-import hashlib
 import os
-import shutil
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from amaranth.back import verilog
 
-from .cocotb_support import _version, cache_dir, verilator_env
+from .cocotb_support import cached_build, verilator_env
 
 __all__ = ["HARNESS_TOP", "BOARD_MODULE", "DEFAULT_DEPTH", "harness_source", "HarnessBuild", "build_harness"]
 
@@ -191,35 +188,18 @@ def build_harness(params, boards, *, depth=DEFAULT_DEPTH, trace=False, build_arg
     board_text = verilog.convert(BoardTop(params), name=BOARD_MODULE, emit_src=False)
     harness_text = harness_source(boards=boards, command_width=proto.command_layout.size,
                                   result_width=proto.result_layout.size, depth=depth)
-    args = tuple(build_args)
-    key = hashlib.sha256("\n".join([
-        board_text, harness_text, CONTROL_FILE, repr(args), repr(bool(trace)), _version("verilator"), _version("cocotb"),
-    ]).encode()).hexdigest()[:16]
-    root = Path(cache) if cache is not None else cache_dir() / "verilator"
     name = f"{HARNESS_TOP}_{params.rows}x{params.cols}_b{params.bits}_p{boards}"
-    build_dir = root / f"{name}-{key}"
-    sources = (build_dir / f"{BOARD_MODULE}.v", build_dir / f"{HARNESS_TOP}.sv", build_dir / f"{HARNESS_TOP}.vlt")
-    if (build_dir / HARNESS_TOP).exists():
-        return HarnessBuild(HARNESS_TOP, build_dir, sources, boards, depth, bool(trace), 0.0, True)
+    files = {f"{BOARD_MODULE}.v": board_text, f"{HARNESS_TOP}.sv": harness_text, f"{HARNESS_TOP}.vlt": CONTROL_FILE}
 
-    staging = root / f"{name}-{key}.tmp{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    (staging / sources[0].name).write_text(board_text)
-    (staging / sources[1].name).write_text(harness_text)
-    (staging / sources[2].name).write_text(CONTROL_FILE)
-    start = time.perf_counter()
-    runner = _runner_class()()
-    print(f"blockray: building the Verilator simulation of {boards} x {params.rows} x {params.cols} "
-          f"boards (once per design; cached in {root})", file=sys.stderr)
-    with _output_to(staging / "build.log"):
-        runner.build(sources=[staging / s.name for s in sources], hdl_toplevel=HARNESS_TOP, build_dir=staging,
-                     build_args=list(args), waves=bool(trace), always=True)
-    seconds = time.perf_counter() - start
-    try:
-        staging.rename(build_dir)
-    except OSError:                          # another process finished the same build first
-        shutil.rmtree(staging, ignore_errors=True)
-    if not (build_dir / HARNESS_TOP).exists():
-        raise RuntimeError(f"Verilator build of the harness left no executable in {build_dir}")
-    return HarnessBuild(HARNESS_TOP, build_dir, sources, boards, depth, bool(trace), seconds, False)
+    def build(staging, sources):
+        print(f"blockray: building the Verilator simulation of {boards} x {params.rows} x {params.cols} "
+              f"boards (once per design; cached in {staging.parent})", file=sys.stderr)
+        with _output_to(staging / "build.log"):
+            _runner_class()().build(sources=sources, hdl_toplevel=HARNESS_TOP, build_dir=staging,
+                                    build_args=list(build_args), waves=bool(trace), always=True)
+
+    build_dir, seconds, cached = cached_build(name=name, toplevel=HARNESS_TOP, files=files,
+                                              build_args=build_args, build=build, cache=cache,
+                                              key_extra=(bool(trace),))
+    sources = tuple(build_dir / n for n in files)
+    return HarnessBuild(HARNESS_TOP, build_dir, sources, boards, depth, bool(trace), seconds, cached)
