@@ -53,6 +53,18 @@ def _add_board_options(p):
                         "(e.g. --max-shots 1)")
 
 
+def _board_params(**values):
+    """BoardParams from command-line values; an error names the option that set the bad value."""
+    from .errors import ParameterError
+    from .params import BoardParams
+    try:
+        return BoardParams(**values)
+    except ParameterError as e:
+        if e.parameter is None:
+            raise
+        raise ParameterError(f"--{e.parameter.replace('_', '-')}: {e}") from None
+
+
 def _render_parser(sub):
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
@@ -86,7 +98,7 @@ def _render_parser(sub):
 
 def _cmd_render(args):
     from .errors import ParameterError
-    from .params import BoardParams, MIN_BITS, MAX_BITS
+    from .params import MIN_BITS, MAX_BITS
     from .host_driver.objload import load_scene
     from .host_driver.render import render
     from .host_driver.output import write_patches_csv, write_report_json
@@ -95,7 +107,7 @@ def _cmd_render(args):
     if args.bits is not None and not MIN_BITS <= args.bits <= MAX_BITS:
         raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")
-    params = BoardParams(rows=args.rows, cols=args.cols, boards=args.boards)
+    params = _board_params(rows=args.rows, cols=args.cols, boards=args.boards)
     progress = not args.quiet and sys.stderr.isatty()
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
@@ -139,19 +151,11 @@ def _add_unit_options(p):
 def _unit_params(args):
     """BoardParams from the unit options; a bad value raises ParameterError naming the option."""
     from .errors import ParameterError
-    from .params import BoardParams
     from .synth.verilog import UNITS
     if args.unit not in UNITS:
         raise ParameterError(f"UNIT must be one of {', '.join(UNITS)}, not {args.unit!r}")
-    options = {"rows": "--rows", "cols": "--cols", "bits": "--bits",
-               "patch_depth": "--patch-depth", "voxel_depth": "--voxel-depth"}
-    values = {name: getattr(args, name) for name in options}
-    try:
-        return BoardParams(**values)
-    except ParameterError as e:
-        bad = [opt for name, opt in options.items() if f"parameter {name} " in str(e)]
-        bad += [options[name] for name in ("rows", "cols") if values[name] > 64]
-        raise ParameterError(f"{bad[0] if bad else 'parameters'}: {e}") from None
+    values = {name: getattr(args, name) for name in ("rows", "cols", "bits", "patch_depth", "voxel_depth")}
+    return _board_params(**values)
 
 
 def _verilog_parser(sub):

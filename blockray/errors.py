@@ -20,8 +20,13 @@ class SceneError(BlockrayError):
 class ParameterError(BlockrayError):
     """A parameter (command-line option or hardware parameter) is out of range or inconsistent.
 
-    The message names the parameter.
+    The message names the parameter; ``parameter`` holds its name where one parameter is at
+    fault, so the CLI can name the option that set it.
     """
+
+    def __init__(self, message, *, parameter=None):
+        self.parameter = parameter
+        super().__init__(message)
 
 
 class CapacityError(BlockrayError):

@@ -67,15 +67,18 @@ class BoardParams:
         for f in fields(self):
             value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, int):
-                raise ParameterError(f"board parameter {f.name} must be an integer, not {value!r}")
+                raise ParameterError(f"board parameter {f.name} must be an integer, not {value!r}",
+                                     parameter=f.name)
             if value < 1:
-                raise ParameterError(f"board parameter {f.name} must be at least 1, not {value}")
+                raise ParameterError(f"board parameter {f.name} must be at least 1, not {value}",
+                                     parameter=f.name)
         if not MIN_BITS <= self.bits <= MAX_BITS:
             raise ParameterError(
                 f"board parameter bits must be between {MIN_BITS} and {MAX_BITS} "
-                f"(the exact arithmetic needs 3*bits+2 <= 62), not {self.bits}")
+                f"(the exact arithmetic needs 3*bits+2 <= 62), not {self.bits}", parameter="bits")
         if self.rows > 64 or self.cols > 64:
-            raise ParameterError(f"array of {self.rows} x {self.cols} processors: rows and cols must be at most 64")
+            raise ParameterError(f"array of {self.rows} x {self.cols} processors: rows and cols must be at most 64",
+                                 parameter="rows" if self.rows > 64 else "cols")
 
     @property
     def widths(self):

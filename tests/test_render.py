@@ -198,3 +198,8 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
     assert np.array_equal(coarse.radiosity, base.radiosity)
     print(f"blocked rays: {counting.blocked} of {coarse.report['rays']}")
     assert 0 < counting.blocked < coarse.report["rays"]
+
+
+def test_cli_board_parameter_errors_name_the_option(capsys):
+    code, err = _run_cli(capsys, ["render", "cornell", "--rows", "200", "--quiet"])
+    assert code == 2 and err.startswith("blockray: error: --rows:") and "Traceback" not in err
