@@ -158,13 +158,13 @@ class Visibility:
             blocks = self._blocks_for(i, receivers)
         with self.phases.timed("board"):
             bits = self.board.run(blocks)
-        clear = np.zeros(len(receivers))
-        index = {int(j): n for n, j in enumerate(receivers)}
-        for block, blocked in zip(blocks, bits):
-            rows = np.fromiter((index[int(j)] for j in block.receiver_patch), dtype=np.int64,
-                               count=len(block.receiver_patch))
-            np.add.at(clear, rows, (~np.asarray(blocked, dtype=bool)).sum(axis=1))
-            self.rays += block.rays
+        # clear rays per receiver, summed over every block (and sample chunk) it appears in
+        position = np.empty(self.scene.patches, dtype=np.int64)
+        position[receivers] = np.arange(len(receivers))
+        rows = np.concatenate([block.receiver_patch for block in blocks])
+        clear_rays = np.concatenate([(~np.asarray(b, dtype=bool)).sum(axis=1) for b in bits])
+        clear = np.bincount(position[rows], weights=clear_rays, minlength=len(receivers))
+        self.rays += sum(block.rays for block in blocks)
         self.blocks += len(blocks)
         return clear / self.samples.count
 
