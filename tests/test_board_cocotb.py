@@ -10,7 +10,6 @@ must equal ModelBoard.run.
 The default suite uses a 2 x 2 array; the 8 x 8 board at B = 16 is behind ``-m slow``.
 """
 
-import os
 import pickle
 import shutil
 import tempfile

@@ -6,7 +6,7 @@ import pytest
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, orient3d, patch_normals, block_terms
 from blockray.params import BoardParams, Widths
-from blockray.records import patch_layout, point_layout, pack, unpack, pack_array, unpack_array, patch_columns
+from blockray.records import patch_layout, pack, unpack, pack_array, unpack_array, patch_columns
 from blockray.samples import SampleScheme
 
 

@@ -9,13 +9,11 @@ JIT-compiles it: about a minute for Yosys). Full runs: ``benchmarks/bench_synth.
 import json
 
 import pytest
-from amaranth.hdl import Signal
 from amaranth.lib import wiring
 from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
 from blockray.cli import main
-from blockray.params import BoardParams
 from blockray.synth.nextpnr import DEVICES, dsp_estimate
 from blockray.synth.wrap import LfsrHarness
 
