@@ -7,17 +7,24 @@ the host's command stream in order; a command costs exactly:
 WRITE_PATCH     1 (one patch record into patch memory)
 WRITE_VOXEL     1 (one (start, count) entry into the voxel table)
 BEGIN_BLOCK     1 (clears the R x S accumulators and the row/column ray-valid masks)
-LOAD_RECEIVER   1 per point (a receiver end point into one row's receiver unit)
-LOAD_SHOOTER    1 per point (a shooter sample point into one column's shooter unit)
+LOAD_RECEIVER   1 (a receiver end point into one row's receiver unit)
+LOAD_SHOOTER    1 (a shooter sample point into one column's shooter unit)
+LOAD_POINTS     1 (up to POINTS_PER_LOAD receiver and shooter points at once)
 VOXEL v         max(1, count_v): the voxel's patch records stream out of memory, one per
                 cycle, broadcast to all R x S processors; an empty voxel costs one bubble
-END_BLOCK       drain_latency + 1: the pipeline drains, then the R x S result word goes out
-READ_COUNTERS   1 (a snapshot of the counters goes out; it covers the commands before it)
+END_BLOCK       1: a marker enters the pipeline behind the block's last record; the R x S
+                result word goes out when it reaches the accumulators, drain_latency cycles
+                later, while the next block already streams (blocks overlap, no drain bubble)
+READ_COUNTERS   1 (a snapshot of the counters, covering the commands before it, follows the
+                same marker path so that results stay in command order)
 =============== ======================================================================
 
-``drain_latency = memory_latency + processor_latency - 1`` (the last record issued before
-END_BLOCK reaches the accumulators in END_BLOCK's last cycle). Cycles spent waiting for the host
-(an empty command stream, or a result nobody reads) are stalls, not board cycles.
+``drain_latency = memory_latency + processor_latency - 1``: END_BLOCK's result word is formed
+drain_latency cycles after END_BLOCK's own cycle (the last record issued before END_BLOCK reaches
+the accumulators then). Those cycles overlap with the next commands; only a host that waits for
+the result before sending more (the end of a batch) sees them, as stalls. Cycles spent waiting
+for the host (an empty command stream, or a full result queue nobody reads) are stalls, not board
+cycles, so a command stream's board cycles do not depend on the host's timing.
 :meth:`BoardTiming.for_bits` gives the RTL's latencies (tests assert them against the RTL).
 """
 
@@ -27,7 +34,7 @@ from dataclasses import dataclass
 from .errors import ParameterError
 from .params import Widths
 
-__all__ = ["Op", "BoardTiming"]
+__all__ = ["Op", "BoardTiming", "POINTS_PER_LOAD", "load_commands_needed"]
 
 
 class Op(enum.IntEnum):
@@ -40,6 +47,17 @@ class Op(enum.IntEnum):
     VOXEL = 5
     END_BLOCK = 6
     READ_COUNTERS = 7
+    LOAD_POINTS = 8
+
+
+#: points one LOAD_POINTS command carries (a block of R receivers and S shooters needs
+#: ceil((R + S) / POINTS_PER_LOAD) of them; 4 keeps the command no wider than WRITE_PATCH's)
+POINTS_PER_LOAD = 4
+
+
+def load_commands_needed(receivers, shooters):
+    """LOAD_POINTS commands (= cycles) that load ``receivers`` + ``shooters`` points."""
+    return -(-(int(receivers) + int(shooters)) // POINTS_PER_LOAD)
 
 
 #: RTL latencies (asserted against blockray.rtl in tests/test_board_sim.py)
@@ -83,21 +101,27 @@ class BoardTiming:
 
     @property
     def drain_latency(self):
-        """END_BLOCK's waiting cycles. END_BLOCK starts the cycle after the last record's issue;
-        that record reaches the accumulators memory_latency + processor_latency cycles after its
-        issue, which is END_BLOCK's last cycle (the one that forms the result word)."""
+        """Cycles from END_BLOCK's own cycle to the one that forms its result word. END_BLOCK
+        comes at the earliest the cycle after the last record's issue; that record reaches the
+        accumulators memory_latency + processor_latency cycles after its issue."""
         return self.processor_latency + self.memory_latency - 1
 
+    @property
+    def result_latency(self):
+        """Cycles from END_BLOCK / READ_COUNTERS to its result on the result stream (an empty
+        result queue and a host that reads at once): drain_latency, the result queue's write,
+        its output register."""
+        return self.drain_latency + 2
+
     def cost(self, op, count=0):
-        """Cycles of one command; ``count`` is the voxel's record count for VOXEL."""
+        """Board cycles of one command; ``count`` is the voxel's record count for VOXEL."""
         op = Op(op)
         if op is Op.VOXEL:
             return max(1, int(count))
-        if op is Op.END_BLOCK:
-            return self.drain_latency + 1
         return 1
 
     def block_cycles(self, receivers, shooters, voxel_counts):
-        """Cycles of BEGIN_BLOCK, the loads, one VOXEL per entry of ``voxel_counts``, END_BLOCK."""
+        """Board cycles of one block as the host sends it: BEGIN_BLOCK, the LOAD_POINTS
+        commands, one VOXEL per entry of ``voxel_counts``, END_BLOCK."""
         streamed = sum(max(1, int(c)) for c in voxel_counts)
-        return 1 + int(receivers) + int(shooters) + streamed + self.drain_latency + 1
+        return 1 + load_commands_needed(receivers, shooters) + streamed + 1

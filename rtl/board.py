@@ -11,12 +11,21 @@ each command costs exactly what :class:`blockray.timing.BoardTiming` says::
                         |                                                  |
                  point registers (written memory_latency later) ---> processor array
                         |                                                  |
-                 masks, counters -------------------> result register <-- accumulators
+                 masks, counters --> markers (drain_latency) --> result FIFO <-- accumulators
 
 Every cycle is either a **board cycle** (a command makes progress) or a **stall** (the slot is
-empty because the command stream was, or END_BLOCK / READ_COUNTERS waits for the result
-register). The ``cycles`` counter counts board cycles only, so it equals the model's cycle count
-whatever the host's timing.
+empty because the command stream was, or END_BLOCK / READ_COUNTERS waits for a result credit).
+The ``cycles`` counter counts board cycles only, so it equals the model's cycle count whatever
+the host's timing.
+
+END_BLOCK and READ_COUNTERS take one cycle: each sends a **marker** (its kind, the block's row
+and column masks, whether the block issued any record) down a register chain of drain_latency
+stages, beside the pipeline, so it arrives exactly when the block's last record has reached the
+accumulators and before the next block's first record has (that one issues after END_BLOCK).
+There the result word is formed (the OR of the block's tests, masked; a READ_COUNTERS takes the
+snapshot queued when it executed) and written to the result FIFO. The next block's BEGIN_BLOCK,
+loads and records run while the previous block drains. ``result_queue_depth`` credits (results
+in flight plus queued) make a host that does not read results stall the board, not lose them.
 
 Ordering is exact (no hazards): a LOAD reaches the point registers :attr:`memory_latency` cycles
 late, exactly when the records issued after it reach the array; BEGIN_BLOCK's accumulator clear
@@ -27,18 +36,19 @@ to accumulators), :attr:`drain_latency` = memory_latency + processor_latency - 1
 the cycle after the last issue). :attr:`timing` is the matching :class:`BoardTiming`.
 
 Reset (the ``sync`` domain's synchronous reset) empties the command register, the issue slot, the
-pipeline, the result register, the masks, accumulators and counters. Memory contents are not
+pipeline, the markers and the result FIFO, the masks, accumulators and counters. Memory contents are not
 reset but the protocol treats them as lost: after a reset the host reloads and replays.
 """
 
 from amaranth.hdl import Cat, Const, Module, Mux, Signal
 from amaranth.lib import data, stream, wiring
+from amaranth.lib.fifo import SyncFIFO, SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import point_layout
-from ..timing import BoardTiming, Op
+from ..timing import POINTS_PER_LOAD, BoardTiming, Op
 from .array import ProcessorArray
 from .memctrl import MemoryController
 from .processor import ArrayTiming
@@ -67,9 +77,9 @@ class BoardTop(wiring.Component):
 
     Ports
     ``commands``  In stream of :attr:`protocol` ``.command_layout``.
-    ``results``   Out stream of :attr:`protocol` ``.result_layout``. ``commands.ready`` may depend
-                  combinationally on ``results.ready`` (a result leaves and the next one is
-                  formed in the same cycle); no ``valid`` depends on any ``ready``.
+    ``results``   Out stream of :attr:`protocol` ``.result_layout``, from the output register
+                  of a FIFO. No ``valid`` or ``ready`` depends combinationally on a port of
+                  the other stream.
     """
 
     def __init__(self, params, *, patch_init=(), table_init=()):
@@ -111,8 +121,16 @@ class BoardTop(wiring.Component):
 
     @property
     def drain_latency(self):
-        """END_BLOCK's waiting cycles: it costs drain_latency + 1."""
+        """Cycles from END_BLOCK's own cycle to the one that forms its result word (the marker
+        register chain); the next commands run meanwhile."""
         return self.latency - 1
+
+    @property
+    def result_queue_depth(self):
+        """Results that may be in flight or queued at once (markers plus the result FIFO). One
+        more than a result every cycle for drain_latency + 2 cycles needs, so a host that reads
+        at once never stalls the board."""
+        return self.drain_latency + 3
 
     @property
     def timing(self):
@@ -145,32 +163,36 @@ class BoardTop(wiring.Component):
         with m.Elif(cur_done):
             m.d.sync += cur_valid.eq(0)
 
-        # -- result register ---------------------------------------------------------------------
-        result = Signal(proto.result_layout)
-        result_valid = Signal()
-        result_free = ~result_valid | self.results.ready
-        new_result = Signal(proto.result_layout)
-        emit = Signal()
-        m.d.comb += [self.results.valid.eq(result_valid), self.results.payload.eq(result)]
-        with m.If(emit):
-            m.d.sync += [result.eq(new_result), result_valid.eq(1)]
-        with m.Elif(self.results.valid & self.results.ready):
-            m.d.sync += result_valid.eq(0)
-
-        # -- execute the command register --------------------------------------------------------
-        op = cur.op
-        drain = Signal(range(self.drain_latency + 1))
-        needs_result = (op == Op.END_BLOCK) | (op == Op.READ_COUNTERS)
-        ready_to_emit = Mux(op == Op.END_BLOCK, drain == self.drain_latency, 1)
+        # -- results: END_BLOCK and READ_COUNTERS take one cycle each; their result follows the
+        # block's last record through the pipeline as a marker (drain_latency registers), so the
+        # next block streams while this one drains. Credits bound the results in flight plus
+        # those queued, so a host that does not read results stalls the board, never loses one.
+        marker_layout = data.StructLayout({
+            "valid": 1, "counters": 1, "fresh": 1, "rows": R, "cols": S,
+        })
+        queue_depth = self.result_queue_depth
+        m.submodules.results = results = SyncFIFOBuffered(width=proto.result_layout.size, depth=queue_depth)
+        m.submodules.snapshots = snapshots = SyncFIFO(width=proto.counters_layout.size,
+                                                      depth=self.drain_latency + 1)
+        outstanding = Signal(range(queue_depth + 1))
+        credit = outstanding < queue_depth
+        marker = Signal(marker_layout)
+        leave = self.results.valid & self.results.ready
+        m.d.sync += outstanding.eq(outstanding + marker.valid - leave)
         m.d.comb += [
-            cur_step.eq(cur_valid & ~(needs_result & ready_to_emit & ~result_free)),
-            cur_done.eq(cur_step & (~needs_result | ready_to_emit)),
-            emit.eq(cur_done & needs_result),
+            self.results.valid.eq(results.r_rdy),
+            self.results.payload.eq(results.r_data),
+            results.r_en.eq(self.results.ready),
         ]
-        with m.If(pop):
-            m.d.sync += drain.eq(0)
-        with m.Elif(cur_step & (op == Op.END_BLOCK) & (drain != self.drain_latency)):
-            m.d.sync += drain.eq(drain + 1)
+
+        # -- execute the command register: every command takes one cycle; END_BLOCK and
+        # READ_COUNTERS wait (stall) for a result credit
+        op = cur.op
+        needs_result = (op == Op.END_BLOCK) | (op == Op.READ_COUNTERS)
+        m.d.comb += [
+            cur_step.eq(cur_valid & (~needs_result | credit)),
+            cur_done.eq(cur_step),
+        ]
 
         m.d.comb += [
             mc.patch_write.valid.eq(cur_valid & (op == Op.WRITE_PATCH)),
@@ -186,38 +208,48 @@ class BoardTop(wiring.Component):
         fresh = Signal(init=1)               # no record issued since BEGIN_BLOCK (or reset)
         with m.If(cur_valid & (op == Op.BEGIN_BLOCK)):
             m.d.sync += [row_valid.eq(0), col_valid.eq(0), fresh.eq(1)]
-        with m.If(cur_valid & (op == Op.LOAD_RECEIVER)):
-            m.d.sync += row_valid.bit_select(cur.arg.load_receiver.row, 1).eq(1)
-        with m.If(cur_valid & (op == Op.LOAD_SHOOTER)):
-            m.d.sync += col_valid.bit_select(cur.arg.load_shooter.col, 1).eq(1)
         with m.If(mc.issue):
             m.d.sync += fresh.eq(0)
 
         # point registers, written memory_latency cycles after the LOAD: records issued before
-        # the LOAD have reached the array by then, those issued after it have not
+        # the LOAD have reached the array by then, those issued after it have not. A LOAD_POINTS
+        # writes up to POINTS_PER_LOAD of them (a later slot wins); a single LOAD uses slot 0.
         point = point_layout(p.bits)
-        load_layout = data.StructLayout({
-            "receiver": 1, "shooter": 1,
-            "row": proto.row_width, "col": proto.col_width, "point": point,
+        write_layout = data.StructLayout({
+            "receiver": 1, "shooter": 1, "index": proto.point_slot_layout["index"].shape, "point": point,
         })
-        load = Signal(load_layout)
-        m.d.comb += [
-            load.receiver.eq(cur_valid & (op == Op.LOAD_RECEIVER)),
-            load.shooter.eq(cur_valid & (op == Op.LOAD_SHOOTER)),
-            load.row.eq(cur.arg.load_receiver.row),
-            load.col.eq(cur.arg.load_shooter.col),
-            load.point.eq(Mux(op == Op.LOAD_RECEIVER, cur.arg.load_receiver.point.as_value(),
-                              cur.arg.load_shooter.point.as_value())),
-        ]
-        late = _delay(m, load, self.memory_latency - 1, "load")
+        writes = Signal(data.ArrayLayout(write_layout, POINTS_PER_LOAD))
+        load_points = cur_valid & (op == Op.LOAD_POINTS)
+        for k in range(POINTS_PER_LOAD):
+            slot = cur.arg.load_points[k]
+            m.d.comb += [
+                writes[k].receiver.eq(load_points & slot.valid & ~slot.shooter),
+                writes[k].shooter.eq(load_points & slot.valid & slot.shooter),
+                writes[k].index.eq(slot.index),
+                writes[k].point.eq(slot.point),
+            ]
+        with m.If(cur_valid & (op == Op.LOAD_RECEIVER)):
+            m.d.comb += [writes[0].receiver.eq(1), writes[0].index.eq(cur.arg.load_receiver.row),
+                         writes[0].point.eq(cur.arg.load_receiver.point)]
+        with m.If(cur_valid & (op == Op.LOAD_SHOOTER)):
+            m.d.comb += [writes[0].shooter.eq(1), writes[0].index.eq(cur.arg.load_shooter.col),
+                         writes[0].point.eq(cur.arg.load_shooter.point)]
+        # masks: effective at once (they count useful tests at issue and travel with END_BLOCK)
+        for k in range(POINTS_PER_LOAD):
+            with m.If(writes[k].receiver):
+                m.d.sync += row_valid.bit_select(writes[k].index, 1).eq(1)
+            with m.If(writes[k].shooter):
+                m.d.sync += col_valid.bit_select(writes[k].index, 1).eq(1)
+        late = _delay(m, writes, self.memory_latency - 1, "writes")
         receivers = Signal(data.ArrayLayout(point, R))
         shooters = Signal(data.ArrayLayout(point, S))
-        for r in range(R):
-            with m.If(late.receiver & (late.row == r)):
-                m.d.sync += receivers[r].eq(late.point)
-        for s in range(S):
-            with m.If(late.shooter & (late.col == s)):
-                m.d.sync += shooters[s].eq(late.point)
+        for k in range(POINTS_PER_LOAD):
+            for r in range(R):
+                with m.If(late[k].receiver & (late[k].index == r)):
+                    m.d.sync += receivers[r].eq(late[k].point)
+            for s in range(S):
+                with m.If(late[k].shooter & (late[k].index == s)):
+                    m.d.sync += shooters[s].eq(late[k].point)
 
         # -- the array ---------------------------------------------------------------------------
         first = _delay(m, mc.issue & fresh, self.memory_latency, "first")
@@ -228,7 +260,6 @@ class BoardTop(wiring.Component):
             array.receivers.eq(receivers),
             array.shooters.eq(shooters),
         ]
-        mask = Cat(row_valid[r] & col_valid[s] for r in range(R) for s in range(S))
 
         # -- counters ----------------------------------------------------------------------------
         counters = Signal(proto.counters_layout)
@@ -245,14 +276,34 @@ class BoardTop(wiring.Component):
                 counters.tests_useful.eq(counters.tests_useful + useful),
             ]
 
-        with m.If(op == Op.END_BLOCK):
+        # markers enter in the command's own cycle and leave drain_latency cycles later, when the
+        # block's last record has reached the accumulators and the next block's first record has
+        # not (it issues after END_BLOCK); the counter snapshot is taken on entry
+        m.d.comb += [
+            marker.valid.eq(cur_step & needs_result),
+            marker.counters.eq(op == Op.READ_COUNTERS),
+            marker.fresh.eq(fresh),
+            marker.rows.eq(row_valid),
+            marker.cols.eq(col_valid),
+            snapshots.w_en.eq(marker.valid & marker.counters),
+            snapshots.w_data.eq(counters),
+        ]
+        done = _delay(m, marker, self.drain_latency, "marker")
+        mask = Cat(done.rows[r] & done.cols[s] for r in range(R) for s in range(S))
+        result = Signal(proto.result_layout)
+        with m.If(done.counters):
             m.d.comb += [
-                new_result.kind.eq(ResultKind.BLOCKED),
-                new_result.data.blocked.eq(Mux(fresh, 0, array.hit & mask)),
+                result.kind.eq(ResultKind.COUNTERS),
+                result.data.counters.eq(snapshots.r_data),
             ]
         with m.Else():
             m.d.comb += [
-                new_result.kind.eq(ResultKind.COUNTERS),
-                new_result.data.counters.eq(counters),
+                result.kind.eq(ResultKind.BLOCKED),
+                result.data.blocked.eq(Mux(done.fresh, 0, array.hit & mask)),
             ]
+        m.d.comb += [
+            snapshots.r_en.eq(done.valid & done.counters),
+            results.w_en.eq(done.valid),
+            results.w_data.eq(result),
+        ]
         return m

@@ -27,7 +27,7 @@ from amaranth.utils import bits_for, ceil_log2
 from ..errors import CapacityError, ParameterError
 from ..params import BoardParams
 from ..records import pack, patch_layout, point_layout, unpack
-from ..timing import Op
+from ..timing import POINTS_PER_LOAD, Op
 
 __all__ = ["ResultKind", "COUNTERS", "COUNTER_WIDTH", "BoardProtocol", "BoardResult",
            "fit_params", "check_capacity", "RESULT_OPS", "result_producers", "replay_after_reset",
@@ -70,6 +70,12 @@ class BoardProtocol:
         self.row_width = _index_width(params.rows)
         self.col_width = _index_width(params.cols)
         point = point_layout(params.bits)
+        self.point_slot_layout = data.StructLayout({
+            "valid": unsigned(1),
+            "shooter": unsigned(1),                     # 0: receiver row `index`, 1: shooter column
+            "index": unsigned(max(self.row_width, self.col_width)),
+            "point": point,
+        })
         self.table_entry_layout = data.StructLayout({
             "start": unsigned(self.address_width),
             "count": unsigned(self.count_width),
@@ -82,6 +88,7 @@ class BoardProtocol:
             "load_receiver": data.StructLayout({"row": unsigned(self.row_width), "point": point}),
             "load_shooter": data.StructLayout({"col": unsigned(self.col_width), "point": point}),
             "voxel": data.StructLayout({"voxel": unsigned(self.voxel_width)}),
+            "load_points": data.ArrayLayout(self.point_slot_layout, POINTS_PER_LOAD),
         })
         self.command_layout = data.StructLayout({"op": Op, "arg": self.arg_layout})
         self.counters_layout = data.StructLayout({name: unsigned(COUNTER_WIDTH) for name in COUNTERS})
@@ -105,7 +112,9 @@ class BoardProtocol:
         ``command`` is anything with ``op``, ``index`` and ``value`` attributes, such as
         :class:`blockray.sim.model.Command`: WRITE_PATCH index = address, value = packed patch
         record; WRITE_VOXEL index = voxel, value = (start, count); LOAD_RECEIVER / LOAD_SHOOTER
-        index = row / column, value = (x, y, z); VOXEL index = voxel.
+        index = row / column, value = (x, y, z); LOAD_POINTS value = up to
+        :data:`~blockray.timing.POINTS_PER_LOAD` ``(shooter, index, (x, y, z))`` with ``shooter``
+        False for a receiver row, True for a shooter column; VOXEL index = voxel.
         """
         p = self._params
         op = Op(command.op)
@@ -132,6 +141,18 @@ class BoardProtocol:
                 arg = {"load_receiver": {"row": index, "point": point}}
             else:
                 arg = {"load_shooter": {"col": index, "point": point}}
+        elif op is Op.LOAD_POINTS:
+            slots = list(command.value)
+            if not 1 <= len(slots) <= POINTS_PER_LOAD:
+                raise ParameterError(f"LOAD_POINTS carries 1 to {POINTS_PER_LOAD} points, not {len(slots)}")
+            arg = {"load_points": []}
+            for shooter, where, point in slots:
+                self._check(int(where), p.cols if shooter else p.rows,
+                            "shooter column" if shooter else "receiver row", "cols" if shooter else "rows")
+                arg["load_points"].append({"valid": 1, "shooter": int(bool(shooter)), "index": int(where),
+                                           "point": dict(zip("xyz", (int(c) for c in point)))})
+            empty = {"valid": 0, "shooter": 0, "index": 0, "point": {"x": 0, "y": 0, "z": 0}}
+            arg["load_points"] += [empty] * (POINTS_PER_LOAD - len(slots))
         elif op is Op.VOXEL:
             self._check(index, p.voxel_depth, "voxel", "voxel_depth")
             arg = {"voxel": {"voxel": index}}
@@ -312,7 +333,7 @@ def describe(params):
     out.append("| op | value | `arg` member |")
     out.append("|---|---|---|")
     members = {Op.WRITE_PATCH: "write_patch", Op.WRITE_VOXEL: "write_voxel", Op.LOAD_RECEIVER: "load_receiver",
-               Op.LOAD_SHOOTER: "load_shooter", Op.VOXEL: "voxel"}
+               Op.LOAD_SHOOTER: "load_shooter", Op.VOXEL: "voxel", Op.LOAD_POINTS: "load_points"}
     for op in Op:
         out.append(f"| {op.name} | {op.value} | {('`' + members[op] + '`') if op in members else '(none)'} |")
     for op, name in members.items():

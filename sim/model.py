@@ -17,8 +17,9 @@ Command stream (one board; opcodes :class:`blockray.timing.Op`; costs :class:`bl
     BEGIN_BLOCK                                           clear accumulators and row/column valid masks
     LOAD_RECEIVER index=row      value=(x, y, z)          receiver end point Q of row r; row r valid
     LOAD_SHOOTER  index=col      value=(x, y, z)          shooter sample point P of column s; column s valid
+    LOAD_POINTS   value=((shooter, index, (x, y, z)), ...) up to POINTS_PER_LOAD of the two loads above at once
     VOXEL         index=voxel                             stream the voxel's records to all R x S processors
-    END_BLOCK                                             drain; emit the R x S result word
+    END_BLOCK                                             emit the R x S result word (drain_latency later)
     READ_COUNTERS                                         emit a counter snapshot covering the commands before it
 
 Result word: bit ``r * S + s`` is 1 when the ray from shooter column s to receiver row r is blocked
@@ -30,8 +31,10 @@ Voxel linear index: ``(ix * v + iy) * v + iz``.
 
 Counters: ``tests_issued`` = R x S per record streamed (every processor sees every broadcast, used
 or not); ``tests_useful`` = real rays x records streamed; ``utilization`` = useful / (processors x
-cycles). A block's machine time is the slowest board's block cycles (the host waits for all result
-words); ``board_cycles`` sums that over blocks. Memory loading is counted apart (``load_cycles``).
+cycles). The host sends each batch of blocks (one :meth:`ModelBoard.run`) to every board without
+waiting, and waits for the last result word: a batch's machine time is the slowest board's board
+cycles for the batch plus the drain of its last END_BLOCK (``drain_latency``); ``board_cycles``
+sums that over batches. Memory loading is counted apart (``load_cycles``).
 """
 
 import warnings
@@ -44,7 +47,7 @@ from ..exact import blocked_block
 from ..fixedpoint import DEFAULT_MAX_ERROR, resolve_bits
 from ..params import BoardParams
 from ..records import patch_layout, patch_columns, pack_array, unpack_array
-from ..timing import BoardTiming, Op
+from ..timing import POINTS_PER_LOAD, BoardTiming, Op, load_commands_needed
 from ..host_driver.board import Board
 
 
@@ -61,7 +64,7 @@ def _cube_root_floor(n):
 class QuantisationWarning(UserWarning):
     """The chosen bits merge vertices or flatten patches of the scene."""
 
-__all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration"]
+__all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration", "load_points_commands"]
 
 #: records per blocked_block call (bounds the (R, S, N, 3) int64 temporaries)
 CHUNK = 4096
@@ -176,6 +179,14 @@ class BoardModel:
             elif op is Op.LOAD_SHOOTER:
                 self.shooters[cmd.index] = cmd.value
                 self.col_valid[cmd.index] = True
+            elif op is Op.LOAD_POINTS:
+                for shooter, where, point in cmd.value:       # in order: a later slot wins
+                    if shooter:
+                        self.shooters[where] = point
+                        self.col_valid[where] = True
+                    else:
+                        self.receivers[where] = point
+                        self.row_valid[where] = True
             elif op is Op.VOXEL:
                 self._check_voxel(cmd.index)
                 count = int(self.count[cmd.index])
@@ -202,6 +213,15 @@ class BoardModel:
             sub = _any_blocked(self.shooters[cols], self.receivers[rows], self.vertices[idx], self.normals[idx])
             out[np.ix_(rows, cols)] = sub
         return out
+
+
+def load_points_commands(receivers, shooters):
+    """LOAD_POINTS commands loading receiver rows 0.. with ``receivers`` (R_b, 3) and shooter
+    columns 0.. with ``shooters`` (S_b, 3), :data:`POINTS_PER_LOAD` points per command."""
+    slots = [(False, r, tuple(int(c) for c in pt)) for r, pt in enumerate(receivers)]
+    slots += [(True, s, tuple(int(c) for c in pt)) for s, pt in enumerate(shooters)]
+    return [Command(Op.LOAD_POINTS, 0, tuple(slots[i:i + POINTS_PER_LOAD]))
+            for i in range(0, len(slots), POINTS_PER_LOAD)]
 
 
 def registration(grid):
@@ -313,6 +333,7 @@ class ModelBoard(Board):
             raise RuntimeError("load() before run()")
         q, p, t = self.quantised, self.params, self.timing
         out = []
+        batch = np.zeros(p.boards, dtype=np.int64)          # this batch's board cycles per board
         for block in blocks:
             Rb, Sb = self.check_block(block)
             P = q.shooters[block.shooter_patch, block.shooter_sample]
@@ -320,9 +341,9 @@ class ModelBoard(Board):
             vox = np.asarray(block.voxels, dtype=np.int64)
             counts = self._count[:, vox]                                     # (P, K)
             records = counts.sum(axis=1)                                    # per board
-            cycles = 1 + Rb + Sb + np.maximum(counts, 1).sum(axis=1) + t.drain_latency + 1
-            self._cycles_b += cycles
-            self._cycles += int(cycles.max())
+            # t.block_cycles for every board at once
+            cycles = 1 + load_commands_needed(Rb, Sb) + np.maximum(counts, 1).sum(axis=1) + 1
+            batch += cycles
             self._issued_b += p.processors * records
             self._useful_b += Rb * Sb * records
             self._blocks += 1
@@ -332,7 +353,15 @@ class ModelBoard(Board):
                 out.append(_any_blocked(P, Q, self._V[idx], self._n[idx]))
             else:
                 out.append(np.zeros((Rb, Sb), dtype=bool))
+        self._add_batch(batch)
         return out
+
+    def _add_batch(self, batch):
+        """Account one batch: per-board board cycles ``batch`` (P,); the machine waits for the
+        slowest board and the drain of its last END_BLOCK."""
+        if batch.any():
+            self._cycles_b += batch
+            self._cycles += int(batch.max()) + self.timing.drain_latency
 
     def counters(self):
         p = self.params
@@ -392,8 +421,7 @@ class ModelBoard(Board):
         P = q.shooters[block.shooter_patch, block.shooter_sample]
         Q = q.receivers[block.receiver_patch]
         cmds = [Command(Op.BEGIN_BLOCK)]
-        cmds += [Command(Op.LOAD_RECEIVER, r, tuple(int(c) for c in pt)) for r, pt in enumerate(Q)]
-        cmds += [Command(Op.LOAD_SHOOTER, s, tuple(int(c) for c in pt)) for s, pt in enumerate(P)]
+        cmds += load_points_commands(Q, P)
         cmds += [Command(Op.VOXEL, int(v)) for v in block.voxels]
         cmds.append(Command(Op.END_BLOCK))
         return cmds

@@ -22,7 +22,8 @@ result words per board out; the boards run concurrently where the simulator allo
 Counters. After the memory load and after every block the host sends ``READ_COUNTERS``; a block's
 board cycles on board b are the difference of the two snapshots minus one (the earlier
 ``READ_COUNTERS``'s own cycle, docs/board-protocol.md), its tests the difference. The host then
-forms exactly the model's report: ``board_cycles`` = per block the slowest board, summed;
+forms exactly the model's report: ``board_cycles`` = per batch the slowest board plus the last
+END_BLOCK's drain, summed;
 ``board_cycles_per_board``, ``tests_issued``, ``tests_useful``, ``utilization`` as
 :meth:`ModelBoard.counters`; ``load_cycles_per_board`` from the snapshot after the load.
 """
@@ -534,8 +535,7 @@ class RTLBoard(ModelBoard):
             diff[name] = arr - prev
             self._last[name] = arr[:, -1]
         cycles = diff["cycles"] - 1                                        # (P, K)
-        self._cycles_b += cycles.sum(axis=1)
-        self._cycles += int(cycles.max(axis=0).sum())
+        self._add_batch(cycles.sum(axis=1))
         self._issued_b += diff["tests_issued"].sum(axis=1)
         self._useful_b += diff["tests_useful"].sum(axis=1)
         self._blocks += len(blocks)

@@ -10,7 +10,7 @@ import numpy as np
 from blockray.exact import patch_normals
 from blockray.records import pack_array, patch_columns, patch_layout
 from blockray.sim.model import Command
-from blockray.timing import Op
+from blockray.timing import POINTS_PER_LOAD, Op
 
 __all__ = ["crossing_patches", "random_memory", "load_commands", "random_block", "random_points"]
 
@@ -78,6 +78,20 @@ def random_block(rng, rows, cols, P, Q, voxels, *, max_voxels=6):
     loads += [Command(Op.LOAD_SHOOTER, int(s), tuple(int(c) for c in P[rng.integers(len(P))]))
               for s in rng.permutation(cols)[:nc]]
     rng.shuffle(loads)
+    if rng.random() < 0.5:
+        # the same loads packed POINTS_PER_LOAD at a time into LOAD_POINTS (in order: a later
+        # slot of the same row or column would win, as a later LOAD does)
+        slots = [(Op(c.op) is Op.LOAD_SHOOTER, c.index, c.value) for c in loads]
+        if slots and rng.random() < 0.3:       # a row or column loaded twice: the later point counts
+            shooter, where, _ = slots[0]
+            again = P if shooter else Q
+            slots.insert(int(rng.integers(1, len(slots) + 1)),
+                         (shooter, where, tuple(int(c) for c in again[rng.integers(len(again))])))
+        loads = []
+        while slots:
+            take = int(rng.integers(1, POINTS_PER_LOAD + 1))
+            loads.append(Command(Op.LOAD_POINTS, 0, tuple(slots[:take])))
+            slots = slots[take:]
     cmds += loads
     cmds += [Command(Op.VOXEL, int(v)) for v in rng.integers(0, voxels, int(rng.integers(0, max_voxels + 1)))]
     cmds.append(Command(Op.END_BLOCK))

@@ -109,7 +109,8 @@ def test_latencies_match_timing_contract():
         assert board.drain_latency == contract.drain_latency
         assert board.memory_latency == contract.memory_latency
         assert board.processor_latency == contract.processor_latency
-        assert contract.cost(Op.END_BLOCK) == board.latency
+        assert contract.cost(Op.END_BLOCK) == 1 == contract.cost(Op.READ_COUNTERS)
+        assert board.result_queue_depth == contract.result_latency + 1
 
 
 @pytest.mark.parametrize("seed,rows,cols", [(101, 2, 2), (102, 2, 3)])
@@ -284,6 +285,58 @@ def test_board_executes_in_order_beyond_the_model():
     proto = BoardProtocol(params)
     got = [proto.decode_result(log.results[i]).blocked for i in sorted(log.results)]
     assert [hex(w) for w in got] == [hex(w) for w in expect]
+
+
+def test_board_overlapped_blocks_and_load_points():
+    """Blocks back to back, chosen so that a result word formed one cycle early (without the
+    block's last record) or a LOAD_POINTS applying its slots in the wrong order would differ;
+    every result against the model, cycles equal the model's (END_BLOCK costs one cycle)."""
+    from blockray.exact import blocked_block, patch_normals
+    seed = 411
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    rows, cols, bits, voxels = 2, 2, 8, 6
+    P, Q = random_points(rng, bits, 6), random_points(rng, bits, 6)
+    V = crossing_patches(rng, bits, P, Q, 40, crossing=0.9)
+    ids, start, count = random_memory(rng, bits, V, voxels, empty=0.0, max_registrations=2)
+    params = fit_params(BoardParams(rows=rows, cols=cols, bits=bits), records=len(ids), voxels=voxels)
+
+    def word(shooters, receivers, Vv):
+        hit = blocked_block(np.array(shooters), np.array(receivers), Vv, patch_normals(Vv)).any(axis=2)
+        return int(sum(1 << int(i) for i in np.flatnonzero(hit.ravel())))
+
+    pt = lambda a: tuple(map(int, a))
+    cmds = load_commands(bits, V, ids, start, count)
+    found = {"last_record": 0, "slot_order": 0}
+    for _ in range(2000):
+        if min(found.values()) >= 3:
+            break
+        sh = [P[i] for i in rng.choice(6, cols, replace=False)]
+        rc = [Q[i] for i in rng.choice(6, rows, replace=False)]
+        v = int(rng.integers(voxels))
+        recs = V[ids[start[v]:start[v] + count[v]]]
+        full = word(sh, rc, recs)
+        if found["last_record"] <= found["slot_order"]:
+            if full == word(sh, rc, recs[:-1]):
+                continue                       # the last record does not decide anything
+            found["last_record"] += 1
+            slots = [(False, r, pt(rc[r])) for r in range(rows)] + [(True, s, pt(sh[s])) for s in range(cols)]
+        else:
+            early = [Q[rng.integers(6)], rc[1]]         # row 0 first gets another point, then rc[0]
+            if word(sh, early, recs) == full:
+                continue
+            found["slot_order"] += 1
+            slots = [(False, 0, pt(early[0])), (True, 0, pt(sh[0])), (False, 0, pt(rc[0])),
+                     (False, 1, pt(rc[1])), (True, 1, pt(sh[1]))]
+        cmds += [Command(Op.BEGIN_BLOCK)]
+        cmds += [Command(Op.LOAD_POINTS, 0, tuple(slots[i:i + 4])) for i in range(0, len(slots), 4)]
+        cmds += [Command(Op.VOXEL, v), Command(Op.END_BLOCK)]
+    assert min(found.values()) >= 3, found
+    cmds.append(Command(Op.READ_COUNTERS))
+    log, _ = run_board(params, cmds, seed=seed)
+    check_run(params, cmds, log)
+    counters = BoardProtocol(params).decode_result(log.results[max(log.results)]).counters
+    assert counters["stalls"] == 1, counters
 
 
 def test_protocol_doc_matches_layouts():

@@ -11,7 +11,7 @@ from blockray.fixedpoint import quantise, choose_bits, resolve_bits, DEFAULT_MAX
 from blockray.host_driver.scene import Scene
 from blockray.params import Widths
 from blockray.samples import SampleScheme
-from blockray.timing import BoardTiming, Op
+from blockray.timing import BoardTiming, Op, load_commands_needed
 
 
 def make_scene(vertices, triangles, name="t"):
@@ -157,12 +157,14 @@ def test_forced_bits_refused_when_scene_degenerates_badly():
 def test_timing_contract():
     t = BoardTiming(processor_latency=7, memory_latency=2)
     assert t.drain_latency == 8        # memory + processor - 1: END_BLOCK starts after the last issue
-    assert [t.cost(op) for op in (Op.WRITE_PATCH, Op.WRITE_VOXEL, Op.BEGIN_BLOCK,
-                                  Op.LOAD_RECEIVER, Op.LOAD_SHOOTER)] == [1, 1, 1, 1, 1]
+    assert t.result_latency == 10      # + the result FIFO's write and output register
+    assert [t.cost(op) for op in (Op.WRITE_PATCH, Op.WRITE_VOXEL, Op.BEGIN_BLOCK, Op.LOAD_RECEIVER,
+                                  Op.LOAD_SHOOTER, Op.LOAD_POINTS, Op.END_BLOCK,
+                                  Op.READ_COUNTERS)] == [1] * 8
     assert t.cost(Op.VOXEL, 0) == 1 and t.cost(Op.VOXEL, 5) == 5
-    assert t.cost(Op.END_BLOCK) == 9
-    # BEGIN + 3 receivers + 2 shooters + (4 + 1 + 2) + END
-    assert t.block_cycles(3, 2, [4, 0, 2]) == 1 + 3 + 2 + 7 + 9
+    # BEGIN + 3 receivers and 2 shooters in two LOAD_POINTS + (4 + 1 + 2) + END; no drain
+    assert t.block_cycles(3, 2, [4, 0, 2]) == 1 + 2 + 7 + 1
+    assert [load_commands_needed(r, s) for r, s in ((0, 0), (1, 0), (4, 0), (3, 2), (8, 8))] == [0, 1, 1, 2, 4]
     with pytest.raises(ParameterError, match="processor_latency"):
         BoardTiming(processor_latency=-1)
     lat = [BoardTiming.for_bits(b).processor_latency for b in range(4, 21)]

@@ -170,11 +170,11 @@ def test_cycle_counts_and_counters_by_hand():
     out = board.run([blk])
     assert out[0].shape == (3, 1) and not out[0].any()
     c = board.counters()
-    drain_end = (5 + 2 - 1) + 1        # drain_latency = processor + memory - 1, then the result
-    # board 0 holds patch 0: voxel counts (1, 0, 0); board 1 holds patch 1: (1, 1, 0)
-    assert c["board_cycles_per_board"] == [1 + 3 + 1 + (1 + 1 + 1) + drain_end,
-                                           1 + 3 + 1 + (1 + 1 + 1) + drain_end]
-    assert c["board_cycles"] == max(c["board_cycles_per_board"])
+    # board 0 holds patch 0: voxel counts (1, 0, 0); board 1 holds patch 1: (1, 1, 0).
+    # BEGIN, one LOAD_POINTS (3 receivers + 1 shooter), three voxels (one bubble each if empty), END
+    assert c["board_cycles_per_board"] == [1 + 1 + (1 + 1 + 1) + 1, 1 + 1 + (1 + 1 + 1) + 1]
+    # the batch waits for the slowest board and for the last END_BLOCK's drain
+    assert c["board_cycles"] == max(c["board_cycles_per_board"]) + (5 + 2 - 1)
     assert c["tests_issued_per_board"] == [8 * 1, 8 * 2]
     assert c["tests_useful_per_board"] == [3 * 1, 3 * 2]
     assert c["tests_useful"] == c["tests"] == 9 and c["tests_issued"] == 24
@@ -292,7 +292,8 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
             Command(Op.END_BLOCK), Command(Op.READ_COUNTERS)]
     res = bm.execute(cmds)
     assert res.counters[0] == {"cycles": 0, "busy": 0, "tests_issued": 0, "tests_useful": 0}
-    assert res.counters[1] == {"cycles": 1 + 1 + 1 + 1 + 3 + 1 + (7 + 2 - 1) + 1, "busy": 3,
+    # READ_COUNTERS, BEGIN, two loads, VOXEL (3 records), VOXEL (empty: a bubble), END (one cycle)
+    assert res.counters[1] == {"cycles": 1 + 1 + 1 + 1 + 3 + 1 + 1, "busy": 3,
                                "tests_issued": 3 * 6, "tests_useful": 3 * 1}
     assert res.cycles == res.counters[1]["cycles"] + 1
     assert res.words == [1 << (0 * 3 + 2)]            # row 0, column 2 blocked by the z = 5 triangles
