@@ -53,6 +53,7 @@ def main(argv=None):
     ap.add_argument("--voxels", default="default", help="an integer, 'default' or 'hw'")
     ap.add_argument("--bits", type=int, default=None)
     ap.add_argument("--clock", type=float, default=95.0, help="MHz for the second time column")
+    ap.add_argument("--partition", default="deal", choices=["deal", "patch"])
     args = ap.parse_args(argv)
     scene = load_scene(args.scene)
     print(f"# {platform.node()} {platform.processor() or platform.machine()} cores={os.cpu_count()} "
@@ -69,7 +70,7 @@ def main(argv=None):
             v = int(args.voxels)
         t0 = time.perf_counter()
         res = render(scene, board="model", params=params, bits=args.bits, voxels=v,
-                     max_shots=args.max_shots, stats_fraction=0.0)
+                     max_shots=args.max_shots, partition=args.partition, stats_fraction=0.0)
         r = res.report
         rays, cycles = r["rays"], r["board_cycles"]
         row = {"P": P, "R": R, "S": S, "PRS": P * R * S, "voxels": r["voxels"], "shots": r["shots"],

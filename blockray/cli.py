@@ -47,6 +47,10 @@ def _add_board_options(p):
     g.add_argument("--rows", type=_positive_int, default=8, metavar="R", help="receivers per block (array rows)")
     g.add_argument("--cols", type=_positive_int, default=8, metavar="S", help="shooter samples per block (array columns)")
     g.add_argument("--boards", type=_positive_int, default=8, metavar="P", help="boards (patch partitions)")
+    g.add_argument("--partition", default="deal", choices=["deal", "patch"],
+                   help="how patch records are spread over the boards: each voxel's records dealt round "
+                        "robin (default; the boards' shares of a block are equal) or all records of patch i "
+                        "on board i %% P (the paper)")
     g.add_argument("--vcd", default=None, metavar="FILE",
                    help="write a waveform (VCD) of every clock cycle of the simulated boards; --board amaranth "
                         "or verilator only (verilator builds a traced simulation); use it on a short run "
@@ -112,7 +116,7 @@ def _cmd_render(args):
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    progress=progress, vcd=args.vcd)
+                    partition=args.partition, progress=progress, vcd=args.vcd)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
@@ -163,6 +167,9 @@ def _verilog_parser(sub):
                        description="Write readable Verilog (Amaranth back-end, no source attributes) "
                                    "of one unit for the given parameters.")
     _add_unit_options(p)
+    p.add_argument("--target", default="generic", choices=["generic", "ecp5"],
+                   help="generic: portable netlist, products as '*' between fabric registers (default); "
+                        "ecp5: every product a MULT18X18D instance with its input and output registers on")
     p.add_argument("--out", required=True, metavar="FILE", help="Verilog file to write")
     p.set_defaults(func=_cmd_verilog)
 
@@ -170,7 +177,7 @@ def _verilog_parser(sub):
 def _cmd_verilog(args):
     from .synth.verilog import write_verilog
     params = _unit_params(args)
-    write_verilog(args.out, args.unit, params)
+    write_verilog(args.out, args.unit, params, target=args.target)
     return 0
 
 
@@ -182,7 +189,8 @@ def _synth_parser(sub):
                                    "utilisation and whether it fits.")
     _add_unit_options(p)
     p.add_argument("--target", default="ecp5", choices=["ecp5", "generic"],
-                   help="ecp5: synth_ecp5 + nextpnr (default); generic: Yosys synth only (cells, multipliers)")
+                   help="ecp5: the ECP5 netlist (registered MULT18X18D instances), synth_ecp5 + nextpnr "
+                        "(default); generic: the portable netlist, Yosys synth only (cells, multipliers)")
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")

@@ -40,23 +40,25 @@ def _morton(ijk):
     return code
 
 
-def make_board(name, params=None, *, bits=None, vcd=None):
+def make_board(name, params=None, *, bits=None, vcd=None, partition="deal"):
     """Build a board back-end by name. ``bits=None`` lets the board choose B for the scene.
 
     ``amaranth`` / ``verilator``: the board's RTL in the Amaranth simulator or as Verilog under
     Verilator + cocotb (:class:`blockray.sim.rtl_board.RTLBoard`); ``vcd`` (a path) writes their
     waveform."""
+    if partition != "deal" and name == "golden":
+        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene")
     if vcd is not None and name not in ("amaranth", "verilator"):
         raise ParameterError(f"--vcd needs a simulated RTL board (--board amaranth or verilator), not {name!r}")
     if name in ("amaranth", "verilator"):
         from ..sim.rtl_board import RTLBoard
-        return RTLBoard(params or BoardParams(), bits=bits, backend=name, vcd=vcd)
+        return RTLBoard(params or BoardParams(), bits=bits, backend=name, vcd=vcd, partition=partition)
     if name == "golden":
         from .golden import GoldenBoard
         return GoldenBoard()
     if name == "model":
         from ..sim.model import ModelBoard
-        return ModelBoard(params or BoardParams(), bits=bits)
+        return ModelBoard(params or BoardParams(), bits=bits, partition=partition)
     raise ParameterError(f"--board must be one of {', '.join(BOARDS)}, not {name!r}")
 
 
@@ -179,7 +181,8 @@ class RenderResult:
 
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
-           traversal="block", packing="voxel", progress=False, stats_fraction=0.02, vcd=None):
+           traversal="block", packing="voxel", partition="deal", progress=False, stats_fraction=0.02,
+           vcd=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
@@ -196,7 +199,8 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
     t_start = time.perf_counter()
-    board_obj = make_board(board, params, bits=bits, vcd=vcd) if isinstance(board, str) else board
+    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition)
+                 if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
 
     with phases.timed("prepare"):
@@ -274,6 +278,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         "samples": samples.count,
         "traversal": traversal,
         "packing": packing,
+        "partition": getattr(board_obj, "partition", None),
         "solver": solver,
         "tolerance": tolerance,
         "shots": int(getattr(result, "shots", 0) or 0),

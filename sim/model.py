@@ -6,7 +6,7 @@ Two levels:
   RTL testbench feeds the same list of :class:`Command` to the RTL and to
   :meth:`BoardModel.execute` and compares result words and cycle counts with zero tolerance.
 * :class:`ModelBoard` is the host's :class:`~blockray.host_driver.board.Board`: ``P`` boards,
-  each holding a disjoint partition of the patches (patch id % P), run block rays and OR their
+  each holding a disjoint part of the voxels' patch records (:func:`partition_records`), run block rays and OR their
   bits. It computes the same memories, bits and cycles as building each board's command stream and
   executing it (a test checks that), but gathers a whole block's records at once.
 
@@ -26,7 +26,15 @@ Result word: bit ``r * S + s`` is 1 when the ray from shooter column s to receiv
 by some streamed record (rows/columns not loaded in the block are 0).
 
 Memory layout of a board: patch records in voxel order (a patch registered in k voxels occupies k
-words; within a voxel in increasing patch id) and a voxel table of (start, count) per voxel.
+words over the boards; within a voxel in increasing patch id) and a voxel table of (start, count)
+per voxel.
+
+Partition (:data:`PARTITIONS`): ``deal`` (default) deals every voxel's records round robin over
+the P boards (registration k of the whole table, in voxel order, goes to board k % P), so a
+voxel's counts on the boards differ by at most one and the boards stream their shares of a block
+in equal time; ``patch`` puts every record of patch i on board i % P (the paper's "partition of
+the patches"), whose per-voxel counts can be far apart. Either way every (voxel, patch)
+registration is on exactly one board, so the OR of the boards' words is the same.
 Voxel linear index: ``(ix * v + iy) * v + iz``.
 
 Counters: ``tests_issued`` = R x S per record streamed (every processor sees every broadcast, used
@@ -64,7 +72,8 @@ def _cube_root_floor(n):
 class QuantisationWarning(UserWarning):
     """The chosen bits merge vertices or flatten patches of the scene."""
 
-__all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration", "load_points_commands"]
+__all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration", "load_points_commands",
+           "partition_records", "PARTITIONS"]
 
 #: records per blocked_block call (bounds the (R, S, N, 3) int64 temporaries)
 CHUNK = 4096
@@ -224,6 +233,19 @@ def load_points_commands(receivers, shooters):
             for i in range(0, len(slots), POINTS_PER_LOAD)]
 
 
+PARTITIONS = ("deal", "patch")
+
+
+def partition_records(voxels, patches, boards, partition="deal"):
+    """The board (0 .. boards-1) of each registration ``(voxels[k], patches[k])``, sorted by voxel
+    then patch as :func:`registration` gives them (see the module docstring)."""
+    if partition not in PARTITIONS:
+        raise ParameterError(f"--partition must be one of {', '.join(PARTITIONS)}, not {partition!r}")
+    if partition == "patch":
+        return np.asarray(patches, dtype=np.int64) % boards
+    return np.arange(len(voxels), dtype=np.int64) % boards
+
+
 def registration(grid):
     """A voxel grid's registration as ``(voxel, patch)`` int64 arrays sorted by voxel, then patch,
     and the number of voxels.
@@ -253,14 +275,17 @@ class ModelBoard(Board):
     """P bit-exact boards behind the host's Board interface (``--board model``).
 
     ``bits=None`` chooses B per scene (:func:`blockray.fixedpoint.choose_bits`); an int forces it
-    (``--bits``). ``params.bits`` is replaced by the B actually used.
+    (``--bits``). ``params.bits`` is replaced by the B actually used. ``partition``: how the
+    patch records are spread over the P boards (:data:`PARTITIONS`, ``--partition``).
     """
 
     name = "model"
 
-    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR):
+    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal"):
         self.params = params or BoardParams()
         self.bits = bits
+        partition_records(np.zeros(0), np.zeros(0), 1, partition)       # validates the name
+        self.partition = partition
         self.max_error = max_error
         self._timing = timing
         self.timing = None
@@ -299,8 +324,9 @@ class ModelBoard(Board):
             raise CapacityError(f"voxel table: {nvox} voxels do not fit the board's "
                                 f"voxel_depth {p.voxel_depth}; use --voxels {_cube_root_floor(p.voxel_depth)} or fewer")
         self.memories = []
+        owner = partition_records(vox, pat, p.boards, self.partition)
         for b in range(p.boards):
-            mine = pat % p.boards == b
+            mine = owner == b
             rec = pat[mine]
             if len(rec) > p.patch_depth:
                 raise CapacityError(

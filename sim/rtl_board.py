@@ -44,7 +44,7 @@ from ..errors import BlockrayError, ParameterError
 from ..records import leaves
 from ..rtl.protocol import BoardProtocol, ResultKind, RESULT_OPS, check_capacity, fit_params
 from ..timing import Op
-from .model import Command, ModelBoard, registration
+from .model import Command, ModelBoard, partition_records, registration
 
 __all__ = ["Transport", "VerilatorTransport", "AmaranthTransport", "ResultDecoder", "RTLBoard", "BACKENDS"]
 
@@ -475,7 +475,8 @@ class RTLBoard(ModelBoard):
             raise RuntimeError("prepare() before load()")
         p = self.params
         vox, pat, nvox = registration(grid)
-        records = int(np.bincount(pat % p.boards, minlength=p.boards).max()) if len(pat) else 0
+        owner = partition_records(vox, pat, p.boards, self.partition)
+        records = int(np.bincount(owner, minlength=p.boards).max()) if len(pat) else 0
         check_capacity(p, records=records, voxels=nvox)         # the hardware's memories: before anything runs
         super().load(grid)
         self.rtl_params = fit_params(p, records=records, voxels=nvox)

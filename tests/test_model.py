@@ -61,9 +61,9 @@ def random_blocks(rng, scene, samples, params, nblocks, nvox):
     return blocks
 
 
-def setup_board(seed=0, v=3, params=None, bits=None, samples=SampleScheme(8)):
+def setup_board(seed=0, v=3, params=None, bits=None, samples=SampleScheme(8), partition="deal"):
     scene = random_scene(seed)
-    board = ModelBoard(params or BoardParams(rows=4, cols=3, boards=3), bits=bits)
+    board = ModelBoard(params or BoardParams(rows=4, cols=3, boards=3), bits=bits, partition=partition)
     board.prepare(scene, samples)
     grid = BoxGrid(scene.patch_vertices, v, margin=board.margin)
     board.load(grid)
@@ -116,13 +116,14 @@ def test_run_equals_command_streams_per_board():
         np.testing.assert_array_equal(a, b)
 
 
-def test_memory_layout_and_partition():
-    scene, board, grid = setup_board(seed=5, v=3)
+@pytest.mark.parametrize("partition", ["deal", "patch"])
+def test_memory_layout_and_partition(partition):
+    scene, board, grid = setup_board(seed=5, v=3, partition=partition)
     P = board.params.boards
     layout = patch_layout(board.params.bits)
     q = board.quantised
     reg_total = sum(len(x) for x in grid.voxel_patches)
-    ids = []
+    ids, words = [], []
     for b in range(P):
         img = board.memory_image(b)
         assert len(img["patch"]) <= board.params.patch_depth
@@ -133,13 +134,30 @@ def test_memory_layout_and_partition():
                 np.testing.assert_array_equal(cols[(name, axis)], q.vertices[img["patch_id"], k, a])
         for a, axis in enumerate("xyz"):
             np.testing.assert_array_equal(cols[("normal", axis)], q.normals[img["patch_id"], a])
-        # voxel v's records are exactly board b's patches registered in v, contiguous, in id order
+        # voxel v's records are exactly board b's share of the patches registered in v,
+        # contiguous, in id order: "patch" all of patch i on board i % P; "deal" the voxel's
+        # registrations (in voxel order over the whole table) dealt round robin
+        dealt = 0
         for v, members in enumerate(grid.voxel_patches):
             got = img["patch_id"][img["start"][v]:img["start"][v] + img["count"][v]]
-            np.testing.assert_array_equal(got, np.sort(members[members % P == b]))
-        assert (img["patch_id"] % P == b).all()
+            members = np.sort(members)
+            if partition == "patch":
+                mine = members[members % P == b]
+            else:
+                mine = members[(dealt + np.arange(len(members))) % P == b]
+            dealt += len(members)
+            np.testing.assert_array_equal(got, mine)
+        if partition == "patch":
+            assert (img["patch_id"] % P == b).all()
         ids.append(img["patch_id"])
+        words.append(img["count"])
     assert sum(len(x) for x in ids) == reg_total        # a patch in k voxels occupies k words
+    counts = np.stack(words)                            # (P, voxels)
+    spread = (counts.max(axis=0) - counts.min(axis=0)).max()
+    if partition == "deal":
+        assert spread <= 1                              # the boards' shares of a voxel are equal
+    else:
+        assert spread > 1                               # (the scene is one where patch ids are not)
     assert layout.size == 15 * board.params.bits + 6
 
 
@@ -162,7 +180,7 @@ def test_cycle_counts_and_counters_by_hand():
 
     params = BoardParams(rows=4, cols=2, boards=2)
     timing = BoardTiming(processor_latency=5, memory_latency=2)
-    board = ModelBoard(params, bits=8, timing=timing)
+    board = ModelBoard(params, bits=8, timing=timing, partition="patch")
     board.prepare(scene, SampleScheme(1))
     board.load(G())
     # receiver: centroid of patch 1 (z = 4); shooter: the sample of patch 0 (z = 0): crosses nothing

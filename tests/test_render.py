@@ -149,6 +149,8 @@ def test_cli_bad_scene_exits_2_with_location(tmp_path, capsys, obj, mtl, needle)
     (["render", "cornell", "--voxels", "0"], "--voxels"),
     (["render", "cornell", "--max-edge", "-1"], "--max-edge"),
     (["render", "cornell", "--tolerance", "nan"], "--tolerance"),
+    (["render", "cornell", "--partition", "stripes"], "--partition"),
+    (["render", "cornell", "--board", "golden", "--partition", "patch"], "--partition"),
 ])
 def test_cli_bad_parameters_exit_2(capsys, argv, needle):
     code, err = _run_cli(capsys, argv + ["--quiet"])
