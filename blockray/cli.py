@@ -89,6 +89,10 @@ def _render_parser(sub):
     p.add_argument("--tolerance", type=_positive_float, default=1e-3,
                    help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
     p.add_argument("--max-shots", type=_positive_int, default=None, help="progressive refinement: at most this many shots")
+    p.add_argument("--sets", type=_positive_int, default=1, metavar="K",
+                   help="host + board sets working in parallel (the paper's section 6): each owns a region of "
+                        "the patches, casts the rays ending on them with its own boards, and the sets exchange "
+                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel)")
     _add_board_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--image", metavar="PNG", help="write a picture from the scene's camera")
@@ -116,7 +120,7 @@ def _cmd_render(args):
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    partition=args.partition, progress=progress, vcd=args.vcd)
+                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)

@@ -20,6 +20,7 @@ from ..samples import SampleScheme
 from ..errors import ParameterError
 from .board import BlockRay
 from . import formfactor, solver as solvers
+from .scaleout import SetVisibility, assign_sets, exchange_bytes_per_sweep
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
@@ -181,8 +182,8 @@ class RenderResult:
 
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
-           traversal="block", packing="voxel", partition="deal", progress=False, stats_fraction=0.02,
-           vcd=None):
+           traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
+           stats_fraction=0.02, vcd=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
@@ -194,6 +195,13 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     if max_shots is not None and max_shots < 1:
         raise ParameterError(f"--max-shots must be at least 1, not {max_shots!r}")
     params = params or BoardParams()
+    if sets != 1:
+        if solver == "progressive":
+            raise ParameterError("--sets: host + board sets solve by gathering; use --solver jacobi or "
+                                 "gauss-seidel", parameter="sets")
+        if not isinstance(board, str):
+            raise ParameterError("--sets needs a board name (one board is built per set)", parameter="sets")
+        assign_sets(np.zeros(scene.patches), sets)           # validates sets against the scene
     if bits is not None and board == "golden":
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
@@ -222,6 +230,22 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     stats = TraversalStats(grid, sample_fraction=stats_fraction)
     vis = Visibility(scene, board_obj, grid, samples, rows=params.rows, cols=params.cols,
                      traversal=traversal, packing=packing, phases=phases, stats=stats)
+    owner = None
+    if sets != 1:
+        # one host + board set per region of the scene (host_driver/scaleout.py); every set loads
+        # the whole scene into its own boards and casts the rays ending on its own patches
+        owner = assign_sets(vis.end_morton, sets)
+        boards, visibilities = [board_obj], [vis]
+        for _ in range(sets - 1):
+            other = make_board(board, params, bits=bits, partition=partition)
+            with phases.timed("prepare"):
+                other.prepare(scene, samples)
+            with phases.timed("load"):
+                other.load(grid)
+            boards.append(other)
+            visibilities.append(Visibility(scene, other, grid, samples, rows=params.rows, cols=params.cols,
+                                           traversal=traversal, packing=packing, phases=phases, stats=stats))
+        vis = SetVisibility(owner, visibilities, boards)
 
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
@@ -252,8 +276,13 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                 F[:, i] = shoot(i)
                 if bar is not None:
                     bar.update(1)
-            fn = solvers.jacobi if solver == "jacobi" else solvers.gauss_seidel
-            result = fn(scene, F, tolerance=tolerance, max_iterations=max_iterations)
+            if solver == "jacobi":
+                result = solvers.jacobi(scene, F, tolerance=tolerance, max_iterations=max_iterations)
+            elif owner is not None:
+                result = solvers.gauss_seidel_sets(scene, F, owner, tolerance=tolerance,
+                                                   max_iterations=max_iterations)
+            else:
+                result = solvers.gauss_seidel(scene, F, tolerance=tolerance, max_iterations=max_iterations)
     if bar is not None:
         bar.close()
     for phase in ("formfactor", "traverse", "board"):
@@ -263,9 +292,11 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     seconds = dict(phases.seconds)
     seconds["total"] = time.perf_counter() - t_start
 
-    counters = board_obj.counters()
-    if isinstance(board, str) and hasattr(board_obj, "close"):
-        board_obj.close()                   # a simulated board stops its simulator
+    counters = vis.counters() if owner is not None else board_obj.counters()
+    if isinstance(board, str):
+        for b in (vis.boards if owner is not None else [board_obj]):
+            if hasattr(b, "close"):
+                b.close()                   # a simulated board stops its simulator
     report = {
         "scene": scene.name,
         "source": scene.source,
@@ -280,6 +311,8 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         "packing": packing,
         "partition": getattr(board_obj, "partition", None),
         "solver": solver,
+        "sets": int(sets),
+        "exchange_bytes_per_sweep": int(exchange_bytes_per_sweep(owner)) if owner is not None else 0,
         "tolerance": tolerance,
         "shots": int(getattr(result, "shots", 0) or 0),
         "iterations": int(getattr(result, "iterations", 0) or 0),

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["SolveResult", "progressive_refinement", "jacobi", "gauss_seidel", "residual",
+__all__ = ["gauss_seidel_sets", "SolveResult", "progressive_refinement", "jacobi", "gauss_seidel", "residual",
            "ambient"]
 
 
@@ -199,6 +199,41 @@ def gauss_seidel(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None
     while res >= tolerance and result.iterations < max_iterations:
         for j in range(len(B)):
             B[j] = E[j] + rho[j] * (F[j] @ B)
+        result.iterations += 1
+        res = residual(scene, F, B)
+        result.history.append(res)
+        _report(progress, result.iterations, res)
+    result.B, result.residual, result.converged = B, res, res < tolerance
+    return result
+
+
+def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, progress=None):
+    """Gauss-Seidel gathering distributed over host + board sets (the paper's section 6).
+
+    ``owner[j]`` is the set that owns patch j. In a sweep every set updates its own patches in
+    place, in increasing index, with its own newest values and the other sets' values from the
+    last exchange; then the sets exchange their patches' radiosities. With one set this is
+    :func:`gauss_seidel` exactly; with every patch its own set it is :func:`jacobi`'s update.
+    Stops like :func:`gauss_seidel`. ``result.iterations`` counts sweeps (= exchanges).
+    """
+    F = _check_matrix(scene, F)
+    owner = np.asarray(owner, dtype=np.int64)
+    if owner.shape != (scene.patches,) or (scene.patches and owner.min() < 0):
+        raise ValueError(f"owner must give a set >= 0 for each of the {scene.patches} patches")
+    E, rho = scene.emission, scene.reflectance
+    groups = [np.flatnonzero(owner == k) for k in range(int(owner.max()) + 1 if len(owner) else 0)]
+    B = np.array(E, dtype=np.float64)
+    result = SolveResult(B=B, U=np.zeros_like(B), solver="gauss-seidel")
+    res = residual(scene, F, B)
+    result.history.append(res)
+    while res >= tolerance and result.iterations < max_iterations:
+        new = B.copy()
+        for own in groups:
+            view = B.copy()                     # what this set holds after the last exchange
+            for j in own:
+                view[j] = E[j] + rho[j] * (F[j] @ view)
+            new[own] = view[own]
+        B = new
         result.iterations += 1
         res = residual(scene, F, B)
         result.history.append(res)
