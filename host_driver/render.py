@@ -20,7 +20,7 @@ from ..samples import SampleScheme
 from ..errors import ParameterError
 from .board import BlockRay
 from . import formfactor, solver as solvers
-from .scaleout import SetVisibility, assign_sets, exchange_bytes_per_sweep
+from .scaleout import SetVisibility, assign_sets, exchange_bytes_per_sweep, receiver_work
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
@@ -234,7 +234,9 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     if sets != 1:
         # one host + board set per region of the scene (host_driver/scaleout.py); every set loads
         # the whole scene into its own boards and casts the rays ending on its own patches
-        owner = assign_sets(vis.end_morton, sets)
+        with phases.timed("formfactor"):
+            work = receiver_work(scene)
+        owner = assign_sets(vis.end_morton, sets, work)
         boards, visibilities = [board_obj], [vis]
         for _ in range(sets - 1):
             other = make_board(board, params, bits=bits, partition=partition)

@@ -2,7 +2,7 @@
 
 Each set owns a region of the scene's patches (:func:`assign_sets`: contiguous runs of the
 patches in Z-order of their centroids' voxels, so a set's receivers share voxels and its blocks
-stay full), has its own host and its own P boards, and casts only the rays that end on its own
+stay full, cut so that every run receives the same number of rays, :func:`receiver_work`), has its own host and its own P boards, and casts only the rays that end on its own
 patches: it computes its rows of the form factor matrix. The sets then solve by gathering and
 exchange only patch radiosities (:func:`blockray.host_driver.solver.gauss_seidel_sets`).
 
@@ -20,15 +20,17 @@ import numpy as np
 
 from ..errors import ParameterError
 
-__all__ = ["assign_sets", "SetVisibility", "exchange_bytes_per_sweep"]
+__all__ = ["assign_sets", "receiver_work", "SetVisibility", "exchange_bytes_per_sweep"]
 
 #: bytes per exchanged radiosity (float32, as the paper's "a few kB/s")
 EXCHANGE_BYTES = 4
 
 
-def assign_sets(morton, sets):
+def assign_sets(morton, sets, weights=None):
     """Owner set (0 .. sets-1) of every patch: the patches sorted by ``morton`` (their centroid
-    voxels' Z-order codes) cut into ``sets`` runs of equal size (to within one)."""
+    voxels' Z-order codes) cut into ``sets`` runs, each non-empty, of equal total ``weights``
+    (the work a patch brings its set, e.g. :func:`receiver_work`; default 1 per patch: runs of
+    equal size to within one)."""
     n = len(morton)
     if isinstance(sets, bool) or not isinstance(sets, (int, np.integer)) or sets < 1:
         raise ParameterError(f"--sets must be a positive integer, not {sets!r}", parameter="sets")
@@ -37,8 +39,32 @@ def assign_sets(morton, sets):
                              parameter="sets")
     order = np.argsort(np.asarray(morton), kind="stable")
     owner = np.empty(n, dtype=np.int64)
-    owner[order] = np.arange(n) * sets // max(1, n)
+    if weights is None:
+        owner[order] = np.arange(n) * sets // max(1, n)
+        return owner
+    w = np.asarray(weights, dtype=np.float64)[order]
+    if w.shape != (n,) or not np.isfinite(w).all() or (w < 0).any():
+        raise ValueError("weights must be finite and >= 0, one per patch")
+    before = np.cumsum(w) - w                           # weight of the patches ahead in Z-order
+    total = w.sum()
+    cut = np.searchsorted(before, total * np.arange(1, sets) / sets, side="left") if total > 0 else \
+        np.arange(1, sets) * n // sets
+    cut = np.concatenate([[0], cut, [n]])
+    for k in range(1, sets):                           # every set keeps at least one patch
+        cut[k] = min(max(cut[k], cut[k - 1] + 1), n - (sets - k))
+    owner[order] = np.repeat(np.arange(sets), np.diff(cut))
     return owner
+
+
+def receiver_work(scene):
+    """Rays a patch receives, up to the constant samples per shooter: the number of shooters
+    that can exchange light with it (:func:`~blockray.host_driver.formfactor.exchange_mask`), the
+    pairs the renderer casts rays for. O(N^2) host arithmetic, no rays."""
+    from .formfactor import exchange_mask
+    work = np.zeros(scene.patches)
+    for i in range(scene.patches):
+        work += exchange_mask(scene, i)
+    return work
 
 
 def exchange_bytes_per_sweep(owner):

@@ -65,6 +65,15 @@ def test_assign_sets():
     order = np.argsort(morton, kind="stable")
     assert (np.diff(owner[order]) >= 0).all()
     assert exchange_bytes_per_sweep(owner) == 4 * 101 * 3
+    # weighted: runs of equal total weight, still contiguous in Z-order and never empty
+    weights = rng.integers(0, 50, 101).astype(float)
+    owner_w = assign_sets(morton, 5, weights)
+    assert (np.diff(owner_w[order]) >= 0).all() and len(np.bincount(owner_w)) == 5
+    loads = np.bincount(owner_w, weights=weights)
+    assert loads.max() - loads.min() <= 2 * weights.max(), loads      # equal to within a patch or two
+    heavy = np.zeros(101)
+    heavy[order[0]] = 1.0                  # all the weight on one patch: the others still get a patch each
+    assert np.bincount(assign_sets(morton, 4, heavy)).min() >= 1
     for bad in (0, -1, 102, 2.5, True):
         with pytest.raises(ParameterError, match="--sets"):
             assign_sets(morton, bad)
@@ -87,6 +96,9 @@ def test_render_sets_same_visibility_less_machine_time(small_cornell):
     assert sum(s["tests"] for s in per_set) == three.report["tests"]
     assert three.report["board_cycles"] == max(s["board_cycles"] for s in per_set)
     assert three.report["board_cycles"] < one.report["board_cycles"]
+    # the sets were cut by the rays they receive: those differ far less than patch counts would
+    rays = [s["rays"] for s in per_set]
+    assert max(rays) < 1.05 * min(rays), rays        # (by patch count: 65 344 - 71 680)
     assert three.report["exchange_bytes_per_sweep"] == 4 * small_cornell.patches * 2
     assert len(three.report["board_cycles_per_board"]) == 3 * 8
     gs = render(small_cornell, board="model", solver="gauss-seidel", tolerance=1e-4, sets=3)
