@@ -5,8 +5,10 @@
     python benchmarks/bench_synth.py --only array         # largest R x S array on the 85k at B = 16
     python benchmarks/bench_synth.py --only board         # the 8 x 8 board, Yosys only (~27 min)
 
-Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``); the JSON
-reports go to ``--out`` (default ``synth-reports/``), a summary table to stdout.
+Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``: the ECP5
+netlist, every product a registered MULT18X18D); the JSON reports go to ``--out`` (default
+``synth-reports/``), a summary table to stdout. ``--seeds 1 2 3`` repeats every place and route
+with each nextpnr placement seed (Fmax varies with the seed by several per cent).
 
 Array search: every R x S with R, S <= 8 whose DSP count (``dsp_estimate``, checked against
 Yosys in tests/test_synth.py) fits the part is ranked by processors (then squareness); Yosys runs
@@ -42,7 +44,9 @@ def run(name, unit, params, out, **kw):
 
 def processors(out, args):
     for bits in (12, 14, 16):
-        run(f"processor-B{bits}", "processor", BoardParams(bits=bits), out, device=args.device, freq=args.freq)
+        for seed in args.seeds:
+            run(f"processor-B{bits}-seed{seed}", "processor", BoardParams(bits=bits), out, device=args.device,
+                freq=args.freq, seed=seed)
 
 
 def largest_array(out, args):
@@ -55,7 +59,8 @@ def largest_array(out, args):
         params = BoardParams(rows=rows, cols=cols, bits=bits)
         r = run(f"array-{rows}x{cols}-B{bits}-yosys", "array", params, out, device=args.device, place=False)
         if r["fits"]:
-            return run(f"array-{rows}x{cols}-B{bits}", "array", params, out, device=args.device, freq=args.freq)
+            return [run(f"array-{rows}x{cols}-B{bits}-seed{seed}", "array", params, out, device=args.device,
+                        freq=args.freq, seed=seed) for seed in args.seeds]
     return None
 
 
@@ -70,6 +75,7 @@ def main(argv=None):
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"])
     p.add_argument("--freq", type=float, default=100.0)
     p.add_argument("--bits", type=int, default=BoardParams().bits, help="B of the array search")
+    p.add_argument("--seeds", type=int, nargs="+", default=[1], help="nextpnr placement seeds (default 1)")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

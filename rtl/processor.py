@@ -16,14 +16,16 @@ fits (see :class:`blockray.params.Widths`).
 
 Timing rule of the array (:class:`ArrayTiming`): both units have the same latency, so the
 outputs of a column unit and a row unit fed on the same cycle meet at the processor on the same
-cycle. Every multiplier has registered inputs and its output goes straight into registers
-(products wider than one 18 x 18 DSP are split into DSP-sized pieces, each registered, and the
-pieces are added in the following stages): no stage has a DSP and an adder in series.
+cycle. Every multiplication is :func:`_product`, ``reg(reg(a) * reg(b))``: registered operands,
+the product straight into a register (products wider than one 18 x 18 DSP are split into
+DSP-sized pieces, each registered, and the pieces are added in the following stages), so no
+stage has a DSP and an adder in series. With the ECP5 target (``platform.mult18x18d``, see
+:mod:`blockray.synth.target`) both registers are the DSP's own pipeline registers.
 
 ``Intersector`` is the 1 x 1 array behind a stream interface, the unit tested against the model.
 """
 
-from amaranth.hdl import Module, Signal, signed, unsigned
+from amaranth.hdl import ClockSignal, Const, Instance, Module, ResetSignal, Signal, Value, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
@@ -117,29 +119,99 @@ def _chunks(value):
     return pieces
 
 
-def _partial_products(m, pairs, width, name):
-    """Register the partial products of ``sum(a * b for a, b in pairs)`` modulo 2**width.
+#: the MULT18X18D configuration of :func:`_product` on ECP5: operand A, operand B and the
+#: product registered on CLK0 (timing class MULT18X18D_REGS_ALL in nextpnr), clock enable CE0,
+#: synchronous reset RST0; no pipeline register, no C input, no cascade, no clock divider.
+#: ``synth/ecp5_mult18x18d_sim.v`` models exactly this set and stops on any other value.
+MULT18X18D_PARAMS = {
+    "REG_INPUTA_CLK": "CLK0", "REG_INPUTA_CE": "CE0", "REG_INPUTA_RST": "RST0",
+    "REG_INPUTB_CLK": "CLK0", "REG_INPUTB_CE": "CE0", "REG_INPUTB_RST": "RST0",
+    "REG_INPUTC_CLK": "NONE", "REG_INPUTC_CE": "CE0", "REG_INPUTC_RST": "RST0",
+    "REG_PIPELINE_CLK": "NONE", "REG_PIPELINE_CE": "CE0", "REG_PIPELINE_RST": "RST0",
+    "REG_OUTPUT_CLK": "CLK0", "REG_OUTPUT_CE": "CE0", "REG_OUTPUT_RST": "RST0",
+    "CLK0_DIV": "ENABLED", "CLK1_DIV": "ENABLED", "CLK2_DIV": "ENABLED", "CLK3_DIV": "ENABLED",
+    "HIGHSPEED_CLK": "NONE", "GSR": "DISABLED", "CAS_MATCH_REG": "FALSE",
+    "SOURCEB_MODE": "B_SHIFT", "MULT_BYPASS": "DISABLED", "RESETMODE": "SYNC",
+}
+
+
+def _fits_dsp(value):
+    """An operand one signed 18-bit DSP input holds (signed <= 18 bits, unsigned <= 17)."""
+    shape = value.shape()
+    return len(value) <= (DSP_OPERAND_BITS if shape.signed else DSP_OPERAND_BITS - 1)
+
+
+def _product(m, a, b, width, name, platform=None):
+    """``reg(reg(a) * reg(b))`` modulo 2**``width``: the product of the operand expressions
+    ``a`` and ``b`` (signed or unsigned values) two cycles later, as a ``signed(width)`` value.
+
+    The one multiplication of every pipeline here. Generic (``platform`` None or without
+    ``mult18x18d``): two operand registers and a product register in the fabric (Yosys may
+    merge operand registers that hold the same value). ECP5 (``platform.mult18x18d``, when both
+    operands fit a DSP input and ``width <= 36``): one ``MULT18X18D`` with its input and output
+    registers on (:data:`MULT18X18D_PARAMS`), operands sign- or zero-extended to 18 bits,
+    ``SIGNEDA = SIGNEDB = 1``, the product the low ``width`` bits of P. Both reset to 0 on the
+    sync domain's reset and compute the same bits every cycle.
+    """
+    a, b = Value.cast(a), Value.cast(b)
+    if getattr(platform, "mult18x18d", False) and _fits_dsp(a) and _fits_dsp(b) and width <= 36:
+        return _mult18x18d(m, a, b, width, name)
+    ra = Signal(a.shape(), name=f"{name}_a")
+    rb = Signal(b.shape(), name=f"{name}_b")
+    product = Signal(signed(width), name=name)
+    m.d.sync += [ra.eq(a), rb.eq(b), product.eq(ra * rb)]       # wraps: ring arithmetic
+    return product
+
+
+def _mult18x18d(m, a, b, width, name):
+    """:func:`_product` on one registered ECP5 MULT18X18D (inputs and output on CLK0)."""
+    a18 = Signal(signed(DSP_OPERAND_BITS), name=f"{name}_a18")
+    b18 = Signal(signed(DSP_OPERAND_BITS), name=f"{name}_b18")
+    p36 = Signal(signed(2 * DSP_OPERAND_BITS), name=f"{name}_p36")
+    m.d.comb += [a18.eq(a), b18.eq(b)]                  # sign- or zero-extension by shape
+    zero = Const(0, 1)
+    ports = {"i_SIGNEDA": Const(1, 1), "i_SIGNEDB": Const(1, 1),
+             "i_SOURCEA": zero, "i_SOURCEB": zero,
+             "i_CLK0": ClockSignal("sync"), "i_CE0": Const(1, 1), "i_RST0": ResetSignal("sync")}
+    # CLK1..3, CE1..3, RST1..3 and the shift inputs SRIA/SRIB stay unconnected (as in Yosys's
+    # own dsp_map.v): nextpnr ties unconnected DSP inputs off inside the tile, whereas a
+    # constant on a clock input fails to route ("Failed to find a route ... $PACKER_GND_NET")
+    for i in range(DSP_OPERAND_BITS):
+        ports.update({f"i_A{i}": a18[i], f"i_B{i}": b18[i], f"i_C{i}": zero})
+    for i in range(2 * DSP_OPERAND_BITS):
+        ports[f"o_P{i}"] = p36[i]
+    m.submodules[f"{name}_dsp"] = Instance(
+        "MULT18X18D", **{f"p_{k}": v for k, v in MULT18X18D_PARAMS.items()}, **ports)
+    product = Signal(signed(width), name=name)
+    m.d.comb += product.eq(p36)                         # the low ``width`` bits
+    return product
+
+
+def _partial_products(m, pairs, width, name, platform=None):
+    """The registered partial products of ``sum(a * b for a, b in pairs)`` modulo 2**width,
+    two cycles after the operand expressions ``a``, ``b`` (:func:`_product`).
 
     Each product is split along ``b`` (:func:`_chunks`) so that every multiplication fits one
     DSP and its output goes straight into registers (no adder between a DSP and its register):
-    this stage is DSP-only. Returns ``{shift: [registers]}``; a partial of shift ``k`` is kept
+    this stage is DSP-only. Returns ``{shift: [products]}``; a partial of shift ``k`` is kept
     modulo 2**(width - k), which is all the final sum modulo 2**width needs.
     """
     groups = {}
     for i, (a, b) in enumerate(pairs):
         for chunk, shift in _chunks(b):
-            reg = Signal(signed(min(len(a) + len(chunk) + 1, width - shift)), name=f"{name}_{i}_p{shift}")
-            m.d.sync += reg.eq(a * chunk)                    # wraps: ring arithmetic
-            groups.setdefault(shift, []).append(reg)
+            product = _product(m, a, chunk, min(len(a) + len(chunk) + 1, width - shift),
+                               f"{name}_{i}_p{shift}", platform)
+            groups.setdefault(shift, []).append(product)
     return groups
 
 
-def _dot_sums(m, pairs, width, name):
-    """Two pipeline stages of ``sum(a * b for a, b in pairs)`` modulo 2**width: the partial
-    products (:func:`_partial_products`, one stage), then per shift their sum (one stage, at most
-    two chained adders). Returns ``{shift: register}``; :func:`_combine` finishes the sum."""
+def _dot_sums(m, pairs, width, name, platform=None):
+    """Three pipeline stages of ``sum(a * b for a, b in pairs)`` modulo 2**width from the operand
+    expressions: the partial products (:func:`_partial_products`, two stages: operands, then
+    products), then per shift their sum (one stage, at most two chained adders). Returns
+    ``{shift: register}``; :func:`_combine` finishes the sum."""
     sums = {}
-    for shift, terms in _partial_products(m, pairs, width, name).items():
+    for shift, terms in _partial_products(m, pairs, width, name, platform).items():
         reg = Signal(signed(width - shift), name=f"{name}_sum_p{shift}")
         m.d.sync += reg.eq(sum(terms))
         sums[shift] = reg
@@ -152,6 +224,27 @@ def _combine(groups, width):
     for shift, term in sorted(groups.items()):
         total = total + (term << shift) if shift else total + term
     return total
+
+
+def _sign_and_zero(m, groups, width, name):
+    """(s < 0, s == 0) of ``s = sum(term << shift)`` modulo 2**width, ``groups`` = ``{shift:
+    term}`` (:func:`_dot_sums`). The sign is the top bit of the joined sum (one carry chain).
+    With two pieces ``lo + (hi << k)``, s == 0 iff the low k bits of lo are 0 and
+    ``x + y == 0`` modulo 2**(width - k) for x = lo >> k, y = hi, which is tested without a
+    carry chain: ``x + y == 0  <=>  x ^ y == (x | y) << 1`` (modulo 2**(width - k)); so the zero
+    test runs in parallel with the adder instead of after it."""
+    total = Signal(signed(width), name=name)
+    m.d.comb += total.eq(_combine(groups, width))
+    negative = total[-1]
+    if len(groups) != 2:
+        return negative, total == 0
+    (_, lo), (shift, hi) = sorted(groups.items())
+    n = width - shift
+    x = Signal(n, name=f"{name}_x")
+    y = Signal(n, name=f"{name}_y")
+    m.d.comb += [x.eq(lo[shift:width]), y.eq(hi)]
+    zero = (lo[:shift] == 0) & ((x ^ y) == ((x | y) << 1)[:n])
+    return negative, zero
 
 
 # -- units ------------------------------------------------------------------------------------
@@ -180,9 +273,10 @@ class _TermsUnit(wiring.Component):
 class ShooterUnit(_TermsUnit):
     """Column unit: the terms of a block ray that depend on the shooter point P and the patch.
 
-    Stage 1 registers d_k = P - V_k and the normal n (multiplier inputs), stage 2 the partial
-    products of n_c (P - V0)_c (DSP outputs; at B >= 9 each product is two 18-bit-operand
-    pieces), stage 3 their sums per piece, stage 4 pP (one adder joining the pieces) and d_k.
+    Stage 1 registers d_k = P - V_k and the multiplier inputs (P - V0)_c and n_c, stage 2 the
+    partial products of n_c (P - V0)_c (DSP outputs; at B >= 9 each product is two
+    18-bit-operand pieces; stages 1 and 2 of a product are :func:`_product`), stage 3 their sums
+    per piece, stage 4 pP (one adder joining the pieces) and d_k.
 
     Latency :attr:`latency` = 4 cycles, throughput one patch per cycle (fully pipelined, no
     stalls). ``valid`` travels through a register chain of the same length as ``terms``.
@@ -198,15 +292,13 @@ class ShooterUnit(_TermsUnit):
         m = Module()
         w = Widths(self._bits)
 
-        d1 = [Signal(vector_layout(w.diff), name=f"d{k}_1") for k in range(3)]
-        n1 = Signal(vector_layout(w.cross), name="n_1")
+        d0 = [Signal(vector_layout(w.diff), name=f"d{k}_0") for k in range(3)]
         for k, vertex in enumerate(_VERTICES):
             for c in _AXES:
-                m.d.sync += d1[k][c].eq(self.point[c] - self.patch[vertex][c])
-        m.d.sync += n1.eq(self.patch.normal)
+                m.d.comb += d0[k][c].eq(self.point[c] - self.patch[vertex][c])
 
-        sums3 = _dot_sums(m, [(d1[0][c], n1[c]) for c in _AXES], w.orient, "pp")
-        d3 = [_delay(m, d1[k], 2, f"d{k}") for k in range(3)]
+        sums3 = _dot_sums(m, [(d0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pp", platform)
+        d3 = [_delay(m, d0[k], 3, f"d{k}") for k in range(3)]
 
         m.d.sync += self.terms.pp.eq(_combine(sums3, w.orient))
         for k in range(3):
@@ -218,8 +310,9 @@ class ShooterUnit(_TermsUnit):
 class ReceiverUnit(_TermsUnit):
     """Row unit: the terms of a block ray that depend on the receiver point Q and the patch.
 
-    Stage 1 registers dQ_k = Q - V_k, e_k = V_{k+1} - V_k and n (multiplier inputs), stage 2 the
-    18 cross-product terms and the partial products of pQ (DSP outputs), stage 3 the differences
+    Stage 1 registers the multiplier inputs (components of dQ_k = Q - V_k, e_k = V_{k+1} - V_k
+    and n), stage 2 the 18 cross-product terms and the partial products of pQ (DSP outputs;
+    stages 1 and 2 of a product are :func:`_product`), stage 3 the differences
     w_k = dQ_k x e_k and the per-piece sums of pQ, stage 4 pQ (joining the pieces) and w_k.
 
     Latency :attr:`latency` = 4 cycles (equal to :attr:`ShooterUnit.latency`), throughput one
@@ -235,34 +328,29 @@ class ReceiverUnit(_TermsUnit):
         m = Module()
         w = Widths(self._bits)
 
-        dq1 = [Signal(vector_layout(w.diff), name=f"dq{k}_1") for k in range(3)]
-        e1 = [Signal(vector_layout(w.diff), name=f"e{k}_1") for k in range(3)]
-        n1 = Signal(vector_layout(w.cross), name="n_1")
+        dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
+        e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
         for k, vertex in enumerate(_VERTICES):
             following = _VERTICES[(k + 1) % 3]
             for c in _AXES:
-                m.d.sync += [
-                    dq1[k][c].eq(self.point[c] - self.patch[vertex][c]),
-                    e1[k][c].eq(self.patch[following][c] - self.patch[vertex][c]),
+                m.d.comb += [
+                    dq0[k][c].eq(self.point[c] - self.patch[vertex][c]),
+                    e0[k][c].eq(self.patch[following][c] - self.patch[vertex][c]),
                 ]
-        m.d.sync += n1.eq(self.patch.normal)
 
         # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}: products exact in 2B+2 bits
-        plus2 = [[Signal(signed(w.cross), name=f"w{k}_{c}_plus_2") for c in _AXES] for k in range(3)]
-        minus2 = [[Signal(signed(w.cross), name=f"w{k}_{c}_minus_2") for c in _AXES] for k in range(3)]
+        plus2, minus2 = [], []
         for k in range(3):
-            for i in range(3):
+            for i, c in enumerate(_AXES):
                 a, b = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
-                m.d.sync += [
-                    plus2[k][i].eq(dq1[k][a] * e1[k][b]),
-                    minus2[k][i].eq(dq1[k][b] * e1[k][a]),
-                ]
-        sums3 = _dot_sums(m, [(dq1[0][c], n1[c]) for c in _AXES], w.orient, "pq")
+                plus2.append(_product(m, dq0[k][a], e0[k][b], w.cross, f"w{k}_{c}_plus_2", platform))
+                minus2.append(_product(m, dq0[k][b], e0[k][a], w.cross, f"w{k}_{c}_minus_2", platform))
+        sums3 = _dot_sums(m, [(dq0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pq", platform)
 
         w3 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_3")
         for k in range(3):
             for i, c in enumerate(_AXES):
-                m.d.sync += w3[k][c].eq(plus2[k][i] - minus2[k][i])   # |w| <= 2 L**2
+                m.d.sync += w3[k][c].eq(plus2[3 * k + i] - minus2[3 * k + i])   # |w| <= 2 L**2
         m.d.sync += [
             self.terms.w.eq(w3),
             self.terms.pq.eq(_combine(sums3, w.orient)),
@@ -317,28 +405,26 @@ class Processor(wiring.Component):
         m = Module()
         w = Widths(self._bits)
 
-        d1 = Signal(data.ArrayLayout(vector_layout(w.diff), 3), name="d_1")
-        w1 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_1")
         crossing1 = Signal(name="crossing_1")
         pp, pq = self.shooter.pp, self.receiver.pq
-        m.d.sync += [
-            d1.eq(self.shooter.d),
-            w1.eq(self.receiver.w),
-            crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
-        ]
+        m.d.sync += crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0)))
 
-        # stage 2: partial products only (each straight from a DSP into registers);
+        # stage 1: the operands (d_k)_c and the pieces of (w_k)_c registered; stage 2: their
+        # partial products (each straight from a DSP into registers, :func:`_product`);
         # stage 3: per shift, their sum over the three axes
-        sums3 = [_dot_sums(m, [(d1[k][c], w1[k][c]) for c in _AXES], w.orient, f"s{k}") for k in range(3)]
+        sums3 = [_dot_sums(m, [(self.shooter.d[k][c], self.receiver.w[k][c]) for c in _AXES],
+                           w.orient, f"s{k}", platform) for k in range(3)]
         crossing3 = _delay(m, crossing1, 2, "crossing")
 
-        # stage 4: s_k = the shifted sums combined (one adder at B >= 9), then the decision
-        s3 = [Signal(signed(w.orient), name=f"s{k}_4") for k in range(3)]
+        # stage 4: sign and zero of s_k = the shifted sums joined (one adder at B >= 9; the
+        # zero test runs beside the adder's carry chain, not after it), then the decision
+        negative, zero = [], []
         for k in range(3):
-            m.d.comb += s3[k].eq(_combine(sums3[k], w.orient))
-
-        nonneg = (s3[0] >= 0) & (s3[1] >= 0) & (s3[2] >= 0)
-        nonpos = (s3[0] <= 0) & (s3[1] <= 0) & (s3[2] <= 0)
+            neg, nil = _sign_and_zero(m, sums3[k], w.orient, f"s{k}_4")
+            negative.append(neg)
+            zero.append(nil)
+        nonneg = ~negative[0] & ~negative[1] & ~negative[2]
+        nonpos = (negative[0] | zero[0]) & (negative[1] | zero[1]) & (negative[2] | zero[2])
         blocked = crossing3 & (nonneg | nonpos)
         valid3 = _delay(m, self.valid, self.latency - 1, "valid")
         first3 = _delay(m, self.first, self.latency - 1, "first")

@@ -5,6 +5,9 @@
 
 Flow (``target="ecp5"``):
 
+0. The unit is converted with the ECP5 target (:class:`~blockray.synth.target.ECP5Target`):
+   every product is a ``MULT18X18D`` instance with its input and output registers on, so the
+   DSP paths are register to register inside the DSP and only routing is left in the fabric.
 1. The unit is wrapped in :class:`~blockray.synth.wrap.LfsrHarness` (inputs from on-chip LFSR
    registers, outputs registered and XOR-reduced to one pin), so the design has three IOs and
    every path of the unit is register to register: the Fmax is the unit's.
@@ -41,11 +44,13 @@ from amaranth.back import verilog
 
 from ..errors import ParameterError
 from ..params import BoardParams
+from .target import ECP5Target
 from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
 from .yosys import synth_stats, yosys_command
 
-__all__ = ["DEVICES", "PACKAGE", "nextpnr_command", "dsp_estimate", "synth_report", "write_report"]
+__all__ = ["DEVICES", "PACKAGE", "nextpnr_command", "dsp_estimate", "dsp_registers", "synth_report",
+           "write_report"]
 
 PACKAGE = "CABGA381"
 
@@ -228,7 +233,8 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
     component = build_unit(unit, params)
-    unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False),
+    unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False,
+                                                             platform=ECP5Target()),
                                      name, tmp, "unit", netlist=False)
     seconds = {"yosys_unit": t_unit}
     report["seconds"] = seconds
@@ -255,9 +261,11 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
     # 2. the harnessed unit, for place and route (the harness's cost is the difference)
     top = f"{name}_top"
     harness = LfsrHarness(build_unit(unit, params))
-    total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(verilog.convert(harness, name=top, emit_src=False),
+    total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(verilog.convert(harness, name=top, emit_src=False,
+                                                                                        platform=ECP5Target()),
                                      top, tmp, top, netlist=True)
     seconds["yosys_harness"] = t_top
+    report["dsp_registers"] = dsp_registers(tmp / f"{top}.json")
     total = _cells_resources(total_cells)
     report["harness"] = {**{k: total[k] - unit_res[k] for k in _RESOURCES},
                          "input_bits": harness.input_bits, "output_bits": harness.output_bits}
@@ -290,6 +298,21 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
         "critical_path": _critical_path(pnr, clock) if clock else None,
     })
     return report
+
+
+def dsp_registers(netlist):
+    """``{"A/B/OUTPUT": count}``: the MULT18X18D cells of a Yosys JSON ``netlist`` by their
+    ``REG_INPUTA_CLK``, ``REG_INPUTB_CLK`` and ``REG_OUTPUT_CLK`` parameters (``NONE`` = that
+    register bypassed; the ECP5 target sets all three to ``CLK0``)."""
+    counts = {}
+    for module in json.loads(Path(netlist).read_text())["modules"].values():
+        for cell in module.get("cells", {}).values():
+            if cell["type"] == "MULT18X18D":
+                p = cell.get("parameters", {})
+                key = "/".join(str(p.get(k, "NONE")).strip() or "NONE"
+                               for k in ("REG_INPUTA_CLK", "REG_INPUTB_CLK", "REG_OUTPUT_CLK"))
+                counts[key] = counts.get(key, 0) + 1
+    return counts
 
 
 def write_report(path, report):

@@ -12,12 +12,17 @@ Units (``UNITS``):
                voxel table, the R x S array. Uses every parameter but ``boards``.
 
     text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
+    text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
+
+``target`` (:mod:`blockray.synth.target`): ``generic`` (default) is the portable netlist
+(``*`` and fabric registers), ``ecp5`` instantiates the ECP5 DSP primitive for every product.
 """
 
 from amaranth.back import verilog
 
 from ..errors import ParameterError
 from ..params import BoardParams
+from .target import target_platform
 
 __all__ = ["UNITS", "build_unit", "unit_verilog", "write_verilog"]
 
@@ -49,16 +54,17 @@ def build_unit(unit, params=None):
     return BoardTop(params)
 
 
-def unit_verilog(unit, params=None, *, name=None):
-    """Readable Verilog (no source attributes) of ``unit``; the top module is ``name`` (default
-    ``blockray_<unit>``)."""
+def unit_verilog(unit, params=None, *, name=None, target="generic"):
+    """Readable Verilog (no source attributes) of ``unit`` for ``target`` (``generic`` or
+    ``ecp5``); the top module is ``name`` (default ``blockray_<unit>``)."""
+    platform = target_platform(target)
     component = build_unit(unit, params)
-    return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False)
+    return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
-def write_verilog(path, unit, params=None, *, name=None):
+def write_verilog(path, unit, params=None, *, name=None, target="generic"):
     """Write :func:`unit_verilog` to ``path``; returns the text."""
-    text = unit_verilog(unit, params, name=name)
+    text = unit_verilog(unit, params, name=name, target=target)
     try:
         with open(path, "w") as f:
             f.write(text)

