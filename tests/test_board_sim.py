@@ -18,7 +18,7 @@ from blockray.params import BoardParams
 from blockray.rtl.board import BoardTop
 from blockray.rtl.protocol import (BoardProtocol, ReplayingHost, ResultKind, BoardResult, check_capacity,
                                    fit_params, replay_after_reset)
-from blockray.sim.model import Command
+from blockray.sim.model import Command, result_word
 from blockray.timing import BoardTiming, Op
 
 from board_host import RunLog, check_run
@@ -223,13 +223,9 @@ def test_replay_plan():
     assert host.results == {5: 10, 6: 11, 10: 12, 12: 98} and host.done
 
 
-def test_board_executes_in_order_beyond_the_model():
-    """Orders the model does not define, checked against an in-order reference: a LOAD between
-    VOXELs affects only later records (the point registers are written memory_latency late: the
-    case is chosen so that the last record before the LOAD would decide differently with the new
-    points), and BEGIN_BLOCK while records are in flight clears only what came before it."""
-    from blockray.exact import blocked_block, patch_normals
-    seed = 401
+def _dense_scene(seed):
+    """A 2 x 2 board at B = 8 and a dense scene (most patches cross the rays) for the tests that
+    construct orders and blocks by hand: (rng, P, Q, V, ids, start, count, params)."""
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)
     rows, cols, bits, voxels = 2, 2, 8, 6
@@ -237,12 +233,24 @@ def test_board_executes_in_order_beyond_the_model():
     V = crossing_patches(rng, bits, P, Q, 40, crossing=0.9)
     ids, start, count = random_memory(rng, bits, V, voxels, empty=0.0, max_registrations=2)
     params = fit_params(BoardParams(rows=rows, cols=cols, bits=bits), records=len(ids), voxels=voxels)
+    return rng, P, Q, V, ids, start, count, params
 
-    def blocked(shooters, receivers, Vv):
-        return blocked_block(np.array(shooters), np.array(receivers), Vv, patch_normals(Vv)).any(axis=2)
 
-    def word(bits_rs):
-        return int(sum(1 << int(i) for i in np.flatnonzero(bits_rs.ravel())))
+def _blocked(shooters, receivers, Vv):
+    """(R, S) bool: the reference OR of the exact predicate over the patches Vv."""
+    from blockray.exact import blocked_block, patch_normals
+    return blocked_block(np.array(shooters), np.array(receivers), Vv, patch_normals(Vv)).any(axis=2)
+
+
+def test_board_executes_in_order_beyond_the_model():
+    """Orders the model does not define, checked against an in-order reference: a LOAD between
+    VOXELs affects only later records (the point registers are written memory_latency late: the
+    case is chosen so that the last record before the LOAD would decide differently with the new
+    points), and BEGIN_BLOCK while records are in flight clears only what came before it."""
+    seed = 401
+    rng, P, Q, V, ids, start, count, params = _dense_scene(seed)
+    rows, cols, bits, voxels = params.rows, params.cols, params.bits, len(start)
+    blocked, word = _blocked, result_word
 
     def records(v):
         return V[ids[start[v]:start[v] + count[v]]]
@@ -291,19 +299,12 @@ def test_board_overlapped_blocks_and_load_points():
     """Blocks back to back, chosen so that a result word formed one cycle early (without the
     block's last record) or a LOAD_POINTS applying its slots in the wrong order would differ;
     every result against the model, cycles equal the model's (END_BLOCK costs one cycle)."""
-    from blockray.exact import blocked_block, patch_normals
     seed = 411
-    print(f"seed={seed}")
-    rng = np.random.default_rng(seed)
-    rows, cols, bits, voxels = 2, 2, 8, 6
-    P, Q = random_points(rng, bits, 6), random_points(rng, bits, 6)
-    V = crossing_patches(rng, bits, P, Q, 40, crossing=0.9)
-    ids, start, count = random_memory(rng, bits, V, voxels, empty=0.0, max_registrations=2)
-    params = fit_params(BoardParams(rows=rows, cols=cols, bits=bits), records=len(ids), voxels=voxels)
+    rng, P, Q, V, ids, start, count, params = _dense_scene(seed)
+    rows, cols, bits, voxels = params.rows, params.cols, params.bits, len(start)
 
     def word(shooters, receivers, Vv):
-        hit = blocked_block(np.array(shooters), np.array(receivers), Vv, patch_normals(Vv)).any(axis=2)
-        return int(sum(1 << int(i) for i in np.flatnonzero(hit.ravel())))
+        return result_word(_blocked(shooters, receivers, Vv))
 
     pt = lambda a: tuple(map(int, a))
     cmds = load_commands(bits, V, ids, start, count)
