@@ -19,13 +19,12 @@ configuration's P R S, as the paper chooses v).
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 
 import numpy as np
 
+from _run_header import print_run_header
 from blockray.host_driver.objload import load_scene
 from blockray.host_driver.render import render
 from blockray.host_driver.voxel import cost_model, default_voxels
@@ -56,9 +55,7 @@ def main(argv=None):
     ap.add_argument("--partition", default="deal", choices=["deal", "patch"])
     args = ap.parse_args(argv)
     scene = load_scene(args.scene)
-    print(f"# {platform.node()} {platform.processor() or platform.machine()} cores={os.cpu_count()} "
-          f"python={platform.python_version()} numpy={np.__version__}", flush=True)
-    print(f"# command: {' '.join([os.path.basename(sys.argv[0])] + sys.argv[1:])}", flush=True)
+    print_run_header()
     rows = []
     for P, R, S in parse_configs(args.configs):
         params = BoardParams(rows=R, cols=S, boards=P)

@@ -11,13 +11,11 @@ with the command line that produced them.
 
 import argparse
 import json
-import os
-import platform
-import sys
 import time
 
 import numpy as np
 
+from _run_header import print_run_header
 from blockray.host_driver.objload import load_scene
 from blockray.host_driver.render import render
 
@@ -33,9 +31,7 @@ def main(argv=None):
     ap.add_argument("--stats-fraction", type=float, default=0.02)
     args = ap.parse_args(argv)
     scene = load_scene(args.scene)
-    print(f"# {platform.node()} {platform.processor() or platform.machine()} cores={os.cpu_count()} "
-          f"python={platform.python_version()} numpy={np.__version__}", flush=True)
-    print(f"# command: {' '.join([os.path.basename(sys.argv[0])] + sys.argv[1:])}", flush=True)
+    print_run_header()
     B = {}
     for traversal in args.traversal.split(","):
         for board in args.boards.split(","):

@@ -12,13 +12,11 @@ radiosity's largest relative difference from K = 1.
 
 import argparse
 import json
-import os
-import platform
-import sys
 import time
 
 import numpy as np
 
+from _run_header import print_run_header
 from blockray.host_driver.objload import load_scene
 from blockray.host_driver.render import render
 
@@ -33,9 +31,7 @@ def main(argv=None):
     ap.add_argument("--clock", type=float, default=95.0, help="MHz for the machine-time column")
     args = ap.parse_args(argv)
     scene = load_scene(args.scene, max_edge=args.max_edge)
-    print(f"# {platform.node()} {platform.processor() or platform.machine()} cores={os.cpu_count()} "
-          f"python={platform.python_version()} numpy={np.__version__}", flush=True)
-    print(f"# command: {' '.join([os.path.basename(sys.argv[0])] + sys.argv[1:])}", flush=True)
+    print_run_header()
     rows, ref = [], None
     for K in (int(x) for x in args.sets.split(",")):
         t0 = time.perf_counter()
