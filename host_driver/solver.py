@@ -188,23 +188,11 @@ def gauss_seidel(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None
     ``B_j <- E_j + rho_j * sum_i F[j, i] B_i`` with the newest B, from ``B = E``.
 
     Stops when :func:`residual` of B (one extra product per sweep) is below ``tolerance`` or after
-    ``max_iterations`` sweeps. Usually needs about half the sweeps of :func:`jacobi`.
+    ``max_iterations`` sweeps. Usually needs about half the sweeps of :func:`jacobi`. It is
+    :func:`gauss_seidel_sets` with every patch in one set.
     """
-    F = _check_matrix(scene, F)
-    E, rho = scene.emission, scene.reflectance
-    B = np.array(E, dtype=np.float64)
-    result = SolveResult(B=B, U=np.zeros_like(B), solver="gauss-seidel")
-    res = residual(scene, F, B)
-    result.history.append(res)
-    while res >= tolerance and result.iterations < max_iterations:
-        for j in range(len(B)):
-            B[j] = E[j] + rho[j] * (F[j] @ B)
-        result.iterations += 1
-        res = residual(scene, F, B)
-        result.history.append(res)
-        _report(progress, result.iterations, res)
-    result.B, result.residual, result.converged = B, res, res < tolerance
-    return result
+    return gauss_seidel_sets(scene, F, np.zeros(scene.patches, dtype=np.int64), tolerance=tolerance,
+                             max_iterations=max_iterations, progress=progress)
 
 
 def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, progress=None):
@@ -212,8 +200,8 @@ def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, p
 
     ``owner[j]`` is the set that owns patch j. In a sweep every set updates its own patches in
     place, in increasing index, with its own newest values and the other sets' values from the
-    last exchange; then the sets exchange their patches' radiosities. With one set this is
-    :func:`gauss_seidel` exactly; with every patch its own set it is :func:`jacobi`'s update.
+    last exchange; then the sets exchange their patches' radiosities. With one set this is plain
+    Gauss-Seidel (:func:`gauss_seidel`); with every patch its own set it is :func:`jacobi`'s update.
     Stops like :func:`gauss_seidel`. ``result.iterations`` counts sweeps (= exchanges).
     """
     F = _check_matrix(scene, F)
