@@ -31,6 +31,8 @@ cycles, so a command stream's board cycles do not depend on the host's timing.
 import enum
 from dataclasses import dataclass
 
+import numpy as np
+
 from .errors import ParameterError
 from .params import Widths
 
@@ -122,6 +124,9 @@ class BoardTiming:
 
     def block_cycles(self, receivers, shooters, voxel_counts):
         """Board cycles of one block as the host sends it: BEGIN_BLOCK, the LOAD_POINTS
-        commands, one VOXEL per entry of ``voxel_counts``, END_BLOCK."""
-        streamed = sum(max(1, int(c)) for c in voxel_counts)
-        return 1 + load_commands_needed(receivers, shooters) + streamed + 1
+        commands, one VOXEL per entry of ``voxel_counts``, END_BLOCK. ``voxel_counts`` (K,)
+        gives an int; (P, K), the counts on each of P boards, gives a (P,) array."""
+        counts = np.asarray(voxel_counts, dtype=np.int64)
+        streamed = np.maximum(counts, 1).sum(axis=-1)
+        cycles = 1 + load_commands_needed(receivers, shooters) + streamed + 1
+        return int(cycles) if counts.ndim <= 1 else cycles

@@ -20,7 +20,7 @@ from ..samples import SampleScheme
 from ..errors import ParameterError
 from .board import BlockRay
 from . import formfactor, solver as solvers
-from .scaleout import SetVisibility, assign_sets, exchange_bytes_per_sweep, receiver_work
+from .scaleout import SetVisibility, assign_sets, check_sets, exchange_bytes_per_sweep, receiver_work
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
@@ -201,7 +201,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                                  "gauss-seidel", parameter="sets")
         if not isinstance(board, str):
             raise ParameterError("--sets needs a board name (one board is built per set)", parameter="sets")
-        assign_sets(np.zeros(scene.patches), sets)           # validates sets against the scene
+        check_sets(sets, scene.patches)
     if bits is not None and board == "golden":
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)

@@ -20,10 +20,21 @@ import numpy as np
 
 from ..errors import ParameterError
 
-__all__ = ["assign_sets", "receiver_work", "SetVisibility", "exchange_bytes_per_sweep"]
+__all__ = ["check_sets", "assign_sets", "receiver_work", "SetVisibility", "exchange_bytes_per_sweep"]
 
 #: bytes per exchanged radiosity (float32, as the paper's "a few kB/s")
 EXCHANGE_BYTES = 4
+
+
+def check_sets(sets, patches):
+    """``sets`` if it is a positive integer no larger than the scene's ``patches``, else
+    ParameterError (a set owns at least one patch)."""
+    if isinstance(sets, bool) or not isinstance(sets, (int, np.integer)) or sets < 1:
+        raise ParameterError(f"--sets must be a positive integer, not {sets!r}", parameter="sets")
+    if sets > max(1, patches):
+        raise ParameterError(f"--sets {sets} exceeds the scene's {patches} patches (a set owns at least one)",
+                             parameter="sets")
+    return sets
 
 
 def assign_sets(morton, sets, weights=None):
@@ -32,11 +43,7 @@ def assign_sets(morton, sets, weights=None):
     (the work a patch brings its set, e.g. :func:`receiver_work`; default 1 per patch: runs of
     equal size to within one)."""
     n = len(morton)
-    if isinstance(sets, bool) or not isinstance(sets, (int, np.integer)) or sets < 1:
-        raise ParameterError(f"--sets must be a positive integer, not {sets!r}", parameter="sets")
-    if sets > max(1, n):
-        raise ParameterError(f"--sets {sets} exceeds the scene's {n} patches (a set owns at least one)",
-                             parameter="sets")
+    check_sets(sets, n)
     order = np.argsort(np.asarray(morton), kind="stable")
     owner = np.empty(n, dtype=np.int64)
     if weights is None:

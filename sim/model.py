@@ -55,7 +55,7 @@ from ..exact import blocked_block
 from ..fixedpoint import DEFAULT_MAX_ERROR, resolve_bits
 from ..params import BoardParams
 from ..records import patch_layout, patch_columns, pack_array, unpack_array
-from ..timing import POINTS_PER_LOAD, BoardTiming, Op, load_commands_needed
+from ..timing import POINTS_PER_LOAD, BoardTiming, Op
 from ..host_driver.board import Board
 
 
@@ -73,7 +73,7 @@ class QuantisationWarning(UserWarning):
     """The chosen bits merge vertices or flatten patches of the scene."""
 
 __all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration", "load_points_commands",
-           "partition_records", "PARTITIONS"]
+           "partition_records", "check_partition", "PARTITIONS"]
 
 #: records per blocked_block call (bounds the (R, S, N, 3) int64 temporaries)
 CHUNK = 4096
@@ -236,12 +236,18 @@ def load_points_commands(receivers, shooters):
 PARTITIONS = ("deal", "patch")
 
 
+def check_partition(partition):
+    """``partition`` if it names one of :data:`PARTITIONS`, else ParameterError."""
+    if partition not in PARTITIONS:
+        raise ParameterError(f"--partition must be one of {', '.join(PARTITIONS)}, not {partition!r}",
+                             parameter="partition")
+    return partition
+
+
 def partition_records(voxels, patches, boards, partition="deal"):
     """The board (0 .. boards-1) of each registration ``(voxels[k], patches[k])``, sorted by voxel
     then patch as :func:`registration` gives them (see the module docstring)."""
-    if partition not in PARTITIONS:
-        raise ParameterError(f"--partition must be one of {', '.join(PARTITIONS)}, not {partition!r}")
-    if partition == "patch":
+    if check_partition(partition) == "patch":
         return np.asarray(patches, dtype=np.int64) % boards
     return np.arange(len(voxels), dtype=np.int64) % boards
 
@@ -284,8 +290,7 @@ class ModelBoard(Board):
     def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal"):
         self.params = params or BoardParams()
         self.bits = bits
-        partition_records(np.zeros(0), np.zeros(0), 1, partition)       # validates the name
-        self.partition = partition
+        self.partition = check_partition(partition)
         self.max_error = max_error
         self._timing = timing
         self.timing = None
@@ -367,9 +372,7 @@ class ModelBoard(Board):
             vox = np.asarray(block.voxels, dtype=np.int64)
             counts = self._count[:, vox]                                     # (P, K)
             records = counts.sum(axis=1)                                    # per board
-            # t.block_cycles for every board at once
-            cycles = 1 + load_commands_needed(Rb, Sb) + np.maximum(counts, 1).sum(axis=1) + 1
-            batch += cycles
+            batch += t.block_cycles(Rb, Sb, counts)
             self._issued_b += p.processors * records
             self._useful_b += Rb * Sb * records
             self._blocks += 1

@@ -124,6 +124,10 @@ def test_board_back_to_back_exact_cycles(seed, rows, cols):
     last = max(log.results)
     counters = BoardProtocol(params).decode_result(log.results[last]).counters
     assert counters["stalls"] == 1, counters
+    # a result reaches the host result_latency cycles after its command's own cycle, which is the
+    # cycle after the command was accepted
+    latency = BoardTiming.for_bits(params.bits).result_latency
+    assert {log.received[i] - log.accepted[i] for i in log.results} == {latency + 1}
 
 
 @pytest.mark.parametrize("seed", [201, 202])
