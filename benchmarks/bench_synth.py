@@ -3,6 +3,7 @@
     python benchmarks/bench_synth.py                      # everything (over an hour on 2 cores)
     python benchmarks/bench_synth.py --only processor     # one processor at B = 12, 14, 16
     python benchmarks/bench_synth.py --only array         # largest R x S array on the 85k at B = 16
+    python benchmarks/bench_synth.py --only array --fabric-units shooter   # column units on LUTs
     python benchmarks/bench_synth.py --only board         # the 8 x 8 board, Yosys only (~27 min)
 
 Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``: the ECP5
@@ -13,7 +14,9 @@ with each nextpnr placement seed (Fmax varies with the seed by several per cent)
 Array search: every R x S with R, S <= 8 whose DSP count (``dsp_estimate``, checked against
 Yosys in tests/test_synth.py) fits the part is ranked by processors (then squareness); Yosys runs
 on the candidates from the largest down (resources only) until one fits the part by every
-resource, and that one goes through place and route.
+resource, and that one goes through place and route. ``--fabric-units shooter[,receiver]`` puts
+those units' products on LUT multipliers (``blockray synth --fabric-units``) in the search and
+the runs.
 """
 
 import argparse
@@ -54,13 +57,15 @@ def largest_array(out, args):
     shapes = sorted(((r, s) for r in range(1, 9) for s in range(1, 9)),
                     key=lambda rs: (-rs[0] * rs[1], abs(rs[0] - rs[1])))
     for rows, cols in shapes:
-        if dsp_estimate(bits, rows, cols) > DEVICES[args.device]["dsps"]:
+        if dsp_estimate(bits, rows, cols, args.fabric_units) > DEVICES[args.device]["dsps"]:
             continue
         params = BoardParams(rows=rows, cols=cols, bits=bits)
-        r = run(f"array-{rows}x{cols}-B{bits}-yosys", "array", params, out, device=args.device, place=False)
+        tag = "".join(f"-{u}-luts" for u in args.fabric_units)
+        r = run(f"array-{rows}x{cols}-B{bits}{tag}-yosys", "array", params, out, device=args.device, place=False,
+                fabric_units=args.fabric_units)
         if r["fits"]:
-            return [run(f"array-{rows}x{cols}-B{bits}-seed{seed}", "array", params, out, device=args.device,
-                        freq=args.freq, seed=seed) for seed in args.seeds]
+            return [run(f"array-{rows}x{cols}-B{bits}{tag}-seed{seed}", "array", params, out, device=args.device,
+                        freq=args.freq, seed=seed, fabric_units=args.fabric_units) for seed in args.seeds]
     return None
 
 
@@ -76,6 +81,8 @@ def main(argv=None):
     p.add_argument("--freq", type=float, default=100.0)
     p.add_argument("--bits", type=int, default=BoardParams().bits, help="B of the array search")
     p.add_argument("--seeds", type=int, nargs="+", default=[1], help="nextpnr placement seeds (default 1)")
+    p.add_argument("--fabric-units", type=lambda t: tuple(u for u in t.split(",") if u), default=(),
+                   help="array search: units whose products are LUT multipliers (shooter, receiver)")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

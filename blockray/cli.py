@@ -156,6 +156,28 @@ def _add_unit_options(p):
                    help=f"voxel table entries of the board (default {d.voxel_depth})")
 
 
+def _add_fabric_option(p):
+    p.add_argument("--fabric-units", type=_unit_list, default=(), metavar="UNIT[,UNIT]",
+                   help="with --target ecp5: the array-edge units whose products are LUT multipliers instead "
+                        "of DSPs (shooter: the column units, receiver: the row units), for arrays whose DSP "
+                        "rows are too full to route; default none")
+
+
+def _unit_list(text):
+    return tuple(u.strip() for u in text.split(",") if u.strip())
+
+
+def _fabric_errors(run):
+    """Run ``run()``; a bad fabric unit's ParameterError names ``--fabric-units``."""
+    from .errors import ParameterError
+    try:
+        return run()
+    except ParameterError as e:
+        if e.parameter != "fabric_units":
+            raise
+        raise ParameterError(f"--fabric-units: {e}") from None
+
+
 def _unit_params(args):
     """BoardParams from the unit options; a bad value raises ParameterError naming the option."""
     from .errors import ParameterError
@@ -174,6 +196,7 @@ def _verilog_parser(sub):
     p.add_argument("--target", default="generic", choices=["generic", "ecp5"],
                    help="generic: portable netlist, products as '*' between fabric registers (default); "
                         "ecp5: every product a MULT18X18D instance with its input and output registers on")
+    _add_fabric_option(p)
     p.add_argument("--out", required=True, metavar="FILE", help="Verilog file to write")
     p.set_defaults(func=_cmd_verilog)
 
@@ -181,7 +204,8 @@ def _verilog_parser(sub):
 def _cmd_verilog(args):
     from .synth.verilog import write_verilog
     params = _unit_params(args)
-    write_verilog(args.out, args.unit, params, target=args.target)
+    _fabric_errors(lambda: write_verilog(args.out, args.unit, params, target=args.target,
+                                         fabric_units=args.fabric_units))
     return 0
 
 
@@ -195,6 +219,7 @@ def _synth_parser(sub):
     p.add_argument("--target", default="ecp5", choices=["ecp5", "generic"],
                    help="ecp5: the ECP5 netlist (registered MULT18X18D instances), synth_ecp5 + nextpnr "
                         "(default); generic: the portable netlist, Yosys synth only (cells, multipliers)")
+    _add_fabric_option(p)
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
@@ -209,9 +234,9 @@ def _synth_parser(sub):
 def _cmd_synth(args):
     from .synth.nextpnr import synth_report, write_report
     params = _unit_params(args)
-    report = synth_report(args.unit, params, target=args.target, device=args.device, freq=args.freq,
-                          seed=args.seed, workdir=args.workdir, place=not args.no_pnr,
-                          router=args.router)
+    report = _fabric_errors(lambda: synth_report(
+        args.unit, params, target=args.target, device=args.device, freq=args.freq, seed=args.seed,
+        workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units))
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")

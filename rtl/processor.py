@@ -20,7 +20,8 @@ cycle. Every multiplication is :func:`_product`, ``reg(reg(a) * reg(b))``: regis
 the product straight into a register (products wider than one 18 x 18 DSP are split into
 DSP-sized pieces, each registered, and the pieces are added in the following stages), so no
 stage has a DSP and an adder in series. With the ECP5 target (``platform.mult18x18d``, see
-:mod:`blockray.synth.target`) both registers are the DSP's own pipeline registers.
+:mod:`blockray.synth.target`) both registers are the DSP's own pipeline registers, except in the
+units named in ``platform.fabric_units`` (their products stay generic: LUT multipliers).
 
 ``Intersector`` is the 1 x 1 array behind a stream interface, the unit tested against the model.
 """
@@ -33,6 +34,7 @@ from amaranth.lib.wiring import In, Out
 from ..errors import ParameterError
 from ..params import MAX_BITS, MIN_BITS, Widths
 from ..records import patch_layout, point_layout, vector_layout
+from ..synth.target import product_platform
 
 __all__ = [
     "shooter_terms_layout", "receiver_terms_layout", "query_layout", "result_layout",
@@ -297,6 +299,7 @@ class ShooterUnit(_TermsUnit):
             for c in _AXES:
                 m.d.comb += d0[k][c].eq(self.point[c] - self.patch[vertex][c])
 
+        platform = product_platform(platform, "shooter")
         sums3 = _dot_sums(m, [(d0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pp", platform)
         d3 = [_delay(m, d0[k], 3, f"d{k}") for k in range(3)]
 
@@ -339,6 +342,7 @@ class ReceiverUnit(_TermsUnit):
                 ]
 
         # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}: products exact in 2B+2 bits
+        platform = product_platform(platform, "receiver")
         plus2, minus2 = [], []
         for k in range(3):
             for i, c in enumerate(_AXES):

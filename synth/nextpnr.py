@@ -8,6 +8,9 @@ Flow (``target="ecp5"``):
 0. The unit is converted with the ECP5 target (:class:`~blockray.synth.target.ECP5Target`):
    every product is a ``MULT18X18D`` instance with its input and output registers on, so the
    DSP paths are register to register inside the DSP and only routing is left in the fabric.
+   With ``fabric_units`` the products of those array-edge units stay plain ``$mul`` cells, which
+   Yosys's ``booth`` pass turns into Booth-encoded LUT multipliers before ``synth_ecp5 -nodsp``
+   (so the instantiated MULT18X18Ds are the only DSPs).
 1. The unit is wrapped in :class:`~blockray.synth.wrap.LfsrHarness` (inputs from on-chip LFSR
    registers, outputs registered and XOR-reduced to one pin), so the design has three IOs and
    every path of the unit is register to register: the Fmax is the unit's.
@@ -44,10 +47,10 @@ from amaranth.back import verilog
 
 from ..errors import ParameterError
 from ..params import BoardParams
-from .target import ECP5Target
+from .target import ECP5Target, FABRIC_UNITS
 from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
-from .yosys import synth_stats, yosys_command
+from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
 __all__ = ["DEVICES", "PACKAGE", "nextpnr_command", "dsp_estimate", "dsp_registers", "synth_report",
            "write_report"]
@@ -66,8 +69,9 @@ _RESOURCES = ("luts", "ffs", "dsps", "brams")
 _NEXTPNR_BELS = {"luts": "TRELLIS_COMB", "ffs": "TRELLIS_FF", "dsps": "MULT18X18D", "brams": "DP16KD"}
 
 
-def dsp_estimate(bits, rows=1, cols=1):
-    """MULT18X18D count of an R x S array (or, at 1 x 1, the processor unit) at B = ``bits``.
+def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
+    """MULT18X18D count of an R x S array (or, at 1 x 1, the processor unit) at B = ``bits``,
+    the units named in ``fabric_units`` (``"shooter"``, ``"receiver"``) on LUT multipliers.
 
     The RTL splits each (B+1) x (2B+2) product along its wide operand into 18-bit-operand pieces
     (:func:`blockray.rtl.processor._chunks`: 1 piece at B <= 8, 2 at B <= 16, 3 at B <= 20);
@@ -79,7 +83,9 @@ def dsp_estimate(bits, rows=1, cols=1):
     pieces = 1 if cross <= 18 else 1 + -(-(cross - 18) // 17)
     narrow = 1 if diff <= 18 else 2
     product = pieces * narrow
-    return rows * cols * 9 * product + rows * (18 * narrow + 3 * product) + cols * 3 * product
+    receiver = 0 if "receiver" in fabric_units else rows * (18 * narrow + 3 * product)
+    shooter = 0 if "shooter" in fabric_units else cols * 3 * product
+    return rows * cols * 9 * product + receiver + shooter
 
 
 def nextpnr_command():
@@ -158,13 +164,14 @@ def _critical_path(report, clock):
 
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, seed=1,
-                 threads=2, workdir=None, place=True, router="router2"):
+                 threads=2, workdir=None, place=True, router="router2", fabric_units=()):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
     directory. ``place=False`` stops after Yosys (no Fmax). ``router``: nextpnr's router
     (``router2`` by default: ``router1`` stalled for minutes at a few hundred overused wires on
-    the B = 16 processor, where the DSP outputs go straight into registers).
+    the B = 16 processor, where the DSP outputs go straight into registers). ``fabric_units``:
+    units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`).
     """
     if router not in ("router1", "router2"):
         raise ParameterError(f"--router must be router1 or router2, not {router!r}")
@@ -172,6 +179,9 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
         raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
     if target not in ("ecp5", "generic"):
         raise ParameterError(f"--target must be ecp5 or generic, not {target!r}")
+    ecp5 = ECP5Target(fabric_units)
+    if ecp5.fabric_units and target != "ecp5":
+        raise ParameterError("fabric units (LUT multipliers) need the ecp5 target", parameter="fabric_units")
     if device not in DEVICES:
         raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
     if not (isinstance(freq, (int, float)) and freq > 0):
@@ -192,13 +202,14 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
         return report
 
     dev = DEVICES[device]
-    report.update({"device": dev["part"], "package": PACKAGE, "target_mhz": float(freq)})
+    report.update({"device": dev["part"], "package": PACKAGE, "target_mhz": float(freq),
+                   "fabric_units": [u for u in FABRIC_UNITS if u in ecp5.fabric_units]})
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
-            return _ecp5(report, unit, params, dev, device, freq, seed, threads, Path(tmp), place, router)
+            return _ecp5(report, unit, params, dev, device, freq, seed, threads, Path(tmp), place, router, ecp5)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    return _ecp5(report, unit, params, dev, device, freq, seed, threads, workdir, place, router)
+    return _ecp5(report, unit, params, dev, device, freq, seed, threads, workdir, place, router, ecp5)
 
 
 #: synth_ecp5 with its LUT mapping step (``abc9``) replaced by classic ``abc -lut 4``: the
@@ -208,12 +219,18 @@ _ABC_FALLBACK = ("synth_ecp5 -top {top} -run begin:map_luts; techmap -map +/latt
                  "abc -lut 4 -dress; clean; synth_ecp5 -top {top} -run map_cells:")
 
 
-def _yosys_ecp5(text, top, tmp, tag, netlist):
-    """synth_ecp5 of Verilog ``text`` (flattened); returns (cells by type, seconds, LUT mapper)."""
+def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
+    """synth_ecp5 of Verilog ``text`` (flattened); returns (cells by type, seconds, LUT mapper).
+
+    ``lut_multipliers``: the ``$mul`` cells left in the netlist (the generic products of the
+    fabric units) become Booth LUT multipliers (``booth``), and ``-nodsp`` keeps Yosys from
+    inferring DSPs."""
     (tmp / f"{tag}.v").write_text(text)
     start = time.perf_counter()
-    for mapper, synth in (("abc9", f"synth_ecp5 -top {top}"), ("abc", _ABC_FALLBACK.format(top=top))):
-        script = f"read_verilog {tag}.v; {synth}; tee -q -o {tag}.stat.json stat -json"
+    prefix, nodsp = (LUT_MULTIPLIERS.format(top=top) + "; ", " -nodsp") if lut_multipliers else ("", "")
+    for mapper, synth in (("abc9", f"synth_ecp5{nodsp} -top {top}"),
+                          ("abc", _ABC_FALLBACK.format(top=top).replace("synth_ecp5", "synth_ecp5" + nodsp))):
+        script = f"read_verilog {tag}.v; {prefix}{synth}; tee -q -o {tag}.stat.json stat -json"
         if netlist:
             script += f"; write_json {tag}.json"
         rc = _run(yosys_command() + ["-q", "-l", f"{tag}.yosys.log", "-p", script], tmp, tmp / f"{tag}.yosys.out")
@@ -229,13 +246,14 @@ def _yosys_ecp5(text, top, tmp, tag, netlist):
     return cells, seconds, mapper
 
 
-def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, router):
+def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, router, ecp5):
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
     component = build_unit(unit, params)
+    lut_multipliers = bool(ecp5.fabric_units)
     unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False,
-                                                             platform=ECP5Target()),
-                                     name, tmp, "unit", netlist=False)
+                                                             platform=ecp5),
+                                     name, tmp, "unit", netlist=False, lut_multipliers=lut_multipliers)
     seconds = {"yosys_unit": t_unit}
     report["seconds"] = seconds
     report["lut_mapper"] = {"unit": mapper}
@@ -261,9 +279,9 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
     # 2. the harnessed unit, for place and route (the harness's cost is the difference)
     top = f"{name}_top"
     harness = LfsrHarness(build_unit(unit, params))
-    total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(verilog.convert(harness, name=top, emit_src=False,
-                                                                                        platform=ECP5Target()),
-                                     top, tmp, top, netlist=True)
+    total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(
+        verilog.convert(harness, name=top, emit_src=False, platform=ecp5), top, tmp, top, netlist=True,
+        lut_multipliers=lut_multipliers)
     seconds["yosys_harness"] = t_top
     report["dsp_registers"] = dsp_registers(tmp / f"{top}.json")
     total = _cells_resources(total_cells)

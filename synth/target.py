@@ -11,8 +11,17 @@ platform=target)`` reaches every ``elaborate`` and switches on device-specific p
     (Yosys ``synth_ecp5`` never packs fabric registers into a MULT18X18D). Same latency and the
     same bits as the generic netlist; simulate it with ``synth/ecp5_mult18x18d_sim.v``.
 
-The RTL reads the flag with ``getattr(platform, "mult18x18d", False)``, so any other platform
-object (an Amaranth vendor platform, a test's stand-in) gets the generic netlist.
+``ECP5Target(fabric_units={"shooter"})`` keeps the products of the named array-edge units
+    (``"shooter"``: the column units, ``"receiver"``: the row units) generic: fabric registers
+    around a plain ``*``, which ``blockray synth`` maps to LUT multipliers (Yosys ``booth``, then
+    ``synth_ecp5 -nodsp``, so only the instantiated MULT18X18Ds are DSPs). The array then needs
+    18 R S (+ 24 R without the row units, + 6 S without the column units) DSPs at B = 16: a part
+    whose DSP rows are too full to route (the 1 x 5 array at 92 % of the LFE5U-85F's DSPs) trades
+    DSPs for LUTs. Same latency and the same bits either way.
+
+The RTL reads the flags with ``getattr(platform, "mult18x18d", False)`` and
+:func:`product_platform`, so any other platform object (an Amaranth vendor platform, a test's
+stand-in) gets the generic netlist.
 
     target = target_platform("ecp5")          # or None for "generic"
     verilog.convert(Intersector(16), name="top", platform=target)
@@ -22,9 +31,12 @@ from pathlib import Path
 
 from ..errors import ParameterError
 
-__all__ = ["TARGETS", "ECP5Target", "target_platform", "MULT18X18D_SIM"]
+__all__ = ["TARGETS", "FABRIC_UNITS", "ECP5Target", "target_platform", "product_platform", "MULT18X18D_SIM"]
 
 TARGETS = ("generic", "ecp5")
+
+#: the units whose products :class:`ECP5Target` can leave to the fabric (LUT multipliers)
+FABRIC_UNITS = ("shooter", "receiver")
 
 #: behavioural Verilog model of the MULT18X18D configuration the RTL instantiates (Verilator)
 MULT18X18D_SIM = Path(__file__).with_name("ecp5_mult18x18d_sim.v")
@@ -37,12 +49,33 @@ class ECP5Target:
     #: the flag :mod:`blockray.rtl.processor` checks: instantiate MULT18X18D with internal registers
     mult18x18d = True
 
+    def __init__(self, fabric_units=()):
+        fabric_units = frozenset(fabric_units)
+        unknown = sorted(fabric_units - set(FABRIC_UNITS))
+        if unknown:
+            raise ParameterError(f"fabric units must be among {', '.join(FABRIC_UNITS)}, not "
+                                 f"{', '.join(map(repr, unknown))}", parameter="fabric_units")
+        #: units whose products stay generic (LUT multipliers after ``booth``), not MULT18X18D
+        self.fabric_units = fabric_units
+
     def __repr__(self):
-        return "ECP5Target()"
+        units = ", ".join(repr(u) for u in FABRIC_UNITS if u in self.fabric_units)
+        return f"ECP5Target(fabric_units={{{units}}})" if units else "ECP5Target()"
 
 
-def target_platform(target):
-    """The ``platform`` object for ``target`` (``"generic"`` -> None, ``"ecp5"`` -> ECP5Target)."""
+def product_platform(platform, unit):
+    """The platform a unit's products see: ``platform``, or None (generic products) when
+    ``unit`` is one of ``platform.fabric_units``."""
+    return None if unit in getattr(platform, "fabric_units", ()) else platform
+
+
+def target_platform(target, fabric_units=()):
+    """The ``platform`` object for ``target`` (``"generic"`` -> None, ``"ecp5"`` ->
+    ``ECP5Target(fabric_units)``; fabric units need the ECP5 target)."""
     if target not in TARGETS:
-        raise ParameterError(f"--target must be one of {', '.join(TARGETS)}, not {target!r}")
-    return ECP5Target() if target == "ecp5" else None
+        raise ParameterError(f"--target must be one of {', '.join(TARGETS)}, not {target!r}", parameter="target")
+    if target != "ecp5":
+        if fabric_units:
+            raise ParameterError("fabric units (LUT multipliers) need the ecp5 target", parameter="fabric_units")
+        return None
+    return ECP5Target(fabric_units)

@@ -15,7 +15,8 @@ Units (``UNITS``):
     text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
 
 ``target`` (:mod:`blockray.synth.target`): ``generic`` (default) is the portable netlist
-(``*`` and fabric registers), ``ecp5`` instantiates the ECP5 DSP primitive for every product.
+(``*`` and fabric registers), ``ecp5`` instantiates the ECP5 DSP primitive for every product
+except those of the ``fabric_units`` (left as ``*``, for LUT multipliers).
 """
 
 from amaranth.back import verilog
@@ -54,17 +55,17 @@ def build_unit(unit, params=None):
     return BoardTop(params)
 
 
-def unit_verilog(unit, params=None, *, name=None, target="generic"):
+def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=()):
     """Readable Verilog (no source attributes) of ``unit`` for ``target`` (``generic`` or
-    ``ecp5``); the top module is ``name`` (default ``blockray_<unit>``)."""
-    platform = target_platform(target)
+    ``ecp5``, with ``fabric_units``); the top module is ``name`` (default ``blockray_<unit>``)."""
+    platform = target_platform(target, fabric_units)
     component = build_unit(unit, params)
     return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
-def write_verilog(path, unit, params=None, *, name=None, target="generic"):
+def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=()):
     """Write :func:`unit_verilog` to ``path``; returns the text."""
-    text = unit_verilog(unit, params, name=name, target=target)
+    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units)
     try:
         with open(path, "w") as f:
             f.write(text)

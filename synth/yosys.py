@@ -26,7 +26,11 @@ from pathlib import Path
 
 from amaranth.back import verilog
 
-__all__ = ["SynthStats", "yosys_command", "synth_stats"]
+__all__ = ["SynthStats", "yosys_command", "synth_stats", "LUT_MULTIPLIERS", "booth_verilog"]
+
+#: the Yosys passes that turn every ``$mul`` cell left in a netlist (the generic products of the
+#: ECP5 target's fabric units) into Booth-encoded adder logic, run before ``synth_ecp5 -nodsp``
+LUT_MULTIPLIERS = "hierarchy -top {top}; proc; booth"
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,18 @@ def _run(script, workdir):
                             capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"yosys failed ({result.returncode}):\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+
+
+def booth_verilog(text, top):
+    """Verilog ``text`` after :data:`LUT_MULTIPLIERS`: the same design with every ``*`` replaced
+    by the Booth multiplier logic Yosys maps to LUTs (Yosys's own cells, written back as
+    Verilog), so the fabric products can be simulated as synthesised."""
+    with tempfile.TemporaryDirectory(prefix="blockray-booth-") as tmp:
+        Path(tmp, "in.v").write_text(text)
+        # the full-adder cells booth leaves have no Verilog expression: gates (Yosys's techmap)
+        _run(f"read_verilog in.v; {LUT_MULTIPLIERS.format(top=top)}; techmap t:$fa t:$lcu; opt_clean; "
+             f"write_verilog -noattr out.v", tmp)
+        return Path(tmp, "out.v").read_text()
 
 
 def synth_stats(component, *, name="top", target="generic", verilog_text=None):

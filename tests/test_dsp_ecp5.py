@@ -10,6 +10,12 @@ input gaps and output backpressure, results compared with the model's expectatio
 so a latency difference shows up as lost, extra or misplaced results. The Verilator build is
 cached by content (``sim.cocotb_support.cached_build``).
 
+The same bench runs the ECP5 netlist with the shooter unit's products on LUT multipliers
+(``ECP5Target(fabric_units=...)``, ``blockray synth --fabric-units shooter``) as Yosys builds
+them: the Verilog after the ``booth`` pass (``blockray.synth.yosys.booth_verilog``), so the
+Booth logic that becomes LUTs is what is simulated; ``@pytest.mark.slow`` also the receiver
+unit's (a gate-level netlist five times larger: about 10 minutes of Verilator build).
+
 Default suite: every hard case plus 5 000 random vectors; ``@pytest.mark.slow``: 100 000.
 """
 
@@ -24,7 +30,9 @@ from amaranth.back import verilog
 from blockray.rtl.processor import MULT18X18D_PARAMS, Intersector
 from blockray.sim.cocotb_support import (DEFAULT_BUILD_ARGS, VerilatorBuild, cached_build, run_cocotb,
                                          verilator_env)
-from blockray.synth.target import MULT18X18D_SIM, ECP5Target
+from blockray.synth.nextpnr import dsp_estimate
+from blockray.synth.target import FABRIC_UNITS, MULT18X18D_SIM, ECP5Target
+from blockray.synth.yosys import booth_verilog
 
 HERE = Path(__file__).parent
 BITS = 16
@@ -34,12 +42,15 @@ NAME = "intersector_ecp5"
 pytestmark = pytest.mark.cocotb
 
 
-def build_with_model(component, name, *, platform):
-    """Verilator build of ``component`` converted for ``platform`` plus the MULT18X18D model."""
+def build_with_model(component, name, *, platform, transform=None):
+    """Verilator build of ``component`` converted for ``platform`` (then ``transform(text)``)
+    plus the MULT18X18D model."""
     from cocotb_tools.runner import get_runner
 
     verilator_env()
     text = verilog.convert(component, name=name, emit_src=False, platform=platform)
+    if transform is not None:
+        text = transform(text)
     files = {f"{name}.v": text, MULT18X18D_SIM.name: MULT18X18D_SIM.read_text()}
 
     def build(staging, sources):
@@ -54,6 +65,14 @@ def build_with_model(component, name, *, platform):
 @pytest.fixture(scope="module")
 def ecp5_build():
     build, text = build_with_model(Intersector(BITS), NAME, platform=ECP5Target())
+    print(f"verilator build: {'cached' if build.cached else f'{build.seconds:.1f} s'} in {build.build_dir}")
+    return build, text
+
+
+def fabric_build(units):
+    name = "intersector_ecp5_" + "_".join(units) + "_luts"
+    build, text = build_with_model(Intersector(BITS), name, platform=ECP5Target(units),
+                                   transform=lambda text: booth_verilog(text, name))
     print(f"verilator build: {'cached' if build.cached else f'{build.seconds:.1f} s'} in {build.build_dir}")
     return build, text
 
@@ -91,6 +110,26 @@ def test_intersector_ecp5_verilator_full(ecp5_build, tmp_path):
                 BLOCKRAY_BUBBLE=0.1, BLOCKRAY_STALL=0.1)
     print(stats)
     assert stats["mismatches"] == 0 and stats["vectors"] >= 100_000 + stats["hard"]
+
+
+@pytest.mark.parametrize("units", [
+    ("shooter",),
+    pytest.param(FABRIC_UNITS, marks=pytest.mark.slow),
+])
+def test_intersector_lut_multipliers_verilator(units, tmp_path):
+    """Units on Booth LUT multipliers, the rest on DSPs: bit- and cycle-exact like the all-DSP
+    netlist."""
+    build, text = fabric_build(units)
+    # only the DSP pieces are instances (42 with the shooter unit's 6 in LUTs, 18 with both
+    # units'); the others are Booth logic, no ``*`` left
+    assert text.count("MULT18X18D #(") == dsp_estimate(BITS, fabric_units=units) == 48 - (
+        6 if "shooter" in units else 0) - (24 if "receiver" in units else 0)
+    assert " * " not in text
+    print(f"seed={SEED}")
+    stats = run(build, tmp_path, BLOCKRAY_SEED=SEED, BLOCKRAY_VECTORS=5_000,
+                BLOCKRAY_BUBBLE=0.1, BLOCKRAY_STALL=0.1)
+    print(stats)
+    assert stats["mismatches"] == 0 and stats["vectors"] >= 5_000 + stats["hard"]
 
 
 def test_mismatch_fails(ecp5_build, tmp_path):

@@ -85,6 +85,27 @@ def test_dsp_estimate():
     assert dsp_estimate(12) == dsp_estimate(16) == 18 + 15 * 2
     assert dsp_estimate(16, 1, 5) == 5 * 18 + 24 + 5 * 6 == 144
     assert dsp_estimate(16, 8, 8) == 64 * 18 + 8 * 24 + 8 * 6 == 1392
+    # units on LUT multipliers (--fabric-units): measured 114 for the 1 x 5 with LUT shooters
+    assert dsp_estimate(16, 1, 5, ("shooter",)) == 5 * 18 + 24 == 114
+    assert dsp_estimate(16, 1, 6, ("shooter",)) == 132
+    assert dsp_estimate(16, 2, 3, ("shooter", "receiver")) == 6 * 18
+
+
+@pytest.mark.synth
+def test_fabric_units_trade_dsps_for_luts():
+    """``fabric_units``: Yosys maps exactly the other products to DSPs, and the shooter units'
+    products to LUTs (B = 6, 1 x 2 array: 45 DSPs, 39 with LUT shooters)."""
+    from blockray.params import BoardParams
+    from blockray.synth.nextpnr import synth_report
+    params = BoardParams(rows=1, cols=2, bits=6)
+    dsp = synth_report("array", params, place=False)
+    luts = synth_report("array", params, place=False, fabric_units=("shooter",))
+    print(dsp["resources"], luts["resources"])
+    assert dsp["resources"]["dsps"] == dsp_estimate(6, 1, 2) == 45
+    assert luts["resources"]["dsps"] == dsp_estimate(6, 1, 2, ("shooter",)) == 39
+    assert luts["fabric_units"] == ["shooter"] and dsp["fabric_units"] == []
+    # two 3-product units' multipliers in LUTs cost at least 100 LUTs a product
+    assert luts["resources"]["luts"] > dsp["resources"]["luts"] + 6 * 100
 
 
 def test_verilog_cli(tmp_path):
@@ -120,6 +141,8 @@ def test_verilog_cli_ecp5_target(tmp_path):
     (["verilog", "board", "--patch-depth", "0"], "--patch-depth"),
     (["verilog", "gpu"], "UNIT"),
     (["synth", "processor", "--bits", "3"], "--bits"),
+    (["synth", "array", "--fabric-units", "cell"], "--fabric-units"),
+    (["verilog", "array", "--fabric-units", "shooter"], "--fabric-units"),     # generic target
 ])
 def test_bad_parameters_exit_2(tmp_path, capsys, argv, option):
     out = tmp_path / "x.v"
