@@ -57,16 +57,22 @@ def _add_board_options(p):
                         "(e.g. --max-shots 1)")
 
 
-def _board_params(**values):
-    """BoardParams from command-line values; an error names the option that set the bad value."""
+def _naming_option(run):
+    """``run()``; a ParameterError about one parameter is raised again naming its option
+    (``fabric_units`` -> ``--fabric-units: ...``)."""
     from .errors import ParameterError
-    from .params import BoardParams
     try:
-        return BoardParams(**values)
+        return run()
     except ParameterError as e:
         if e.parameter is None:
             raise
         raise ParameterError(f"--{e.parameter.replace('_', '-')}: {e}") from None
+
+
+def _board_params(**values):
+    """BoardParams from command-line values; an error names the option that set the bad value."""
+    from .params import BoardParams
+    return _naming_option(lambda: BoardParams(**values))
 
 
 def _render_parser(sub):
@@ -167,17 +173,6 @@ def _unit_list(text):
     return tuple(u.strip() for u in text.split(",") if u.strip())
 
 
-def _fabric_errors(run):
-    """Run ``run()``; a bad fabric unit's ParameterError names ``--fabric-units``."""
-    from .errors import ParameterError
-    try:
-        return run()
-    except ParameterError as e:
-        if e.parameter != "fabric_units":
-            raise
-        raise ParameterError(f"--fabric-units: {e}") from None
-
-
 def _unit_params(args):
     """BoardParams from the unit options; a bad value raises ParameterError naming the option."""
     from .errors import ParameterError
@@ -204,7 +199,7 @@ def _verilog_parser(sub):
 def _cmd_verilog(args):
     from .synth.verilog import write_verilog
     params = _unit_params(args)
-    _fabric_errors(lambda: write_verilog(args.out, args.unit, params, target=args.target,
+    _naming_option(lambda: write_verilog(args.out, args.unit, params, target=args.target,
                                          fabric_units=args.fabric_units))
     return 0
 
@@ -234,7 +229,7 @@ def _synth_parser(sub):
 def _cmd_synth(args):
     from .synth.nextpnr import synth_report, write_report
     params = _unit_params(args)
-    report = _fabric_errors(lambda: synth_report(
+    report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, freq=args.freq, seed=args.seed,
         workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units))
     write_report(args.report, report)

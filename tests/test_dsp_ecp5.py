@@ -94,22 +94,23 @@ def test_the_ecp5_netlist_uses_registered_dsps(ecp5_build):
     assert " * " not in text
 
 
-def test_intersector_ecp5_verilator(ecp5_build, tmp_path):
-    print(f"seed={SEED}")
-    stats = run(ecp5_build[0], tmp_path, BLOCKRAY_SEED=SEED, BLOCKRAY_VECTORS=5_000,
+def check_vectors(build, tmp_path, seed, vectors):
+    """Every hard case plus ``vectors`` random ones (``seed``), with input gaps and output
+    backpressure: zero mismatches."""
+    print(f"seed={seed}")
+    stats = run(build, tmp_path, BLOCKRAY_SEED=seed, BLOCKRAY_VECTORS=vectors,
                 BLOCKRAY_BUBBLE=0.1, BLOCKRAY_STALL=0.1)
     print(stats)
-    assert stats["mismatches"] == 0 and stats["vectors"] >= 5_000 + stats["hard"]
+    assert stats["mismatches"] == 0 and stats["vectors"] >= vectors + stats["hard"]
+
+
+def test_intersector_ecp5_verilator(ecp5_build, tmp_path):
+    check_vectors(ecp5_build[0], tmp_path, SEED, 5_000)
 
 
 @pytest.mark.slow
 def test_intersector_ecp5_verilator_full(ecp5_build, tmp_path):
-    seed = SEED + 1
-    print(f"seed={seed}")
-    stats = run(ecp5_build[0], tmp_path, BLOCKRAY_SEED=seed, BLOCKRAY_VECTORS=100_000,
-                BLOCKRAY_BUBBLE=0.1, BLOCKRAY_STALL=0.1)
-    print(stats)
-    assert stats["mismatches"] == 0 and stats["vectors"] >= 100_000 + stats["hard"]
+    check_vectors(ecp5_build[0], tmp_path, SEED + 1, 100_000)
 
 
 @pytest.mark.parametrize("units", [
@@ -125,11 +126,7 @@ def test_intersector_lut_multipliers_verilator(units, tmp_path):
     assert text.count("MULT18X18D #(") == dsp_estimate(BITS, fabric_units=units) == 48 - (
         6 if "shooter" in units else 0) - (24 if "receiver" in units else 0)
     assert " * " not in text
-    print(f"seed={SEED}")
-    stats = run(build, tmp_path, BLOCKRAY_SEED=SEED, BLOCKRAY_VECTORS=5_000,
-                BLOCKRAY_BUBBLE=0.1, BLOCKRAY_STALL=0.1)
-    print(stats)
-    assert stats["mismatches"] == 0 and stats["vectors"] >= 5_000 + stats["hard"]
+    check_vectors(build, tmp_path, SEED, 5_000)
 
 
 def test_mismatch_fails(ecp5_build, tmp_path):
