@@ -47,7 +47,7 @@ from amaranth.back import verilog
 
 from ..errors import ParameterError
 from ..params import BoardParams
-from .target import ECP5Target, FABRIC_UNITS
+from .target import FABRIC_UNITS, target_platform
 from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
@@ -177,11 +177,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
         raise ParameterError(f"--router must be router1 or router2, not {router!r}")
     if unit not in UNITS:
         raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
-    if target not in ("ecp5", "generic"):
-        raise ParameterError(f"--target must be ecp5 or generic, not {target!r}")
-    ecp5 = ECP5Target(fabric_units)
-    if ecp5.fabric_units and target != "ecp5":
-        raise ParameterError("fabric units (LUT multipliers) need the ecp5 target", parameter="fabric_units")
+    ecp5 = target_platform(target, fabric_units)        # None for generic
     if device not in DEVICES:
         raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
     if not (isinstance(freq, (int, float)) and freq > 0):
