@@ -32,7 +32,7 @@ def _probe_folder(folder, option, path):
     try:
         fd, probe = tempfile.mkstemp(dir=folder, prefix=".blockray-probe-")
     except OSError as e:
-        raise _error(option, path, f"cannot write in its folder: {e.strerror or e}") from None
+        raise _error(option, path, f"cannot write: its folder takes no new file ({e.strerror or e})") from None
     os.close(fd)
     os.unlink(probe)
 

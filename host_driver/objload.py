@@ -147,7 +147,7 @@ def _read_text(path, limits, error_path=None, error_line=None, what="file"):
     except OSError as e:
         raise SceneError(f"cannot read {what}: {e.strerror or type(e).__name__}", **where) from None
     if len(data) > limits.max_file_bytes:
-        raise SceneError(f"{what} is larger than {limits.max_file_bytes / 2**20:g} MiB "
+        raise SceneError(f"{what} is larger than {limits.max_file_bytes / 2**20:.3g} MiB "
                          f"(raise the limit with --max-file-mb)", **where)
     return data.decode("utf-8-sig", errors="replace")
 
@@ -479,9 +479,11 @@ def subdivision_lower_bound(scene, max_edge):
 
 
 def _too_many(max_edge, count, max_triangles, at_least=True):
-    shown = f"{count:.3g}" if math.isfinite(count) else "more than 1e308"
-    return ParameterError(f"--max-edge {max_edge:g} would subdivide the scene into {'at least ' if at_least else ''}"
-                          f"{shown} triangles, more than the limit of {max_triangles} (use a larger "
+    if not math.isfinite(count):
+        shown = "more than 1e308"
+    else:
+        shown = f"at least {count:.3g}" if at_least else f"{count}"
+    return ParameterError(f"--max-edge {max_edge:g} would subdivide the scene into {shown} triangles, more than the limit of {max_triangles} (use a larger "
                           f"--max-edge, or raise the limit with --max-patches)")
 
 
@@ -584,7 +586,7 @@ def subdivide(scene, max_edge, *, max_triangles=None):
                     new_parent.append(p)
         tris, parent = new_tris, new_parent
         if len(tris) > max_triangles:
-            raise _too_many(limit, len(tris), max_triangles)
+            raise _too_many(limit, len(tris), max_triangles, at_least=False)
 
     parent = np.array(parent, dtype=np.int64)
     return Scene(name=scene.name, vertices=np.array(verts, dtype=np.float64),
