@@ -146,6 +146,8 @@ def _read_text(path, limits, error_path=None, error_line=None, what="file"):
         raise SceneError(f"{what} not found", **where) from None
     except OSError as e:
         raise SceneError(f"cannot read {what}: {e.strerror or type(e).__name__}", **where) from None
+    except ValueError:                      # a NUL character in the name
+        raise SceneError(f"{what} is not a file name", **where) from None
     if len(data) > limits.max_file_bytes:
         raise SceneError(f"{what} is larger than {limits.max_file_bytes / 2**20:.3g} MiB "
                          f"(raise the limit with --max-file-mb)", **where)
@@ -214,6 +216,8 @@ def _load_mtl(path, materials, limits, obj_path, obj_line, shown):
 
 def _inside(folder, target):
     """Whether ``target`` is in the folder tree of ``folder`` once symbolic links are followed."""
+    if "\0" in str(target):
+        return False
     root = os.path.realpath(folder)
     return os.path.commonpath([root, os.path.realpath(target)]) == root
 
@@ -381,6 +385,9 @@ def load_obj(path, *, max_edge=None, name=None, limits=None):
             allowed = lambda mtl: limits.allow_mtl_outside or _inside(folder, folder / mtl)
             names = [whole] if len(fields) > 1 and allowed(whole) and (folder / whole).is_file() else fields
             for mtl in names:
+                if "\0" in mtl:           # no file name holds one; os.path would raise
+                    raise SceneError(f"material library {_token(mtl)} is not a file name", path=path,
+                                     line=lineno)
                 if not allowed(mtl):
                     raise SceneError(f"material library {_token(mtl)} is outside the scene's folder "
                                      f"(allow it with --allow-mtl-outside)", path=path, line=lineno)

@@ -478,3 +478,11 @@ def test_good_scene_renders_through_the_cli(tmp_path, capsys):
     assert code == 0, err
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["patches"] == 10 and np.isfinite(report["residual"])
+
+
+def test_nul_in_a_material_library_name_is_an_error(tmp_path):
+    # found by the fuzz test (seed 4): os.path raised ValueError on the NUL
+    for line, words in (("mtllib \x00\n", r"'\\x00' is not a file name"), ("mtllib 0 \x00\n", "'0' not found"),
+                        ("mtllib a\x00b\n", r"'a\\x00b' is not a file name")):
+        with pytest.raises(SceneError, match=f":1: material library {words}"):
+            load_obj(write(tmp_path, line + TRI + "f 1 2 3\n"))
