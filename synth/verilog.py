@@ -30,8 +30,9 @@ __all__ = ["UNITS", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_
 UNITS = ("processor", "cell", "array", "board")
 
 #: Largest board memory (patch memory + voxel table) that is built: 16 Mbit, 4.5 x the block RAM
-#: of the largest ECP5 (LFE5U-85F: 208 x 18 Kbit). Amaranth's conversion needs ~130 bytes of host
-#: memory per bit: ``blockray verilog board --patch-depth 65536`` (17 Mbit) took 344 s and 2.2 GB.
+#: of the largest ECP5 (LFE5U-85F: 208 x 18 Kbit). Amaranth's conversion needs 130-155 bytes of
+#: host memory per bit: the default board (5.0 Mbit) took 95 s and 0.77 GB, ``--patch-depth
+#: 65536`` (17.2 Mbit) 344 s and 2.2 GB (docs/input.md).
 MAX_MEMORY_BITS = 1 << 24
 
 
@@ -49,7 +50,7 @@ def _check_memory(params):
         raise ParameterError(
             f"the board's memories would hold {patch + table:.3g} bits (patch memory {params.patch_depth} "
             f"words, voxel table {params.voxel_depth} entries), more than {MAX_MEMORY_BITS} (16 Mbit, "
-            f"4.5 x the largest ECP5's block RAM; converting them needs ~130 bytes per bit)",
+            f"4.5 x the largest ECP5's block RAM; converting them needs ~150 bytes of memory per bit)",
             parameter="patch_depth" if patch >= table else "voxel_depth")
 
 
