@@ -149,9 +149,11 @@ def _cmd_render(args):
     from .host_driver.objload import load_scene
     from .host_driver.render import render
     from .host_driver.output import write_patches_csv, write_report_json
+    from .host_driver.solver import check_matrix_memory
 
     _check_render(args)
     scene = load_scene(args.scene, max_edge=args.max_edge, limits=_load_limits(args))
+    check_matrix_memory(scene.patches, args.solver)
     if args.bits is not None and not MIN_BITS <= args.bits <= MAX_BITS:
         raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")

@@ -486,3 +486,13 @@ def test_nul_in_a_material_library_name_is_an_error(tmp_path):
                         ("mtllib a\x00b\n", r"'a\\x00b' is not a file name")):
         with pytest.raises(SceneError, match=f":1: material library {words}"):
             load_obj(write(tmp_path, line + TRI + "f 1 2 3\n"))
+
+
+def test_gathering_solver_matrix_beyond_memory_is_refused(capsys, no_render, monkeypatch):
+    from blockray.host_driver import solver
+    # cornell's 928 patches: a 6.6 MiB matrix, refused under a 4 MiB limit; progressive needs none
+    monkeypatch.setattr(solver, "MAX_MATRIX_BYTES", 4 << 20)
+    code, err = cli(capsys, ["render", "cornell", "--solver", "jacobi"])
+    assert_one_line_error(code, err, "--solver jacobi", "928 patches", "0.00642 GiB")
+    with pytest.raises(AssertionError, match="render started"):
+        main(["render", "cornell", "--solver", "progressive"])
