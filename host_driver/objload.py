@@ -214,6 +214,11 @@ def _load_mtl(path, materials, limits, obj_path, obj_line, shown):
                 current.emission = tuple(values)
 
 
+def _may_read(folder, mtl, limits):
+    """Whether ``mtllib`` may read ``mtl`` (relative to the OBJ's ``folder``) under ``limits``."""
+    return limits.allow_mtl_outside or _inside(folder, folder / mtl)
+
+
 def _inside(folder, target):
     """Whether ``target`` is in the folder tree of ``folder`` once symbolic links are followed."""
     if "\0" in str(target):
@@ -316,6 +321,7 @@ def load_obj(path, *, max_edge=None, name=None, limits=None):
     faces, face_group, face_mat = [], [], []   # faces: list of index triples
     group_names, group_ids = [], {}
     materials = {}
+    libraries = set()                          # real paths of the MTL files read
     usemtl_lines = {}                          # material name -> first OBJ line using it
     group, material = None, None
 
@@ -382,16 +388,20 @@ def load_obj(path, *, max_edge=None, name=None, limits=None):
             # one file name with blanks, else several names; a path outside the folder tree is
             # not even looked at unless allowed (whether it exists is not revealed)
             whole = " ".join(fields)
-            allowed = lambda mtl: limits.allow_mtl_outside or _inside(folder, folder / mtl)
-            names = [whole] if len(fields) > 1 and allowed(whole) and (folder / whole).is_file() else fields
+            names = fields
+            if len(fields) > 1 and _may_read(folder, whole, limits) and (folder / whole).is_file():
+                names = [whole]
             for mtl in names:
                 if "\0" in mtl:           # no file name holds one; os.path would raise
                     raise SceneError(f"material library {_token(mtl)} is not a file name", path=path,
                                      line=lineno)
-                if not allowed(mtl):
+                if not _may_read(folder, mtl, limits):
                     raise SceneError(f"material library {_token(mtl)} is outside the scene's folder "
                                      f"(allow it with --allow-mtl-outside)", path=path, line=lineno)
-                _load_mtl(folder / mtl, materials, limits, path, lineno, mtl)
+                real = os.path.realpath(folder / mtl)
+                if real not in libraries:          # a library named again is not read twice
+                    libraries.add(real)
+                    _load_mtl(folder / mtl, materials, limits, path, lineno, mtl)
         elif key == "usemtl":
             if not fields:
                 raise SceneError("'usemtl' needs a material name", path=path, line=lineno)

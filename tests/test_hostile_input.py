@@ -496,3 +496,10 @@ def test_gathering_solver_matrix_beyond_memory_is_refused(capsys, no_render, mon
     assert_one_line_error(code, err, "--solver jacobi", "928 patches", "0.00642 GiB")
     with pytest.raises(AssertionError, match="render started"):
         main(["render", "cornell", "--solver", "progressive"])
+
+
+def test_a_library_named_twice_is_read_once(tmp_path):
+    # exporters and concatenated OBJ files repeat mtllib; that is not a material defined twice
+    path = write(tmp_path, "mtllib s.mtl\nmtllib s.mtl ./s.mtl\n" + TRI + "usemtl a\nf 1 2 3\n",
+                 "newmtl a\nKd 0.5 0.25 0.125\n")
+    np.testing.assert_array_equal(load_obj(path).reflectance, [[0.5, 0.25, 0.125]])
