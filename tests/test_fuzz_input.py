@@ -18,7 +18,7 @@ import signal
 import tempfile
 from pathlib import Path
 
-from hypothesis import HealthCheck, given, seed, settings, strategies as st
+from hypothesis import HealthCheck, given, note, seed, settings, strategies as st
 
 from blockray.cli import main
 from test_hostile_input import BOX, BOX_MTL
@@ -124,7 +124,7 @@ def test_fuzz_print_seed():
 @given(obj=mutated(BOX), mtl=mutated(BOX_MTL), board=st.sampled_from(["golden", "model"]),
        max_edge=st.sampled_from([None, "0.5", "0.05", "1e-9"]))
 def test_mutated_scenes_render_or_fail_cleanly(obj, mtl, board, max_edge):
-    print(f"fuzz seed {SEED}")
+    note(f"fuzz seed {SEED} (BLOCKRAY_FUZZ_SEED), board {board}, --max-edge {max_edge}")
     with tempfile.TemporaryDirectory(prefix="blockray-fuzz-") as tmp:
         root = Path(tmp)
         (root / "outside.mtl").write_text(f"newmtl {SECRET}\nKd {SECRET} 0 0\n")

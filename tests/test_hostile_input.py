@@ -18,7 +18,7 @@ from blockray import extras
 from blockray.cli import main
 from blockray.errors import ParameterError, SceneError
 from blockray.host_driver import builtin
-from blockray.host_driver.objload import (LoadLimits, SceneWarning, TOKEN_CHARS, load_obj, load_scene,
+from blockray.host_driver.objload import (LoadLimits, TOKEN_CHARS, load_obj, load_scene,
                                           subdivide, subdivision_lower_bound)
 from blockray.host_driver.render import render
 from blockray.host_driver.scene import COORDINATE_LIMIT
@@ -440,7 +440,7 @@ def test_control_characters_in_a_token_are_escaped(tmp_path, capsys):
 def test_numbers_are_the_obj_formats(tmp_path, token):
     with pytest.raises(SceneError) as info:
         load_obj(write(tmp_path, TRI + f"v 0 {token} 0\nf 1 2 3\n"))
-    assert f":4: 'v' has a value that is not a number: '" in str(info.value)
+    assert ":4: 'v' has a value that is not a number: '" in str(info.value)
 
 
 @pytest.mark.parametrize("token", ["1_0", "\u0663", "0x1", "+\uff13"])
