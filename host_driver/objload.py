@@ -33,7 +33,7 @@ Untrusted files (downloaded models, a service rendering uploads) are read under
   not say whether it exists.
 - An error message quotes at most the offending token, cut to :data:`TOKEN_CHARS` characters and
   with control characters escaped, never a whole line of a file.
-- Text is UTF-8 (a byte-order mark is skipped); lines end at ``\n``; a trailing backslash joins
+- Text is UTF-8 (a byte-order mark is skipped); lines end at line feeds; a trailing backslash joins
   the next line (also on the last line); fields are separated by ASCII blanks.
 - Numbers are the OBJ format's: ``[+-]digits[.digits][(e|E)[+-]digits]`` in ASCII digits (no
   ``inf``, ``nan``, ``1_0`` or other scripts' digits); indices are ASCII integers.
@@ -77,8 +77,8 @@ class LoadLimits:
     """What the loader may read (see the module docstring). The CLI sets these from
     ``--allow-mtl-outside``, ``--max-file-mb`` and ``--max-patches``."""
     allow_mtl_outside: bool = False
-    max_file_bytes: int = 256 << 20         # a 256 MiB OBJ is ~5 M triangles
-    max_triangles: int = 1_000_000          # subdivision output; cornell at max_edge 10 (110 k) takes ~6 s
+    max_file_bytes: int = 256 << 20         # a 256 MiB OBJ holds millions of triangles
+    max_triangles: int = 1_000_000          # subdivision output; cornell to 110 k takes ~10 s (docs/input.md)
 
 
 def _token(text):
