@@ -131,6 +131,12 @@ class BlockBits:
     def __iter__(self):
         return (self[b] for b in range(len(self)))
 
+    def __add__(self, other):
+        return list(self) + list(other)
+
+    def __radd__(self, other):
+        return list(other) + list(self)
+
     def clear_per_row(self):
         """(sum of R_b,) clear rays of every row of every block, in block order."""
         rows = int(self.rows.sum())
