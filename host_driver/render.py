@@ -64,23 +64,26 @@ def make_board(name, params=None, *, bits=None, vcd=None, partition="deal"):
 
 
 class Phases:
-    """Wall-clock seconds spent per phase."""
+    """Seconds spent per phase: wall clock (``seconds``) and CPU time of the whole process, every
+    thread (``cpu``; on a shared machine the steadier measure of the host's own work)."""
 
     def __init__(self):
         self.seconds = {}
+        self.cpu = {}
 
-    def add(self, phase, dt):
+    def add(self, phase, dt, dcpu=0.0):
         self.seconds[phase] = self.seconds.get(phase, 0.0) + dt
+        self.cpu[phase] = self.cpu.get(phase, 0.0) + dcpu
 
     def timed(self, phase):
         phases = self
 
         class _T:
             def __enter__(self):
-                self.t0 = time.perf_counter()
+                self.t0, self.c0 = time.perf_counter(), time.process_time()
 
             def __exit__(self, *exc):
-                phases.add(phase, time.perf_counter() - self.t0)
+                phases.add(phase, time.perf_counter() - self.t0, time.process_time() - self.c0)
         return _T()
 
 
@@ -229,7 +232,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition)
                  if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
@@ -310,12 +313,16 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                 result = solvers.gauss_seidel(scene, F, tolerance=tolerance, max_iterations=max_iterations)
     if bar is not None:
         bar.close()
-    for phase in ("formfactor", "commands", "traverse", "board"):
-        phases.seconds.setdefault(phase, 0.0)
-    # time inside shoot() is also inside "solve": report the solver's own arithmetic separately
-    phases.seconds["solve"] -= sum(phases.seconds[p] for p in ("formfactor", "commands", "traverse", "board"))
+    inner = ("formfactor", "commands", "traverse", "board")
+    for times in (phases.seconds, phases.cpu):
+        for phase in inner:
+            times.setdefault(phase, 0.0)
+        # time inside shoot() is also inside "solve": report the solver's own arithmetic separately
+        times["solve"] -= sum(times[p] for p in inner)
     seconds = dict(phases.seconds)
     seconds["total"] = time.perf_counter() - t_start
+    cpu_seconds = dict(phases.cpu)
+    cpu_seconds["total"] = time.process_time() - c_start
 
     counters = vis.counters() if owner is not None else board_obj.counters()
     if isinstance(board, str):
@@ -347,6 +354,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         "tests_per_ray": float(counters.get("tests", 0)) / max(1, vis.rays),
         "residual": float(result.residual),
         "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
         "host_seconds_per_ray": (seconds["commands"] + seconds["traverse"] + seconds["board"]) / max(1, vis.rays),
         "traversal_stats": stats.summary(),
         "threads": host_threads.get(),
