@@ -71,6 +71,25 @@ def queries(scene, board, batches, cap, seed=13):
     return np.concatenate(P), np.concatenate(Q), np.concatenate(bits)
 
 
+def link(board, batches):
+    """Bytes per ray on one board's link: every block's commands (BEGIN_BLOCK, LOAD_POINTS, one
+    VOXEL per nonempty voxel, END_BLOCK) and its result word, each a whole word of
+    blockray.rtl.protocol's layouts rounded up to bytes; and the board cycles per ray."""
+    from blockray.rtl.protocol import BoardProtocol
+    from blockray.timing import POINTS_PER_LOAD
+    proto = BoardProtocol(board.params)
+    cmd_bytes, res_bytes = -(-proto.command_layout.size // 8), -(-proto.result_layout.size // 8)
+    commands = results = rays = 0
+    for blocks, _ in batches:
+        loads = -(-(blocks.rows + blocks.cols) // POINTS_PER_LOAD)
+        commands += int((2 + loads + np.diff(blocks.vox_off)).sum())
+        results += len(blocks)
+        rays += blocks.rays
+    return {"command_bytes": cmd_bytes, "result_bytes": res_bytes, "commands_per_ray": round(commands / rays, 4),
+            "link_bytes_per_ray": round((commands * cmd_bytes + results * res_bytes) / rays, 3),
+            "board_cycles_per_ray": round(board.counters()["board_cycles"] / rays, 4)}
+
+
 def embree(scene, P, Q):
     from embreex import rtcore_scene as rtcs
     from embreex.mesh_construction import TriangleMesh
@@ -120,6 +139,7 @@ def main(argv=None):
         host_cpu = sum(r["cpu_seconds"][p] for p in ("commands", "traverse", "board"))
         row["traverse_commands_cpu_us_per_ray"] = round(
             (r["cpu_seconds"]["traverse"] + r["cpu_seconds"]["commands"]) / rays * 1e6, 4)
+        row["link"] = link(board, batches)
         row["visibility_rays_per_cpu_s"] = round(rays / host_cpu)                   # commands + traverse + board
         row["render_rays_per_cpu_s"] = round(rays / r["cpu_seconds"]["total"])      # the whole render
         try:

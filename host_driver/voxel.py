@@ -492,10 +492,11 @@ def _walk_rays(P, Q, v, lo, s, m, count, nonempty_only, fill):
 
 
 @njit(cache=True)
-def _block_slabs(SP, EP, v, lo, s, m, slabs):
+def _block_slabs(SP, EP, v, lo, s, m, slabs, ray):
     """The slabs of one block ray (see :meth:`VoxelGrid.block_voxels`): starts SP (S, 3), ends
     EP (R, 3). Writes slabs[k] = (D, j, a1, b1, a2, b2) in march order, the index ranges on the
-    axes E1 = (D + 1) % 3, E2 = (D + 2) % 3 (empty when b < a); returns their number."""
+    axes E1 = (D + 1) % 3, E2 = (D + 2) % 3 (empty when b < a); returns their number. ``ray``
+    (6, >= S R) is scratch for the rays' terms that do not depend on the slab."""
     S, R = len(SP), len(EP)
     if S == 0 or R == 0:
         return 0
@@ -520,6 +521,16 @@ def _block_slabs(SP, EP, v, lo, s, m, slabs):
     j0 = max(np.int64(math.ceil((xmin - m - lo[D]) / s[D])) - 1, 0)
     j1 = min(np.int64(math.floor((xmax + m - lo[D]) / s[D])), v - 1)
     J = max(j1 - j0 + 1, 0)
+    # per ray (start k, end r): its terms along D and across, computed once for all slabs
+    n = 0
+    for k in range(S):
+        for r in range(R):
+            pD = SP[k, D]
+            dD = EP[r, D] - pD
+            ray[0, n], ray[1, n] = pD, (1.0 / dD if dD != 0 else 0.0)
+            ray[2, n], ray[3, n] = SP[k, E1], EP[r, E1] - SP[k, E1]
+            ray[4, n], ray[5, n] = SP[k, E2], EP[r, E2] - SP[k, E2]
+            n += 1
     for jj in range(J):
         j = j0 + jj if fwd else j1 - jj
         x_lo = (lo[D] - m) + j * s[D]
@@ -527,27 +538,24 @@ def _block_slabs(SP, EP, v, lo, s, m, slabs):
         cmin1 = cmin2 = np.inf
         cmax1 = cmax2 = -np.inf
         any_ok = False
-        for k in range(S):
-            pD, p1, p2 = SP[k, D], SP[k, E1], SP[k, E2]
-            for r in range(R):
-                dD = EP[r, D] - pD
-                if dD != 0:
-                    inv = 1.0 / dD
-                    ta = (x_lo - pD) * inv
-                    tb = (x_hi - pD) * inv
-                    t0 = np.maximum(np.minimum(ta, tb), 0.0)
-                    t1 = np.minimum(np.maximum(ta, tb), 1.0)
-                    ok = t0 <= t1
-                else:
-                    t0, t1 = 0.0, 1.0
-                    ok = x_lo <= pD and pD <= x_hi
-                if ok:
-                    any_ok = True
-                    d1, d2 = EP[r, E1] - p1, EP[r, E2] - p2
-                    c0, c1 = p1 + t0 * d1, p1 + t1 * d1
-                    cmin1, cmax1 = min(cmin1, c0, c1), max(cmax1, c0, c1)
-                    c0, c1 = p2 + t0 * d2, p2 + t1 * d2
-                    cmin2, cmax2 = min(cmin2, c0, c1), max(cmax2, c0, c1)
+        for i in range(n):
+            pD, inv = ray[0, i], ray[1, i]
+            if inv != 0:
+                ta = (x_lo - pD) * inv
+                tb = (x_hi - pD) * inv
+                t0 = np.maximum(np.minimum(ta, tb), 0.0)
+                t1 = np.minimum(np.maximum(ta, tb), 1.0)
+                ok = t0 <= t1
+            else:
+                t0, t1 = 0.0, 1.0
+                ok = x_lo <= pD and pD <= x_hi
+            if ok:
+                any_ok = True
+                p1, d1, p2, d2 = ray[2, i], ray[3, i], ray[4, i], ray[5, i]
+                c0, c1 = p1 + t0 * d1, p1 + t1 * d1
+                cmin1, cmax1 = min(cmin1, c0, c1), max(cmax1, c0, c1)
+                c0, c1 = p2 + t0 * d2, p2 + t1 * d2
+                cmin2, cmax2 = min(cmin2, c0, c1), max(cmax2, c0, c1)
         if not any_ok:
             cmin1 = cmin2 = cmax1 = cmax2 = 0.0
         slabs[jj, 0], slabs[jj, 1] = D, j
@@ -577,11 +585,15 @@ def _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, sl
     """Blocks c * _CHUNK ...: their slabs and counts (first pass), or with a non-empty ``out``
     their kept voxels at ``out[off[b]:]`` (second pass, from the stored slabs)."""
     none = np.zeros(0, np.int64)
+    ray = np.empty((6, 0))
     for b in range(c * _CHUNK, min(len(s_off) - 1, (c + 1) * _CHUNK)):
         k0 = b % _CHUNK
         if out.size == 0:
+            n = (s_off[b + 1] - s_off[b]) * (e_off[b + 1] - e_off[b])
+            if ray.shape[1] < n:
+                ray = np.empty((6, n))
             J[b] = _block_slabs(SP[s_off[b]:s_off[b + 1]], EP[e_off[b]:e_off[b + 1]], v, lo, s, m,
-                                slabs[c, k0])
+                                slabs[c, k0], ray)
             for k in range(J[b]):
                 dv, dt, dk = _emit_slab(slabs[c, k0, k], v, count, nonempty_only, none, 0)
                 visited[b] += dv
