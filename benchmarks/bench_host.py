@@ -33,7 +33,7 @@ from blockray.params import BoardParams
 PHASES = ("formfactor", "commands", "traverse", "board", "solve")
 
 
-def recorded_render(scene, max_shots, threads):
+def recorded_render(scene, max_shots, threads, stats_fraction):
     """A model-board render that keeps every batch of block rays and its bits."""
     board = make_board("model", BoardParams())
     batches = []
@@ -44,7 +44,7 @@ def recorded_render(scene, max_shots, threads):
         batches.append((blocks, bits))
         return bits
     board.run = recording_run
-    res = render(scene, board=board, max_shots=max_shots or None, threads=threads)
+    res = render(scene, board=board, max_shots=max_shots or None, threads=threads, stats_fraction=stats_fraction)
     return res, board, batches
 
 
@@ -90,6 +90,23 @@ def link(board, batches):
             "board_cycles_per_ray": round(board.counters()["board_cycles"] / rays, 4)}
 
 
+def traverse_only(scene, board, batches, voxels, threads):
+    """CPU us per ray of the block traversal kernel alone (VoxelGrid.traverse_blocks, no packing,
+    no statistics) on the render's batches, one call per batch as the render makes them."""
+    from blockray.host_driver import threads as host_threads
+    from blockray.host_driver.voxel import VoxelGrid
+    grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
+    points = board.samples.points(scene.patch_vertices)
+    inputs = [(points[b.shooter_patch, b.shooter_sample], b.col_off, scene.centroids[b.receiver_patch], b.row_off)
+              for b, _ in batches]
+    with host_threads.using(threads):
+        c0 = time.process_time()
+        for P, po, Q, qo in inputs:
+            grid.traverse_blocks(P, po, Q, qo, nonempty_only=True)
+        cpu = time.process_time() - c0
+    return round(cpu / sum(b.rays for b, _ in batches) * 1e6, 4)
+
+
 def embree(scene, P, Q):
     from embreex import rtcore_scene as rtcs
     from embreex.mesh_construction import TriangleMesh
@@ -115,6 +132,8 @@ def main(argv=None):
                     help="progressive shots (default: cornell full, room 300; 0: full)")
     ap.add_argument("--threads", type=int, default=None, help="host threads (default: all cores)")
     ap.add_argument("--embree-rays", type=int, default=2_000_000)
+    ap.add_argument("--stats-fraction", type=float, default=0.02,
+                    help="blocks whose rays the traversal statistics also walk by DDA (render's default 0.02)")
     args = ap.parse_args(argv)
     print_run_header()
     for name in args.scenes:
@@ -126,7 +145,7 @@ def main(argv=None):
         render(scene, board="model", max_shots=1, threads=args.threads)
         warmup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        res, board, batches = recorded_render(scene, shots, args.threads)
+        res, board, batches = recorded_render(scene, shots, args.threads, args.stats_fraction)
         wall = time.perf_counter() - t0
         r = res.report
         rays = r["rays"]
@@ -140,6 +159,7 @@ def main(argv=None):
         row["traverse_commands_cpu_us_per_ray"] = round(
             (r["cpu_seconds"]["traverse"] + r["cpu_seconds"]["commands"]) / rays * 1e6, 4)
         row["link"] = link(board, batches)
+        row["traverse_kernel_only_cpu_us_per_ray"] = traverse_only(scene, board, batches, r["voxels"], args.threads)
         row["visibility_rays_per_cpu_s"] = round(rays / host_cpu)                   # commands + traverse + board
         row["render_rays_per_cpu_s"] = round(rays / r["cpu_seconds"]["total"])      # the whole render
         try:
