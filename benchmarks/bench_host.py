@@ -134,7 +134,12 @@ def main(argv=None):
     ap.add_argument("--embree-rays", type=int, default=2_000_000)
     ap.add_argument("--stats-fraction", type=float, default=0.02,
                     help="blocks whose rays the traversal statistics also walk by DDA (render's default 0.02)")
+    ap.add_argument("--parallel-min-rays", type=int, default=None,
+                    help="batches of at least this many rays run on the thread pool (default: threads.PARALLEL_MIN_RAYS)")
     args = ap.parse_args(argv)
+    if args.parallel_min_rays is not None:
+        from blockray.host_driver import threads as host_threads
+        host_threads.PARALLEL_MIN_RAYS = args.parallel_min_rays
     print_run_header()
     for name in args.scenes:
         scene = load_scene(name)
@@ -149,7 +154,8 @@ def main(argv=None):
         wall = time.perf_counter() - t0
         r = res.report
         rays = r["rays"]
-        row = {"scene": name, "patches": r["patches"], "voxels": r["voxels"], "shots": r["shots"],
+        import numba
+        row = {"scene": name, "threading_layer": numba.threading_layer(), "patches": r["patches"], "voxels": r["voxels"], "shots": r["shots"],
                "threads": r["threads"], "rays": rays, "tests": r["tests"], "render_wall_s": round(wall, 2), "warmup_wall_s": round(warmup, 2),
                "total_cpu_s": round(r["cpu_seconds"]["total"], 2),
                "cpu_us_per_ray": {p: round(r["cpu_seconds"][p] / rays * 1e6, 4) for p in PHASES},
