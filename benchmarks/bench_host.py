@@ -110,14 +110,13 @@ def traverse_only(scene, board, batches, voxels, threads):
 def embree(scene, P, Q):
     from embreex import rtcore_scene as rtcs
     from embreex.mesh_construction import TriangleMesh
-    t0, c0 = time.perf_counter(), time.process_time()
+    c0 = time.process_time()
     es = rtcs.EmbreeScene()
     TriangleMesh(es, scene.patch_vertices.astype(np.float32))
     eps = 1e-4
     d = (Q - P).astype(np.float32)
     origin = (P + eps * (Q - P)).astype(np.float32)
     dist = np.full(len(P), 1 - 2 * eps, np.float32)
-    build = time.process_time() - c0
     es.run(origin[:1], d[:1], dists=dist[:1], query="OCCLUDED")     # BVH built at the first query
     build = time.process_time() - c0
     t1, c1 = time.perf_counter(), time.process_time()

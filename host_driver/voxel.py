@@ -344,10 +344,13 @@ def _tri_box_overlap(tri, center, half):
 # ---- compiled traversals ------------------------------------------------------------------
 #
 # Both traversals are numba kernels over whole batches (cache=True: compiled once per machine).
-# They do the float arithmetic of the vectorised numpy forms they replace, operation for
+# They do the float arithmetic of the vectorised numpy forms they replaced, operation for
 # operation (no fast-math, no fused multiply-add), so they visit the same voxels in the same
-# order. Batches run in parallel (prange); each block or ray writes only its own output, so the
-# result does not depend on the number of threads.
+# order (checked against them when they were replaced: renders byte-identical, docs/measurements.md).
+# A large batch runs on the thread pool (prange, threads.parallel), a small one on the calling
+# thread (the same per-item function); each block or ray writes only its own output, so the
+# result does not depend on the number of threads. _interval is the scalar form of
+# VoxelGrid._range (used, vectorised, by the registration).
 
 @njit(cache=True, inline="always")
 def _interval(x, lo, s, m):
