@@ -37,12 +37,12 @@ def _sign(x):
 
 
 @njit(cache=True)
-def _test_records(P, Q, V, n, t0, t1, hit, row_left, left, sp):
+def _test_records(P, PT, Q, V, n, t0, t1, hit, row_left, left, sp):
     """Test records t0 .. t1-1 against every ray (r, s) of one block not yet blocked.
 
     ``hit`` (R, S) uint8 is OR-ed in place; ``row_left`` (R,) counts each row's rays not yet
-    blocked; ``left`` is their total, returned updated (0: the block is decided). ``sp`` (S,) is
-    scratch for the shooters' plane signs.
+    blocked; ``left`` is their total, returned updated (0: the block is decided). ``PT`` (3, S)
+    is P transposed; ``sp`` (S,) is scratch for the shooters' plane signs.
     """
     R, S = Q.shape[0], P.shape[0]
     for t in range(t0, t1):
@@ -70,30 +70,31 @@ def _test_records(P, Q, V, n, t0, t1, hit, row_left, left, sp):
             sq = _sign((qx - ax) * nx + (qy - ay) * ny + (qz - az) * nz)
             if sq == 0:
                 continue
-            have_w = False
-            w0x = w0y = w0z = w1x = w1y = w1z = w2x = w2y = w2z = 0
+            need = False
             for s in range(S):
-                if hit[r, s] or sp[s] * sq >= 0:
-                    continue
-                if not have_w:
-                    # receiver unit: w_k = (Q - V_k) x e_k
-                    dx, dy, dz = qx - ax, qy - ay, qz - az
-                    w0x, w0y, w0z = dy * e0z - dz * e0y, dz * e0x - dx * e0z, dx * e0y - dy * e0x
-                    dx, dy, dz = qx - bx, qy - by, qz - bz
-                    w1x, w1y, w1z = dy * e1z - dz * e1y, dz * e1x - dx * e1z, dx * e1y - dy * e1x
-                    dx, dy, dz = qx - cx, qy - cy, qz - cz
-                    w2x, w2y, w2z = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-                    have_w = True
-                px, py, pz = P[s, 0], P[s, 1], P[s, 2]
+                need |= hit[r, s] == 0 and sp[s] * sq < 0
+            if not need:
+                continue
+            # receiver unit: w_k = (Q - V_k) x e_k
+            dx, dy, dz = qx - ax, qy - ay, qz - az
+            w0x, w0y, w0z = dy * e0z - dz * e0y, dz * e0x - dx * e0z, dx * e0y - dy * e0x
+            dx, dy, dz = qx - bx, qy - by, qz - bz
+            w1x, w1y, w1z = dy * e1z - dz * e1y, dz * e1x - dx * e1z, dx * e1y - dy * e1x
+            dx, dy, dz = qx - cx, qy - cy, qz - cz
+            w2x, w2y, w2z = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            # the row's processors, without branches (the compiler vectorises over the columns)
+            newly = 0
+            for s in range(S):
+                px, py, pz = PT[0, s], PT[1, s], PT[2, s]
                 s0 = (px - ax) * w0x + (py - ay) * w0y + (pz - az) * w0z
                 s1 = (px - bx) * w1x + (py - by) * w1y + (pz - bz) * w1z
-                if (s0 > 0 and s1 < 0) or (s0 < 0 and s1 > 0):
-                    continue
                 s2 = (px - cx) * w2x + (py - cy) * w2y + (pz - cz) * w2z
-                if (s0 >= 0 and s1 >= 0 and s2 >= 0) or (s0 <= 0 and s1 <= 0 and s2 <= 0):
-                    hit[r, s] = 1
-                    row_left[r] -= 1
-                    left -= 1
+                inside = ((s0 >= 0) & (s1 >= 0) & (s2 >= 0)) | ((s0 <= 0) & (s1 <= 0) & (s2 <= 0))
+                b = inside & (sp[s] * sq < 0) & (hit[r, s] == 0)
+                hit[r, s] |= b
+                newly += b
+            row_left[r] -= newly
+            left -= newly
     return left
 
 
@@ -106,7 +107,7 @@ def any_blocked(P, Q, V, n):
     R, S = Q.shape[0], P.shape[0]
     hit = np.zeros((R, S), np.uint8)
     row_left = np.full(R, S, np.int64)
-    _test_records(P, Q, V, n, 0, V.shape[0], hit, row_left, R * S, np.empty(S, np.int64))
+    _test_records(P, np.ascontiguousarray(P.T), Q, V, n, 0, V.shape[0], hit, row_left, R * S, np.empty(S, np.int64))
     return hit.astype(np.bool_)
 
 
@@ -127,6 +128,7 @@ def _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, r
     row_left = np.full(R, S, np.int64)
     left = R * S
     sp = np.empty(S, np.int64)
+    PT = np.ascontiguousarray(P.T)
     for p in range(start.shape[0]):
         for k in range(vox_off[b], vox_off[b + 1]):
             x = voxels[k]
@@ -134,7 +136,7 @@ def _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, r
             records[b, p] += c
             streamed[b, p] += max(c, 1)
             if left:
-                left = _test_records(P, Q, V, n, start[p, x], start[p, x] + c, hit, row_left, left, sp)
+                left = _test_records(P, PT, Q, V, n, start[p, x], start[p, x] + c, hit, row_left, left, sp)
     o = ray_off[b]
     for r in range(R):
         for s in range(S):
