@@ -6,12 +6,15 @@ and so exactly what the R x S array computes; tests check it against
 :func:`blockray.exact.blocked_reference` (Python integers) on the hard cases and random queries.
 It differs only in *how much* arithmetic it does, never in the answer:
 
-- the shared terms of the array: ``pP`` and ``P - V_k`` once per (column, record), ``pQ`` and
+- the shared terms of the array: ``pP`` once per (column, record), ``pQ`` and
   ``w_k = (Q - V_k) x (V_{k+1} - V_k)`` once per (row, record), computed only when some ray of
-  the row still needs them;
-- early exits: a ray already blocked is not tested again, a ray whose ends do not lie strictly on
-  both sides of the record's plane is not edge-tested, the edge test stops at the first pair of
-  sides of opposite sign, and a block stops once all its rays are blocked.
+  the row is still open and crosses the record's plane;
+- early exits: a record no shooter point lies off the plane of is skipped, a row whose rays are
+  all blocked or none crosses the plane is skipped, and a block stops once all its rays are
+  blocked (a ray is blocked by its first blocking record);
+- a row's S processors (the edge sides s_k and the decision) run without branches over the
+  columns, which the compiler vectorises (columns transposed, P.T): measured faster than
+  stopping each ray's edge test at its first pair of sides of opposite sign.
 
 int64 products wrap modulo 2**64 (numba, like numpy, does not trap), a ring, and every value that
 decides the answer fits 3B + 2 <= 62 bits, so the sums are exact (see :mod:`blockray.exact`).
