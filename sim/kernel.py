@@ -13,7 +13,7 @@ It differs only in *how much* arithmetic it does, never in the answer:
   all blocked or none crosses the plane is skipped, and a block stops once all its rays are
   blocked (a ray is blocked by its first blocking record);
 - a row's S processors (the edge sides s_k and the decision) run without branches over the
-  columns, which the compiler vectorises (columns transposed, P.T): measured faster than
+  columns (transposed, P.T), so that the compiler can vectorise them: measured 1.45x faster than
   stopping each ray's edge test at its first pair of sides of opposite sign.
 
 int64 products wrap modulo 2**64 (numba, like numpy, does not trap), a ring, and every value that
@@ -85,7 +85,7 @@ def _test_records(P, PT, Q, V, n, t0, t1, hit, row_left, left, sp):
             w1x, w1y, w1z = dy * e1z - dz * e1y, dz * e1x - dx * e1z, dx * e1y - dy * e1x
             dx, dy, dz = qx - cx, qy - cy, qz - cz
             w2x, w2y, w2z = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-            # the row's processors, without branches (the compiler vectorises over the columns)
+            # the row's processors, without branches (so the compiler can vectorise over the columns)
             newly = 0
             for s in range(S):
                 px, py, pz = PT[0, s], PT[1, s], PT[2, s]
