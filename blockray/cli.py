@@ -131,6 +131,8 @@ def _render_parser(sub):
                    help="host + board sets working in parallel (the paper's section 6): each owns a region of "
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
                         "radiosities between gathering sweeps (--solver jacobi or gauss-seidel)")
+    p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
+                   help="host cores the compiled kernels use (default: all); the result does not depend on it")
     _add_board_options(p)
     _add_input_options(p)
     out = p.add_argument_group("output")
@@ -162,7 +164,8 @@ def _cmd_render(args):
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
+                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
+                    threads=args.threads)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
