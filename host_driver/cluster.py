@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from . import formfactor, solver as solvers
+from .scaleout import assign_sets, receiver_work
 
 __all__ = ["SetJob", "SetRows", "cluster_client", "cast_set", "solve_sets", "LOOPBACK", "CONNECT_TIMEOUT"]
 
@@ -55,16 +56,19 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
         n = workers or max(1, min(cores, sets))
         threads = max(1, cores // n)
         # one thread per worker: a set's task owns its process; its kernels get `threads` cores
-        # the dashboard needs bokeh (not a dependency): without it Dask serves only a notice
-        dashboard = f"{LOOPBACK}:0" if importlib.util.find_spec("bokeh") else None
+        # The scheduler's HTTP server (dashboard, health) on a free loopback port; the dashboard
+        # needs bokeh, which is not a dependency: without it Dask would serve only a notice.
+        dashboard = importlib.util.find_spec("bokeh") is not None
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
-                               dashboard_address=dashboard, silence_logs=logging.ERROR)
+                               dashboard_address=f"{LOOPBACK}:0", scheduler_kwargs={"dashboard": dashboard},
+                               silence_logs=logging.ERROR)
         client = Client(cluster)
     else:
         threads = None
         client = _connect(scheduler)
+        dashboard = "dashboard" in client.scheduler_info().get("services", {})
     try:
-        if echo is not None and "dashboard" in client.scheduler_info().get("services", {}):
+        if echo is not None and dashboard:
             echo(f"Dask dashboard: {client.dashboard_link}")
         yield client, threads
     finally:
@@ -154,7 +158,7 @@ def cast_set(k, scene, grid, owner, job):
     from distributed import get_worker
     from .render import Phases, Visibility, make_board
     from .voxel import TraversalStats
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     _use_threads(job.threads)
     own = np.flatnonzero(owner == k)
     board = make_board(job.board, job.params, bits=job.bits, partition=job.partition)
@@ -180,7 +184,8 @@ def cast_set(k, scene, grid, owner, job):
             board.close()                    # an RTL board stops its simulator
     summary = {"set": k, "worker": get_worker().address, "patches": len(own), "rays": vis.rays,
                "blocks": vis.blocks, "columns": vis.columns, "counters": counters,
-               "stats": stats.counts(), "phases": phases.seconds, "seconds": time.perf_counter() - t0}
+               "stats": stats.counts(), "phases": phases.seconds, "seconds": time.perf_counter() - t0,
+               "cpu_seconds": time.process_time() - cpu0}
     return SetRows(own=own, F=F, E=scene.emission[own], rho=scene.reflectance[own],
                    A=scene.areas[own], summary=summary)
 
@@ -197,64 +202,89 @@ def _gauss_seidel_rows(rows, B):
     return solvers.set_gauss_seidel(rows.F, rows.own, rows.E, rows.rho, rows.A, B)
 
 
-def solve_sets(client, scene, grid, owner, job, *, solver, tolerance, max_iterations, progress=False):
-    """Cast every set's rows on the cluster, then solve by gathering with radiosities exchanged
-    through the cluster. Returns ``(SolveResult, summaries, info)``: per set its summary (in set
-    order), and the measured ``exchanged_bytes``, ``workers`` and wall seconds of the two phases."""
-    from dask.distributed import as_completed
-    sets = int(owner.max()) + 1
+def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max_iterations, progress=False):
+    """Assign the patches to ``sets`` sets (:func:`_assign`), cast every set's rows on the
+    cluster, then solve by gathering with radiosities exchanged through the cluster.
+    Returns ``(owner, SolveResult, summaries, info)``: per set its summary (in set order), and the
+    measured ``exchanged_bytes``, ``workers`` and wall seconds of the phases."""
     t0 = time.perf_counter()
-    scene_f, grid_f, owner_f = client.scatter([scene, grid, owner], broadcast=True)
+    scene_f, grid_f = client.scatter([scene, grid], broadcast=True)
+    owner = _assign(client, scene, scene_f, sets, morton)
+    t1 = time.perf_counter()
+    owner_f = client.scatter(owner, broadcast=True)
     rows = [client.submit(cast_set, k, scene_f, grid_f, owner_f, job, pure=False) for k in range(sets)]
-    summaries = [None] * sets
-    bar = _bar(progress, sets, "casting", "set")
+    summaries = _summaries(client, rows, progress)
+    t2 = time.perf_counter()
+    sweeps = _Sweeps(client, rows, owner)
+    bar = _bar(progress, max_iterations, solver, "sweep")
+    gather = solvers.jacobi_sweeps if solver == "jacobi" else solvers.gauss_seidel_sweeps
+    result = gather(scene, sweeps.jacobi if solver == "jacobi" else sweeps.gauss_seidel, tolerance=tolerance,
+                    max_iterations=max_iterations, progress=bar)
+    if bar is not None:
+        bar.close()
+    info = {"workers": client.scheduler_info()["workers"], "exchanged_bytes": sweeps.bytes,
+            "exchanges": sweeps.count, "assign_seconds": t1 - t0, "cast_seconds": t2 - t1,
+            "solve_seconds": time.perf_counter() - t2}
+    return owner, result, summaries, info
+
+
+def _assign(client, scene, scene_f, sets, morton):
+    """Owner set of every patch: runs of ``morton`` codes of equal
+    :func:`~blockray.host_driver.scaleout.receiver_work`, counted on the cluster (O(N^2))."""
+    work = None
+    if sets > 1:
+        n, parts = scene.patches, 4 * max(1, len(client.scheduler_info()["workers"]))
+        pieces = [client.submit(receiver_work, scene_f, range(n * p // parts, n * (p + 1) // parts), pure=False)
+                  for p in range(parts)]
+        work = sum(client.gather(pieces))
+    return assign_sets(morton, sets, work)
+
+
+def _summaries(client, rows, progress):
+    """Every set's summary, in set order, as the sets finish casting (a progress bar over sets)."""
+    from dask.distributed import as_completed
+    summaries = [None] * len(rows)
+    bar = _bar(progress, len(rows), "casting", "set")
     for _, summary in as_completed([client.submit(_summary, r, pure=False) for r in rows], with_results=True):
         summaries[summary["set"]] = summary
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    t_cast = time.perf_counter() - t0
+    return summaries
 
-    workers = len(client.scheduler_info()["workers"])
-    moved = {"bytes": 0, "sweeps": 0}
-    groups = [np.flatnonzero(owner == k) for k in range(sets)]
 
-    def exchange(kernel, B):
-        """Send B to the workers once, run the sets' part of a sweep, bring their pieces back."""
+class _Sweeps:
+    """Gathering sweeps on the sets' rows: each sends the radiosities B to the workers once, runs
+    every set's part and brings back each set's new radiosities; counts the bytes moved."""
+
+    def __init__(self, client, rows, owner):
+        self.client, self.rows = client, rows
+        self.groups = [np.flatnonzero(owner == k) for k in range(len(rows))]
+        self.bytes = self.count = 0
+
+    def _exchange(self, kernel, B):
+        client = self.client
         B_f = client.scatter(B, broadcast=True, hash=False)
-        pieces = client.gather([client.submit(kernel, r, B_f, pure=False) for r in rows])
-        moved["bytes"] += B.nbytes * workers + sum(np.asarray(p[-1] if isinstance(p, tuple) else p).nbytes
-                                                   + 8 * isinstance(p, tuple) for p in pieces)
-        moved["sweeps"] += 1
+        pieces = client.gather([client.submit(kernel, r, B_f, pure=False) for r in self.rows])
+        workers = len(client.scheduler_info()["workers"])
+        self.bytes += B.nbytes * workers + sum(
+            p[1].nbytes + 8 if isinstance(p, tuple) else p.nbytes for p in pieces)   # (weighted, new) or new
+        self.count += 1
         return pieces
 
-    def jacobi_sweep(B):
+    def jacobi(self, B):
         new = np.empty_like(B)
-        for own, piece in zip(groups, exchange(_jacobi_rows, B)):
+        for own, piece in zip(self.groups, self._exchange(_jacobi_rows, B)):
             new[own] = piece
         return new
 
-    def gauss_seidel_sweep(B):
+    def gauss_seidel(self, B):
         new, weighted = np.empty_like(B), 0.0
-        for own, (w, piece) in zip(groups, exchange(_gauss_seidel_rows, B)):
+        for own, (w, piece) in zip(self.groups, self._exchange(_gauss_seidel_rows, B)):
             new[own] = piece
             weighted += w
         return weighted, new
-
-    t1 = time.perf_counter()
-    bar = _bar(progress, max_iterations, solver, "sweep")
-    if solver == "jacobi":
-        result = solvers.jacobi_sweeps(scene, jacobi_sweep, tolerance=tolerance, max_iterations=max_iterations,
-                                       progress=bar)
-    else:
-        result = solvers.gauss_seidel_sweeps(scene, gauss_seidel_sweep, tolerance=tolerance,
-                                             max_iterations=max_iterations, progress=bar)
-    if bar is not None:
-        bar.close()
-    info = {"workers": client.scheduler_info()["workers"], "exchanged_bytes": moved["bytes"],
-            "exchanges": moved["sweeps"], "cast_seconds": t_cast, "solve_seconds": time.perf_counter() - t1}
-    return result, summaries, info
 
 
 def _bar(enabled, total, desc, unit):

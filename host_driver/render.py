@@ -20,7 +20,7 @@ from ..samples import SampleScheme
 from ..errors import ParameterError
 from .board import BlockRay
 from . import formfactor, solver as solvers
-from .scaleout import assign_sets, check_sets, combine_counters, exchange_bytes_per_sweep, receiver_work
+from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
@@ -341,17 +341,16 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
     """render()'s gathering on ``sets`` host + board sets of a Dask cluster (host_driver/cluster.py),
     from the client's prepared (not loaded) board and voxel grid."""
     from .cluster import SetJob, cluster_client, solve_sets
-    with phases.timed("formfactor"):
-        work = receiver_work(scene) if sets > 1 else None
-    owner = assign_sets(_morton(grid.cell_of(scene.centroids)), sets, work)
-    quantised = getattr(board_obj, "quantised", None)
+    bits = board_obj.counters().get("bits")        # the client's quantisation: the B the sets use
     with phases.timed("cluster"), cluster_client(scheduler, workers=workers, sets=sets, echo=echo) as (client, threads):
-        job = SetJob(board=board, params=params, bits=quantised.bits if quantised is not None else None,
+        job = SetJob(board=board, params=params, bits=bits,
                      partition=partition, samples=samples, traversal=traversal, packing=packing,
                      stats_fraction=stats_fraction, threads=threads)
-        result, summaries, info = solve_sets(client, scene, grid, owner, job, solver=solver, tolerance=tolerance,
-                                             max_iterations=max_iterations, progress=progress)
-    phases.add("cluster", -(info["cast_seconds"] + info["solve_seconds"]))
+        owner, result, summaries, info = solve_sets(client, scene, grid, sets, _morton(grid.cell_of(scene.centroids)),
+                                                    job, solver=solver, tolerance=tolerance,
+                                                    max_iterations=max_iterations, progress=progress)
+    phases.add("cluster", -(info["assign_seconds"] + info["cast_seconds"] + info["solve_seconds"]))
+    phases.add("assign", info["assign_seconds"])
     phases.add("cast", info["cast_seconds"])
     phases.add("solve", info["solve_seconds"])
     for s in summaries:                       # the sets' own phases, summed over the sets
@@ -362,8 +361,7 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
     stats = TraversalStats(grid)
     for s in summaries:
         stats.add_counts(s["stats"])
-    processors = board_obj.params.processors * board_obj.params.boards if hasattr(board_obj, "params") else 1
-    counters = combine_counters(owner, summaries, processors)
+    counters = combine_counters(owner, summaries, params.processors * params.boards)
     report = _report(scene, voxels, voxels_hardware, board, params, samples,
                      traversal, packing, getattr(board_obj, "partition", None), solver, sets, tolerance, result,
                      sum(s["rays"] for s in summaries), sum(s["blocks"] for s in summaries),
@@ -376,6 +374,7 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
         "exchanged_bytes": int(info["exchanged_bytes"]),
         "exchanges": int(info["exchanges"]),
         "cast_seconds_per_set": [float(s["seconds"]) for s in summaries],
+        "cast_cpu_seconds_per_set": [float(s["cpu_seconds"]) for s in summaries],
     }
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
 

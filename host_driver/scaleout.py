@@ -62,13 +62,15 @@ def assign_sets(morton, sets, weights=None):
     return owner
 
 
-def receiver_work(scene):
+def receiver_work(scene, shooters=None):
     """Rays a patch receives, up to the constant samples per shooter: the number of shooters
     that can exchange light with it (:func:`~blockray.host_driver.formfactor.exchange_mask`), the
-    pairs the renderer casts rays for. O(N^2) host arithmetic, no rays."""
+    pairs the renderer casts rays for. O(N^2) host arithmetic, no rays. ``shooters`` (a range)
+    counts only those shooters; the sums over disjoint ranges add up to the whole (exactly: they
+    are counts)."""
     from .formfactor import exchange_mask
     work = np.zeros(scene.patches)
-    for i in range(scene.patches):
+    for i in (range(scene.patches) if shooters is None else shooters):
         work += exchange_mask(scene, i)
     return work
 

@@ -1,5 +1,6 @@
 """Scale-out over host + board sets (host_driver/scaleout.py, solver.gauss_seidel_sets)."""
 
+import json
 import logging
 import os
 import signal
@@ -124,7 +125,8 @@ def cluster():
     """A two-worker LocalCluster of the tests' own, on the loopback interface."""
     from dask.distributed import LocalCluster
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None, silence_logs=logging.CRITICAL) as c:
+                      dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False},
+                      silence_logs=logging.CRITICAL) as c:
         yield c
 
 
@@ -186,18 +188,35 @@ def test_unreachable_scheduler_fails_fast(capsys):
     assert time.monotonic() - t0 < 60          # a bounded connect, not a hang (CONNECT_TIMEOUT = 5 s)
 
 
-@pytest.mark.parametrize("argv", [
-    ["render", "cornell", "--sets", "2"],                                      # progressive
-    ["render", "cornell", "--sets", "0", "--solver", "jacobi"],
-    ["render", "cornell", "--max-edge", "300", "--sets", "100000", "--solver", "jacobi"],
+@pytest.mark.parametrize("argv, option", [
+    (["render", "cornell", "--sets", "2"], "--sets"),                                      # progressive
+    (["render", "cornell", "--sets", "0", "--solver", "jacobi"], "--sets"),
+    (["render", "cornell", "--max-edge", "300", "--sets", "100000", "--solver", "jacobi"], "--sets"),
+    (["render", "cornell", "--max-edge", "1000", "--sets", "2", "--solver", "jacobi", "--workers", "2",
+      "--scheduler", "tcp://127.0.0.1:8786"], "--workers"),
+    (["render", "cornell", "--max-edge", "1000", "--sets", "2", "--solver", "jacobi", "--board", "amaranth",
+      "--vcd", "x.vcd"], "--vcd"),
+    (["render", "cornell", "--max-edge", "1000", "--sets", "2", "--solver", "jacobi", "--workers", "0"], "--workers"),
 ])
-def test_cli_sets_errors(capsys, argv):
+def test_cli_sets_errors(capsys, argv, option):
     try:
         code = main(argv + ["--quiet"])
     except SystemExit as e:                    # argparse's own range check
         code = e.code
     err = capsys.readouterr().err
-    assert code == 2 and "--sets" in err and "Traceback" not in err
+    assert code == 2 and option in err and "Traceback" not in err, err
+
+
+def test_cli_joins_a_scheduler(tiny_cornell, cluster, tmp_path):
+    scene, one = tiny_cornell
+    report = tmp_path / "r.json"
+    code = main(["render", "cornell", "--max-edge", "400", "--solver", "jacobi", "--tolerance", "1e-4",
+                 "--sets", "2", "--scheduler", cluster.scheduler_address, "--report", str(report), "--quiet"])
+    assert code == 0
+    r = json.loads(report.read_text())
+    assert r["cluster"]["scheduler"] == cluster.scheduler_address and len(r["cluster"]["workers"]) == 2
+    assert r["residual"] == one.report["residual"] and r["rays"] == one.report["rays"]
+    assert len(r["set_counters"]) == 2 and r["board_cycles"] == max(s["board_cycles"] for s in r["set_counters"])
 
 
 def test_worker_killed_while_casting(tiny_cornell, cluster):
