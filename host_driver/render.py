@@ -293,14 +293,16 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     counters = board_obj.counters()
     if isinstance(board, str) and hasattr(board_obj, "close"):
         board_obj.close()                   # a simulated board stops its simulator
-    report = _report(scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing,
-                     getattr(board_obj, "partition", None), solver, sets, tolerance, result, vis.rays, vis.blocks,
-                     vis.columns, counters, seconds, stats.summary())
+    report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board_name,
+                     params=params, samples=samples, traversal=traversal, packing=packing,
+                     partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
+                     result=result, rays=vis.rays, blocks=vis.blocks, columns=vis.columns, counters=counters,
+                     seconds=seconds, traversal_stats=stats.summary())
     report["exchange_bytes_per_sweep"] = 0
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
 
 
-def _report(scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing, partition, solver,
+def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing, partition, solver,
             sets, tolerance, result, rays, blocks, columns, counters, seconds, traversal_stats):
     """The keys of ``--report`` (the board's own counters last, never overriding the host's)."""
     report = {
@@ -362,10 +364,12 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
     for s in summaries:
         stats.add_counts(s["stats"])
     counters = combine_counters(owner, summaries, params.processors * params.boards)
-    report = _report(scene, voxels, voxels_hardware, board, params, samples,
-                     traversal, packing, getattr(board_obj, "partition", None), solver, sets, tolerance, result,
-                     sum(s["rays"] for s in summaries), sum(s["blocks"] for s in summaries),
-                     max(s["columns"] for s in summaries), counters, seconds, stats.summary())
+    report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board, params=params,
+                     samples=samples, traversal=traversal, packing=packing,
+                     partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
+                     result=result, rays=sum(s["rays"] for s in summaries),
+                     blocks=sum(s["blocks"] for s in summaries), columns=max(s["columns"] for s in summaries),
+                     counters=counters, seconds=seconds, traversal_stats=stats.summary())
     report["exchange_bytes_per_sweep"] = int(exchange_bytes_per_sweep(owner))
     report["cluster"] = {
         "scheduler": scheduler or "LocalCluster",
