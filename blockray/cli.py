@@ -130,7 +130,14 @@ def _render_parser(sub):
     p.add_argument("--sets", type=_positive_int, default=1, metavar="K",
                    help="host + board sets working in parallel (the paper's section 6): each owns a region of "
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
-                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel)")
+                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel); each set runs on "
+                        "a worker of a Dask cluster")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the sets on the Dask cluster of this scheduler (e.g. tcp://host:8786, started with "
+                        "`dask scheduler` and `dask worker`); default: a local cluster on 127.0.0.1, started and "
+                        "closed by blockray")
+    p.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                   help="worker processes of the local cluster (default: one per core, at most K)")
     p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
                    help="host cores the compiled kernels use (default: all); the result does not depend on it")
     _add_board_options(p)
@@ -165,7 +172,8 @@ def _cmd_render(args):
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
                     partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
-                    threads=args.threads)
+                    threads=args.threads, scheduler=args.scheduler, workers=args.workers,
+                    echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)))
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)

@@ -20,7 +20,7 @@ from ..samples import SampleScheme
 from ..errors import ParameterError
 from .board import BlockBatch, BlockBits, ranges
 from . import formfactor, solver as solvers, threads as host_threads
-from .scaleout import SetVisibility, assign_sets, check_sets, exchange_bytes_per_sweep, receiver_work
+from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
@@ -198,22 +198,29 @@ class RenderResult:
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
-           stats_fraction=0.02, vcd=None, threads=None):
+           stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     ``threads``: cores the compiled host kernels use (None: all, see
     :mod:`blockray.host_driver.threads`); the result does not depend on it.
+
+    ``sets`` > 1, a ``scheduler`` address or a number of ``workers`` run the render as ``sets``
+    host + board sets on a Dask cluster (host_driver/cluster.py): the user's at ``scheduler``,
+    else a LocalCluster of ``workers`` processes (default one per core, at most ``sets``).
+    ``echo(text)`` is told the cluster's dashboard address.
+
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
     """
     with host_threads.using(threads):
         return _render(scene, board=board, params=params, bits=bits, voxels=voxels, samples=samples,
                        solver=solver, tolerance=tolerance, max_shots=max_shots, max_iterations=max_iterations,
                        traversal=traversal, packing=packing, partition=partition, sets=sets,
-                       progress=progress, stats_fraction=stats_fraction, vcd=vcd)
+                       progress=progress, stats_fraction=stats_fraction, vcd=vcd,
+                       scheduler=scheduler, workers=workers, echo=echo)
 
 
 def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
-            traversal, packing, partition, sets, progress, stats_fraction, vcd):
+            traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo):
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     if not (np.isfinite(tolerance) and tolerance > 0):
@@ -221,12 +228,19 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     if max_shots is not None and max_shots < 1:
         raise ParameterError(f"--max-shots must be at least 1, not {max_shots!r}")
     params = params or BoardParams()
-    if sets != 1:
+    distributed = sets != 1 or scheduler is not None or workers is not None
+    if distributed:
         if solver == "progressive":
             raise ParameterError("--sets: host + board sets solve by gathering; use --solver jacobi or "
                                  "gauss-seidel", parameter="sets")
         if not isinstance(board, str):
             raise ParameterError("--sets needs a board name (one board is built per set)", parameter="sets")
+        if vcd is not None:
+            raise ParameterError("--vcd traces one board's simulation; it cannot be used with --sets, "
+                                 "--scheduler or --workers", parameter="vcd")
+        if scheduler is not None and workers is not None:
+            raise ParameterError("--workers sizes the local cluster; a cluster joined with --scheduler has its own "
+                                 "workers", parameter="workers")
         check_sets(sets, scene.patches)
     if bits is not None and board == "golden":
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
@@ -250,31 +264,18 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         raise ParameterError(f"--voxels must be an integer from 1 to 256, not {voxels!r}")
     with phases.timed("voxelise"):
         grid = VoxelGrid(scene.patch_vertices, voxels, margin=board_obj.margin)
+    if distributed:
+        return _render_sets(scene, board, board_obj, grid, samples, params, partition=partition, sets=sets,
+                            solver=solver, tolerance=tolerance, max_iterations=max_iterations,
+                            traversal=traversal, packing=packing, stats_fraction=stats_fraction,
+                            scheduler=scheduler, workers=workers, progress=progress, echo=echo,
+                            phases=phases, t_start=t_start, voxels=voxels, voxels_hardware=voxels_hardware)
     with phases.timed("load"):
         board_obj.load(grid)
 
     stats = TraversalStats(grid, sample_fraction=stats_fraction)
     vis = Visibility(scene, board_obj, grid, samples, rows=params.rows, cols=params.cols,
                      traversal=traversal, packing=packing, phases=phases, stats=stats)
-    owner = None
-    if sets != 1:
-        # one host + board set per region of the scene (host_driver/scaleout.py); every set loads
-        # the whole scene into its own boards and casts the rays ending on its own patches
-        with phases.timed("formfactor"):
-            work = receiver_work(scene)
-        owner = assign_sets(vis.end_morton, sets, work)
-        boards, visibilities = [board_obj], [vis]
-        for _ in range(sets - 1):
-            other = make_board(board, params, bits=bits, partition=partition)
-            with phases.timed("prepare"):
-                other.prepare(scene, samples)
-            with phases.timed("load"):
-                other.load(grid)
-            boards.append(other)
-            visibilities.append(Visibility(scene, other, grid, samples, rows=params.rows, cols=params.cols,
-                                           traversal=traversal, packing=packing, phases=phases, stats=stats))
-        vis = SetVisibility(owner, visibilities, boards)
-
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
 
@@ -306,9 +307,6 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                     bar.update(1)
             if solver == "jacobi":
                 result = solvers.jacobi(scene, F, tolerance=tolerance, max_iterations=max_iterations)
-            elif owner is not None:
-                result = solvers.gauss_seidel_sets(scene, F, owner, tolerance=tolerance,
-                                                   max_iterations=max_iterations)
             else:
                 result = solvers.gauss_seidel(scene, F, tolerance=tolerance, max_iterations=max_iterations)
     if bar is not None:
@@ -324,43 +322,98 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     cpu_seconds = dict(phases.cpu)
     cpu_seconds["total"] = time.process_time() - c_start
 
-    counters = vis.counters() if owner is not None else board_obj.counters()
-    if isinstance(board, str):
-        for b in (vis.boards if owner is not None else [board_obj]):
-            if hasattr(b, "close"):
-                b.close()                   # a simulated board stops its simulator
+    counters = board_obj.counters()
+    if isinstance(board, str) and hasattr(board_obj, "close"):
+        board_obj.close()                   # a simulated board stops its simulator
+    report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board_name,
+                     params=params, samples=samples, traversal=traversal, packing=packing,
+                     partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
+                     result=result, rays=vis.rays, blocks=vis.blocks, columns=vis.columns, counters=counters,
+                     seconds=seconds, cpu_seconds=cpu_seconds, traversal_stats=stats.summary())
+    report["exchange_bytes_per_sweep"] = 0
+    return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
+
+
+def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing, partition, solver,
+            sets, tolerance, result, rays, blocks, columns, counters, seconds, traversal_stats, cpu_seconds=None):
+    """The keys of ``--report`` (the board's own counters last, never overriding the host's)."""
     report = {
         "scene": scene.name,
         "source": scene.source,
         "patches": int(scene.patches),
         "voxels": int(voxels),
         "voxels_hardware_optimum": int(voxels_hardware),
-        "columns_cast": int(vis.columns),
+        "columns_cast": int(columns),
         "board": board_name,
         "board_params": {"rows": params.rows, "cols": params.cols, "boards": params.boards},
         "samples": samples.count,
         "traversal": traversal,
         "packing": packing,
-        "partition": getattr(board_obj, "partition", None),
+        "partition": partition,
         "solver": solver,
         "sets": int(sets),
-        "exchange_bytes_per_sweep": int(exchange_bytes_per_sweep(owner)) if owner is not None else 0,
         "tolerance": tolerance,
         "shots": int(getattr(result, "shots", 0) or 0),
         "iterations": int(getattr(result, "iterations", 0) or 0),
-        "rays": int(vis.rays),
-        "blocks": int(vis.blocks),
+        "rays": int(rays),
+        "blocks": int(blocks),
         "tests": int(counters.get("tests", 0)),
-        "tests_per_ray": float(counters.get("tests", 0)) / max(1, vis.rays),
+        "tests_per_ray": float(counters.get("tests", 0)) / max(1, rays),
         "residual": float(result.residual),
         "seconds": seconds,
         "cpu_seconds": cpu_seconds,
-        "host_seconds_per_ray": (seconds["commands"] + seconds["traverse"] + seconds["board"]) / max(1, vis.rays),
-        "traversal_stats": stats.summary(),
+        "host_seconds_per_ray": sum(seconds.get(p, 0.0) for p in ("commands", "traverse", "board")) / max(1, rays),
+        "traversal_stats": traversal_stats,
         "threads": host_threads.get(),
     }
     for key, value in counters.items():
         report.setdefault(key, value)
+    return report
+
+
+def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, sets, solver, tolerance,
+                 max_iterations, traversal, packing, stats_fraction, scheduler, workers, progress, echo, phases,
+                 t_start, voxels, voxels_hardware):
+    """render()'s gathering on ``sets`` host + board sets of a Dask cluster (host_driver/cluster.py),
+    from the client's prepared (not loaded) board and voxel grid."""
+    from .cluster import SetJob, cluster_client, solve_sets
+    bits = board_obj.counters().get("bits")        # the client's quantisation: the B the sets use
+    with phases.timed("cluster"), cluster_client(scheduler, workers=workers, sets=sets, echo=echo) as (client, threads):
+        job = SetJob(board=board, params=params, bits=bits,
+                     partition=partition, samples=samples, traversal=traversal, packing=packing,
+                     stats_fraction=stats_fraction, threads=threads)
+        owner, result, summaries, info = solve_sets(client, scene, grid, sets, _morton(grid.cell_of(scene.centroids)),
+                                                    job, solver=solver, tolerance=tolerance,
+                                                    max_iterations=max_iterations, progress=progress)
+    phases.add("cluster", -(info["assign_seconds"] + info["cast_seconds"] + info["solve_seconds"]))
+    phases.add("assign", info["assign_seconds"])
+    phases.add("cast", info["cast_seconds"])
+    phases.add("solve", info["solve_seconds"])
+    for s in summaries:                       # the sets' own phases, summed over the sets
+        for phase in ("prepare", "load", "formfactor", "traverse", "board"):
+            phases.add(phase, s["phases"].get(phase, 0.0))
+    seconds = dict(phases.seconds)
+    seconds["total"] = time.perf_counter() - t_start
+    stats = TraversalStats(grid)
+    for s in summaries:
+        stats.add_counts(s["stats"])
+    counters = combine_counters(owner, summaries, params.processors * params.boards)
+    report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board, params=params,
+                     samples=samples, traversal=traversal, packing=packing,
+                     partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
+                     result=result, rays=sum(s["rays"] for s in summaries),
+                     blocks=sum(s["blocks"] for s in summaries), columns=max(s["columns"] for s in summaries),
+                     counters=counters, seconds=seconds, traversal_stats=stats.summary())
+    report["exchange_bytes_per_sweep"] = int(exchange_bytes_per_sweep(owner))
+    report["cluster"] = {
+        "scheduler": scheduler or "LocalCluster",
+        "workers": [{"address": a, "nthreads": w.get("nthreads")} for a, w in sorted(info["workers"].items())],
+        "kernel_threads": threads,
+        "exchanged_bytes": int(info["exchanged_bytes"]),
+        "exchanges": int(info["exchanges"]),
+        "cast_seconds_per_set": [float(s["seconds"]) for s in summaries],
+        "cast_cpu_seconds_per_set": [float(s["cpu_seconds"]) for s in summaries],
+    }
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
 
 

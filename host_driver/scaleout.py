@@ -6,21 +6,20 @@ stay full, cut so that every run receives the same number of rays, :func:`receiv
 patches: it computes its rows of the form factor matrix. The sets then solve by gathering and
 exchange only patch radiosities (:func:`blockray.host_driver.solver.gauss_seidel_sets`).
 
-:class:`SetVisibility` stands where one :class:`~blockray.host_driver.render.Visibility` stands in
-the render loop: ``clear_fraction(i, receivers)`` splits the receivers by owner and asks each
-set's own Visibility (and boards). Every ray is the same ray as on one set, and a ray's result
-does not depend on the block it travels in (the exact predicate; a block visits a superset of its
-rays' voxels), so F, and with the Jacobi solver the radiosity, are identical to one set's.
+The sets run as the workers of a Dask cluster (host_driver/cluster.py). Every ray is the same ray
+as on one set, and a ray's result does not depend on the block it travels in (the exact
+predicate; a block visits a superset of its rays' voxels), so F, and with the Jacobi solver the
+radiosity, are identical to one set's.
 
-Machine time: the sets run in parallel, so ``board_cycles`` is the slowest set's;
-``set_counters`` lists each set's own counters.
+Machine time: the sets run in parallel, so ``board_cycles`` is the slowest set's
+(:func:`combine_counters`); ``set_counters`` lists each set's own counters.
 """
 
 import numpy as np
 
 from ..errors import ParameterError
 
-__all__ = ["check_sets", "assign_sets", "receiver_work", "SetVisibility", "exchange_bytes_per_sweep"]
+__all__ = ["check_sets", "assign_sets", "receiver_work", "combine_counters", "exchange_bytes_per_sweep"]
 
 #: bytes per exchanged radiosity (float32, as the paper's "a few kB/s")
 EXCHANGE_BYTES = 4
@@ -63,13 +62,15 @@ def assign_sets(morton, sets, weights=None):
     return owner
 
 
-def receiver_work(scene):
+def receiver_work(scene, shooters=None):
     """Rays a patch receives, up to the constant samples per shooter: the number of shooters
     that can exchange light with it (:func:`~blockray.host_driver.formfactor.exchange_mask`), the
-    pairs the renderer casts rays for. O(N^2) host arithmetic, no rays."""
+    pairs the renderer casts rays for. O(N^2) host arithmetic, no rays. ``shooters`` (a range)
+    counts only those shooters; the sums over disjoint ranges add up to the whole (exactly: they
+    are counts)."""
     from .formfactor import exchange_mask
     work = np.zeros(scene.patches)
-    for i in range(scene.patches):
+    for i in (range(scene.patches) if shooters is None else shooters):
         work += exchange_mask(scene, i)
     return work
 
@@ -80,58 +81,27 @@ def exchange_bytes_per_sweep(owner):
     return EXCHANGE_BYTES * len(owner) * (sets - 1)
 
 
-class SetVisibility:
-    """K sets' visibility behind one ``clear_fraction``; ``visibilities[k]`` and ``boards[k]`` are
-    set k's (see the module docstring)."""
-
-    def __init__(self, owner, visibilities, boards):
-        if len(visibilities) != len(boards) or len(boards) != int(owner.max()) + 1:
-            raise ValueError("one Visibility and one board per set")
-        self.owner = owner
-        self.visibilities = visibilities
-        self.boards = boards
-
-    def clear_fraction(self, i, receivers):
-        receivers = np.asarray(receivers, dtype=np.int64)
-        out = np.zeros(len(receivers))
-        mine = self.owner[receivers]
-        for k, vis in enumerate(self.visibilities):
-            take = np.flatnonzero(mine == k)
-            if len(take):
-                out[take] = vis.clear_fraction(i, receivers[take])
-        return out
-
-    @property
-    def rays(self):
-        return sum(v.rays for v in self.visibilities)
-
-    @property
-    def blocks(self):
-        return sum(v.blocks for v in self.visibilities)
-
-    @property
-    def columns(self):
-        return max(v.columns for v in self.visibilities)
-
-    def counters(self):
-        """The machine's counters: tests summed over the sets, ``board_cycles`` the slowest
-        set's (they run in parallel), ``utilization`` over all K x P boards; ``set_counters`` per set."""
-        per_set = [b.counters() for b in self.boards]
-        out = dict(per_set[0])
-        for key in ("tests", "tests_useful", "tests_issued"):
-            if key in out:
-                out[key] = sum(c[key] for c in per_set)
-        out["set_counters"] = [{
-            "patches": int((self.owner == k).sum()),
-            "rays": int(v.rays),
-            "blocks": int(v.blocks),
-            **{key: c[key] for key in ("tests", "board_cycles", "utilization") if key in c},
-        } for k, (v, c) in enumerate(zip(self.visibilities, per_set))]
-        if "board_cycles" in out:
-            cycles = max(c["board_cycles"] for c in per_set)
-            out["board_cycles"] = cycles
-            procs = self.boards[0].params.processors * self.boards[0].params.boards
-            out["utilization"] = out["tests_useful"] / (procs * len(per_set) * cycles) if cycles else 0.0
-            for key in [k for k in out if k.endswith("_per_board")]:
-                out[key] = [x for c in per_set for x in c[key]]      # set 0's boards, then set 1's, ...
-        return out
+def combine_counters(owner, summaries, processors):
+    """The machine's counters from each set's (``summaries[k]``: set k's ``counters``, ``rays``,
+    ``blocks``, and optionally ``worker`` and ``seconds``): tests summed over the sets,
+    ``board_cycles`` the slowest set's (they run in parallel), ``utilization`` over all
+    K x ``processors`` processors; ``set_counters`` per set."""
+    per_set = [s["counters"] for s in summaries]
+    out = dict(per_set[0])
+    for key in ("tests", "tests_useful", "tests_issued", "blocks", "rays"):
+        if key in out:
+            out[key] = sum(c[key] for c in per_set)
+    out["set_counters"] = [{
+        "patches": int((owner == k).sum()),
+        "rays": int(s["rays"]),
+        "blocks": int(s["blocks"]),
+        **{key: c[key] for key in ("tests", "board_cycles", "utilization") if key in c},
+        **{key: s[key] for key in ("worker", "seconds") if key in s},
+    } for k, (s, c) in enumerate(zip(summaries, per_set))]
+    if "board_cycles" in out:
+        cycles = max(c["board_cycles"] for c in per_set)
+        out["board_cycles"] = cycles
+        out["utilization"] = out["tests_useful"] / (processors * len(per_set) * cycles) if cycles else 0.0
+        for key in [k for k in out if k.endswith("_per_board")]:
+            out[key] = [x for c in per_set for x in c[key]]      # set 0's boards, then set 1's, ...
+    return out

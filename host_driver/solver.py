@@ -22,8 +22,9 @@ import numpy as np
 
 from blockray.errors import ParameterError
 
-__all__ = ["gauss_seidel_sets", "SolveResult", "progressive_refinement", "jacobi", "gauss_seidel", "residual",
-           "ambient", "MAX_MATRIX_BYTES", "check_matrix_memory"]
+__all__ = ["product", "gauss_seidel_sets", "set_gauss_seidel", "gauss_seidel_sweeps", "jacobi_sweeps", "SolveResult",
+           "progressive_refinement", "jacobi", "gauss_seidel", "residual", "ambient", "MAX_MATRIX_BYTES",
+           "check_matrix_memory"]
 
 #: Largest form-factor matrix the gathering solvers hold: N x N float64 of 8 GiB (N = 32768).
 MAX_MATRIX_BYTES = 8 << 30
@@ -65,10 +66,17 @@ def _relative(scene, per_patch):
     return num / den
 
 
+def product(F, B):
+    """``F @ B`` with every row summed in the same order whatever rows ``F`` holds, so a host +
+    board set's rows of the product are bit-identical to the same rows of the whole product
+    (BLAS ``@`` blocks by the matrix's shape and is not)."""
+    return np.einsum("ij,jc->ic", F, B)
+
+
 def residual(scene, F, B):
     """Relative residual of B: ``sum A_j |B_j - E_j - rho_j (F B)_j| / sum A_j E_j`` (RGB summed)."""
     F = _check_matrix(scene, F)
-    return _relative(scene, B - scene.emission - scene.reflectance * (F @ B))
+    return _relative(scene, B - scene.emission - scene.reflectance * product(F, B))
 
 
 def ambient(scene, U):
@@ -183,10 +191,18 @@ def jacobi(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None):
     """
     F = _check_matrix(scene, F)
     E, rho = scene.emission, scene.reflectance
+    return jacobi_sweeps(scene, lambda B: E + rho * product(F, B), tolerance=tolerance,
+                         max_iterations=max_iterations, progress=progress)
+
+
+def jacobi_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress=None):
+    """:func:`jacobi` with its sweep ``sweep(B) -> E + rho * product(F, B)`` computed elsewhere, e.g. by
+    host + board sets that each hold their own rows of F (host_driver/cluster.py)."""
+    E = scene.emission
     B = np.array(E, dtype=np.float64)
     result = SolveResult(B=B, U=np.zeros_like(B), solver="jacobi")
     while True:
-        new = E + rho * (F @ B)
+        new = sweep(B)
         res = _relative(scene, B - new)
         result.history.append(res)
         if res < tolerance or result.iterations >= max_iterations:
@@ -215,30 +231,60 @@ def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, p
 
     ``owner[j]`` is the set that owns patch j. In a sweep every set updates its own patches in
     place, in increasing index, with its own newest values and the other sets' values from the
-    last exchange; then the sets exchange their patches' radiosities. With one set this is plain
-    Gauss-Seidel (:func:`gauss_seidel`); with every patch its own set it is :func:`jacobi`'s update.
-    Stops like :func:`gauss_seidel`. ``result.iterations`` counts sweeps (= exchanges).
+    last exchange (:func:`set_gauss_seidel`); then the sets exchange their patches' radiosities.
+    With one set this is plain Gauss-Seidel (:func:`gauss_seidel`); with every patch its own set
+    it is :func:`jacobi`'s update. Stops like :func:`gauss_seidel`. ``result.iterations`` counts
+    sweeps (= exchanges).
     """
     F = _check_matrix(scene, F)
     owner = np.asarray(owner, dtype=np.int64)
     if owner.shape != (scene.patches,) or (scene.patches and owner.min() < 0):
         raise ValueError(f"owner must give a set >= 0 for each of the {scene.patches} patches")
-    E, rho = scene.emission, scene.reflectance
+    E, rho, A = scene.emission, scene.reflectance, scene.areas
     groups = [np.flatnonzero(owner == k) for k in range(int(owner.max()) + 1 if len(owner) else 0)]
-    B = np.array(E, dtype=np.float64)
+    rows = [F if len(own) == len(F) else F[own] for own in groups]      # one set: no copy of F
+
+    def sweep(B):
+        new, weighted = np.empty_like(B), 0.0
+        for own, F_rows in zip(groups, rows):
+            w, new[own] = set_gauss_seidel(F_rows, own, E[own], rho[own], A[own], B)
+            weighted += w
+        return weighted, new
+    return gauss_seidel_sweeps(scene, sweep, tolerance=tolerance, max_iterations=max_iterations,
+                               progress=progress)
+
+
+def set_gauss_seidel(F_rows, own, E_own, rho_own, A_own, B):
+    """One set's part of a Gauss-Seidel sweep over its patches ``own`` (increasing), whose rows of
+    F, emission, reflectance and areas are given: ``(weighted, new)``. ``weighted`` is the set's
+    share of :func:`residual`'s numerator for B, ``sum A_j |B_j - E_j - rho_j (F B)_j|`` over its
+    patches; ``new`` its radiosities after the sweep, updated in place from its newest values and
+    the others' values in B."""
+    weighted = float((A_own[:, None] * np.abs(B[own] - E_own - rho_own * product(F_rows, B))).sum())
+    view = np.array(B, dtype=np.float64)        # what this set holds after the last exchange
+    for row, j in enumerate(own):
+        view[j] = E_own[row] + rho_own[row] * (F_rows[row] @ view)
+    return weighted, view[own]
+
+
+def gauss_seidel_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress=None):
+    """:func:`gauss_seidel_sets` with its sweep computed elsewhere (host_driver/cluster.py):
+    ``sweep(B) -> (weighted, B')``, :func:`residual`'s numerator for B summed over the sets, and
+    the next iterate. The next iterate of the last sweep is not used."""
+    B = np.array(scene.emission, dtype=np.float64)
+    emitted = _emitted(scene)
     result = SolveResult(B=B, U=np.zeros_like(B), solver="gauss-seidel")
-    res = residual(scene, F, B)
+
+    def relative(weighted):
+        return weighted / emitted if emitted else (0.0 if weighted == 0 else float("inf"))
+    weighted, new = sweep(B)
+    res = relative(weighted)
     result.history.append(res)
     while res >= tolerance and result.iterations < max_iterations:
-        new = B.copy()
-        for own in groups:
-            view = B.copy()                     # what this set holds after the last exchange
-            for j in own:
-                view[j] = E[j] + rho[j] * (F[j] @ view)
-            new[own] = view[own]
         B = new
         result.iterations += 1
-        res = residual(scene, F, B)
+        weighted, new = sweep(B)
+        res = relative(weighted)
         result.history.append(res)
         _report(progress, result.iterations, res)
     result.B, result.residual, result.converged = B, res, res < tolerance

@@ -723,6 +723,18 @@ class TraversalStats:
         self.dda_voxels += int(dda_visited.sum())
         self.dda_tests += int(dda_tests.sum())
 
+    _COUNTS = ("blocks", "rays", "receivers", "block_voxels", "block_tests", "sampled_blocks", "sampled_rays",
+               "sampled_block_voxel_rays", "sampled_block_tests", "dda_voxels", "dda_tests")
+
+    def counts(self):
+        """The accumulated counts (a dict of ints), to merge another run's with :meth:`add_counts`."""
+        return {name: int(getattr(self, name)) for name in self._COUNTS}
+
+    def add_counts(self, counts):
+        """Add the counts of another run over the same grid (e.g. another host + board set's)."""
+        for name in self._COUNTS:
+            setattr(self, name, getattr(self, name) + counts[name])
+
     @staticmethod
     def _ratio(a, b):
         return float(a) / b if b else None

@@ -1,5 +1,13 @@
 """Scale-out over host + board sets (host_driver/scaleout.py, solver.gauss_seidel_sets)."""
 
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -58,6 +66,18 @@ def test_gauss_seidel_sets_converges_to_the_direct_solution(sets):
     assert res.iterations >= solvers.gauss_seidel(scene, F, tolerance=1e-12).iterations
 
 
+def test_product_rows_are_the_whole_products_rows():
+    """A set's rows of F B, computed alone, equal the same rows of the whole product bit for bit
+    (numpy's BLAS matmul does not guarantee this; Jacobi over sets relies on it)."""
+    scene, F = _random_system(11, n=333)
+    B = np.random.default_rng(11).random((333, 3))
+    whole = solvers.product(F, B)
+    owner = np.random.default_rng(12).integers(0, 3, 333)
+    for k in range(3):
+        own = np.flatnonzero(owner == k)
+        np.testing.assert_array_equal(solvers.product(F[own], B), whole[own])
+
+
 def test_assign_sets():
     rng = np.random.default_rng(3)
     morton = rng.integers(0, 1000, 101)
@@ -87,12 +107,37 @@ def small_cornell():
     return load_scene("cornell", max_edge=250)
 
 
-def test_render_sets_same_visibility_less_machine_time(small_cornell):
-    one = render(small_cornell, board="model", solver="jacobi", tolerance=1e-4, sets=1)
-    three = render(small_cornell, board="model", solver="jacobi", tolerance=1e-4, sets=3)
+@pytest.fixture(scope="module")
+def one_set(small_cornell):
+    """The reference: one set, in this process, no cluster."""
+    return render(small_cornell, board="model", solver="jacobi", tolerance=1e-4, sets=1)
+
+
+@pytest.fixture(scope="module")
+def tiny_cornell():
+    """70 patches and their one-set reference: for the runs that check only the answer."""
+    scene = load_scene("cornell", max_edge=400)
+    return scene, render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=1)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A two-worker LocalCluster of the tests' own, on the loopback interface."""
+    from dask.distributed import LocalCluster
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False},
+                      silence_logs=logging.CRITICAL) as c:
+        yield c
+
+
+def test_render_sets_same_visibility_less_machine_time(small_cornell, one_set, cluster):
+    one = one_set
+    three = render(small_cornell, board="model", solver="jacobi", tolerance=1e-4, sets=3,
+                   scheduler=cluster.scheduler_address)
     # the same rays with the same exact results, so the same F and (Jacobi) the same radiosity
     np.testing.assert_array_equal(one.radiosity, three.radiosity)
     assert one.report["rays"] == three.report["rays"]
+    assert one.report["iterations"] == three.report["iterations"]
     per_set = three.report["set_counters"]
     assert len(per_set) == 3 and sum(s["patches"] for s in per_set) == small_cornell.patches
     assert sum(s["rays"] for s in per_set) == three.report["rays"]
@@ -104,21 +149,108 @@ def test_render_sets_same_visibility_less_machine_time(small_cornell):
     assert max(rays) < 1.05 * min(rays), rays        # (by patch count: 65 344 - 71 680)
     assert three.report["exchange_bytes_per_sweep"] == 4 * small_cornell.patches * 2
     assert len(three.report["board_cycles_per_board"]) == 3 * 8
-    gs = render(small_cornell, board="model", solver="gauss-seidel", tolerance=1e-4, sets=3)
+    # what moved: per sweep the radiosities (N x RGB float64) to each of the 2 workers and each
+    # set's own back; the sets' rows of F stayed on the workers
+    run = three.report["cluster"]
+    sweeps = three.report["iterations"] + 1
+    assert run["exchanges"] == sweeps
+    assert run["exchanged_bytes"] == sweeps * (2 + 1) * small_cornell.patches * 3 * 8
+    assert len(run["workers"]) == 2 and {s["worker"] for s in per_set} <= {w["address"] for w in run["workers"]}
+    assert len(run["cast_seconds_per_set"]) == 3
+    gs = render(small_cornell, board="model", solver="gauss-seidel", tolerance=1e-4, sets=3,
+                scheduler=cluster.scheduler_address)
     assert gs.report["residual"] < 1e-4 and gs.report["sets"] == 3
+    assert gs.report["cluster"]["exchanged_bytes"] == (gs.report["iterations"] + 1) * (
+        2 * small_cornell.patches * 3 * 8 + small_cornell.patches * 3 * 8 + 3 * 8)
     rel = np.abs(gs.radiosity - one.radiosity).max() / np.abs(one.radiosity).max()
     assert rel < 1e-3, rel
 
 
-@pytest.mark.parametrize("argv", [
-    ["render", "cornell", "--sets", "2"],                                      # progressive
-    ["render", "cornell", "--sets", "0", "--solver", "jacobi"],
-    ["render", "cornell", "--max-edge", "300", "--sets", "100000", "--solver", "jacobi"],
+def test_render_sets_on_its_own_local_cluster(tiny_cornell):
+    """Without --scheduler blockray starts a LocalCluster on 127.0.0.1 and closes it."""
+    scene, one = tiny_cornell
+    two = render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=2)
+    np.testing.assert_array_equal(one.radiosity, two.radiosity)
+    workers = [w["address"] for w in two.report["cluster"]["workers"]]
+    assert len(workers) == 2 and all(a.startswith("tcp://127.0.0.1:") for a in workers), workers
+
+
+def test_unreachable_scheduler_fails_fast(capsys):
+    with socket.socket() as s:                   # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    code = main(["render", "cornell", "--max-edge", "1000", "--solver", "jacobi", "--sets", "2",
+                 "--scheduler", f"tcp://127.0.0.1:{port}", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--scheduler" in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert time.monotonic() - t0 < 60          # a bounded connect, not a hang (CONNECT_TIMEOUT = 5 s)
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["render", "cornell", "--sets", "2"], "--sets"),                                      # progressive
+    (["render", "cornell", "--sets", "0", "--solver", "jacobi"], "--sets"),
+    (["render", "cornell", "--max-edge", "300", "--sets", "100000", "--solver", "jacobi"], "--sets"),
+    (["render", "cornell", "--max-edge", "1000", "--sets", "2", "--solver", "jacobi", "--workers", "2",
+      "--scheduler", "tcp://127.0.0.1:8786"], "--workers"),
+    (["render", "cornell", "--max-edge", "1000", "--sets", "2", "--solver", "jacobi", "--board", "amaranth",
+      "--vcd", "x.vcd"], "--vcd"),
+    (["render", "cornell", "--max-edge", "1000", "--sets", "2", "--solver", "jacobi", "--workers", "0"], "--workers"),
 ])
-def test_cli_sets_errors(capsys, argv):
+def test_cli_sets_errors(capsys, argv, option):
     try:
         code = main(argv + ["--quiet"])
     except SystemExit as e:                    # argparse's own range check
         code = e.code
     err = capsys.readouterr().err
-    assert code == 2 and "--sets" in err and "Traceback" not in err
+    assert code == 2 and option in err and "Traceback" not in err, err
+
+
+def test_cli_joins_a_scheduler(tiny_cornell, cluster, tmp_path):
+    scene, one = tiny_cornell
+    report = tmp_path / "r.json"
+    code = main(["render", "cornell", "--max-edge", "400", "--solver", "jacobi", "--tolerance", "1e-4",
+                 "--sets", "2", "--scheduler", cluster.scheduler_address, "--report", str(report), "--quiet"])
+    assert code == 0
+    r = json.loads(report.read_text())
+    assert r["cluster"]["scheduler"] == cluster.scheduler_address and len(r["cluster"]["workers"]) == 2
+    assert r["residual"] == one.report["residual"] and r["rays"] == one.report["rays"]
+    assert len(r["set_counters"]) == 2 and r["board_cycles"] == max(s["board_cycles"] for s in r["set_counters"])
+
+
+def test_worker_killed_while_casting(tiny_cornell, cluster):
+    """A worker process killed in the middle of its set's cast: Dask runs the set again on a
+    live worker, and the answer is the same to the last bit. (Last in this file: it restarts one
+    of the module cluster's workers.)"""
+    from dask.distributed import Client
+    scene, one = tiny_cornell
+    out = {}
+
+    def run():
+        try:
+            out["result"] = render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=2,
+                                   scheduler=cluster.scheduler_address)
+        except BaseException as e:              # re-raised below, in the test's thread
+            out["error"] = e
+
+    with Client(cluster.scheduler_address) as watcher:
+        thread = threading.Thread(target=run)
+        thread.start()
+        victim, deadline = None, time.monotonic() + 120
+        while victim is None and time.monotonic() < deadline and thread.is_alive():
+            casting = {w: keys for w, keys in watcher.processing().items()
+                       if any(str(k).startswith("cast_set") for k in keys)}
+            victim = next(iter(casting), None)
+            time.sleep(0.02)
+        assert victim is not None, "no set was ever seen casting"
+        pid = watcher.run(os.getpid, workers=[victim])[victim]
+        os.kill(pid, signal.SIGKILL)
+        thread.join(timeout=300)
+    assert not thread.is_alive(), "render did not finish after the worker was killed"
+    if "error" in out:
+        raise out["error"]
+    result = out["result"]
+    np.testing.assert_array_equal(one.radiosity, result.radiosity)
+    # the killed worker's set was cast again elsewhere (a restarted worker has a new address)
+    assert victim not in {s["worker"] for s in result.report["set_counters"]}

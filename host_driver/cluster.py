@@ -1,0 +1,288 @@
+"""Host + board sets as the workers of a Dask cluster (the paper's section 6, ``--sets K``).
+
+The client (``blockray render``) prepares the scene, builds the voxel grid and assigns every patch
+to a set (:func:`~blockray.host_driver.scaleout.assign_sets`). It then sends the scene, the grid,
+the sample scheme, the quantisation (its B; every worker quantises the same scene to the same
+grid) and the set assignment to the workers once (``Client.scatter``), and submits one task per
+set (:func:`cast_set`): the worker builds its own board (``make_board``: model, golden, or an RTL
+board with its own simulator process), loads the grid, casts the rays that end on its own patches
+and keeps its rows of F. Those rows never leave the worker. Each gathering sweep sends the
+current radiosities to the workers and brings back each set's new ones
+(:func:`~blockray.host_driver.solver.jacobi_sweeps`,
+:func:`~blockray.host_driver.solver.gauss_seidel_sweeps`): only radiosities move.
+
+Faults are Dask's: a worker lost while casting or holding its rows has its set's task run again
+on another worker (the scattered inputs are on every worker), and as the cast is deterministic
+the answer is the same. The cluster is a ``LocalCluster`` on the loopback interface, one worker
+process per core (no more than there are sets), started and closed here; or the user's
+(``--scheduler ADDRESS``).
+"""
+
+import contextlib
+import importlib.util
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ParameterError
+from . import formfactor, solver as solvers
+from .scaleout import assign_sets, receiver_work
+from .threads import available, set_threads
+
+__all__ = ["SetJob", "SetRows", "cluster_client", "cast_set", "solve_sets", "LOOPBACK", "CONNECT_TIMEOUT"]
+
+#: the only interface a LocalCluster listens on
+LOOPBACK = "127.0.0.1"
+#: seconds to wait for a user's scheduler before --scheduler is reported unreachable
+CONNECT_TIMEOUT = 5
+
+
+@contextlib.contextmanager
+def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
+    """A ``dask.distributed.Client``: on a new LocalCluster (``workers`` processes, default one
+    per core and at most ``sets``), closed on exit; or connected to ``scheduler``. ``echo(text)``
+    is told the dashboard's address when the cluster serves one. Yields ``(client, threads)``,
+    ``threads`` the cores each worker's kernels may use (None: the worker's own setting).
+
+    A script that calls this must guard its top level with ``if __name__ == "__main__":``: the
+    local workers are spawned processes that import it."""
+    from dask.distributed import Client, LocalCluster
+    cluster = None
+    if scheduler is None:
+        cores = os.cpu_count() or 1
+        n = workers or max(1, min(cores, sets))
+        threads = max(1, cores // n)
+        # one thread per worker: a set's task owns its process; its kernels get `threads` cores
+        # The scheduler's HTTP server (dashboard, health) on a free loopback port; the dashboard
+        # needs bokeh, which is not a dependency: without it Dask would serve only a notice.
+        dashboard = importlib.util.find_spec("bokeh") is not None
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
+                               dashboard_address=f"{LOOPBACK}:0", scheduler_kwargs={"dashboard": dashboard},
+                               silence_logs=logging.ERROR)
+        client = Client(cluster)
+    else:
+        threads = None
+        client = _connect(scheduler)
+        dashboard = "dashboard" in client.scheduler_info().get("services", {})
+    try:
+        if echo is not None and dashboard:
+            echo(f"Dask dashboard: {client.dashboard_link}")
+        yield client, threads
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _connect(scheduler):
+    from dask.distributed import Client
+    if not isinstance(scheduler, str) or not scheduler.strip():
+        raise ParameterError(f"--scheduler must be a scheduler address such as tcp://host:8786, not {scheduler!r}",
+                             parameter="scheduler")
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT)
+    except (OSError, TimeoutError, ValueError) as e:
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ParameterError(f"--scheduler {scheduler}: no Dask scheduler answered within {CONNECT_TIMEOUT} s "
+                             f"({reason})", parameter="scheduler") from None
+
+
+@dataclass(frozen=True)
+class SetJob:
+    """What every set's worker needs besides the scattered scene, grid and assignment."""
+    board: str
+    params: object             # BoardParams
+    bits: object               # the client's quantisation B (None: a board without one)
+    partition: str
+    samples: object            # SampleScheme
+    traversal: str
+    packing: str
+    stats_fraction: float
+    threads: object = None     # cores for this worker's compiled kernels (None: its default)
+
+
+@dataclass
+class SetRows:
+    """One set's rows of F, kept on its worker: ``F[r]`` is patch ``own[r]``'s row."""
+    own: np.ndarray
+    F: np.ndarray
+    E: np.ndarray
+    rho: np.ndarray
+    A: np.ndarray
+    summary: dict
+
+
+class _Receivers:
+    """The scene seen from one shooter by one set: its own patches and the shooter, with the
+    whole scene's bounding box. :func:`formfactor.unoccluded_factors` depends only on the two
+    patches of a pair and the scene's scale, so it gives a set's factors without computing the
+    other sets' (tests/test_scaleout.py checks the rows against one set's F bit for bit)."""
+
+    def __init__(self, scene, own):
+        self.bbox = scene.bbox
+        self._arrays = {name: getattr(scene, name) for name in
+                        ("patch_vertices", "centroids", "normals", "reflectance", "areas")}
+        self.own = own
+        self.position = np.full(scene.patches, -1, dtype=np.int64)
+        self.position[own] = np.arange(len(own))
+
+    def factors(self, i):
+        """(len(own),) unoccluded ``F_ji`` of the own receivers j to shooter i."""
+        at = int(self.position[i])
+        index = self.own if at >= 0 else np.append(self.own, i)
+        view = _View(self.bbox, {name: a[index] for name, a in self._arrays.items()})
+        return formfactor.unoccluded_factors(view, at if at >= 0 else len(self.own))[:len(self.own)]
+
+
+class _View:
+    def __init__(self, bbox, arrays):
+        self.bbox = bbox
+        self.__dict__.update(arrays)
+        self.patches = len(arrays["areas"])
+
+
+def cast_set(k, scene, grid, owner, job):
+    """On a worker: set k builds its board, loads the grid and casts the rays ending on its own
+    patches, shooter by shooter. Returns its :class:`SetRows`."""
+    from distributed import get_worker
+    from .render import Phases, Visibility, make_board
+    from .voxel import TraversalStats
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    if job.threads is not None:
+        set_threads(min(job.threads, available()))
+    own = np.flatnonzero(owner == k)
+    board = make_board(job.board, job.params, bits=job.bits, partition=job.partition)
+    try:
+        phases = Phases()
+        with phases.timed("prepare"):
+            board.prepare(scene, job.samples)
+        with phases.timed("load"):
+            board.load(grid)
+        stats = TraversalStats(grid, sample_fraction=job.stats_fraction, seed=k)
+        vis = Visibility(scene, board, grid, job.samples, rows=job.params.rows, cols=job.params.cols,
+                         traversal=job.traversal, packing=job.packing, phases=phases, stats=stats)
+        receivers = _Receivers(scene, own)
+        F = np.zeros((len(own), scene.patches))
+        for i in range(scene.patches):
+            with phases.timed("formfactor"):
+                f = receivers.factors(i)
+                take = np.flatnonzero(f > 0)
+            F[take, i] = f[take] * vis.clear_fraction(i, own[take])
+        counters = board.counters()
+    finally:
+        if hasattr(board, "close"):
+            board.close()                    # an RTL board stops its simulator
+    summary = {"set": k, "worker": get_worker().address, "patches": len(own), "rays": vis.rays,
+               "blocks": vis.blocks, "columns": vis.columns, "counters": counters,
+               "stats": stats.counts(), "phases": phases.seconds, "seconds": time.perf_counter() - t0,
+               "cpu_seconds": time.process_time() - cpu0}
+    return SetRows(own=own, F=F, E=scene.emission[own], rho=scene.reflectance[own],
+                   A=scene.areas[own], summary=summary)
+
+
+def _summary(rows):
+    return rows.summary
+
+
+def _jacobi_rows(rows, B):
+    return rows.E + rows.rho * solvers.product(rows.F, B)
+
+
+def _gauss_seidel_rows(rows, B):
+    return solvers.set_gauss_seidel(rows.F, rows.own, rows.E, rows.rho, rows.A, B)
+
+
+def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max_iterations, progress=False):
+    """Assign the patches to ``sets`` sets (:func:`_assign`), cast every set's rows on the
+    cluster, then solve by gathering with radiosities exchanged through the cluster.
+    Returns ``(owner, SolveResult, summaries, info)``: per set its summary (in set order), and the
+    measured ``exchanged_bytes``, ``workers`` and wall seconds of the phases."""
+    t0 = time.perf_counter()
+    scene_f, grid_f = client.scatter([scene, grid], broadcast=True)
+    owner = _assign(client, scene, scene_f, sets, morton)
+    t1 = time.perf_counter()
+    owner_f = client.scatter(owner, broadcast=True)
+    rows = [client.submit(cast_set, k, scene_f, grid_f, owner_f, job, pure=False) for k in range(sets)]
+    summaries = _summaries(client, rows, progress)
+    t2 = time.perf_counter()
+    sweeps = _Sweeps(client, rows, owner)
+    bar = _bar(progress, max_iterations, solver, "sweep")
+    gather = solvers.jacobi_sweeps if solver == "jacobi" else solvers.gauss_seidel_sweeps
+    result = gather(scene, sweeps.jacobi if solver == "jacobi" else sweeps.gauss_seidel, tolerance=tolerance,
+                    max_iterations=max_iterations, progress=bar)
+    if bar is not None:
+        bar.close()
+    info = {"workers": client.scheduler_info()["workers"], "exchanged_bytes": sweeps.bytes,
+            "exchanges": sweeps.count, "assign_seconds": t1 - t0, "cast_seconds": t2 - t1,
+            "solve_seconds": time.perf_counter() - t2}
+    return owner, result, summaries, info
+
+
+def _assign(client, scene, scene_f, sets, morton):
+    """Owner set of every patch: runs of ``morton`` codes of equal
+    :func:`~blockray.host_driver.scaleout.receiver_work`, counted on the cluster (O(N^2))."""
+    work = None
+    if sets > 1:
+        n, parts = scene.patches, 4 * max(1, len(client.scheduler_info()["workers"]))
+        pieces = [client.submit(receiver_work, scene_f, range(n * p // parts, n * (p + 1) // parts), pure=False)
+                  for p in range(parts)]
+        work = sum(client.gather(pieces))
+    return assign_sets(morton, sets, work)
+
+
+def _summaries(client, rows, progress):
+    """Every set's summary, in set order, as the sets finish casting (a progress bar over sets)."""
+    from dask.distributed import as_completed
+    summaries = [None] * len(rows)
+    bar = _bar(progress, len(rows), "casting", "set")
+    for _, summary in as_completed([client.submit(_summary, r, pure=False) for r in rows], with_results=True):
+        summaries[summary["set"]] = summary
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return summaries
+
+
+class _Sweeps:
+    """Gathering sweeps on the sets' rows: each sends the radiosities B to the workers once, runs
+    every set's part and brings back each set's new radiosities; counts the bytes moved."""
+
+    def __init__(self, client, rows, owner):
+        self.client, self.rows = client, rows
+        self.groups = [np.flatnonzero(owner == k) for k in range(len(rows))]
+        self.bytes = self.count = 0
+
+    def _exchange(self, kernel, B):
+        client = self.client
+        B_f = client.scatter(B, broadcast=True, hash=False)
+        pieces = client.gather([client.submit(kernel, r, B_f, pure=False) for r in self.rows])
+        workers = len(client.scheduler_info()["workers"])
+        self.bytes += B.nbytes * workers + sum(
+            p[1].nbytes + 8 if isinstance(p, tuple) else p.nbytes for p in pieces)   # (weighted, new) or new
+        self.count += 1
+        return pieces
+
+    def jacobi(self, B):
+        new = np.empty_like(B)
+        for own, piece in zip(self.groups, self._exchange(_jacobi_rows, B)):
+            new[own] = piece
+        return new
+
+    def gauss_seidel(self, B):
+        new, weighted = np.empty_like(B), 0.0
+        for own, (w, piece) in zip(self.groups, self._exchange(_gauss_seidel_rows, B)):
+            new[own] = piece
+            weighted += w
+        return weighted, new
+
+
+def _bar(enabled, total, desc, unit):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit=unit, leave=False)
