@@ -22,7 +22,6 @@ import contextlib
 import importlib.util
 import logging
 import os
-import sys
 import time
 from dataclasses import dataclass
 
