@@ -169,6 +169,12 @@ def _add_fabric_option(p):
                         "rows are too full to route; default none")
 
 
+def _add_cell_option(p):
+    p.add_argument("--cell", default="exact", metavar="exact|filtered",
+                   help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
+                        "tests to an exact unit; processor and cell units only, so far)")
+
+
 def _unit_list(text):
     return tuple(u.strip() for u in text.split(",") if u.strip())
 
@@ -192,6 +198,7 @@ def _verilog_parser(sub):
                    help="generic: portable netlist, products as '*' between fabric registers (default); "
                         "ecp5: every product a MULT18X18D instance with its input and output registers on")
     _add_fabric_option(p)
+    _add_cell_option(p)
     p.add_argument("--out", required=True, metavar="FILE", help="Verilog file to write")
     p.set_defaults(func=_cmd_verilog)
 
@@ -200,7 +207,7 @@ def _cmd_verilog(args):
     from .synth.verilog import write_verilog
     params = _unit_params(args)
     _naming_option(lambda: write_verilog(args.out, args.unit, params, target=args.target,
-                                         fabric_units=args.fabric_units))
+                                         fabric_units=args.fabric_units, cell=args.cell))
     return 0
 
 
@@ -215,6 +222,7 @@ def _synth_parser(sub):
                    help="ecp5: the ECP5 netlist (registered MULT18X18D instances), synth_ecp5 + nextpnr "
                         "(default); generic: the portable netlist, Yosys synth only (cells, multipliers)")
     _add_fabric_option(p)
+    _add_cell_option(p)
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
     p.add_argument("--speed", default=None, metavar="GRADE",
                    help="ECP5 speed grade for nextpnr: 6, 7 or 8 (8 fastest; default that of the part on the "
@@ -239,7 +247,8 @@ def _cmd_synth(args):
     params = _unit_params(args)
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
-        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units))
+        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units,
+        cell=args.cell))
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")

@@ -22,7 +22,7 @@ from amaranth.lib.wiring import In, Out
 
 from ..filtered import FilterFormat
 from ..params import Widths
-from .processor import (Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _product,
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _product,
                         query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
@@ -188,9 +188,9 @@ class FilteredProcessor(wiring.Component):
         return m
 
 
-def pending_layout():
+def pending_layout(tag_bits=TAG_BITS):
     """A test in the in-order hand-off: its tag, whether the filter decided it, and its answer."""
-    return data.StructLayout({"tag": unsigned(16), "decided": unsigned(1), "blocked": unsigned(1)})
+    return data.StructLayout({"tag": unsigned(tag_bits), "decided": unsigned(1), "blocked": unsigned(1)})
 
 
 class InOrderResolve(wiring.Component):
@@ -207,18 +207,20 @@ class InOrderResolve(wiring.Component):
     In order because the queue, the exact unit and the answers are FIFOs: the oldest undecided
     test in the pending FIFO is the one whose answer heads the answers FIFO. Every FIFO has
     ``depth`` entries, so with at most ``depth`` tests inside none overflows.
+    ``tag_bits``: the tag's width (:data:`TAG_BITS`; the formal harness uses fewer).
     """
 
-    def __init__(self, operand_shape, depth):
+    def __init__(self, operand_shape, depth, tag_bits=TAG_BITS):
         self._operand_shape = operand_shape
         self._depth = depth
+        self._tag_bits = tag_bits
         super().__init__({
             "i": In(stream.Signature(data.StructLayout({
-                "tag": unsigned(16), "decided": unsigned(1), "blocked": unsigned(1), "operands": operand_shape}),
-                always_ready=True)),
+                "tag": unsigned(tag_bits), "decided": unsigned(1), "blocked": unsigned(1),
+                "operands": operand_shape}), always_ready=True)),
             "resolve": Out(stream.Signature(operand_shape, always_ready=True)),
             "resolved": In(stream.Signature(unsigned(1), always_ready=True)),
-            "o": Out(stream.Signature(result_layout())),
+            "o": Out(stream.Signature(data.StructLayout({"blocked": unsigned(1), "tag": unsigned(tag_bits)}))),
         })
 
     @property
@@ -228,12 +230,13 @@ class InOrderResolve(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         op_width = Shape.cast(self._operand_shape).width
-        m.submodules.pending = pending = SyncFIFOBuffered(width=pending_layout().size, depth=self._depth)
+        layout = pending_layout(self._tag_bits)
+        m.submodules.pending = pending = SyncFIFOBuffered(width=layout.size, depth=self._depth)
         m.submodules.queue = queue = SyncFIFOBuffered(width=op_width, depth=self._depth)
         m.submodules.answers = answers = SyncFIFOBuffered(width=1, depth=self._depth)
 
-        entry = Signal(pending_layout())
-        head = Signal(pending_layout())
+        entry = Signal(layout)
+        head = Signal(layout)
         m.d.comb += [
             entry.tag.eq(self.i.payload.tag), entry.decided.eq(self.i.payload.decided),
             entry.blocked.eq(self.i.payload.blocked),

@@ -11,6 +11,11 @@ Units (``UNITS``):
 ``board``      :class:`~blockray.rtl.board.BoardTop`: command/result streams, patch memory and
                voxel table, the R x S array. Uses every parameter but ``boards``.
 
+``cell`` (``CELLS``, ``--cell``): ``exact`` (default) builds the above; ``filtered`` builds the
+filtered cell of :mod:`blockray.rtl.filtered` (``processor``: :class:`FilteredIntersector`,
+``cell``: :class:`FilteredProcessor`, both with the default format, d_k exact and w_k at 18
+bits). The filtered array and board are not built yet.
+
     text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
     text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
 
@@ -25,9 +30,10 @@ from ..errors import ParameterError
 from ..params import BoardParams
 from .target import target_platform
 
-__all__ = ["UNITS", "build_unit", "unit_verilog", "write_verilog"]
+__all__ = ["UNITS", "CELLS", "build_unit", "unit_verilog", "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
+CELLS = ("exact", "filtered")
 
 
 def _check_unit(unit):
@@ -36,12 +42,28 @@ def _check_unit(unit):
     return unit
 
 
-def build_unit(unit, params=None):
-    """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`)."""
+def _filtered_unit(unit, params):
+    from ..filtered import FilterFormat
+    from ..rtl.filtered import FilteredIntersector, FilteredProcessor
+    if unit == "processor":
+        return FilteredIntersector(params.bits)
+    if unit == "cell":
+        return FilteredProcessor(FilterFormat(min(params.bits + 1, 18), 18))
+    raise ParameterError(f"the filtered cell exists as a processor and a cell only, not as {unit!r} "
+                         f"(the filtered array and board are not built yet)", parameter="cell")
+
+
+def build_unit(unit, params=None, cell="exact"):
+    """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`),
+    with the ``exact`` or the ``filtered`` cell."""
     _check_unit(unit)
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
+    if cell not in CELLS:
+        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
+    if cell == "filtered":
+        return _filtered_unit(unit, params)
     if unit == "processor":
         from ..rtl.processor import Intersector
         return Intersector(params.bits)
@@ -55,17 +77,18 @@ def build_unit(unit, params=None):
     return BoardTop(params)
 
 
-def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=()):
-    """Readable Verilog (no source attributes) of ``unit`` for ``target`` (``generic`` or
-    ``ecp5``, with ``fabric_units``); the top module is ``name`` (default ``blockray_<unit>``)."""
+def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact"):
+    """Readable Verilog (no source attributes) of ``unit`` with ``cell`` for ``target``
+    (``generic`` or ``ecp5``, with ``fabric_units``); the top module is ``name`` (default
+    ``blockray_<unit>``)."""
     platform = target_platform(target, fabric_units)
-    component = build_unit(unit, params)
+    component = build_unit(unit, params, cell)
     return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
-def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=()):
+def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact"):
     """Write :func:`unit_verilog` to ``path``; returns the text."""
-    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units)
+    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell)
     try:
         with open(path, "w") as f:
             f.write(text)

@@ -81,6 +81,18 @@ def test_unit_too_big_for_the_part_is_reported_not_placed(tmp_path):
     assert r["fmax_mhz"] is None
 
 
+def test_verilog_cli_filtered_cell(tmp_path):
+    """``--cell filtered``: the filtered cell's nine narrow products, one MULT18X18D each at
+    B = 16 (d_k exact at 17 bits, w_k at 18), against 18 for the exact cell."""
+    for cell, dsps in (("filtered", 9), ("exact", 18)):
+        out = tmp_path / f"{cell}.v"
+        assert main(["verilog", "cell", "--bits", "16", "--target", "ecp5", "--cell", cell, "--out", str(out)]) == 0
+        assert out.read_text().count("MULT18X18D #(") == dsps
+    out = tmp_path / "p.v"
+    assert main(["verilog", "processor", "--bits", "8", "--cell", "filtered", "--out", str(out)]) == 0
+    assert "module blockray_processor(" in out.read_text()
+
+
 def test_nextpnr_gets_the_speed_grade():
     """nextpnr's arguments carry ``--speed``: the part's default grade (-6, the ULX3S) or the one
     asked for."""
@@ -157,6 +169,8 @@ def test_verilog_cli_ecp5_target(tmp_path):
     (["synth", "array", "--fabric-units", "cell"], "--fabric-units"),
     (["verilog", "array", "--fabric-units", "shooter"], "--fabric-units"),     # generic target
     (["synth", "processor", "--speed", "5"], "--speed"),
+    (["verilog", "processor", "--cell", "fast"], "--cell"),
+    (["synth", "array", "--cell", "filtered"], "--cell"),                      # not built yet
     (["synth", "processor", "--speed", "-8"], "--speed"),
     (["synth", "processor", "--speed", "fast"], "--speed"),
 ])
