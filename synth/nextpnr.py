@@ -49,7 +49,7 @@ from amaranth.back import verilog
 from ..errors import ParameterError
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
-from .verilog import build_unit, UNITS
+from .verilog import build_unit, check_cell, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
@@ -210,7 +210,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
-    build_unit(unit, params, cell)                       # a bad cell/unit pair fails here, before any tool
+    check_cell(unit, cell)                               # a bad cell/unit pair fails here, before any tool
     report = {"unit": unit, "cell": cell, "params": _params_dict(unit, params), "target": target,
               "tools": _versions(), "machine": _machine()}
 

@@ -30,7 +30,7 @@ from ..errors import ParameterError
 from ..params import BoardParams
 from .target import target_platform
 
-__all__ = ["UNITS", "CELLS", "build_unit", "unit_verilog", "write_verilog"]
+__all__ = ["UNITS", "CELLS", "check_cell", "build_unit", "unit_verilog", "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
 CELLS = ("exact", "filtered")
@@ -42,15 +42,22 @@ def _check_unit(unit):
     return unit
 
 
+def check_cell(unit, cell):
+    """``cell`` if it is one of :data:`CELLS` and built for ``unit``, else ParameterError."""
+    if cell not in CELLS:
+        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
+    if cell == "filtered" and unit not in ("processor", "cell"):
+        raise ParameterError(f"the filtered cell exists as a processor and a cell only, not as {unit!r} "
+                             f"(the filtered array and board are not built yet)", parameter="cell")
+    return cell
+
+
 def _filtered_unit(unit, params):
     from ..filtered import FilterFormat
     from ..rtl.filtered import FilteredIntersector, FilteredProcessor
     if unit == "processor":
         return FilteredIntersector(params.bits)
-    if unit == "cell":
-        return FilteredProcessor(FilterFormat(min(params.bits + 1, 18), 18))
-    raise ParameterError(f"the filtered cell exists as a processor and a cell only, not as {unit!r} "
-                         f"(the filtered array and board are not built yet)", parameter="cell")
+    return FilteredProcessor(FilterFormat(min(params.bits + 1, 18), 18))
 
 
 def build_unit(unit, params=None, cell="exact"):
@@ -60,9 +67,7 @@ def build_unit(unit, params=None, cell="exact"):
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
-    if cell not in CELLS:
-        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
-    if cell == "filtered":
+    if check_cell(unit, cell) == "filtered":
         return _filtered_unit(unit, params)
     if unit == "processor":
         from ..rtl.processor import Intersector
