@@ -59,14 +59,15 @@ def _add_board_options(p):
 
 def _naming_option(run):
     """``run()``; a ParameterError about one parameter is raised again naming its option
-    (``fabric_units`` -> ``--fabric-units: ...``)."""
+    (``fabric_units`` -> ``--fabric-units: ...``; ``d_bits``/``w_bits`` -> ``--filter-bits``)."""
     from .errors import ParameterError
     try:
         return run()
     except ParameterError as e:
         if e.parameter is None:
             raise
-        raise ParameterError(f"--{e.parameter.replace('_', '-')}: {e}") from None
+        option = "filter_bits" if e.parameter in ("d_bits", "w_bits") else e.parameter
+        raise ParameterError(f"--{option.replace('_', '-')}: {e}") from None
 
 
 def _board_params(**values):
@@ -173,6 +174,22 @@ def _add_cell_option(p):
     p.add_argument("--cell", default="exact", metavar="exact|filtered",
                    help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
                         "tests to an exact unit; processor and cell units only, so far)")
+    p.add_argument("--filter-bits", default=None, metavar="D[:W]",
+                   help="with --cell filtered: mantissa bits of P - V_k and of w_k (2 to 18; default "
+                        "B+1:18, i.e. d exact); one number sets both")
+
+
+def _filter_format(text):
+    """``--filter-bits D[:W]`` as a FilterFormat (None when not given); errors name the option."""
+    if text is None:
+        return None
+    from .errors import ParameterError
+    from .filtered import FilterFormat
+    parts = text.split(":")
+    if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
+        raise ParameterError(f"--filter-bits must be D or D:W (integers), not {text!r}")
+    bits = [int(p) for p in parts]
+    return _naming_option(lambda: FilterFormat(bits[0], bits[-1]))
 
 
 def _unit_list(text):
@@ -207,7 +224,8 @@ def _cmd_verilog(args):
     from .synth.verilog import write_verilog
     params = _unit_params(args)
     _naming_option(lambda: write_verilog(args.out, args.unit, params, target=args.target,
-                                         fabric_units=args.fabric_units, cell=args.cell))
+                                         fabric_units=args.fabric_units, cell=args.cell,
+                                         filter_format=_filter_format(args.filter_bits)))
     return 0
 
 
@@ -248,7 +266,7 @@ def _cmd_synth(args):
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
         seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units,
-        cell=args.cell))
+        cell=args.cell, filter_format=_filter_format(args.filter_bits)))
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")

@@ -89,9 +89,10 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     pieces = 1 if cross <= 18 else 1 + -(-(cross - 18) // 17)
     narrow = 1 if diff <= 18 else 2
     product = pieces * narrow
+    cells = 0 if "cell" in fabric_units else rows * cols * 9 * product
     receiver = 0 if "receiver" in fabric_units else rows * (18 * narrow + 3 * product)
     shooter = 0 if "shooter" in fabric_units else cols * 3 * product
-    return rows * cols * 9 * product + receiver + shooter
+    return cells + receiver + shooter
 
 
 def check_speed(speed, device):
@@ -187,7 +188,8 @@ def _critical_path(report, clock):
 
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
-                 threads=2, workdir=None, place=True, router="router2", fabric_units=(), cell="exact"):
+                 threads=2, workdir=None, place=True, router="router2", fabric_units=(), cell="exact",
+                 filter_format=None):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
@@ -197,7 +199,8 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`). ``speed``:
     the part's speed grade for nextpnr (6, 7 or 8; None = the part's default, :data:`DEVICES`);
     the report's ``speed`` and ``part`` (e.g. ``LFE5U-85F-6``) say which grade was used.
-    ``cell``: ``exact`` or ``filtered`` (:data:`~blockray.synth.verilog.CELLS`).
+    ``cell``: ``exact`` or ``filtered`` (:data:`~blockray.synth.verilog.CELLS`), the latter with
+    ``filter_format`` (a :class:`~blockray.filtered.FilterFormat`; None: d exact, w 18 bits).
     """
     if router not in ("router1", "router2"):
         raise ParameterError(f"--router must be router1 or router2, not {router!r}")
@@ -210,12 +213,12 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
-    check_cell(unit, cell)                               # a bad cell/unit pair fails here, before any tool
-    report = {"unit": unit, "cell": cell, "params": _params_dict(unit, params), "target": target,
+    check_cell(unit, cell, filter_format)                # a bad cell/unit pair fails here, before any tool
+    report = {"unit": unit, "cell": cell, "filter_format": None if filter_format is None else str(filter_format), "params": _params_dict(unit, params), "target": target,
               "tools": _versions(), "machine": _machine()}
 
     if target == "generic":
-        stats = synth_stats(build_unit(unit, params, cell), name=f"blockray_{unit}", target="generic")
+        stats = synth_stats(build_unit(unit, params, cell, filter_format), name=f"blockray_{unit}", target="generic")
         report.update({
             "resources": {"cells": stats.cells, "ffs": stats.ffs, "multipliers": stats.multipliers},
             "mul_widths": [list(w) for w in stats.mul_widths],
@@ -232,10 +235,11 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
             return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, Path(tmp), place, router,
-                         ecp5, cell)
+                         ecp5, (cell, filter_format))
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, workdir, place, router, ecp5, cell)
+    return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, workdir, place, router, ecp5,
+                 (cell, filter_format))
 
 
 #: synth_ecp5 with its LUT mapping step (``abc9``) replaced by classic ``abc -lut 4``: the
@@ -275,7 +279,7 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
 def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, place, router, ecp5, cell):
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
-    component = build_unit(unit, params, cell)
+    component = build_unit(unit, params, *cell)
     lut_multipliers = bool(ecp5.fabric_units)
     unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False,
                                                              platform=ecp5),
@@ -304,7 +308,7 @@ def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, pl
 
     # 2. the harnessed unit, for place and route (the harness's cost is the difference)
     top = f"{name}_top"
-    harness = LfsrHarness(build_unit(unit, params, cell))
+    harness = LfsrHarness(build_unit(unit, params, *cell))
     total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(
         verilog.convert(harness, name=top, emit_src=False, platform=ecp5), top, tmp, top, netlist=True,
         lut_multipliers=lut_multipliers)

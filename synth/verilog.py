@@ -42,8 +42,11 @@ def _check_unit(unit):
     return unit
 
 
-def check_cell(unit, cell):
-    """``cell`` if it is one of :data:`CELLS` and built for ``unit``, else ParameterError."""
+def check_cell(unit, cell, filter_format=None):
+    """``cell`` if it is one of :data:`CELLS` and built for ``unit`` (a ``filter_format`` only with
+    the filtered cell), else ParameterError."""
+    if filter_format is not None and cell != "filtered":
+        raise ParameterError("a filter format needs the filtered cell (--cell filtered)", parameter="filter_bits")
     if cell not in CELLS:
         raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
     if cell == "filtered" and unit not in ("processor", "cell"):
@@ -52,23 +55,24 @@ def check_cell(unit, cell):
     return cell
 
 
-def _filtered_unit(unit, params):
+def _filtered_unit(unit, params, fmt):
     from ..filtered import FilterFormat
     from ..rtl.filtered import FilteredIntersector, FilteredProcessor
     if unit == "processor":
-        return FilteredIntersector(params.bits)
-    return FilteredProcessor(FilterFormat(min(params.bits + 1, 18), 18))
+        return FilteredIntersector(params.bits, fmt)
+    return FilteredProcessor(fmt if fmt is not None else FilterFormat(min(params.bits + 1, 18), 18))
 
 
-def build_unit(unit, params=None, cell="exact"):
+def build_unit(unit, params=None, cell="exact", filter_format=None):
     """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`),
-    with the ``exact`` or the ``filtered`` cell."""
+    with the ``exact`` or the ``filtered`` cell (``filter_format``: a
+    :class:`~blockray.filtered.FilterFormat`, default d exact and w at 18 bits)."""
     _check_unit(unit)
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
-    if check_cell(unit, cell) == "filtered":
-        return _filtered_unit(unit, params)
+    if check_cell(unit, cell, filter_format) == "filtered":
+        return _filtered_unit(unit, params, filter_format)
     if unit == "processor":
         from ..rtl.processor import Intersector
         return Intersector(params.bits)
@@ -82,18 +86,21 @@ def build_unit(unit, params=None, cell="exact"):
     return BoardTop(params)
 
 
-def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact"):
+def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",
+                 filter_format=None):
     """Readable Verilog (no source attributes) of ``unit`` with ``cell`` for ``target``
     (``generic`` or ``ecp5``, with ``fabric_units``); the top module is ``name`` (default
     ``blockray_<unit>``)."""
     platform = target_platform(target, fabric_units)
-    component = build_unit(unit, params, cell)
+    component = build_unit(unit, params, cell, filter_format)
     return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
-def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact"):
+def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",
+                  filter_format=None):
     """Write :func:`unit_verilog` to ``path``; returns the text."""
-    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell)
+    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell,
+                        filter_format=filter_format)
     try:
         with open(path, "w") as f:
             f.write(text)

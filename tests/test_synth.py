@@ -91,6 +91,12 @@ def test_verilog_cli_filtered_cell(tmp_path):
     out = tmp_path / "p.v"
     assert main(["verilog", "processor", "--bits", "8", "--cell", "filtered", "--out", str(out)]) == 0
     assert "module blockray_processor(" in out.read_text()
+    # a 9 x 9 filter with the cell's products on LUT multipliers: no DSP left in the cell
+    out = tmp_path / "c9.v"
+    assert main(["verilog", "cell", "--bits", "16", "--target", "ecp5", "--cell", "filtered", "--filter-bits", "9",
+                 "--fabric-units", "cell", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "MULT18X18D" not in text and text.count(" * ") == 9
 
 
 def test_nextpnr_gets_the_speed_grade():
@@ -114,6 +120,7 @@ def test_dsp_estimate():
     assert dsp_estimate(16, 1, 5, ("shooter",)) == 5 * 18 + 24 == 114
     assert dsp_estimate(16, 1, 6, ("shooter",)) == 132
     assert dsp_estimate(16, 2, 3, ("shooter", "receiver")) == 6 * 18
+    assert dsp_estimate(16, 4, 4, ("cell",)) == 4 * 24 + 4 * 6
 
 
 @pytest.mark.synth
@@ -166,11 +173,14 @@ def test_verilog_cli_ecp5_target(tmp_path):
     (["verilog", "board", "--patch-depth", "0"], "--patch-depth"),
     (["verilog", "gpu"], "UNIT"),
     (["synth", "processor", "--bits", "3"], "--bits"),
-    (["synth", "array", "--fabric-units", "cell"], "--fabric-units"),
+    (["synth", "array", "--fabric-units", "processor"], "--fabric-units"),
     (["verilog", "array", "--fabric-units", "shooter"], "--fabric-units"),     # generic target
     (["synth", "processor", "--speed", "5"], "--speed"),
     (["verilog", "processor", "--cell", "fast"], "--cell"),
     (["synth", "array", "--cell", "filtered"], "--cell"),                      # not built yet
+    (["verilog", "cell", "--cell", "filtered", "--filter-bits", "19"], "--filter-bits"),
+    (["verilog", "cell", "--cell", "filtered", "--filter-bits", "9:x"], "--filter-bits"),
+    (["synth", "cell", "--filter-bits", "9"], "--filter-bits"),                 # exact cell
     (["synth", "processor", "--speed", "-8"], "--speed"),
     (["synth", "processor", "--speed", "fast"], "--speed"),
 ])
