@@ -136,9 +136,9 @@ class FilteredProcessor(wiring.Component):
     filter_decision`).
 
     Stages 1-2: the nine products d^_kc w^_kc (:func:`~blockray.rtl.processor._product`, one
-    MULT18X18D each on ECP5) and lo_k, hi_k; stage 3: s^_k; stage 4: the certificates s^ >= lo,
-    s^ > lo, s^ <= -hi, s^ < -hi; stage 5: ``decided`` and ``blocked`` (meaningful when
-    ``decided``). ``crossing`` (sign(pP) sign(pQ) < 0, exact) comes with the terms.
+    MULT18X18D each on ECP5) and lo_k, hi_k; stage 3: s^_k; stage 4: s^ - lo and s^ + hi (one
+    adder each); stage 5: the certificates s^ >= lo, s^ > lo, s^ <= -hi, s^ < -hi from their
+    signs and zero tests, and ``decided`` and ``blocked`` (meaningful when ``decided``). ``crossing`` (sign(pP) sign(pQ) < 0, exact) comes with the terms.
     Latency :attr:`latency` = 5, one test per cycle.
     """
 
@@ -174,11 +174,15 @@ class FilteredProcessor(wiring.Component):
             m.d.sync += [lo1.eq(Mux(b, sh.neg[k], 0) + Mux(a, rc.neg[k], 0)),
                          hi1.eq(Mux(b, sh.pos[k], 0) + Mux(a, rc.pos[k], 0))]
             lo3, hi3 = _delay(m, lo1, 2, f"lo{k}"), _delay(m, hi1, 2, f"hi{k}")
-            for out, expr, tag in ((ge, s3 >= lo3, "ge"), (gt, s3 > lo3, "gt"),
-                                   (le, s3 <= -hi3, "le"), (lt, s3 < -hi3, "lt")):
-                reg = Signal(name=f"{tag}{k}_4")
-                m.d.sync += reg.eq(expr)
-                out.append(reg)
+            # stage 4: one adder each (no -hi formed, no comparator after an adder)
+            x4 = Signal(signed(width + 1), name=f"x{k}_4")           # s^ - lo
+            y4 = Signal(signed(width + 1), name=f"y{k}_4")           # s^ + hi
+            m.d.sync += [x4.eq(s3 - lo3), y4.eq(s3 + hi3)]
+            # stage 5 (with the decision): the certificates from signs and zero tests
+            ge.append(~x4[-1])
+            gt.append(~x4[-1] & (x4 != 0))
+            le.append(y4[-1] | (y4 == 0))
+            lt.append(y4[-1])
         crossing4 = _delay(m, self.crossing, 4, "crossing")
         inside = (ge[0] & ge[1] & ge[2]) | (le[0] & le[1] & le[2])
         outside = (gt[0] | gt[1] | gt[2]) & (lt[0] | lt[1] | lt[2])
