@@ -26,15 +26,20 @@ import time
 from pathlib import Path
 
 from blockray.params import BoardParams
-from blockray.synth.nextpnr import DEVICES, dsp_estimate, synth_report
+from blockray.synth.nextpnr import DEVICES, SPEEDS, dsp_estimate, synth_report
 
 
 def _row(name, r):
     res = r["resources"]
     fmax = r.get("fmax_mhz")
-    return (f"{name:28s} LUT {res['luts']:7d}  FF {res['ffs']:7d}  DSP {res['dsps']:5d}  BRAM {res['brams']:4d}  "
+    return (f"{name:28s} {r.get('part', '')} LUT {res['luts']:7d}  FF {res['ffs']:7d}  DSP {res['dsps']:5d}  BRAM {res['brams']:4d}  "
             f"fits {str(r['fits']):5s}  Fmax {fmax if fmax else '-':>7}  "
             f"({', '.join(f'{k} {v}s' for k, v in r['seconds'].items())})")
+
+
+def _grade(args):
+    """Report-name suffix of a non-default speed grade."""
+    return "" if args.speed is None else f"-speed{args.speed}"
 
 
 def run(name, unit, params, out, **kw):
@@ -48,8 +53,8 @@ def run(name, unit, params, out, **kw):
 def processors(out, args):
     for bits in (12, 14, 16):
         for seed in args.seeds:
-            run(f"processor-B{bits}-seed{seed}", "processor", BoardParams(bits=bits), out, device=args.device,
-                freq=args.freq, seed=seed)
+            run(f"processor-B{bits}-seed{seed}{_grade(args)}", "processor", BoardParams(bits=bits), out,
+                device=args.device, speed=args.speed, freq=args.freq, seed=seed)
 
 
 def largest_array(out, args):
@@ -64,8 +69,9 @@ def largest_array(out, args):
         r = run(f"array-{rows}x{cols}-B{bits}{tag}-yosys", "array", params, out, device=args.device, place=False,
                 fabric_units=args.fabric_units)
         if r["fits"]:
-            return [run(f"array-{rows}x{cols}-B{bits}{tag}-seed{seed}", "array", params, out, device=args.device,
-                        freq=args.freq, seed=seed, fabric_units=args.fabric_units) for seed in args.seeds]
+            return [run(f"array-{rows}x{cols}-B{bits}{tag}-seed{seed}{_grade(args)}", "array", params, out,
+                        device=args.device, speed=args.speed, freq=args.freq, seed=seed,
+                        fabric_units=args.fabric_units) for seed in args.seeds]
     return None
 
 
@@ -79,6 +85,8 @@ def main(argv=None):
     p.add_argument("--out", default="synth-reports", help="directory for the JSON reports and tool files")
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"])
     p.add_argument("--freq", type=float, default=100.0)
+    p.add_argument("--speed", type=int, default=None, choices=SPEEDS,
+                   help="ECP5 speed grade for nextpnr (default the part's, -6)")
     p.add_argument("--bits", type=int, default=BoardParams().bits, help="B of the array search")
     p.add_argument("--seeds", type=int, nargs="+", default=[1], help="nextpnr placement seeds (default 1)")
     p.add_argument("--fabric-units", type=lambda t: tuple(u for u in t.split(",") if u), default=(),

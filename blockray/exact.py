@@ -25,7 +25,8 @@ the 4x4 orient3d determinant, for testing.
 
 import numpy as np
 
-__all__ = ["orient3d", "blocked_reference", "patch_normals", "blocked_block", "block_terms"]
+__all__ = ["orient3d", "blocked_reference", "patch_normals", "blocked_block", "block_terms", "vertex_terms",
+           "edge_terms", "plane_sides", "plane_crossing"]
 
 
 def orient3d(a, b, c, d):
@@ -56,30 +57,51 @@ def patch_normals(vertices):
     return np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
 
 
+def vertex_terms(P, Q, V):
+    """The units' vectors for broadcast-aligned P (..., 3), Q (..., 3), V (..., 3, 3):
+    ``dP`` = P - V_k, ``dQ`` = Q - V_k and ``w`` = (Q - V_k) x (V_{k+1} - V_k), each (..., 3, 3)."""
+    E = np.roll(V, -1, axis=-2) - V                                   # e_k = V_{k+1} - V_k
+    dP = P[..., None, :] - V                                          # shooter unit
+    dQ = Q[..., None, :] - V
+    return dP, dQ, np.cross(dQ, E)                                    # receiver unit: w_k
+
+
+def edge_terms(shooters, receivers, vertices):
+    """:func:`vertex_terms` of a block: ``dP`` (S, N, 3, 3), ``dQ`` and ``w`` (R, N, 3, 3), int64."""
+    P = np.asarray(shooters, dtype=np.int64)
+    Q = np.asarray(receivers, dtype=np.int64)
+    V = np.asarray(vertices, dtype=np.int64)
+    return vertex_terms(P[:, None], Q[:, None], V)                    # P and Q never meet here
+
+
 def block_terms(shooters, receivers, vertices, normals):
     """The shared terms of one block against N patches.
 
     shooters (S, 3), receivers (R, 3), vertices (N, 3, 3), normals (N, 3), all int64.
     Returns ``pP (S, N)``, ``pQ (R, N)``, ``sides (R, S, N, 3)`` (the s_k), as int64.
     """
-    P = np.asarray(shooters, dtype=np.int64)
-    Q = np.asarray(receivers, dtype=np.int64)
-    V = np.asarray(vertices, dtype=np.int64)
-    n = np.asarray(normals, dtype=np.int64)
-    E = np.roll(V, -1, axis=1) - V                                    # e_k = V_{k+1} - V_k  (N, 3, 3)
-    dQ = Q[:, None, None, :] - V[None]                                # Q_r - V_k            (R, N, 3, 3)
-    w = np.cross(dQ, E[None])                                         # receiver unit        (R, N, 3, 3)
-    dP = P[:, None, None, :] - V[None]                                # shooter unit         (S, N, 3, 3)
-    pP = np.einsum("snc,nc->sn", dP[:, :, 0, :], n)
-    pQ = np.einsum("rnc,nc->rn", dQ[:, :, 0, :], n)
+    dP, dQ, w = edge_terms(shooters, receivers, vertices)
+    pP, pQ = plane_sides(dP, dQ, normals)
     sides = np.einsum("snkc,rnkc->rsnk", dP, w)                       # processors           (R, S, N, 3)
     return pP, pQ, sides
+
+
+def plane_sides(dP, dQ, normals):
+    """pP = n . (P - V0) and pQ = n . (Q - V0) from the dP, dQ of :func:`vertex_terms` or
+    :func:`edge_terms` (then (S, N) and (R, N)), normals broadcast against them."""
+    n = np.asarray(normals, dtype=np.int64)
+    return np.einsum("...c,...c->...", dP[..., 0, :], n), np.einsum("...c,...c->...", dQ[..., 0, :], n)
+
+
+def plane_crossing(pP, pQ):
+    """sign(pP) sign(pQ) < 0 for every (receiver, shooter, patch): pP (S, N), pQ (R, N) -> (R, S, N)."""
+    return (np.sign(pQ)[:, None, :] * np.sign(pP)[None, :, :]) < 0
 
 
 def blocked_block(shooters, receivers, vertices, normals):
     """Blocked bits of every (receiver r, shooter s, patch t): bool array (R, S, N)."""
     pP, pQ, sides = block_terms(shooters, receivers, vertices, normals)
-    crossing = (np.sign(pQ)[:, None, :] * np.sign(pP)[None, :, :]) < 0
+    crossing = plane_crossing(pP, pQ)
     s0, s1, s2 = sides[..., 0], sides[..., 1], sides[..., 2]
     # written out: a reduction over an axis of length 3 costs more than the comparisons
     inside = ((s0 >= 0) & (s1 >= 0) & (s2 >= 0)) | ((s0 <= 0) & (s1 <= 0) & (s2 <= 0))

@@ -413,6 +413,7 @@ class Processor(wiring.Component):
         pp, pq = self.shooter.pp, self.receiver.pq
         m.d.sync += crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0)))
 
+        platform = product_platform(platform, "cell")
         # stage 1: the operands (d_k)_c and the pieces of (w_k)_c registered; stage 2: their
         # partial products (each straight from a DSP into registers, :func:`_product`);
         # stage 3: per shift, their sum over the three axes

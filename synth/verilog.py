@@ -11,6 +11,11 @@ Units (``UNITS``):
 ``board``      :class:`~blockray.rtl.board.BoardTop`: command/result streams, patch memory and
                voxel table, the R x S array. Uses every parameter but ``boards``.
 
+``cell`` (``CELLS``, ``--cell``): ``exact`` (default) builds the above; ``filtered`` builds the
+filtered cell of :mod:`blockray.rtl.filtered` (``processor``: :class:`FilteredIntersector`,
+``cell``: :class:`FilteredProcessor`, both with the default format, d_k exact and w_k at 18
+bits). The filtered array and board are not built yet.
+
     text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
     text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
 
@@ -25,9 +30,11 @@ from ..errors import ParameterError
 from ..params import BoardParams
 from .target import target_platform
 
-__all__ = ["UNITS", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog", "write_verilog"]
+__all__ = ["UNITS", "CELLS", "check_cell", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog",
+           "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
+CELLS = ("exact", "filtered")
 
 #: Largest board memory (patch memory + voxel table) that is built: 16 Mbit, 4.5 x the block RAM
 #: of the largest ECP5 (LFE5U-85F: 208 x 18 Kbit). Amaranth's conversion needs 130-155 bytes of
@@ -60,12 +67,37 @@ def _check_unit(unit):
     return unit
 
 
-def build_unit(unit, params=None):
-    """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`)."""
+def check_cell(unit, cell, filter_format=None):
+    """``cell`` if it is one of :data:`CELLS` and built for ``unit`` (a ``filter_format`` only with
+    the filtered cell), else ParameterError."""
+    if filter_format is not None and cell != "filtered":
+        raise ParameterError("a filter format needs the filtered cell (--cell filtered)", parameter="filter_bits")
+    if cell not in CELLS:
+        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
+    if cell == "filtered" and unit not in ("processor", "cell"):
+        raise ParameterError(f"the filtered cell exists as a processor and a cell only, not as {unit!r} "
+                             f"(the filtered array and board are not built yet)", parameter="cell")
+    return cell
+
+
+def _filtered_unit(unit, params, fmt):
+    from ..filtered import FilterFormat
+    from ..rtl.filtered import FilteredIntersector, FilteredProcessor
+    if unit == "processor":
+        return FilteredIntersector(params.bits, fmt)
+    return FilteredProcessor(fmt if fmt is not None else FilterFormat(min(params.bits + 1, 18), 18))
+
+
+def build_unit(unit, params=None, cell="exact", filter_format=None):
+    """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`),
+    with the ``exact`` or the ``filtered`` cell (``filter_format``: a
+    :class:`~blockray.filtered.FilterFormat`, default d exact and w at 18 bits)."""
     _check_unit(unit)
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
+    if check_cell(unit, cell, filter_format) == "filtered":
+        return _filtered_unit(unit, params, filter_format)
     if unit == "processor":
         from ..rtl.processor import Intersector
         return Intersector(params.bits)
@@ -80,17 +112,21 @@ def build_unit(unit, params=None):
     return BoardTop(params)
 
 
-def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=()):
-    """Readable Verilog (no source attributes) of ``unit`` for ``target`` (``generic`` or
-    ``ecp5``, with ``fabric_units``); the top module is ``name`` (default ``blockray_<unit>``)."""
+def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",
+                 filter_format=None):
+    """Readable Verilog (no source attributes) of ``unit`` with ``cell`` for ``target``
+    (``generic`` or ``ecp5``, with ``fabric_units``); the top module is ``name`` (default
+    ``blockray_<unit>``)."""
     platform = target_platform(target, fabric_units)
-    component = build_unit(unit, params)
+    component = build_unit(unit, params, cell, filter_format)
     return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
-def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=()):
+def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",
+                  filter_format=None):
     """Write :func:`unit_verilog` to ``path``; returns the text."""
-    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units)
+    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell,
+                        filter_format=filter_format)
     try:
         with open(path, "w") as f:
             f.write(text)

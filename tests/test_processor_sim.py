@@ -25,11 +25,12 @@ SEED = 20240604
 pytestmark = pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")
 
 
-def run_intersector(bits, tests, *, seed, bubble=0.0, stall=0.0, max_cycles=None):
-    """Stream ``tests`` through an :class:`Intersector`, with random input gaps (probability
-    ``bubble`` per cycle) and output backpressure (``stall``). Checks the stream rules on ``o``.
-    Returns (results in output order as dicts, cycles simulated, the dut)."""
-    dut = Intersector(bits)
+def run_intersector(bits, tests, *, seed, bubble=0.0, stall=0.0, max_cycles=None, dut=None):
+    """Stream ``tests`` through an :class:`Intersector` (or ``dut``, a component with its
+    ports), with random input gaps (probability ``bubble`` per cycle) and output backpressure
+    (``stall``). Checks the stream rules on ``o``. Returns (results in output order as dicts,
+    cycles simulated, the dut)."""
+    dut = Intersector(bits) if dut is None else dut
     words = tests.words(bits)
     rng = np.random.default_rng(seed)
     gaps = rng.random(len(words) * 4) < bubble

@@ -15,7 +15,7 @@ from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
 from blockray.cli import main
-from blockray.synth.nextpnr import DEVICES, dsp_estimate
+from blockray.synth.nextpnr import DEVICES, SPEEDS, check_speed, dsp_estimate, nextpnr_args
 from blockray.synth.wrap import LfsrHarness
 
 BITS = 6
@@ -38,6 +38,7 @@ def test_processor_report(processor_report):
     print(json.dumps({k: r[k] for k in ("resources", "harness", "fmax_mhz", "seconds")}))
     assert r["unit"] == "processor" and r["params"] == {"bits": BITS}
     assert r["device"] == "LFE5U-85F" and r["package"] == "CABGA381"
+    assert r["speed"] == 6 and r["part"] == "LFE5U-85F-6" and r["nextpnr"]["speed"] == 6   # the ULX3S's grade
     res = r["resources"]
     assert res["dsps"] == PRODUCTS == dsp_estimate(BITS)  # every product in one DSP, none in LUTs
     # ... and every DSP of the netlist nextpnr gets has its A, B and P registers on CLK0
@@ -69,13 +70,43 @@ def test_unit_too_big_for_the_part_is_reported_not_placed(tmp_path):
     """The B = 6 processor needs 33 DSPs: it fits the 85k part (156) but not the 25k (28); the
     report says which resource is short, without running nextpnr."""
     path = tmp_path / "p.json"
-    assert main(["synth", "processor", "--bits", str(BITS), "--device", "25k", "--report", str(path)]) == 0
+    assert main(["synth", "processor", "--bits", str(BITS), "--device", "25k", "--speed", "8",
+                 "--report", str(path)]) == 0
     r = json.loads(path.read_text())
     assert r["device"] == "LFE5U-25F" and r["available"]["dsps"] == 28
+    assert r["speed"] == 8 and r["part"] == "LFE5U-25F-8"
     assert r["resources"]["dsps"] == PRODUCTS
     assert r["fits"] is False and r["limits"] == ["dsps"]
     assert r["nextpnr"]["ran"] is False and "dsps 33 > 28" in r["nextpnr"]["skipped"]
     assert r["fmax_mhz"] is None
+
+
+def test_verilog_cli_filtered_cell(tmp_path):
+    """``--cell filtered``: the filtered cell's nine narrow products, one MULT18X18D each at
+    B = 16 (d_k exact at 17 bits, w_k at 18), against 18 for the exact cell."""
+    for cell, dsps in (("filtered", 9), ("exact", 18)):
+        out = tmp_path / f"{cell}.v"
+        assert main(["verilog", "cell", "--bits", "16", "--target", "ecp5", "--cell", cell, "--out", str(out)]) == 0
+        assert out.read_text().count("MULT18X18D #(") == dsps
+    out = tmp_path / "p.v"
+    assert main(["verilog", "processor", "--bits", "8", "--cell", "filtered", "--out", str(out)]) == 0
+    assert "module blockray_processor(" in out.read_text()
+    # a 9 x 9 filter with the cell's products on LUT multipliers: no DSP left in the cell
+    out = tmp_path / "c9.v"
+    assert main(["verilog", "cell", "--bits", "16", "--target", "ecp5", "--cell", "filtered", "--filter-bits", "9",
+                 "--fabric-units", "cell", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "MULT18X18D" not in text and text.count(" * ") == 9
+
+
+def test_nextpnr_gets_the_speed_grade():
+    """nextpnr's arguments carry ``--speed``: the part's default grade (-6, the ULX3S) or the one
+    asked for."""
+    assert check_speed(None, "85k") == check_speed(None, "25k") == 6
+    for grade in SPEEDS:
+        args = nextpnr_args("top.json", device="85k", speed=check_speed(grade, "85k"), freq=100, seed=1,
+                            threads=2, router="router2")
+        assert args[:3] == ["--85k", "--speed", str(grade)] and args.count("--speed") == 1
 
 
 def test_dsp_estimate():
@@ -89,6 +120,7 @@ def test_dsp_estimate():
     assert dsp_estimate(16, 1, 5, ("shooter",)) == 5 * 18 + 24 == 114
     assert dsp_estimate(16, 1, 6, ("shooter",)) == 132
     assert dsp_estimate(16, 2, 3, ("shooter", "receiver")) == 6 * 18
+    assert dsp_estimate(16, 4, 4, ("cell",)) == 4 * 24 + 4 * 6
 
 
 @pytest.mark.synth
@@ -141,8 +173,16 @@ def test_verilog_cli_ecp5_target(tmp_path):
     (["verilog", "board", "--patch-depth", "0"], "--patch-depth"),
     (["verilog", "gpu"], "UNIT"),
     (["synth", "processor", "--bits", "3"], "--bits"),
-    (["synth", "array", "--fabric-units", "cell"], "--fabric-units"),
+    (["synth", "array", "--fabric-units", "processor"], "--fabric-units"),
     (["verilog", "array", "--fabric-units", "shooter"], "--fabric-units"),     # generic target
+    (["synth", "processor", "--speed", "5"], "--speed"),
+    (["verilog", "processor", "--cell", "fast"], "--cell"),
+    (["synth", "array", "--cell", "filtered"], "--cell"),                      # not built yet
+    (["verilog", "cell", "--cell", "filtered", "--filter-bits", "19"], "--filter-bits"),
+    (["verilog", "cell", "--cell", "filtered", "--filter-bits", "9:x"], "--filter-bits"),
+    (["synth", "cell", "--filter-bits", "9"], "--filter-bits"),                 # exact cell
+    (["synth", "processor", "--speed", "-8"], "--speed"),
+    (["synth", "processor", "--speed", "fast"], "--speed"),
 ])
 def test_bad_parameters_exit_2(tmp_path, capsys, argv, option):
     out = tmp_path / "x.v"
