@@ -18,11 +18,13 @@ sums and a division each round once), is certified when its magnitude exceeds
 (p0 = sum of the six |products|, g_x / g_y = the same with row x / y replaced by ones: the first
 term covers the rounding of the differences and of the evaluation, 8 u p0, the others the
 rounding of the end points). **Exact stage**: otherwise the determinant is evaluated in
-floating-point expansions (Shewchuk 1997: two-sum, two-product by Dekker's split, grow and
-scale with zero elimination) and its sign is that of the largest component. Expansion arithmetic
-is exact while nothing overflows or underflows: :func:`check_range` requires every coordinate to
-be 0 or within 2^-300 .. 2^300 in magnitude (products of three differences then stay within
-2^-1074 .. 2^1000).
+floating-point expansions (Shewchuk 1997: two-sum, two-product by Dekker's split, grow with zero
+elimination): every row entry is an exact sum of at most 12 floats, and the determinant the exact
+sum of all triple products, each split into four floats, grown into one expansion whose largest
+component gives the sign. (A shortcut first: a triangle in a plane x_c = const and a point whose
+vertices all have that x_c are on the plane, exactly.) Expansion arithmetic is exact while
+nothing overflows or underflows: :func:`check_range` requires every coordinate to be 0 or within
+2^-300 .. 2^300 in magnitude (products of three differences then stay within 2^-1074 .. 2^1000).
 
 Both stages are compiled with numba (``cache=True``).
 """
@@ -82,92 +84,74 @@ def _two_product(a, b):
     return x, alo * blo - err
 
 
-@njit(cache=True)
-def _grow(e, n, b):
-    """e (n components, nonoverlapping, increasing) + b -> new expansion (zero-eliminated)."""
-    h = np.empty(n + 1)
+@njit(cache=True, inline="always")
+def _grow(h, n, b):
+    """h[:n] (nonoverlapping, increasing) + b, in place (Shewchuk's grow_expansion_zeroelim:
+    the output index never passes the input index). Returns the new length (>= 1)."""
     m = 0
     q = b
     for i in range(n):
-        q, hh = _two_sum(q, e[i])
+        q, hh = _two_sum(q, h[i])
         if hh != 0.0:
             h[m] = hh
             m += 1
     if q != 0.0 or m == 0:
         h[m] = q
         m += 1
-    return h[:m]
+    return m
 
 
-@njit(cache=True)
-def _add(e, f):
-    h = e
-    for i in range(len(f)):
-        h = _grow(h, len(h), f[i])
-    return h
-
-
-@njit(cache=True)
-def _scale(e, b):
-    """e * b (Shewchuk's scale_expansion_zeroelim)."""
-    h = np.empty(2 * len(e))
-    m = 0
-    q, hh = _two_product(e[0], b)
-    if hh != 0.0:
-        h[m] = hh
-        m += 1
-    for i in range(1, len(e)):
-        p1, p0 = _two_product(e[i], b)
-        s, hh = _two_sum(q, p0)
-        if hh != 0.0:
-            h[m] = hh
-            m += 1
-        q = p1 + s
-        hh = s - (q - p1)
-        if hh != 0.0:
-            h[m] = hh
-            m += 1
-    if q != 0.0 or m == 0:
-        h[m] = q
-        m += 1
-    return h[:m]
-
-
-@njit(cache=True)
-def _mul(e, f):
-    h = _scale(e, f[0])
-    for i in range(1, len(f)):
-        h = _add(h, _scale(e, f[i]))
-    return h
-
-
-@njit(cache=True)
-def _neg(e):
-    return -e
-
-
-@njit(cache=True)
-def _row(E, w, b, c):
-    """Exact component c of sum_k w_k (E_k - b) as an expansion."""
-    h = np.zeros(1)
+@njit(cache=True, inline="always")
+def _parts(E, w, b, c, out):
+    """Floats out[:n] summing exactly to sum_k w_k (E_k[c] - b[c]); n <= 12."""
+    n = 0
     for k in range(3):
         if w[k] != 0:
-            d1, d0 = _two_sum(E[k, c], -b[c])
-            h = _add(h, _scale(np.array([d0, d1]), float(w[k])))
-    return h
+            hi, lo = _two_sum(E[k, c], -b[c])
+            for d in (hi, lo):
+                if d != 0.0:
+                    p, e = _two_product(d, float(w[k]))
+                    out[n] = p
+                    n += 1
+                    if e != 0.0:
+                        out[n] = e
+                        n += 1
+    return n
+
+
+_PERMS = np.array([[0, 1, 2, 1], [1, 2, 0, 1], [2, 0, 1, 1], [0, 2, 1, -1], [1, 0, 2, -1], [2, 1, 0, -1]])
+#: a nonoverlapping expansion within 2^-1074 .. 2^1024 has fewer components than this
+_CAPACITY = 2100
 
 
 @njit(cache=True)
 def _exact_sign(Ex, wx, Ey, wy, Ez, wz, b):
-    """Sign of det[rows sum w (E - b)] for the three (E, w) rows, exactly."""
-    x0, x1, x2 = _row(Ex, wx, b, 0), _row(Ex, wx, b, 1), _row(Ex, wx, b, 2)
-    y0, y1, y2 = _row(Ey, wy, b, 0), _row(Ey, wy, b, 1), _row(Ey, wy, b, 2)
-    z0, z1, z2 = _row(Ez, wz, b, 0), _row(Ez, wz, b, 1), _row(Ez, wz, b, 2)
-    c0 = _add(_mul(y1, z2), _neg(_mul(y2, z1)))
-    c1 = _add(_mul(y2, z0), _neg(_mul(y0, z2)))
-    c2 = _add(_mul(y0, z1), _neg(_mul(y1, z0)))
-    det = _add(_add(_mul(x0, c0), _mul(x1, c1)), _mul(x2, c2))
-    top = det[len(det) - 1]
+    """Sign of det[rows sum w (E - b)] for the three (E, w) rows, exactly: every row entry is an
+    exact sum of floats, the determinant the exact sum of all triple products (each split into
+    four floats by two-product), accumulated into one expansion."""
+    parts = np.empty((3, 3, 12))
+    count = np.empty((3, 3), dtype=np.int64)
+    for c in range(3):
+        count[0, c] = _parts(Ex, wx, b, c, parts[0, c])
+        count[1, c] = _parts(Ey, wy, b, c, parts[1, c])
+        count[2, c] = _parts(Ez, wz, b, c, parts[2, c])
+    h = np.empty(_CAPACITY)
+    h[0] = 0.0
+    n = 1
+    for r in range(6):
+        i, j, k, sign = _PERMS[r, 0], _PERMS[r, 1], _PERMS[r, 2], float(_PERMS[r, 3])
+        for a in range(count[0, i]):
+            for bb in range(count[1, j]):
+                p, e = _two_product(parts[0, i, a], parts[1, j, bb])
+                for cc in range(count[2, k]):
+                    z = parts[2, k, cc]
+                    for v in (p, e):
+                        if v != 0.0:
+                            q1, q0 = _two_product(v, z)
+                            n = _grow(h, n, sign * q1)
+                            if q0 != 0.0:
+                                n = _grow(h, n, sign * q0)
+    top = h[n - 1]
     return 1 if top > 0 else (-1 if top < 0 else 0)
 
 
@@ -175,29 +159,32 @@ def _exact_sign(Ex, wx, Ey, wy, Ez, wz, b):
 
 @njit(cache=True, inline="always")
 def _point(E, w):
-    """Rounded point sum w E / sum w (3,) and its error bound eta."""
+    """Rounded point sum w E / sum w, as 3 scalars, and its error bound eta."""
     D = float(w[0] + w[1] + w[2])
-    p = np.empty(3)
+    p0 = (w[0] * E[0, 0] + w[1] * E[1, 0] + w[2] * E[2, 0]) / D
+    p1 = (w[0] * E[0, 1] + w[1] * E[1, 1] + w[2] * E[2, 1]) / D
+    p2 = (w[0] * E[0, 2] + w[1] * E[1, 2] + w[2] * E[2, 2]) / D
     M = 0.0
-    for c in range(3):
-        p[c] = (w[0] * E[0, c] + w[1] * E[1, c] + w[2] * E[2, c]) / D
-        for k in range(3):
-            if w[k] != 0:
+    nonzero = 0
+    for k in range(3):
+        if w[k] != 0:
+            nonzero += 1
+            for c in range(3):
                 M = max(M, abs(E[k, c]))
-    exact = (w[0] == 0) + (w[1] == 0) + (w[2] == 0) == 2 and D == 1.0
-    return p, 0.0 if exact else 5.0 * U * M
+    eta = 0.0 if (nonzero == 1 and D == 1.0) else 5.0 * U * M
+    return p0, p1, p2, eta
 
 
-@njit(cache=True)
-def _filtered(x, ex, y, ey, z):
+@njit(cache=True, inline="always")
+def _filtered(x0, x1, x2, ex, y0, y1, y2, ey, z0, z1, z2):
     """Sign of det[x; y; z] if certified, else 2. Rows x, y carry end-point errors ex, ey."""
-    c0 = y[1] * z[2] - y[2] * z[1]
-    c1 = y[2] * z[0] - y[0] * z[2]
-    c2 = y[0] * z[1] - y[1] * z[0]
-    det = x[0] * c0 + x[1] * c1 + x[2] * c2
-    ax0, ax1, ax2 = abs(x[0]), abs(x[1]), abs(x[2])
-    ay0, ay1, ay2 = abs(y[0]), abs(y[1]), abs(y[2])
-    az0, az1, az2 = abs(z[0]), abs(z[1]), abs(z[2])
+    c0 = y1 * z2 - y2 * z1
+    c1 = y2 * z0 - y0 * z2
+    c2 = y0 * z1 - y1 * z0
+    det = x0 * c0 + x1 * c1 + x2 * c2
+    ax0, ax1, ax2 = abs(x0), abs(x1), abs(x2)
+    ay0, ay1, ay2 = abs(y0), abs(y1), abs(y2)
+    az0, az1, az2 = abs(z0), abs(z1), abs(z2)
     m0 = ay1 * az2 + ay2 * az1
     m1 = ay2 * az0 + ay0 * az2
     m2 = ay0 * az1 + ay1 * az0
@@ -212,19 +199,6 @@ def _filtered(x, ex, y, ey, z):
 _UNIT = np.array([1, 0, 0], dtype=np.int64)
 
 
-@njit(cache=True)
-def _plane_sign(T, E, w):
-    """Sign of the rational point sum w E / sum w against the plane of triangle T (right-handed)."""
-    p, eta = _point(E, w)
-    x = p - T[0]
-    y = T[1] - T[0]
-    z = T[2] - T[0]
-    s = _filtered(x, eta, y, 0.0, z)
-    if s != 2:
-        return s
-    return _exact_sign(E, w, _rows_of(T[1]), _UNIT, _rows_of(T[2]), _UNIT, T[0])
-
-
 @njit(cache=True, inline="always")
 def _rows_of(v):
     out = np.empty((3, 3))
@@ -232,6 +206,36 @@ def _rows_of(v):
     out[1] = v
     out[2] = v
     return out
+
+
+@njit(cache=True)
+def _on_axis_plane(T, E, w):
+    """Exact zero without arithmetic: T lies in a plane x_c = const and so does every vertex E_k
+    that the point depends on (the common case of axis-aligned walls)."""
+    for c in range(3):
+        v = T[0, c]
+        if T[1, c] == v and T[2, c] == v:
+            same = True
+            for k in range(3):
+                if w[k] != 0 and E[k, c] != v:
+                    same = False
+            if same:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _plane_sign(T, E, w):
+    """Sign of the rational point sum w E / sum w against the plane of triangle T (right-handed)."""
+    p0, p1, p2, eta = _point(E, w)
+    s = _filtered(p0 - T[0, 0], p1 - T[0, 1], p2 - T[0, 2], eta,
+                  T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2], 0.0,
+                  T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2])
+    if s != 2:
+        return s
+    if _on_axis_plane(T, E, w):
+        return 0
+    return _exact_sign(E, w, _rows_of(T[1]), _UNIT, _rows_of(T[2]), _UNIT, T[0])
 
 
 @njit(cache=True)
@@ -253,9 +257,10 @@ def plane_signs(triangles, points_of, weights):
 
 
 @njit(cache=True)
-def _edge_sign(Pp, eP, Pe, Pw, Qp, eQ, Qe, Qw, a, b):
-    """Sign of det[P - b; Q - b; a - b]."""
-    s = _filtered(Pp - b, eP, Qp - b, eQ, a - b)
+def _edge_sign(P, eP, Pe, Pw, Q, eQ, Qe, Qw, a, b):
+    """Sign of det[P - b; Q - b; a - b] (P, Q: rounded end points (3,), errors eP, eQ)."""
+    s = _filtered(P[0] - b[0], P[1] - b[1], P[2] - b[2], eP, Q[0] - b[0], Q[1] - b[1], Q[2] - b[2], eQ,
+                  a[0] - b[0], a[1] - b[1], a[2] - b[2])
     if s != 2:
         return s
     return _exact_sign(Pe, Pw, Qe, Qw, _rows_of(a), _UNIT, b)
@@ -263,22 +268,26 @@ def _edge_sign(Pp, eP, Pe, Pw, Qp, eQ, Qe, Qw, a, b):
 
 @njit(cache=True)
 def _blocked_rays(PE, PW, QE, QW, T, out, counters):
-    """out[r, s] |= segment P_s -> Q_r blocked by any triangle of T; counters: crossings, exact."""
+    """out[r, s] |= segment P_s -> Q_r blocked by any triangle of T; counters[0] += crossings."""
     S, R, N = len(PE), len(QE), len(T)
     Pp = np.empty((S, 3))
     eP = np.empty(S)
     Qp = np.empty((R, 3))
     eQ = np.empty(R)
     for s in range(S):
-        Pp[s], eP[s] = _point(PE[s], PW[s])
+        Pp[s, 0], Pp[s, 1], Pp[s, 2], eP[s] = _point(PE[s], PW[s])
     for r in range(R):
-        Qp[r], eQ[r] = _point(QE[r], QW[r])
+        Qp[r, 0], Qp[r, 1], Qp[r, 2], eQ[r] = _point(QE[r], QW[r])
     sP = np.empty(S, dtype=np.int8)
     sQ = np.empty(R, dtype=np.int8)
     for t in range(N):
         V = T[t]
+        anyP = False
         for s in range(S):
             sP[s] = _plane_sign(V, PE[s], PW[s])
+            anyP = anyP or sP[s] != 0
+        if not anyP:
+            continue
         for r in range(R):
             sQ[r] = _plane_sign(V, QE[r], QW[r])
         for r in range(R):

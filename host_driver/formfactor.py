@@ -99,11 +99,14 @@ def _cl2(theta):
 
 @njit(cache=True)
 def _im_li2(m, a):
-    """Im Li2(m e^{ia}) for m >= 0, 0 < a < pi (Lewin's identity in Clausen functions)."""
+    """Im Li2(m e^{ia}) - Cl2(2a)/2 for m >= 0, 0 < a < pi (Lewin's identity in Clausen
+    functions). The Cl2(2a)/2 terms of the three dilogarithms in ``f`` add up to
+    ``d^2 Cl2(2a) / sin a``, the same at the four corners of an edge pair, so they cancel in its
+    corner sum and are left out."""
     if m == 0.0:
-        return 0.0
+        return -0.5 * _cl2(2 * a)
     omega = math.atan2(m * math.sin(a), 1.0 - m * math.cos(a))
-    return omega * math.log(m) + 0.5 * (_cl2(2 * a) + _cl2(2 * omega) - _cl2(2 * omega + 2 * a))
+    return omega * math.log(m) + 0.5 * (_cl2(2 * omega) - _cl2(2 * omega + 2 * a))
 
 
 # ---------------------------------------------------------------------------- edge pairs
@@ -152,26 +155,22 @@ def _f_parallel(s, t, d):
 
 
 @njit(cache=True)
-def _edge_pair(a0, a1, b0, b1):
-    """(u . v) * (minus the corner sum of f) for edges a0->a1, b0->b1: the pair's share of
-    sum (u.v) int int ln r^2, up to the dropped constant."""
-    u = a1 - a0
-    v = b1 - b0
-    La = math.sqrt(u @ u)
-    Lb = math.sqrt(v @ v)
+def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
+    La = math.sqrt(ux * ux + uy * uy + uz * uz)
+    Lb = math.sqrt(vx * vx + vy * vy + vz * vz)
     if La == 0.0 or Lb == 0.0:
         return 0.0
-    u = u / La
-    v = v / Lb
-    c = u @ v
-    cr = np.cross(u, v)
-    S = math.sqrt(cr @ cr)
-    w0 = a0 - b0
-    if S < 1e-9:                                         # parallel (to rounding): both along u
-        t0 = (b0 - a0) @ u
-        t1 = (b1 - a0) @ u
-        perp = w0 + t0 * u
-        d = math.sqrt(perp @ perp)
+    ux, uy, uz = ux / La, uy / La, uz / La
+    vx, vy, vz = vx / Lb, vy / Lb, vz / Lb
+    c = ux * vx + uy * vy + uz * vz
+    cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    S = math.sqrt(cx * cx + cy * cy + cz * cz)
+    wx, wy, wz = a0x - b0x, a0y - b0y, a0z - b0z                 # w0 = a0 - b0
+    if S < 1e-9:                                                 # parallel (to rounding): both along u
+        t0 = -(wx * ux + wy * uy + wz * uz)                       # (b0 - a0) . u
+        t1 = t0 + Lb * c
+        px, py, pz = wx + t0 * ux, wy + t0 * uy, wz + t0 * uz
+        d = math.sqrt(px * px + py * py + pz * pz)
         return -(_f_parallel(La, t1, d) - _f_parallel(0.0, t1, d)
                  - _f_parallel(La, t0, d) + _f_parallel(0.0, t0, d))
     if c > 1.0:
@@ -179,12 +178,13 @@ def _edge_pair(a0, a1, b0, b1):
     elif c < -1.0:
         c = -1.0
     a = math.atan2(S, c)
-    uw, vw = u @ w0, v @ w0
+    uw = ux * wx + uy * wy + uz * wz
+    vw = vx * wx + vy * wy + vz * wz
     det = 1.0 - c * c
     det = S * S if det < S * S else det
     sc = (c * vw - uw) / det                              # closest point on line a: a0 + sc u
     tc = (vw - c * uw) / det                              # on line b: b0 + tc v
-    d = abs(w0 @ cr) / S
+    d = abs(wx * cx + wy * cy + wz * cz) / S
     s0, s1 = -sc, La - sc
     t0, t1 = -tc, Lb - tc
     return -c * (_f_skew(s1, t1, c, S, a, d) - _f_skew(s0, t1, c, S, a, d)
@@ -196,78 +196,94 @@ def _contour(P, nP, Q, nQ):
     """A_P F_PQ (= A_Q F_QP) for convex planar polygons P (nP vertices) and Q, both clipped."""
     total = 0.0
     for p in range(nP):
+        p1 = p + 1 if p + 1 < nP else 0
         for q in range(nQ):
-            total += _edge_pair(P[p], P[(p + 1) % nP], Q[q], Q[(q + 1) % nQ])
+            q1 = q + 1 if q + 1 < nQ else 0
+            total += _edge_pair_s(P[p, 0], P[p, 1], P[p, 2],
+                                  P[p1, 0] - P[p, 0], P[p1, 1] - P[p, 1], P[p1, 2] - P[p, 2],
+                                  Q[q, 0], Q[q, 1], Q[q, 2],
+                                  Q[q1, 0] - Q[q, 0], Q[q1, 1] - Q[q, 1], Q[q1, 2] - Q[q, 2])
     return abs(total) / (4 * math.pi)
 
 
 @njit(cache=True)
-def _clip(T, point, normal, out):
-    """Sutherland-Hodgman: the part of triangle T with normal . (x - point) >= 0 -> out (<= 4)."""
-    h = np.empty(3)
-    pos = False
-    for k in range(3):
-        h[k] = normal @ (T[k] - point)
-        pos = pos or h[k] > 0
-    if not pos:
+def _side(T, k, px, py, pz, nx, ny, nz):
+    return nx * (T[k, 0] - px) + ny * (T[k, 1] - py) + nz * (T[k, 2] - pz)
+
+
+@njit(cache=True)
+def _clip(T, px, py, pz, nx, ny, nz, out):
+    """Sutherland-Hodgman: the part of triangle T with n . (x - p) >= 0 -> out (<= 4 rows)."""
+    h0 = _side(T, 0, px, py, pz, nx, ny, nz)
+    h1 = _side(T, 1, px, py, pz, nx, ny, nz)
+    h2 = _side(T, 2, px, py, pz, nx, ny, nz)
+    if not (h0 > 0 or h1 > 0 or h2 > 0):
         return 0
     n = 0
     for k in range(3):
-        k1 = (k + 1) % 3
-        if h[k] >= 0:
-            out[n] = T[k]
+        k1 = k + 1 if k < 2 else 0
+        hk = h0 if k == 0 else (h1 if k == 1 else h2)
+        hk1 = h0 if k1 == 0 else (h1 if k1 == 1 else h2)
+        if hk >= 0:
+            out[n, 0], out[n, 1], out[n, 2] = T[k, 0], T[k, 1], T[k, 2]
             n += 1
-        if (h[k] > 0 and h[k1] < 0) or (h[k] < 0 and h[k1] > 0):
-            out[n] = T[k] + (h[k] / (h[k] - h[k1])) * (T[k1] - T[k])
+        if (hk > 0 and hk1 < 0) or (hk < 0 and hk1 > 0):
+            f = hk / (hk - hk1)
+            for c in range(3):
+                out[n, c] = T[k, c] + f * (T[k1, c] - T[k, c])
             n += 1
     return n
 
 
 @njit(cache=True)
-def _needs_clip(T, point, normal):
-    neg = False
+def _needs_clip(T, px, py, pz, nx, ny, nz):
     for k in range(3):
-        neg = neg or normal @ (T[k] - point) < 0
-    return neg
+        if _side(T, k, px, py, pz, nx, ny, nz) < 0:
+            return True
+    return False
 
 
 # ---------------------------------------------------------------------------- point factor
 
 @njit(cache=True)
-def _lambert(p, n, T):
-    """F_{dA -> T} from point p, unit normal n, to triangle T (3, 3); 0 on T's plane."""
-    m = np.cross(T[1] - T[0], T[2] - T[0])
-    mm = math.sqrt(m @ m)
-    if mm == 0.0 or (n @ n) == 0.0:
+def _lambert(px, py, pz, nx, ny, nz, T, poly):
+    """F_{dA -> T} from point p, unit normal n, to triangle T (3, 3); 0 on T's plane.
+    ``poly`` is a (4, 3) work array."""
+    e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
+    e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
+    mx, my, mz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    mm = math.sqrt(mx * mx + my * my + mz * mz)
+    if mm == 0.0 or nx * nx + ny * ny + nz * nz == 0.0:
         return 0.0
     size = 0.0
     for k in range(3):
-        for c in range(3):
-            size = max(size, abs(T[k, c] - p[c]))
-    if abs(m @ (T[0] - p)) / mm <= 1e-12 * size:
+        size = max(size, abs(T[k, 0] - px), abs(T[k, 1] - py), abs(T[k, 2] - pz))
+    if abs(_side(T, 0, px, py, pz, mx, my, mz)) / mm <= 1e-12 * size:
         return 0.0
-    poly = np.empty((4, 3))
-    k = _clip(T, p, n, poly)
+    k = _clip(T, px, py, pz, nx, ny, nz, poly)
     if k < 2:
         return 0.0
     total = 0.0
     for e in range(k):
-        a = poly[e] - p
-        b = poly[(e + 1) % k] - p
-        cr = np.cross(a, b)
-        cn = math.sqrt(cr @ cr)
+        e1 = e + 1 if e + 1 < k else 0
+        ax, ay, az = poly[e, 0] - px, poly[e, 1] - py, poly[e, 2] - pz
+        bx, by, bz = poly[e1, 0] - px, poly[e1, 1] - py, poly[e1, 2] - pz
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
         if cn > 0.0:
-            total += math.atan2(cn, a @ b) * (cr @ n) / cn
+            total += math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
     return abs(total) / (2 * math.pi)
 
 
 @njit(cache=True)
 def _lambert_many(points, normals, tris):
     out = np.empty(len(points))
+    poly = np.empty((4, 3))
     for m in range(len(points)):
-        nn = normals[m]
-        norm = math.sqrt(nn @ nn)
-        out[m] = 0.0 if norm == 0.0 else _lambert(points[m], nn / norm, tris[m])
+        nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+        out[m] = 0.0 if norm == 0.0 else _lambert(points[m, 0], points[m, 1], points[m, 2],
+                                                  nx / norm, ny / norm, nz / norm, tris[m], poly)
     return out
 
 
@@ -325,50 +341,69 @@ def _far_bound(area_i, D, rho, degree):
 
 
 @njit(cache=True)
-def _pair(Ti, Tj, target, stats):
-    """A_j F_ji for shooter Ti, receiver Tj; stats[method] += 1."""
-    ni = np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0])
-    nj = np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
-    Ai2 = math.sqrt(ni @ ni)
-    Aj2 = math.sqrt(nj @ nj)
+def _normal(T):
+    e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
+    e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
+    mx, my, mz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    m = math.sqrt(mx * mx + my * my + mz * mz)
+    if m == 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    return mx / m, my / m, mz / m, m
+
+
+@njit(cache=True)
+def _radius(T, cx, cy, cz):
+    r = 0.0
+    for k in range(3):
+        r = max(r, math.sqrt((T[k, 0] - cx) ** 2 + (T[k, 1] - cy) ** 2 + (T[k, 2] - cz) ** 2))
+    return r
+
+
+@njit(cache=True)
+def _cubature(Ti, Tj, njx, njy, njz, rule, weights, poly):
+    f = 0.0
+    for r in range(len(weights)):
+        x = rule[r, 0] * Tj[0, 0] + rule[r, 1] * Tj[1, 0] + rule[r, 2] * Tj[2, 0]
+        y = rule[r, 0] * Tj[0, 1] + rule[r, 1] * Tj[1, 1] + rule[r, 2] * Tj[2, 1]
+        z = rule[r, 0] * Tj[0, 2] + rule[r, 1] * Tj[1, 2] + rule[r, 2] * Tj[2, 2]
+        f += weights[r] * _lambert(x, y, z, njx, njy, njz, Ti, poly)
+    return f
+
+
+@njit(cache=True)
+def _pair(Ti, Tj, target, stats, P, Q):
+    """A_j F_ji for shooter Ti, receiver Tj; stats[method] += 1. P, Q: (4, 3) work arrays."""
+    nix, niy, niz, Ai2 = _normal(Ti)
+    njx, njy, njz, Aj2 = _normal(Tj)
     if Ai2 == 0.0 or Aj2 == 0.0:
         stats[0] += 1
         return 0.0
-    ni = ni / Ai2
-    nj = nj / Aj2
-    ci = (Ti[0] + Ti[1] + Ti[2]) / 3
-    cj = (Tj[0] + Tj[1] + Tj[2]) / 3
-    if not _needs_clip(Tj, Ti[0], ni) and not _needs_clip(Ti, Tj[0], nj):
-        rho_i = rho_j = 0.0
-        for k in range(3):
-            rho_i = max(rho_i, math.sqrt((Ti[k] - ci) @ (Ti[k] - ci)))
-            rho_j = max(rho_j, math.sqrt((Tj[k] - cj) @ (Tj[k] - cj)))
-        D = math.sqrt((cj - ci) @ (cj - ci)) - rho_i          # <= distance from cj to Ti
+    if (not _needs_clip(Tj, Ti[0, 0], Ti[0, 1], Ti[0, 2], nix, niy, niz)
+            and not _needs_clip(Ti, Tj[0, 0], Tj[0, 1], Tj[0, 2], njx, njy, njz)):
+        cix, ciy, ciz = (Ti[0, 0] + Ti[1, 0] + Ti[2, 0]) / 3, (Ti[0, 1] + Ti[1, 1] + Ti[2, 1]) / 3, \
+            (Ti[0, 2] + Ti[1, 2] + Ti[2, 2]) / 3
+        cjx, cjy, cjz = (Tj[0, 0] + Tj[1, 0] + Tj[2, 0]) / 3, (Tj[0, 1] + Tj[1, 1] + Tj[2, 1]) / 3, \
+            (Tj[0, 2] + Tj[1, 2] + Tj[2, 2]) / 3
+        rho_i = _radius(Ti, cix, ciy, ciz)
+        rho_j = _radius(Tj, cjx, cjy, cjz)
+        D = math.sqrt((cjx - cix) ** 2 + (cjy - ciy) ** 2 + (cjz - ciz) ** 2) - rho_i   # <= dist(cj, Ti)
         if D > 8 * rho_j:
             Ai = 0.5 * Ai2
             Aj = 0.5 * Aj2
-            f1 = _lambert(cj, nj, Ti)
+            f1 = _lambert(cjx, cjy, cjz, njx, njy, njz, Ti, P)
             if f1 > 0 and _far_bound(Ai, D, rho_j, 1) <= target * f1:
                 stats[2] += 1
                 return Aj * f1
-            f7 = 0.0
-            for r in range(7):
-                x = _RULE7[r, 0] * Tj[0] + _RULE7[r, 1] * Tj[1] + _RULE7[r, 2] * Tj[2]
-                f7 += _RULE7_W[r] * _lambert(x, nj, Ti)
+            f7 = _cubature(Ti, Tj, njx, njy, njz, _RULE7, _RULE7_W, P)
             if f7 > 0 and _far_bound(Ai, D, rho_j, 5) <= target * f7:
                 stats[3] += 1
                 return Aj * f7
-            f64 = 0.0
-            for r in range(64):
-                x = _RULE64[r, 0] * Tj[0] + _RULE64[r, 1] * Tj[1] + _RULE64[r, 2] * Tj[2]
-                f64 += _RULE64_W[r] * _lambert(x, nj, Ti)
+            f64 = _cubature(Ti, Tj, njx, njy, njz, _RULE64, _RULE64_W, P)
             if f64 > 0 and _far_bound(Ai, D, rho_j, 14) <= target * f64:
                 stats[4] += 1
                 return Aj * f64
-    P = np.empty((4, 3))
-    Q = np.empty((4, 3))
-    nP = _clip(Tj, Ti[0], ni, P)                         # receiver part in front of the shooter
-    nQ = _clip(Ti, Tj[0], nj, Q)                         # shooter part in front of the receiver
+    nP = _clip(Tj, Ti[0, 0], Ti[0, 1], Ti[0, 2], nix, niy, niz, P)     # receiver part in front of the shooter
+    nQ = _clip(Ti, Tj[0, 0], Tj[0, 1], Tj[0, 2], njx, njy, njz, Q)     # shooter part in front of the receiver
     if nP < 3 or nQ < 3:
         stats[0] += 1
         return 0.0
@@ -379,8 +414,10 @@ def _pair(Ti, Tj, target, stats):
 @njit(cache=True)
 def _pairs(shooters, receivers, target, stats):
     out = np.empty(len(shooters))
+    P = np.empty((4, 3))
+    Q = np.empty((4, 3))
     for m in range(len(shooters)):
-        out[m] = _pair(shooters[m], receivers[m], target, stats)
+        out[m] = _pair(shooters[m], receivers[m], target, stats, P, Q)
     return out
 
 
