@@ -52,7 +52,8 @@ from numba import njit
 
 from ..exact_float import plane_signs
 
-__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors",
+__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front",
+           "centroid_in_front",
            "unoccluded_factors", "form_factor_matrix", "FAR_TARGET", "METHODS"]
 
 #: relative error bound a far-pair cubature must meet to replace the closed form
@@ -444,22 +445,43 @@ def exchange_mask(scene, i):
     are treated like any others):
 
     - j != i, j has non-zero area and a reflectance that is not all zero;
-    - j's centroid (its ray end point) is strictly in front of i's plane: i emits from its front;
-    - some vertex of i is strictly in front of j's plane: otherwise the factor is 0 anyway.
+    - some vertex of j is strictly in front of i's plane (i emits from its front) and some vertex
+      of i strictly in front of j's plane: exactly the pairs whose clipped factor is not 0.
     """
     V = scene.patch_vertices
     N = scene.patches
-    centroid = np.broadcast_to(np.ones(3, dtype=np.int64), (N, 3))
-    in_front_of_i = plane_signs(np.broadcast_to(V[i], (N, 3, 3)), V, centroid) > 0
+    Vi = np.broadcast_to(V[i], (N, 3, 3))
+    j_in_front_of_i = np.zeros(N, dtype=bool)
     i_in_front_of_j = np.zeros(N, dtype=bool)
     for k in range(3):
-        corner = np.zeros(3, dtype=np.int64)
-        corner[k] = 1
-        i_in_front_of_j |= plane_signs(V, np.broadcast_to(V[i], (N, 3, 3)),
-                                       np.broadcast_to(corner, (N, 3))) > 0
-    mask = in_front_of_i & i_in_front_of_j & (scene.reflectance > 0).any(axis=1) & (scene.areas > 0)
+        corner = np.broadcast_to(np.eye(3, dtype=np.int64)[k], (N, 3))
+        j_in_front_of_i |= plane_signs(Vi, V, corner) > 0
+        i_in_front_of_j |= plane_signs(V, Vi, corner) > 0
+    mask = j_in_front_of_i & i_in_front_of_j & (scene.reflectance > 0).any(axis=1) & (scene.areas > 0)
     mask[i] = False
     return mask
+
+
+def centroid_in_front(scene, i, receivers):
+    """bool (len(receivers),): receiver j's centroid (its ray end point) strictly in front of i's
+    plane. Where it is not, rays from i to j's centroid say nothing about the light i sends to the
+    part of j in front of it; the render casts the reverse rays instead."""
+    V = scene.patch_vertices
+    receivers = np.asarray(receivers, dtype=np.int64)
+    n = len(receivers)
+    return plane_signs(np.broadcast_to(V[i], (n, 3, 3)), V[receivers], np.ones((n, 3), dtype=np.int64)) > 0
+
+
+def samples_in_front(scene, samples, i, receivers):
+    """bool (len(receivers), K): sample point k of shooter i strictly in front of receiver j's
+    plane (exact signs). Only those rays carry light from i to j."""
+    V = scene.patch_vertices
+    receivers = np.asarray(receivers, dtype=np.int64)
+    K = samples.count
+    tri = np.repeat(V[receivers], K, axis=0)
+    pts = np.broadcast_to(V[i], (len(tri), 3, 3))
+    w = np.tile(samples.weights, (len(receivers), 1))
+    return (plane_signs(tri, pts, w) > 0).reshape(len(receivers), K)
 
 
 def unoccluded_factors(scene, i, *, stats=None):

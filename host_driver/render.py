@@ -151,8 +151,10 @@ class Visibility:
             blocks.append(BlockRay(np.full(len(ks), i), ks, rgroup, vox))
         return blocks
 
-    def clear_fraction(self, i, receivers):
-        """Fraction of the K rays from shooter i to each receiver that is not blocked."""
+    def clear_fraction(self, i, receivers, weights=None):
+        """Fraction of the K rays from shooter i to each receiver that is not blocked; with
+        ``weights`` (len(receivers), K), the weighted fraction (a receiver whose weights are all
+        0 gets the plain one)."""
         receivers = np.asarray(receivers, dtype=np.int64)
         self.columns += 1
         if len(receivers) == 0:
@@ -169,7 +171,14 @@ class Visibility:
         clear = np.bincount(position[rows], weights=clear_rays, minlength=len(receivers))
         self.rays += sum(block.rays for block in blocks)
         self.blocks += len(blocks)
-        return clear / self.samples.count
+        plain = clear / self.samples.count
+        if weights is None:
+            return plain
+        w_clear = np.concatenate([(~np.asarray(b, dtype=bool) * weights[position[blk.receiver_patch]][
+            :, np.asarray(blk.shooter_sample, dtype=np.int64)]).sum(axis=1) for blk, b in zip(blocks, bits)])
+        w_clear = np.bincount(position[rows], weights=w_clear, minlength=len(receivers))
+        total = weights.sum(axis=1)
+        return np.where(total > 0, w_clear / np.where(total > 0, total, 1), plain)
 
 
 @dataclass
@@ -256,11 +265,25 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         if cache is not None and i in cache:
             return cache[i].astype(np.float64)
         with phases.timed("formfactor"):
-            # exchange mask applied inside; near receivers averaged over 9 points (reciprocity)
+            # exact patch-to-patch factors; the exchange mask is applied inside
             f_all = formfactor.unoccluded_factors(scene, i)
             receivers = np.flatnonzero(f_all > 0)
             f = f_all[receivers]
-        frac = vis.clear_fraction(i, receivers)
+            # only rays from samples in front of the receiver's plane carry light to it: the exact
+            # factor already leaves out the part of i behind that plane, so the visibility is
+            # averaged over the other rays (counting them too would clip that part twice)
+            direct = formfactor.centroid_in_front(scene, i, receivers)
+            forward = receivers[direct]
+            relevant = formfactor.samples_in_front(scene, samples, i, forward).astype(np.float64)
+        frac = np.empty(len(receivers))
+        frac[direct] = vis.clear_fraction(i, forward, relevant)
+        # a receiver straddling i's plane with its centroid behind it: the reverse rays, from its
+        # samples in front of i's plane to i's centroid (visibility is symmetric)
+        for m in np.flatnonzero(~direct):
+            j = receivers[m]
+            with phases.timed("formfactor"):
+                back = formfactor.samples_in_front(scene, samples, j, [i]).astype(np.float64)
+            frac[m] = vis.clear_fraction(j, np.array([i]), back)[0]
         out = np.zeros(scene.patches)
         out[receivers] = f * frac
         if cache is not None:

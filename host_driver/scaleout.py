@@ -91,14 +91,14 @@ class SetVisibility:
         self.visibilities = visibilities
         self.boards = boards
 
-    def clear_fraction(self, i, receivers):
+    def clear_fraction(self, i, receivers, weights=None):
         receivers = np.asarray(receivers, dtype=np.int64)
         out = np.zeros(len(receivers))
         mine = self.owner[receivers]
         for k, vis in enumerate(self.visibilities):
             take = np.flatnonzero(mine == k)
             if len(take):
-                out[take] = vis.clear_fraction(i, receivers[take])
+                out[take] = vis.clear_fraction(i, receivers[take], None if weights is None else weights[take])
         return out
 
     @property
