@@ -4,10 +4,12 @@ This is the host of the paper's machine: it voxelises, walks block rays through 
 them to a board (any :class:`~blockray.host_driver.board.Board` back-end), turns the blocked bits
 into visible form factors and solves for radiosity.
 
-Visibility of a (shooter i, receiver j) pair is the fraction of the K rays from i's sample points
-to j's centroid that the board reports clear; the form factor is the analytic point-to-triangle
-factor from j's centroid to triangle i times that fraction. Rays are cast only for pairs that can
-exchange light (:func:`~blockray.host_driver.formfactor.exchange_mask`).
+Visibility of a (shooter i, receiver j) pair is the fraction of the rays from i's sample points
+in front of j's plane to j's centroid that the board reports clear (for a receiver whose centroid
+lies behind i's plane, the reverse rays: from j's samples in front of i's plane to i's centroid);
+the form factor is the exact patch-to-patch factor ``F_ji``
+(:func:`~blockray.host_driver.formfactor.unoccluded_factors`) times that fraction. Rays are cast
+only for pairs that can exchange light (:func:`~blockray.host_driver.formfactor.exchange_mask`).
 """
 
 import time
