@@ -309,13 +309,13 @@ def test_closed_float_mesh_never_leaks(mesh):
 
 
 def test_tiny_facing_triangles_beside_a_huge_one():
-    """Issue 18 regression: two facing triangles 1e-3 across, 2e-4 apart, next to a triangle 1e6
+    """Issue 18 regression: two facing triangles 1e-3 across, 5e-5 apart, next to a triangle 1e6
     across. A tolerance scaled to the whole scene (1e-10 of 1e6 = 1e-4) took them for coplanar and
     gave the receiver B = 0; exact signs give it its first-bounce radiosity rho E F."""
     from blockray.host_driver.formfactor import pair_factors
     from blockray.host_driver.render import render
     lo = np.array([[0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]])                 # normal +z: the receiver
-    hi = lo[::-1] + [0, 0, 2e-4]                                            # normal -z: the emitter
+    hi = lo[::-1] + [0, 0, 5e-5]                                            # normal -z: the emitter
     huge = np.array([[-5e5, -5e5, -10.0], [-5e5, 5e5, -10.0], [5e5, -5e5, -10.0]])   # below, facing down
     tris = np.stack([lo, hi, huge])
     rho = np.array([[0.5, 0.4, 0.3], [0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
