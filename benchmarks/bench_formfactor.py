@@ -2,6 +2,7 @@
 
     python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
+    python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
 
 ``table``: random triangle pairs of each kind (each wholly in front of the other, so the oracles'
 unclipped integrands apply), every method of host_driver/formfactor.py forced on each pair, and
@@ -187,6 +188,39 @@ def energy(args):
                   + ", ".join(f"{x:+.1e}" for x in bal) + f" | {time.perf_counter() - t:.0f} |", flush=True)
 
 
+def row_sums(args):
+    """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
+    the render's visibility (render.shoot's rule) at a given shooter sample count."""
+    from blockray.host_driver.render import make_board, Visibility
+    from blockray.host_driver.voxel import VoxelGrid, default_voxels
+    from blockray.params import BoardParams
+    from blockray.samples import SampleScheme
+    scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))
+    A = scene.areas
+    for K in args.samples:
+        samples = SampleScheme(K)
+        board = make_board("golden")
+        board.prepare(scene, samples)
+        grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=board.margin)
+        board.load(grid)
+        p = BoardParams()
+        vis = Visibility(scene, board, grid, samples, rows=p.rows, cols=p.cols)
+        rows = []
+        for i in range(0, 192, 6):                          # every 6th triangle of the box
+            f = ff.unoccluded_factors(scene, i)
+            rec = np.flatnonzero(f > 0)
+            direct = ff.centroid_in_front(scene, i, rec)
+            v = np.empty(len(rec))
+            v[direct] = vis.clear_fraction(i, rec[direct], ff.samples_in_front(scene, samples, i, rec[direct]).astype(float))
+            for m in np.flatnonzero(~direct):
+                j = rec[m]
+                v[m] = vis.clear_fraction(j, np.array([i]), ff.samples_in_front(scene, samples, j, [i]).astype(float))[0]
+            rows.append((A[rec] * f[rec] * v).sum() / A[i] - 1)
+        rows = np.array(rows)
+        print(f"K = {K}: {len(rows)} box shooters, row sum - 1: mean {rows.mean():+.2e}, "
+              f"min {rows.min():+.2e}, max {rows.max():+.2e}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -197,9 +231,11 @@ def main(argv=None):
     e.add_argument("--boards", default="golden")
     e.add_argument("--tolerance", type=float, default=1e-6)
     e.add_argument("--only", default=None, help="only scenes whose name contains this")
+    r = sub.add_parser("rows")
+    r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums}[args.what](args)
 
 
 if __name__ == "__main__":
