@@ -211,13 +211,15 @@ def row_sums(args):
             rec = np.flatnonzero(f > 0)
             direct = ff.centroid_in_front(scene, i, rec)
             v = np.empty(len(rec))
-            v[direct] = vis.clear_fraction(i, rec[direct], ff.samples_in_front(scene, samples, i, rec[direct]).astype(float))
+            weigh = ff.sample_weights if args.kernel else (
+                lambda sc, sa, a, b: ff.samples_in_front(sc, sa, a, b).astype(float))
+            v[direct] = vis.clear_fraction(i, rec[direct], weigh(scene, samples, i, rec[direct]))
             for m in np.flatnonzero(~direct):
                 j = rec[m]
-                v[m] = vis.clear_fraction(j, np.array([i]), ff.samples_in_front(scene, samples, j, [i]).astype(float))[0]
+                v[m] = vis.clear_fraction(j, np.array([i]), weigh(scene, samples, j, [i]))[0]
             rows.append((A[rec] * f[rec] * v).sum() / A[i] - 1)
         rows = np.array(rows)
-        print(f"K = {K}: {len(rows)} box shooters, row sum - 1: mean {rows.mean():+.2e}, "
+        print(f"K = {K}, {'kernel-weighted' if args.kernel else 'uniform'} rays: {len(rows)} box shooters, row sum - 1: mean {rows.mean():+.2e}, "
               f"min {rows.min():+.2e}, max {rows.max():+.2e}", flush=True)
 
 
@@ -233,6 +235,7 @@ def main(argv=None):
     e.add_argument("--only", default=None, help="only scenes whose name contains this")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
+    r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
     args = ap.parse_args(argv)
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums}[args.what](args)

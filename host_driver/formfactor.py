@@ -52,7 +52,7 @@ from numba import njit
 
 from ..exact_float import plane_signs
 
-__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front",
+__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights",
            "centroid_in_front",
            "unoccluded_factors", "form_factor_matrix", "FAR_TARGET", "METHODS"]
 
@@ -482,6 +482,21 @@ def samples_in_front(scene, samples, i, receivers):
     pts = np.broadcast_to(V[i], (len(tri), 3, 3))
     w = np.tile(samples.weights, (len(receivers), 1))
     return (plane_signs(tri, pts, w) > 0).reshape(len(receivers), K)
+
+
+def sample_weights(scene, samples, i, receivers):
+    """(len(receivers), K): each ray's share of the light shooter i sends to receiver j: the
+    point factor from sample point k of i (normal of i) to triangle j, where the sample is
+    strictly in front of j's plane (:func:`samples_in_front`), else 0. Their weighted mean of
+    clear rays estimates the kernel-weighted visible fraction (a plain mean weighs a sample
+    near j like one far from it)."""
+    receivers = np.asarray(receivers, dtype=np.int64)
+    K = samples.count
+    front = samples_in_front(scene, samples, i, receivers)
+    pts = np.repeat(samples.points(scene.patch_vertices[i][None])[0][None], len(receivers), axis=0)
+    f = _lambert_many(*_broadcast(pts.reshape(-1, 3), np.broadcast_to(scene.normals[i], (len(receivers) * K, 3)),
+                                  np.repeat(scene.patch_vertices[receivers], K, axis=0)))
+    return np.where(front, f.reshape(len(receivers), K), 0.0)
 
 
 def unoccluded_factors(scene, i, *, stats=None):

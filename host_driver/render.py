@@ -4,9 +4,10 @@ This is the host of the paper's machine: it voxelises, walks block rays through 
 them to a board (any :class:`~blockray.host_driver.board.Board` back-end), turns the blocked bits
 into visible form factors and solves for radiosity.
 
-Visibility of a (shooter i, receiver j) pair is the fraction of the rays from i's sample points
-in front of j's plane to j's centroid that the board reports clear (for a receiver whose centroid
-lies behind i's plane, the reverse rays: from j's samples in front of i's plane to i's centroid);
+Visibility of a (shooter i, receiver j) pair is the fraction of the rays from i's sample points to
+j's centroid that the board reports clear, each ray weighted by the light its sample sends to j
+(:func:`~blockray.host_driver.formfactor.sample_weights`: 0 from samples behind j's plane); for a
+receiver whose centroid lies behind i's plane, the reverse rays (from j's samples to i's centroid);
 the form factor is the exact patch-to-patch factor ``F_ji``
 (:func:`~blockray.host_driver.formfactor.unoccluded_factors`) times that fraction. Rays are cast
 only for pairs that can exchange light (:func:`~blockray.host_driver.formfactor.exchange_mask`).
@@ -176,9 +177,14 @@ class Visibility:
         plain = clear / self.samples.count
         if weights is None:
             return plain
-        w_clear = np.concatenate([(~np.asarray(b, dtype=bool) * weights[position[blk.receiver_patch]][
-            :, np.asarray(blk.shooter_sample, dtype=np.int64)]).sum(axis=1) for blk, b in zip(blocks, bits)])
-        w_clear = np.bincount(position[rows], weights=w_clear, minlength=len(receivers))
+        # the clear bit of every (receiver, sample) ray, then one weighted sum in sample order:
+        # the same float result however the rays were grouped into blocks
+        bit = np.zeros((len(receivers), self.samples.count))
+        for blk, b in zip(blocks, bits):
+            r = position[np.asarray(blk.receiver_patch, dtype=np.int64)]
+            k = np.asarray(blk.shooter_sample, dtype=np.int64)
+            bit[r[:, None], k[None, :]] = ~np.asarray(b, dtype=bool)
+        w_clear = (bit * weights).sum(axis=1)
         total = weights.sum(axis=1)
         return np.where(total > 0, w_clear / np.where(total > 0, total, 1), plain)
 
@@ -271,20 +277,20 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
             f_all = formfactor.unoccluded_factors(scene, i)
             receivers = np.flatnonzero(f_all > 0)
             f = f_all[receivers]
-            # only rays from samples in front of the receiver's plane carry light to it: the exact
-            # factor already leaves out the part of i behind that plane, so the visibility is
-            # averaged over the other rays (counting them too would clip that part twice)
+            # each ray weighs by the light its sample sends to the receiver (0 from samples behind
+            # the receiver's plane: the exact factor already leaves out that part of i, so
+            # counting those rays would clip it twice)
             direct = formfactor.centroid_in_front(scene, i, receivers)
             forward = receivers[direct]
-            relevant = formfactor.samples_in_front(scene, samples, i, forward).astype(np.float64)
+            weights = formfactor.sample_weights(scene, samples, i, forward)
         frac = np.empty(len(receivers))
-        frac[direct] = vis.clear_fraction(i, forward, relevant)
+        frac[direct] = vis.clear_fraction(i, forward, weights)
         # a receiver straddling i's plane with its centroid behind it: the reverse rays, from its
         # samples in front of i's plane to i's centroid (visibility is symmetric)
         for m in np.flatnonzero(~direct):
             j = receivers[m]
             with phases.timed("formfactor"):
-                back = formfactor.samples_in_front(scene, samples, j, [i]).astype(np.float64)
+                back = formfactor.sample_weights(scene, samples, j, [i])
             frac[m] = vis.clear_fraction(j, np.array([i]), back)[0]
         out = np.zeros(scene.patches)
         out[receivers] = f * frac
