@@ -139,19 +139,16 @@ def closed_scenes():
 
 
 def closed_cornell(scene):
-    """cornell with its open side closed by a wall of the bounding box (subdivided like its walls)."""
+    """cornell with its open side (the one facing the camera) closed by the bounding box's face,
+    subdivided; the face covers the opening (cornell's red wall is slanted, so it reaches past it
+    outside the box, where no light arrives)."""
     from test_formfactor import rectangle
     from blockray.host_driver.scene import Scene
     lo, hi = scene.bbox
-    c = scene.centroids
-    # the open side: the bounding-box face with no patch on its plane
-    for axis in range(3):
-        for side, value in ((0, lo[axis]), (1, hi[axis])):
-            if not np.any(np.abs(c[:, axis] - value) < 1e-9 * (hi - lo).max()):
-                break
-        else:
-            continue
-        break
+    cam = np.asarray(scene.camera.position, dtype=float)
+    outside = np.maximum(lo - cam, cam - hi)              # how far the camera is beyond each face
+    axis = int(np.argmax(outside))
+    value = lo[axis] if cam[axis] < lo[axis] else hi[axis]
     u, v = [a for a in range(3) if a != axis]
     origin = lo.copy()
     origin[axis] = value
