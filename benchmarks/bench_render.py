@@ -29,6 +29,8 @@ def main(argv=None):
     ap.add_argument("--voxels", type=int, default=None)
     ap.add_argument("--bits", type=int, default=None)
     ap.add_argument("--stats-fraction", type=float, default=0.02)
+    ap.add_argument("--save", default=None, help="write each run's radiosity to SAVE-<board>-<traversal>.npy")
+    ap.add_argument("--compare", default=None, help="a saved radiosity (.npy) to report each run's change against")
     args = ap.parse_args(argv)
     scene = load_scene(args.scene)
     print_run_header()
@@ -50,6 +52,12 @@ def main(argv=None):
             row["wall"] = round(time.perf_counter() - t0, 2)
             print(json.dumps(row), flush=True)
             B[(board, traversal)] = res.radiosity
+            if args.save:
+                np.save(f"{args.save}-{board}-{traversal}.npy", res.radiosity)
+            if args.compare:
+                ref = np.load(args.compare)
+                print(json.dumps({"board": board, "traversal": traversal, "compared_with": args.compare,
+                                  **_change(res.radiosity, ref)}), flush=True)
     for traversal in args.traversal.split(","):
         if ("golden", traversal) in B and ("model", traversal) in B:
             g, m = B[("golden", traversal)], B[("model", traversal)]
@@ -57,6 +65,13 @@ def main(argv=None):
             worst = float(np.max(np.abs(m - g).sum(1) / np.maximum(g.sum(1), 1e-30)))
             print(json.dumps({"traversal": traversal, "rms_relative_error_model_vs_golden": rms,
                               "max_patch_relative_error": worst}), flush=True)
+
+
+def _change(B, ref):
+    """RMS relative change of radiosity B against ref, and the largest per-patch change."""
+    return {"rms_relative_change": float(np.sqrt(np.mean((B - ref) ** 2)) / np.sqrt(np.mean(ref ** 2))),
+            "max_patch_relative_change": float(np.max(np.abs(B - ref).sum(1) / np.maximum(ref.sum(1), 1e-30))),
+            "mean_relative_change_per_channel": ((B * 1.0).sum(0) / ref.sum(0) - 1).tolist()}
 
 
 if __name__ == "__main__":

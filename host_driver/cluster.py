@@ -148,7 +148,7 @@ def cast_set(k, scene, grid, owner, job):
     """On a worker: set k builds its board, loads the grid and casts the rays ending on its own
     patches, shooter by shooter. Returns its :class:`SetRows`."""
     from distributed import get_worker
-    from .render import Phases, Visibility, make_board
+    from .render import Phases, Visibility, make_board, visible_fraction
     from .voxel import TraversalStats
     t0, cpu0 = time.perf_counter(), time.process_time()
     if job.threads is not None:
@@ -170,7 +170,7 @@ def cast_set(k, scene, grid, owner, job):
             with phases.timed("formfactor"):
                 f = receivers.factors(i)
                 take = np.flatnonzero(f > 0)
-            F[take, i] = f[take] * vis.clear_fraction(i, own[take])
+            F[take, i] = f[take] * visible_fraction(scene, vis, job.samples, i, own[take], phases)
         counters = board.counters()
     finally:
         if hasattr(board, "close"):

@@ -1,47 +1,43 @@
-"""The ``golden`` board: the float64 reference for what is right.
+"""The ``golden`` board: the exact reference for what is right, on the scene's float geometry.
 
-It answers block rays with the same predicate as :mod:`blockray.exact` (strict plane crossing,
-closed edge test), evaluated in float64 on the scene's own (unquantised) geometry::
+It answers block rays with the predicate of :mod:`blockray.exact` (strict plane crossing, closed
+edge test)::
 
     blocked  <=>  sign(pP) * sign(pQ) < 0  and  (s_0, s_1, s_2 all >= 0 or all <= 0)
-    pP = n . (P - V0),  pQ = n . (Q - V0),  s_k = (P - V_k) . ((Q - V_k) x (V_{k+1} - V_k))
 
-**The one tolerance.** In exact integer arithmetic the sample points lie exactly on their
-patches' planes, so the strict plane test alone keeps a ray from being blocked by its own
-shooter or receiver patch or a coplanar neighbour. Float sample points (weighted means of float
-vertices) are off their planes by rounding noise, of either sign, so the plane signs use a
-threshold: ``|n . (X - V0)| <= PLANE_TOLERANCE * scene_scale * |n|`` (a distance of 1e-10 of the
-scene's size) counts as on the plane, sign 0. That is the only tolerance: the edge sides are used
-with their exact float signs. Rays that pass within rounding of a triangle's edge are a
-measure-zero set, and to keep even those from slipping through a shared edge each edge side is
-computed from the edge's endpoints in a canonical (lexicographic) order and negated if swapped,
-so the two triangles sharing an edge get exactly opposite values (watertight, as in the exact
-predicate).
+evaluated **exactly** on the unquantised float64 scene by :mod:`blockray.exact_float` (a
+certified floating-point filter, then exact expansion arithmetic; compiled with numba). The ray
+end points are the exact rational sample points ``sum_k w_k V_k / D`` of
+:class:`~blockray.samples.SampleScheme` and the exact centroids, not their roundings: so a
+sample point lies exactly on its own patch's plane, and own patches, coplanar neighbours and
+zero-area triangles never block, with no tolerance at all (none scaled to the scene, so a tiny
+patch beside a huge one is treated like any other). Every sign is exact, so the edge test is
+watertight: a segment through a shared edge or vertex of a closed mesh is always blocked.
 
-Sample points are computed as ``(sum_k w_k V_k) / D`` with the integer weights of
-:class:`~blockray.samples.SampleScheme` (the same points as ``samples.points``, rounded once):
-for integer vertices that are multiples of D they are exact, and for small integer scenes every
-product then fits 53 bits, so the golden board agrees bit for bit with the exact predicate there.
+The board has no tolerance; its only scene-relative length is the voxel registration
+``margin`` (1e-9 of the scene's size), which makes the *grid* conservative (a patch registered in
+a voxel it only nearly touches costs a test, never a wrong answer).
 
 Registration: the board reads the voxel grid's CSR tables (``start``, ``count``, ``patches``,
 linear index ``(ix * v + iy) * v + iz``). Every patch registered in any voxel of a block is tested
 once against all R_b x S_b rays of the block (the union: a patch in two visited voxels is one
-test per ray). ``margin`` is 1e-9 of the scene's size, enough for the grid to absorb rounding.
+test per ray).
 """
 
 import numpy as np
 
+from ..exact_float import blocked_rays, check_range
 from .board import Board
-from .formfactor import PLANE_TOLERANCE, scene_scale
 
 __all__ = ["GoldenBoard"]
 
 #: voxel registration margin relative to the scene size
 MARGIN = 1e-9
+_POINT = np.array([1, 0, 0], dtype=np.int64)        # weights of a plain float point (E, E, E)
 
 
 class GoldenBoard(Board):
-    """float64 reference board; vectorised over rays x patches of each block."""
+    """Exact reference board (float scene, exact predicate); compiled per block."""
 
     name = "golden"
 
@@ -51,26 +47,13 @@ class GoldenBoard(Board):
 
     def _reset(self):
         self._counters = {"blocks": 0, "rays": 0, "tests": 0, "voxels": 0, "crossings": 0}
+        self._crossings = np.zeros(1, dtype=np.int64)
 
     def prepare(self, scene, samples):
-        V = np.asarray(scene.patch_vertices, dtype=np.float64)
-        w = np.asarray(samples.weights, dtype=np.float64)
-        self._shooters = np.einsum("kj,njc->nkc", w, V) / samples.denominator    # (N, K, 3)
-        self._receivers = V.sum(axis=1) / 3.0                                     # (N, 3) centroids
-        self._v0 = V[:, 0]
-        self._normal = np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0])             # (N, 3) unnormalised
-        scale = scene_scale(scene)
-        self._plane_tol = PLANE_TOLERANCE * scale * np.linalg.norm(self._normal, axis=1)
-        # canonical edge endpoints: a_k <= b_k lexicographically, sign -1 where swapped
-        start, end = V, np.roll(V, -1, axis=1)
-        swap = np.zeros(start.shape[:2], dtype=bool)
-        decided = np.zeros_like(swap)
-        for c in range(3):
-            swap |= ~decided & (start[..., c] > end[..., c])
-            decided |= start[..., c] != end[..., c]
-        self._edge_a = np.where(swap[..., None], end, start)
-        self._edge_b = np.where(swap[..., None], start, end)
-        self._edge_sign = np.where(swap, -1.0, 1.0)
+        V = np.ascontiguousarray(scene.patch_vertices, dtype=np.float64)
+        check_range(V, f"scene {scene.name!r} on the golden board")
+        self._V = V
+        self._weights = np.asarray(samples.weights, dtype=np.int64)
         lo, hi = scene.bbox
         self.margin = MARGIN * float(max(np.max(hi - lo), np.finfo(float).tiny))
         self._reset()
@@ -90,29 +73,22 @@ class GoldenBoard(Board):
         offsets = np.repeat(self._start[voxels] - np.cumsum(counts) + counts, counts)
         return np.unique(self._patches[offsets + np.arange(counts.sum())])
 
-    def _signs(self, X, t):
-        """Plane signs of points X (M, 3) against patches t: (M, T) in {-1, 0, 1}."""
-        d = np.einsum("mtc,tc->mt", X[:, None, :] - self._v0[t][None], self._normal[t])
-        return np.where(np.abs(d) <= self._plane_tol[t], 0.0, np.sign(d))
+    def blocked_samples(self, shooter_patch, shooter_sample, receiver_patch, t):
+        """bool (R, S): rays from the exact sample points (shooter_patch[s], shooter_sample[s])
+        to the exact centroids of receiver_patch[r], blocked by any of the patches t."""
+        sp = np.asarray(shooter_patch, dtype=np.int64).reshape(-1)
+        P_w = self._weights[np.asarray(shooter_sample, dtype=np.int64).reshape(-1)]
+        rp = np.asarray(receiver_patch, dtype=np.int64).reshape(-1)
+        return blocked_rays(self._V[sp], P_w, self._V[rp], np.ones(3, dtype=np.int64),
+                            self._V[np.asarray(t, dtype=np.int64)], self._crossings)
 
     def blocked(self, P, Q, t):
-        """bool (R, S): rays from shooter points P (S, 3) to receiver points Q (R, 3) blocked by
-        any of the patches t (T,)."""
-        R, S = len(Q), len(P)
-        out = np.zeros(R * S, dtype=bool)
-        if R == 0 or S == 0 or len(t) == 0:
-            return out.reshape(R, S)
-        sP, sQ = self._signs(P, t), self._signs(Q, t)                     # (S, T), (R, T)
-        r, s, k = np.nonzero(sQ[:, None, :] * sP[None, :, :] < 0)         # plane crossings
-        self._counters["crossings"] += len(r)
-        if len(r):
-            a, b = self._edge_a[t[k]], self._edge_b[t[k]]                 # (C, 3, 3)
-            dP = P[s][:, None, :] - a
-            dQ = Q[r][:, None, :] - a
-            side = self._edge_sign[t[k]] * np.einsum("xec,xec->xe", dP, np.cross(dQ, b - a))
-            inside = (side >= 0).all(axis=1) | (side <= 0).all(axis=1)
-            out[(r * S + s)[inside]] = True
-        return out.reshape(R, S)
+        """bool (R, S): segments from float points P (S, 3) to float points Q (R, 3) (taken as the
+        exact values of the floats) blocked by any of the patches t (T,)."""
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        Q = np.asarray(Q, dtype=np.float64).reshape(-1, 3)
+        return blocked_rays(np.repeat(P[:, None], 3, axis=1), _POINT, np.repeat(Q[:, None], 3, axis=1), _POINT,
+                            self._V[np.asarray(t, dtype=np.int64)], self._crossings)
 
     def run(self, blocks):
         if self._grid is None:
@@ -120,11 +96,9 @@ class GoldenBoard(Board):
         results = []
         for block in blocks:
             t = self.patches_of(block.voxels)
-            P = self._shooters[np.asarray(block.shooter_patch, dtype=np.int64),
-                               np.asarray(block.shooter_sample, dtype=np.int64)]
-            Q = self._receivers[np.asarray(block.receiver_patch, dtype=np.int64)]
-            results.append(self.blocked(P.reshape(-1, 3), Q.reshape(-1, 3), t))
-            rays = len(P) * len(Q)
+            bits = self.blocked_samples(block.shooter_patch, block.shooter_sample, block.receiver_patch, t)
+            results.append(bits)
+            rays = bits.size
             self._counters["blocks"] += 1
             self._counters["rays"] += rays
             self._counters["tests"] += rays * len(t)
@@ -133,5 +107,6 @@ class GoldenBoard(Board):
 
     def counters(self):
         """``blocks``, ``rays``, ``tests`` (ray-patch tests, each patch once per block),
-        ``voxels`` (voxel visits) and ``crossings`` (tests that passed the plane test)."""
-        return dict(self._counters)
+        ``voxels`` (voxel visits) and ``crossings`` (tests that passed the plane test and were
+        not already blocked)."""
+        return dict(self._counters, crossings=int(self._crossings[0]))

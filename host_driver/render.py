@@ -4,10 +4,13 @@ This is the host of the paper's machine: it voxelises, walks block rays through 
 them to a board (any :class:`~blockray.host_driver.board.Board` back-end), turns the blocked bits
 into visible form factors and solves for radiosity.
 
-Visibility of a (shooter i, receiver j) pair is the fraction of the K rays from i's sample points
-to j's centroid that the board reports clear; the form factor is the analytic point-to-triangle
-factor from j's centroid to triangle i times that fraction. Rays are cast only for pairs that can
-exchange light (:func:`~blockray.host_driver.formfactor.exchange_mask`).
+Visibility of a (shooter i, receiver j) pair is the fraction of the rays from i's sample points to
+j's centroid that the board reports clear, each ray weighted by the light its sample sends to j
+(:func:`~blockray.host_driver.formfactor.sample_weights`: 0 from samples behind j's plane); for a
+receiver whose centroid lies behind i's plane, the reverse rays (from j's samples to i's centroid);
+the form factor is the exact patch-to-patch factor ``F_ji``
+(:func:`~blockray.host_driver.formfactor.unoccluded_factors`) times that fraction. Rays are cast
+only for pairs that can exchange light (:func:`~blockray.host_driver.formfactor.exchange_mask`).
 """
 
 import time
@@ -165,8 +168,10 @@ class Visibility:
         return BlockBatch(np.full(len(shooter_sample), i), shooter_sample, col_off, receiver_patch, row_off,
                           vox, vox_off)
 
-    def clear_fraction(self, i, receivers):
-        """Fraction of the K rays from shooter i to each receiver that is not blocked."""
+    def clear_fraction(self, i, receivers, weights=None):
+        """Fraction of the K rays from shooter i to each receiver that is not blocked; with
+        ``weights`` (len(receivers), K), the weighted fraction (a receiver whose weights are all
+        0 gets the plain one)."""
         receivers = np.asarray(receivers, dtype=np.int64)
         self.columns += 1
         if len(receivers) == 0:
@@ -184,7 +189,51 @@ class Visibility:
         clear = np.bincount(position[batch.receiver_patch], weights=clear_rays, minlength=len(receivers))
         self.rays += batch.rays
         self.blocks += len(batch)
-        return clear / self.samples.count
+        plain = clear / self.samples.count
+        if weights is None:
+            return plain
+        # the clear bit of every (receiver, sample) ray, then one weighted sum in sample order:
+        # the same float result however the rays were grouped into blocks
+        bit = np.zeros((len(receivers), self.samples.count))
+        receiver, sample = _ray_endpoints(batch)
+        flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
+            [np.asarray(b, dtype=bool).ravel() for b in bits])
+        bit[position[receiver], sample] = ~flat
+        w_clear = (bit * weights).sum(axis=1)
+        total = weights.sum(axis=1)
+        return np.where(total > 0, w_clear / np.where(total > 0, total, 1), plain)
+
+
+def visible_fraction(scene, vis, samples, i, receivers, phases):
+    """The board's clear fraction of each (shooter ``i``, receiver) pair, for the exact factor.
+
+    Each ray weighs by the light its sample sends to the receiver (0 from samples behind the
+    receiver's plane: the exact factor already leaves out that part of i, so counting those rays
+    would clip it twice). A receiver straddling i's plane with its centroid behind it gets the
+    reverse rays, from its samples in front of i's plane to i's centroid (visibility is symmetric).
+    """
+    with phases.timed("formfactor"):
+        direct = formfactor.centroid_in_front(scene, i, receivers)
+        forward = receivers[direct]
+        weights = formfactor.sample_weights(scene, samples, i, forward)
+    frac = np.empty(len(receivers))
+    frac[direct] = vis.clear_fraction(i, forward, weights)
+    for m in np.flatnonzero(~direct):
+        j = receivers[m]
+        with phases.timed("formfactor"):
+            back = formfactor.sample_weights(scene, samples, j, [i])
+        frac[m] = vis.clear_fraction(j, np.array([i]), back)[0]
+    return frac
+
+
+def _ray_endpoints(batch):
+    """(receiver patch, shooter sample) of every ray of ``batch``, in its flat ray order (block by
+    block, each (R_b, S_b) row-major)."""
+    rows, cols = batch.rows, batch.cols
+    block = np.repeat(np.arange(len(batch)), rows * cols)
+    within = np.arange(len(block)) - batch.ray_off[block]
+    r, s = within // cols[block], within % cols[block]
+    return batch.receiver_patch[batch.row_off[block] + r], batch.shooter_sample[batch.col_off[block] + s]
 
 
 @dataclass
@@ -283,11 +332,11 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         if cache is not None and i in cache:
             return cache[i].astype(np.float64)
         with phases.timed("formfactor"):
-            # exchange mask applied inside; near receivers averaged over 9 points (reciprocity)
+            # exact patch-to-patch factors; the exchange mask is applied inside
             f_all = formfactor.unoccluded_factors(scene, i)
             receivers = np.flatnonzero(f_all > 0)
             f = f_all[receivers]
-        frac = vis.clear_fraction(i, receivers)
+        frac = visible_fraction(scene, vis, samples, i, receivers, phases)
         out = np.zeros(scene.patches)
         out[receivers] = f * frac
         if cache is not None:

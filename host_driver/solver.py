@@ -3,7 +3,7 @@
 
 Notation: N patches, areas A (N,), emission E (N, 3), reflectance rho (N, 3), radiosity B (N, 3).
 ``F[j, i]`` is the form factor from receiver j to patch i, visibility included (for the host:
-the point-to-triangle factor at j's centroid times the fraction of clear rays from i's samples).
+the exact patch-to-patch factor times the fraction of clear rays between i and j).
 
 Both families report one comparable error measure, an area-weighted L1 norm over patches and the
 three channels relative to the emitted power ``sum_j A_j (E_jr + E_jg + E_jb)``:

@@ -125,11 +125,10 @@ def test_watertight_on_float_meshes():
 
 
 def test_own_patch_and_coplanar_neighbours_never_block():
-    """A rotated plane of many patches (float coordinates: samples are off the plane by rounding)
-    and one receiver above it: nothing blocks, in any direction."""
-    R = rotation(5)
-    floor = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 6, 6) @ R.T + [0.3, 0.7, 0.1]
-    lamp = rectangle([0.4, 0.4, 0.8], [0, 0.2, 0], [0.2, 0, 0], 1, 1) @ R.T + [0.3, 0.7, 0.1]
+    """A plane of many patches at float coordinates (exactly coplanar: one z) and one receiver
+    above it: the exact sample points lie on the plane, so nothing blocks, with no tolerance."""
+    floor = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 6, 6) * 0.1 + [0.3, 0.7, 0.1]
+    lamp = rectangle([0.4, 0.4, 0.8], [0, 0.2, 0], [0.2, 0, 0], 1, 1) * 0.1 + [0.3, 0.7, 0.1]
     tris = np.concatenate([floor, lamp])
     scene, board = board_for(tris)
     n = len(tris)
@@ -142,6 +141,50 @@ def test_own_patch_and_coplanar_neighbours_never_block():
     assert counters["blocks"] == len(blocks) and counters["rays"] == len(S) * n
     assert counters["tests"] == counters["rays"] * n                # every patch once per block
     assert counters["crossings"] == 0                                 # no ray even crosses a plane
+
+
+def _fr_orient(a, b, c, d):
+    m = [[a[i] - d[i] for i in range(3)], [b[i] - d[i] for i in range(3)], [c[i] - d[i] for i in range(3)]]
+    return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
+
+
+def fraction_blocked(P, Q, V):
+    """The predicate in exact rational arithmetic (fractions.Fraction): P, Q, V[k] tuples of Fractions."""
+    sign = lambda x: (x > 0) - (x < 0)
+    if sign(_fr_orient(V[0], V[1], V[2], P)) * sign(_fr_orient(V[0], V[1], V[2], Q)) >= 0:
+        return False
+    s = [_fr_orient(P, Q, V[k], V[(k + 1) % 3]) for k in range(3)]
+    return all(x >= 0 for x in s) or all(x <= 0 for x in s)
+
+
+def rational_point(E, w):
+    from fractions import Fraction
+    D = int(sum(w))
+    return tuple(sum(Fraction(int(w[k])) * Fraction(float(E[k][c])) for k in range(3)) / D for c in range(3))
+
+
+def test_rotated_plane_agrees_with_rational_evaluation():
+    """Rotated, the float plane is crinkled at rounding scale: whatever the board answers for
+    rays skimming it must be what exact rational arithmetic says, ray by ray."""
+    from fractions import Fraction
+    R = rotation(5)
+    floor = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 4, 4) @ R.T + [0.3, 0.7, 0.1]
+    scene, board = board_for(floor)
+    samples = SampleScheme(8)
+    n = len(floor)
+    V = [[tuple(Fraction(float(x)) for x in v) for v in t] for t in floor]
+    checked = blocked = 0
+    for i in range(n):
+        bits = board.blocked_samples(np.full(8, i), np.arange(8), np.arange(n), np.arange(n))
+        for j in range(n):
+            Q = rational_point(floor[j], [1, 1, 1])
+            for k in range(8):
+                P = rational_point(floor[i], samples.weights[k])
+                assert bits[j, k] == any(fraction_blocked(P, Q, v) for v in V), (i, j, k)
+                checked += 1
+                blocked += int(bits[j, k])
+    print(f"{checked} rays skimming a rotated plane, {blocked} blocked, all as exact rationals say")
 
 
 @pytest.mark.parametrize("half", [False, True])
@@ -197,3 +240,89 @@ def test_margin_and_prepare():
     assert 0 < board.margin <= 1e-6 * 1000
     with pytest.raises(RuntimeError):
         GoldenBoard().run([])
+
+
+# ---------------------------------------------------------------------------- closed float meshes
+
+def _round_bits(x, bits):
+    """Round to ``bits`` significant bits (so sums and midpoints below stay exact in float64)."""
+    m, e = np.frexp(x)
+    return np.ldexp(np.round(m * 2.0 ** bits), e - bits)
+
+
+def float_icosahedron(seed):
+    import itertools
+    phi = (1 + 5 ** 0.5) / 2
+    pts = np.array([p for s1 in (-1, 1) for s2 in (-1, 1)
+                    for p in ((0, s1, s2 * phi), (s1, s2 * phi, 0), (s2 * phi, 0, s1))], float)
+    faces = [f for f in itertools.combinations(range(12), 3)
+             if all(abs(np.linalg.norm(pts[i] - pts[j]) - 2) < 1e-9 for i, j in itertools.combinations(f, 2))]
+    faces = [f if np.cross(pts[f[1]] - pts[f[0]], pts[f[2]] - pts[f[0]]) @ pts[f[0]] > 0 else f[::-1]
+             for f in faces]
+    v = _round_bits(pts @ rotation(seed).T * 0.7 + [0.31, -0.17, 0.05], 30)
+    return v, np.array(faces)
+
+
+def float_bipyramid(seed, n=40):
+    """Two fans of n triangles round two apices over a ring: many triangles share each apex."""
+    rng = np.random.default_rng(seed)
+    a = np.sort(rng.uniform(0, 2 * np.pi, n))
+    ring = np.stack([np.cos(a), np.sin(a), rng.uniform(-0.05, 0.05, n)], axis=1)
+    pts = np.concatenate([ring, [[0, 0, 1.3], [0, 0, -0.9]]])
+    faces = [(i, (i + 1) % n, n) for i in range(n)] + [((i + 1) % n, i, n + 1) for i in range(n)]
+    v = _round_bits(pts @ rotation(seed).T * 1.9 + [-2.3, 0.6, 1.1], 30)
+    return v, np.array(faces)
+
+
+@pytest.mark.parametrize("mesh", ["icosahedron", "bipyramid"])
+def test_closed_float_mesh_never_leaks(mesh):
+    """Segments from outside to inside a closed float mesh, passing exactly through its vertices
+    (the bipyramid's apices carry fans of 40 triangles) and through points of its edges: always
+    blocked, and ray by ray the board agrees with exact rational evaluation (fractions.Fraction)."""
+    from fractions import Fraction
+    seed = 2026 + len(mesh)
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    v, faces = float_icosahedron(seed) if mesh == "icosahedron" else float_bipyramid(seed)
+    tris = v[faces]
+    scene, board = board_for(tris)
+    centre = v.mean(axis=0)
+    edges = sorted({tuple(sorted((f[i], f[(i + 1) % 3]))) for f in faces for i in range(3)})
+    through = [v[i] for i in range(len(v))] + [(v[i] + v[j]) / 2 for i, j in edges]
+    through += [(3 * v[i] + v[j]) / 4 for i, j in edges[::3]]
+    V = [[tuple(Fraction(float(x)) for x in p) for p in t] for t in tris]
+    every = np.arange(len(tris))
+    segments = leaks = 0
+    for X in through:
+        for _ in range(3):
+            d = _round_bits((centre - X) * rng.uniform(0.05, 0.6) + rng.normal(size=3) * 0.02, 20)
+            P, Q = X - d, X + d                                             # P outside, Q inside
+            Pf, Qf = [tuple(Fraction(float(x)) for x in p) for p in (P, Q)]
+            Xf = tuple(Fraction(float(x)) for x in X) if not isinstance(X, tuple) else X
+            assert all(Pf[c] + Qf[c] == 2 * Xf[c] for c in range(3))     # X is exactly on the segment
+            got = board.blocked(P[None], Q[None], every)[0, 0]
+            assert got == any(fraction_blocked(Pf, Qf, t) for t in V), (P, Q)
+            leaks += not got
+            segments += 1
+    print(f"{mesh}: {segments} segments through vertices and edges, {leaks} leaked")
+    assert leaks == 0
+
+
+def test_tiny_facing_triangles_beside_a_huge_one():
+    """Issue 18 regression: two facing triangles 1e-3 across, 5e-5 apart, next to a triangle 1e6
+    across. A tolerance scaled to the whole scene (1e-10 of 1e6 = 1e-4) took them for coplanar and
+    gave the receiver B = 0; exact signs give it its first-bounce radiosity rho E F."""
+    from blockray.host_driver.formfactor import pair_factors
+    from blockray.host_driver.render import render
+    lo = np.array([[0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]])                 # normal +z: the receiver
+    hi = lo[::-1] + [0, 0, 5e-5]                                            # normal -z: the emitter
+    huge = np.array([[-5e5, -5e5, -10.0], [-5e5, 5e5, -10.0], [5e5, -5e5, -10.0]])   # below, facing down
+    tris = np.stack([lo, hi, huge])
+    rho = np.array([[0.5, 0.4, 0.3], [0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
+    E = np.array([[0, 0, 0], [1.0, 2.0, 3.0], [0, 0, 0]])
+    scene = make_scene(tris, reflectance=rho, emission=E)
+    result = render(scene, board="golden", tolerance=1e-9)
+    F = pair_factors(hi[None], lo[None])[0] / scene.areas[0]
+    print(f"receiver B = {result.radiosity[0]}, F = {F:.6f}")
+    assert F > 0.5
+    np.testing.assert_allclose(result.radiosity[0], rho[0] * E[1] * F, rtol=1e-12)

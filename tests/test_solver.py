@@ -173,12 +173,10 @@ def test_first_shot_from_a_square_light():
     rho = np.array([0.6, 0.5, 0.4])
     emission = np.concatenate([np.tile(E_L, (2, 1)), np.zeros((len(feet), 3))])
     scene = make_scene(np.concatenate([light, receivers]), reflectance=rho, emission=emission)
-    # centroid rule: exactly the point factor; default: averaged over the tiny receiver
-    point = progressive_refinement(scene, lambda i: unoccluded_factors(scene, i, subdivision=1), max_shots=2)
+    # the exact patch factor of a tiny receiver is within 1e-4 of the point factor at its centroid
     default = progressive_refinement(scene, lambda i: unoccluded_factors(scene, i), max_shots=2)
-    assert point.shots == default.shots == 2
+    assert default.shots == 2
     for j in range(len(feet)):
         foot = scene.centroids[2 + j, :2]
         F = sum(corner_closed_form(a, b, c) for a in (foot[0], 1 - foot[0]) for b in (foot[1], 1 - foot[1]))
-        assert point.B[2 + j] == pytest.approx(rho * E_L * F, rel=1e-9)
         assert default.B[2 + j] == pytest.approx(rho * E_L * F, rel=1e-4)

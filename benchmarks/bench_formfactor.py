@@ -1,0 +1,242 @@
+"""Form-factor accuracy against oracles, and the energy balance of closed scenes.
+
+    python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
+    python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
+    python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
+
+``table``: random triangle pairs of each kind (each wholly in front of the other, so the oracles'
+unclipped integrands apply), every method of host_driver/formfactor.py forced on each pair, and
+pyviewfactor's SA-30 kernel, against the double contour integral with the inner integral in closed
+form and the outer one by mpmath's adaptive quadrature at 30 digits. Prints a markdown table of
+the largest relative error per method and kind. Numbers go into docs/formfactors.md.
+
+``energy``: closed scenes rendered with the golden board; absorbed power sum (1 - rho) H A with
+H = (B - E) / rho, against emitted power sum E A, per channel.
+"""
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+from _run_header import print_run_header                                   # noqa: E402
+from blockray.host_driver import formfactor as ff                            # noqa: E402
+from blockray.host_driver.render import render                               # noqa: E402
+
+KINDS = {  # name: (generator kind for test_formfactor.random_pair, distance for "far" pairs)
+    "shared edge": ("edge", None), "shared vertex": ("vertex", None), "near (0.05 apart)": ("near", None),
+    "general (~2 apart)": ("general", None), "D/L ~ 5": ("far", 5), "D/L ~ 20": ("far", 20),
+    "D/L ~ 60": ("far", 60), "D/L ~ 200": ("far", 200),
+}
+
+
+def far_pair(rng, D):
+    """Two triangles of size ~1 whose centroids are D apart, facing each other, no clipping."""
+    while True:
+        Ti = rng.normal(size=(3, 3)) * 0.4
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        Tj = rng.normal(size=(3, 3)) * 0.4 + D * d
+        if np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]) @ d < 0:
+            Ti = Ti[::-1]
+        if np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0]) @ d > 0:
+            Tj = Tj[::-1]
+        ni, nj = np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]), np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
+        if ((Tj - Ti[0]) @ ni >= 0).all() and ((Ti - Tj[0]) @ nj >= 0).all():
+            return Ti, Tj
+
+
+def forced(Ti, Tj):
+    """A_j F_ji by every method: closed form, centroid, 7-point, 64-point cubature."""
+    nj = np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
+    Aj = 0.5 * np.linalg.norm(nj)
+    nj = nj / (2 * Aj)
+    poly = np.empty((4, 3))
+    c = Tj.mean(axis=0)
+    out = {"closed form": ff.pair_factors(Ti[None], Tj[None], target=0.0)[0],
+           "centroid": Aj * ff._lambert(c[0], c[1], c[2], nj[0], nj[1], nj[2], Ti, poly),
+           "7-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE7, ff._RULE7_W, poly),
+           "64-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE64, ff._RULE64_W, poly)}
+    stats = np.zeros(len(ff.METHODS), dtype=np.int64)
+    out["default"] = ff.pair_factors(Ti[None], Tj[None], stats=stats)[0]
+    return out, ff.METHODS[int(np.argmax(stats))]
+
+
+def table(args):
+    from test_formfactor import contour_oracle, random_pair
+    from pyviewfactor.pvf_integrators import compute_viewfactor_sa30
+    rng = np.random.default_rng(args.seed)
+    print(f"seed={args.seed}, {args.pairs} pairs per kind")
+    methods = ["closed form", "centroid", "7-point", "64-point", "default", "pyviewfactor SA-30"]
+    print("| pairs | " + " | ".join(methods) + " | default picks |")
+    print("|---|" + "---|" * (len(methods) + 1))
+    for name, (kind, D) in KINDS.items():
+        worst = dict.fromkeys(methods, 0.0)
+        picks = {}
+        for _ in range(args.pairs):
+            Ti, Tj = far_pair(rng, D) if D else random_pair(rng, kind)
+            oracle = contour_oracle(Tj, Ti, dps=30)
+            got, pick = forced(Ti, Tj)
+            Ai = 0.5 * np.linalg.norm(np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]))
+            got["pyviewfactor SA-30"] = Ai * compute_viewfactor_sa30(np.ascontiguousarray(Tj),
+                                                                     np.ascontiguousarray(Ti), 4 * np.pi * Ai)
+            for m in methods:
+                worst[m] = max(worst[m], abs(got[m] / oracle - 1))
+            picks[pick] = picks.get(pick, 0) + 1
+        print(f"| {name} | " + " | ".join(f"{worst[m]:.1e}" for m in methods) + " | "
+              + ", ".join(f"{k} {v}" for k, v in picks.items()) + " |", flush=True)
+
+
+def absorbed_balance(scene, B):
+    """Per channel: sum (1 - rho) H A / sum E A - 1, with H = (B - E) / rho."""
+    rho, E, A = scene.reflectance, scene.emission, scene.areas
+    H = np.divide(B - E, rho, out=np.zeros_like(B), where=rho > 0)
+    return ((1 - rho) * H * A[:, None]).sum(axis=0) / (E * A[:, None]).sum(axis=0) - 1
+
+
+def icosphere(levels, centre, radius):
+    """Outward-facing icosphere of 20 * 4^levels triangles."""
+    import itertools
+    phi = (1 + 5 ** 0.5) / 2
+    pts = np.array([p for s1 in (-1, 1) for s2 in (-1, 1)
+                    for p in ((0, s1, s2 * phi), (s1, s2 * phi, 0), (s2 * phi, 0, s1))], float)
+    faces = [f for f in itertools.combinations(range(12), 3)
+             if all(abs(np.linalg.norm(pts[i] - pts[j]) - 2) < 1e-9 for i, j in itertools.combinations(f, 2))]
+    tris = pts[np.array(faces)]
+    for _ in range(levels):
+        a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tris = np.concatenate([np.stack(x, 1) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])])
+    tris = tris / np.linalg.norm(tris, axis=2, keepdims=True)
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    flip = (n * tris.mean(axis=1)).sum(axis=1) < 0
+    tris[flip] = tris[flip][:, ::-1]
+    return tris * radius + centre
+
+
+def closed_scenes():
+    from test_formfactor import closed_box, make_scene
+    from blockray.host_driver.objload import load_scene
+    rho = [0.5, 0.3, 0.7]
+    box, face = closed_box(4)
+    E = np.zeros((len(box), 3))
+    E[0] = [1, 2, 0.5]
+    yield "empty closed box (192 triangles, one emitting corner triangle)", make_scene(box, reflectance=rho, emission=E)
+    sphere = icosphere(2, np.array([0.5, 0.45, 0.5]), 0.25)
+    tris = np.concatenate([box, sphere])
+    E = np.zeros((len(tris), 3))
+    E[:len(box)][face == 1] = [1, 2, 0.5]
+    R = np.full((len(tris), 3), rho)
+    R[len(box):] = [0.8, 0.6, 0.2]
+    yield (f"icosphere of {len(sphere)} triangles in a closed box ({len(tris)} triangles, lit ceiling)",
+           make_scene(tris, reflectance=R, emission=E))
+    yield "cornell closed by a front wall", closed_cornell(load_scene("cornell"))
+
+
+def closed_cornell(scene):
+    """cornell with its open side (the one facing the camera) closed by the bounding box's face,
+    subdivided; the face covers the opening (cornell's red wall is slanted, so it reaches past it
+    outside the box, where no light arrives)."""
+    from test_formfactor import rectangle
+    from blockray.host_driver.scene import Scene
+    lo, hi = scene.bbox
+    cam = np.asarray(scene.camera.position, dtype=float)
+    outside = np.maximum(lo - cam, cam - hi)              # how far the camera is beyond each face
+    axis = int(np.argmax(outside))
+    value = lo[axis] if cam[axis] < lo[axis] else hi[axis]
+    u, v = [a for a in range(3) if a != axis]
+    origin = lo.copy()
+    origin[axis] = value
+    du, dv = np.zeros(3), np.zeros(3)
+    du[u], dv[v] = hi[u] - lo[u], hi[v] - lo[v]
+    n = max(1, round(math.sqrt(scene.patches / 10)))
+    wall = rectangle(origin, du, dv, n, n)
+    inward = np.sign(scene.centroids.mean(axis=0)[axis] - value)
+    normal = np.cross(wall[0, 1] - wall[0, 0], wall[0, 2] - wall[0, 0])
+    if normal[axis] * inward < 0:
+        wall = wall[:, ::-1]
+    k = len(scene.vertices)
+    vertices = np.concatenate([scene.vertices, wall.reshape(-1, 3)])
+    triangles = np.concatenate([scene.triangles, k + np.arange(3 * len(wall)).reshape(-1, 3)])
+    m = len(wall)
+    return Scene(name=scene.name + "-closed", vertices=vertices, triangles=triangles,
+                 reflectance=np.concatenate([scene.reflectance, np.full((m, 3), 0.6)]),
+                 emission=np.concatenate([scene.emission, np.zeros((m, 3))]),
+                 group=np.concatenate([scene.group, np.full(m, len(scene.group_names))]),
+                 group_names=scene.group_names + ["front wall"], camera=scene.camera, source=scene.source)
+
+
+def energy(args):
+    print("| scene | board | patches | residual | absorbed / emitted - 1 (R, G, B) | seconds |")
+    print("|---|---|---|---|---|---|")
+    for name, scene in closed_scenes():
+        if args.only and args.only not in name:
+            continue
+        for board in args.boards.split(","):
+            t = time.perf_counter()
+            res = render(scene, board=board, tolerance=args.tolerance)
+            bal = absorbed_balance(scene, res.radiosity)
+            print(f"| {name} | {board} | {scene.patches} | {res.report['residual']:.1e} | "
+                  + ", ".join(f"{x:+.1e}" for x in bal) + f" | {time.perf_counter() - t:.0f} |", flush=True)
+
+
+def row_sums(args):
+    """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
+    the render's visibility (render.shoot's rule) at a given shooter sample count."""
+    from blockray.host_driver.render import make_board, Visibility
+    from blockray.host_driver.voxel import VoxelGrid, default_voxels
+    from blockray.params import BoardParams
+    from blockray.samples import SampleScheme
+    scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))
+    A = scene.areas
+    for K in args.samples:
+        samples = SampleScheme(K)
+        board = make_board("golden")
+        board.prepare(scene, samples)
+        grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=board.margin)
+        board.load(grid)
+        p = BoardParams()
+        vis = Visibility(scene, board, grid, samples, rows=p.rows, cols=p.cols)
+        rows = []
+        for i in range(0, 192, 6):                          # every 6th triangle of the box
+            f = ff.unoccluded_factors(scene, i)
+            rec = np.flatnonzero(f > 0)
+            direct = ff.centroid_in_front(scene, i, rec)
+            v = np.empty(len(rec))
+            weigh = ff.sample_weights if args.kernel else (
+                lambda sc, sa, a, b: ff.samples_in_front(sc, sa, a, b).astype(float))
+            v[direct] = vis.clear_fraction(i, rec[direct], weigh(scene, samples, i, rec[direct]))
+            for m in np.flatnonzero(~direct):
+                j = rec[m]
+                v[m] = vis.clear_fraction(j, np.array([i]), weigh(scene, samples, j, [i]))[0]
+            rows.append((A[rec] * f[rec] * v).sum() / A[i] - 1)
+        rows = np.array(rows)
+        print(f"K = {K}, {'kernel-weighted' if args.kernel else 'uniform'} rays: {len(rows)} box shooters, row sum - 1: mean {rows.mean():+.2e}, "
+              f"min {rows.min():+.2e}, max {rows.max():+.2e}", flush=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="what", required=True)
+    t = sub.add_parser("table")
+    t.add_argument("--pairs", type=int, default=8)
+    t.add_argument("--seed", type=int, default=17)
+    e = sub.add_parser("energy")
+    e.add_argument("--boards", default="golden")
+    e.add_argument("--tolerance", type=float, default=1e-6)
+    e.add_argument("--only", default=None, help="only scenes whose name contains this")
+    r = sub.add_parser("rows")
+    r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
+    r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
+    args = ap.parse_args(argv)
+    print_run_header()
+    {"table": table, "energy": energy, "rows": row_sums}[args.what](args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,56 @@
+"""Energy balance of closed scenes: absorbed power sum (1 - rho) H A, with H = (B - E) / rho the
+incident flux, equals emitted power sum E A within 0.05% per channel (issue 17).
+
+The scenes are built in benchmarks/bench_formfactor.py (``closed_scenes``), which also prints the
+table in docs/formfactors.md.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+from bench_formfactor import absorbed_balance, closed_scenes          # noqa: E402
+from blockray.host_driver.formfactor import form_factor_matrix          # noqa: E402
+from blockray.host_driver.render import render                          # noqa: E402
+from blockray.host_driver.solver import jacobi                          # noqa: E402
+
+BALANCE = 5e-4
+
+
+def _scene(prefix):
+    return next(scene for name, scene in closed_scenes() if name.startswith(prefix))
+
+
+def test_absorbed_balance_formula():
+    """A one-patch check of the measure itself: a patch with B = E + rho H absorbs (1 - rho) H A."""
+    from test_formfactor import make_scene
+    scene = make_scene(np.zeros((1, 3, 3)) + np.eye(3)[None], reflectance=[0.5, 0.25, 0.8], emission=[1.0, 1.0, 1.0])
+    H = np.array([[2.0, 4.0, 1.0]])
+    B = scene.emission + scene.reflectance * H
+    absorbed = ((1 - scene.reflectance) * H * scene.areas[:, None]).sum(axis=0)
+    assert np.allclose(absorbed_balance(scene, B), absorbed / (scene.emission * scene.areas[:, None]).sum(axis=0) - 1)
+
+
+def test_empty_closed_box_absorbs_what_it_emits():
+    """Unoccluded: the exact factors' rows sum to 1, so the balance is to rounding."""
+    scene = _scene("empty closed box")
+    F = form_factor_matrix(scene)
+    result = jacobi(scene, F, tolerance=1e-12, max_iterations=2000)
+    balance = absorbed_balance(scene, result.B)
+    print(f"empty closed box: absorbed / emitted - 1 = {balance}")
+    assert np.abs(balance).max() < 1e-9
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("prefix", ["empty closed box", "icosphere", "cornell closed"])
+def test_closed_scene_render_balance(prefix):
+    """Full renders on the golden board (visibility by 8 rays per pair)."""
+    scene = _scene(prefix)
+    result = render(scene, board="golden", tolerance=1e-6)
+    balance = absorbed_balance(scene, result.radiosity)
+    print(f"{scene.name} ({scene.patches} patches): absorbed / emitted - 1 = {balance}")
+    assert np.abs(balance).max() < BALANCE
