@@ -18,14 +18,14 @@ import numpy as np
 from ..params import BoardParams
 from ..samples import SampleScheme
 from ..errors import ParameterError
+from .backends import backend, make_board
 from .board import BlockRay
 from . import formfactor, solver as solvers
 from .scaleout import SetVisibility, assign_sets, check_sets, exchange_bytes_per_sweep, receiver_work
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
-__all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
+__all__ = ["RenderResult", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
 
-BOARDS = ("golden", "model", "amaranth", "verilator")
 SOLVERS = ("progressive", "jacobi", "gauss-seidel")
 TRAVERSALS = ("block", "ray")
 PACKINGS = ("voxel", "fill")
@@ -39,28 +39,6 @@ def _morton(ijk):
         for axis in range(3):
             code |= ((ijk[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
     return code
-
-
-def make_board(name, params=None, *, bits=None, vcd=None, partition="deal"):
-    """Build a board back-end by name. ``bits=None`` lets the board choose B for the scene.
-
-    ``amaranth`` / ``verilator``: the board's RTL in the Amaranth simulator or as Verilog under
-    Verilator + cocotb (:class:`blockray.sim.rtl_board.RTLBoard`); ``vcd`` (a path) writes their
-    waveform."""
-    if partition != "deal" and name == "golden":
-        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene")
-    if vcd is not None and name not in ("amaranth", "verilator"):
-        raise ParameterError(f"--vcd needs a simulated RTL board (--board amaranth or verilator), not {name!r}")
-    if name in ("amaranth", "verilator"):
-        from ..sim.rtl_board import RTLBoard
-        return RTLBoard(params or BoardParams(), bits=bits, backend=name, vcd=vcd, partition=partition)
-    if name == "golden":
-        from .golden import GoldenBoard
-        return GoldenBoard()
-    if name == "model":
-        from ..sim.model import ModelBoard
-        return ModelBoard(params or BoardParams(), bits=bits, partition=partition)
-    raise ParameterError(f"--board must be one of {', '.join(BOARDS)}, not {name!r}")
 
 
 class Phases:
@@ -183,10 +161,12 @@ class RenderResult:
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
-           stats_fraction=0.02, vcd=None):
+           stats_fraction=0.02, vcd=None, host=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
-    Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
+    Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``. ``board``: a
+    name of the back-end registry (host_driver/backends.py) or a Board; ``vcd``, ``host``: see
+    :func:`~blockray.host_driver.backends.make_board`.
     """
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
@@ -202,12 +182,12 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         if not isinstance(board, str):
             raise ParameterError("--sets needs a board name (one board is built per set)", parameter="sets")
         check_sets(sets, scene.patches)
-    if bits is not None and board == "golden":
+    if bits is not None and isinstance(board, str) and not backend(board).quantises:
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
     t_start = time.perf_counter()
-    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition)
+    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition, host=host)
                  if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
 
@@ -239,7 +219,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         owner = assign_sets(vis.end_morton, sets, work)
         boards, visibilities = [board_obj], [vis]
         for _ in range(sets - 1):
-            other = make_board(board, params, bits=bits, partition=partition)
+            other = make_board(board, params, bits=bits, partition=partition, host=host)
             with phases.timed("prepare"):
                 other.prepare(scene, samples)
             with phases.timed("load"):
