@@ -85,10 +85,10 @@ def cornell_partition(rows, cols, boards, bits, *, voxels=4, shooters=(5, 600), 
 def cornell_runs(model, blocks, *, seed, idle, backpressure, reset_board=None, reset_at=None):
     runs = []
     for b in range(model.params.boards):
-        cmds = model.load_commands(b) + [Command(Op.READ_COUNTERS)]
+        cmds = model.load_commands(b) + [ReadCounters()]
         for block in blocks:
             cmds += model.block_commands(block)
-        cmds.append(Command(Op.READ_COUNTERS))
+        cmds.append(ReadCounters())
         runs.append({"commands": cmds, "seed": seed + b, "idle": idle, "backpressure": backpressure,
                      "reset_at": reset_at if b == reset_board else None})
     return runs

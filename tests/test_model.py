@@ -261,11 +261,11 @@ def test_bits_chosen_when_not_forced():
 def test_execute_rejects_bad_addresses():
     bm = BoardModel(BoardParams(rows=2, cols=2, patch_depth=4, voxel_depth=4))
     with pytest.raises(ParameterError, match="voxel_depth"):
-        bm.execute([Command(Op.VOXEL, 9)])
+        bm.execute([Voxel(9)])
     with pytest.raises(ParameterError, match="patch_depth"):
         bm.execute([Command(Op.WRITE_VOXEL, 0, (2, 3))])
     with pytest.raises(ParameterError, match="patch_depth"):
-        bm.execute([Command(Op.WRITE_PATCH, 4, 0)])
+        bm.execute([WritePatch(4, 0)])
 
 
 @pytest.mark.parametrize("bits", [8, 10, 14])
@@ -305,9 +305,9 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
                     BoardTiming(processor_latency=7, memory_latency=2))
     V = np.array([[[0, 0, 5], [9, 0, 5], [0, 9, 5]]] * 4)
     bm.load_memory(V, np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0]), [0, 3], [3, 0])
-    cmds = [Command(Op.READ_COUNTERS), Command(Op.BEGIN_BLOCK), Command(Op.LOAD_RECEIVER, 0, (1, 1, 9)),
-            Command(Op.LOAD_SHOOTER, 2, (1, 1, 0)), Command(Op.VOXEL, 0), Command(Op.VOXEL, 1),
-            Command(Op.END_BLOCK), Command(Op.READ_COUNTERS)]
+    cmds = [ReadCounters(), BeginBlock(), LoadReceiver(0, (1, 1, 9)),
+            LoadShooter(2, (1, 1, 0)), Voxel(0), Voxel(1),
+            EndBlock(), ReadCounters()]
     res = bm.execute(cmds)
     assert res.counters[0] == {"cycles": 0, "busy": 0, "tests_issued": 0, "tests_useful": 0}
     # READ_COUNTERS, BEGIN, two loads, VOXEL (3 records), VOXEL (empty: a bubble), END (one cycle)
