@@ -28,8 +28,8 @@ import numpy as np
 from blockray.exact import blocked_block, blocked_reference, patch_normals
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.sim.model import BoardModel, Command, ModelBoard
-from blockray.timing import Op
+from blockray.protocol import BeginBlock, EndBlock, LoadReceiver, LoadShooter, Voxel
+from blockray.sim.model import BoardModel, ModelBoard
 from blockray.host_driver.board import BlockRay
 from blockray.host_driver.scene import Scene
 

@@ -12,7 +12,7 @@ driver); :func:`check_run` is the scoreboard: it compares the log with the bit-e
 
 from dataclasses import dataclass, field
 
-from blockray.protocol import RESULT_OPS, BoardProtocol, Op, ReplayingHost, ResultKind, replay_after_reset
+from blockray.protocol import RESULT_OPS, BoardProtocol, ReplayingHost, ResultKind, replay_after_reset
 from blockray.sim.drive import HostTiming, StreamHost
 from blockray.sim.model import BoardModel
 

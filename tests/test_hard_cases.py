@@ -16,8 +16,8 @@ from hypothesis import given, settings, strategies as st, HealthCheck
 from blockray.exact import blocked_reference, blocked_block, block_terms, patch_normals
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.sim.model import BoardModel, Command
-from blockray.timing import Op
+from blockray.protocol import BeginBlock, EndBlock, LoadReceiver, LoadShooter, Voxel
+from blockray.sim.model import BoardModel
 
 HYPOTHESIS = settings(derandomize=True, max_examples=200, deadline=None,
                       suppress_health_check=[HealthCheck.too_slow])

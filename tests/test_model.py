@@ -10,8 +10,11 @@ from blockray.host_driver.scene import Scene
 from blockray.params import BoardParams
 from blockray.records import patch_layout, unpack_array
 from blockray.samples import SampleScheme
-from blockray.sim.model import BoardModel, Command, ModelBoard, registration, result_word
-from blockray.timing import BoardTiming, Op
+from blockray.memory import registration
+from blockray.protocol import (BeginBlock, EndBlock, LoadReceiver, LoadShooter, ReadCounters, Voxel,
+                               WritePatch, WriteVoxel)
+from blockray.sim.model import BoardModel, ModelBoard, result_word
+from blockray.timing import BoardTiming
 
 
 def make_scene(vertices, triangles, name="t"):
@@ -97,11 +100,11 @@ def test_run_equals_command_streams_per_board():
     blocks = random_blocks(rng, scene, samples, board.params, 12, len(grid.voxel_patches))
     bits = board.run(blocks)
     c = board.counters()
-    stream = [cmd for b in blocks for cmd in board.block_commands(b)]
+    stream = [cmd for b in blocks for cmd in board.memory.block_commands(b)]
     ored = [np.zeros_like(b) for b in bits]
     for b in range(board.params.boards):
         bm = BoardModel(board.params, board.timing)
-        loaded = bm.execute(board.load_commands(b))           # memory filled through WRITE_* commands
+        loaded = bm.execute(board.memory.load_commands(b))           # memory filled through WRITE_* commands
         assert loaded.cycles == c["load_cycles_per_board"][b]
         res = bm.execute(stream)
         assert res.cycles == c["board_cycles_per_board"][b]
@@ -125,7 +128,7 @@ def test_memory_layout_and_partition(partition):
     reg_total = sum(len(x) for x in grid.voxel_patches)
     ids, words = [], []
     for b in range(P):
-        img = board.memory_image(b)
+        img = board.memory.memory_image(b)
         assert len(img["patch"]) <= board.params.patch_depth
         assert all(int(w) < 1 << layout.size for w in img["patch"])
         cols = unpack_array(layout, img["patch"])
@@ -263,7 +266,7 @@ def test_execute_rejects_bad_addresses():
     with pytest.raises(ParameterError, match="voxel_depth"):
         bm.execute([Voxel(9)])
     with pytest.raises(ParameterError, match="patch_depth"):
-        bm.execute([Command(Op.WRITE_VOXEL, 0, (2, 3))])
+        bm.execute([WriteVoxel(0, 2, 3)])
     with pytest.raises(ParameterError, match="patch_depth"):
         bm.execute([WritePatch(4, 0)])
 
