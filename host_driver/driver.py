@@ -112,6 +112,8 @@ class BoardDriver(CountingBoard):
         self._useful_b += diff["tests_useful"]
         self._blocks += len(blocks)
         self._rays += sum(b.rays for b in blocks)
+        self._voxels += sum(len(b.voxels) for b in blocks)
+        self._links_used.update(range(p.boards))
         ored = [0] * len(blocks)
         for board_words in words:
             for k, w in enumerate(board_words):
@@ -122,10 +124,15 @@ class BoardDriver(CountingBoard):
     def counters(self):
         out = super().counters()
         bp = self.board_params
-        rays = max(1, self._rays)
+        rays, links = max(1, self._rays), max(1, len(self._links_used))
+        block_bytes = self._block_bytes_sent + self._block_bytes_received
         out["link"] = {
             "bytes_sent": self._bytes_sent, "bytes_received": self._bytes_received,
-            "bytes_per_ray": (self._block_bytes_sent + self._block_bytes_received) / rays,
+            "block_bytes_sent": self._block_bytes_sent, "block_bytes_received": self._block_bytes_received,
+            "voxels_per_block": self._voxels / max(1, self._blocks),
+            "rays_per_block": self._rays / max(1, self._blocks),
+            # one board's link (every board gets the same block commands and sends its results)
+            "bytes_per_ray": block_bytes / links / rays,
         }
         out["driver"] = {
             "backend": self.name,
@@ -139,6 +146,8 @@ class BoardDriver(CountingBoard):
         super()._reset_counters()
         self._bytes_sent = self._bytes_received = 0
         self._block_bytes_sent = self._block_bytes_received = 0
+        self._voxels = 0
+        self._links_used = set()
 
     # -- the links ---------------------------------------------------------------------------------
 
