@@ -19,7 +19,7 @@ __all__ = ["Backend", "BACKENDS", "register", "backend", "make_board"]
 class Backend:
     """``name``; ``help`` (one phrase for ``--board``); ``factory``; ``quantises``: the board
     quantises the scene (``--bits``, ``--partition`` apply); ``waveform``: it can write ``--vcd``;
-    ``host_timing``: it takes random host idle / back-pressure (``--host-timing``)."""
+    ``host_timing``: it takes random host idle / back-pressure (``--link-*``)."""
     name: str
     help: str
     factory: Callable
@@ -61,8 +61,8 @@ def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host
         raise ParameterError(f"--vcd needs a simulated RTL board (--board {able}), not {name!r}", parameter="vcd")
     if host is not None and not entry.host_timing:
         able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
-        raise ParameterError(f"--host-timing needs a board simulated cycle by cycle (--board {able}), "
-                             f"not {name!r}", parameter="host-timing")
+        raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
+                             f"by cycle (--board {able}), not {name!r}")
     return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host)
 
 
