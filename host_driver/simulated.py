@@ -43,7 +43,8 @@ class AmaranthTransport(_Buffered):
     """One :class:`~blockray.rtl.core.BoardCore` for ``params`` in the Amaranth simulator.
 
     ``idle`` / ``backpressure``: :class:`~blockray.sim.drive.HostTiming` of the host on the
-    command and result byte streams; ``seed`` seeds them. ``vcd``: write a waveform."""
+    command and result byte streams; ``seed`` seeds them. ``vcd``: write a waveform.
+    ``max_cycles``: clock cycles without progress after which :meth:`recv` gives up."""
 
     def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, max_cycles=None):
         from amaranth.hdl import ClockDomain, Module
@@ -93,12 +94,18 @@ class AmaranthTransport(_Buffered):
 
     def recv(self, count, *, timeout=None):
         t0 = time.perf_counter()
-        start = self.cycles
+        # a board that has all its commands and sends nothing for longer than any command takes
+        # (a VOXEL streams at most patch_depth records) has stopped: an error, not a hang
+        patience = self.max_cycles or self.params.patch_depth + 4096
+        progress = (self.cycles, len(self._in), len(self.host.queue))
         while len(self._in) < count:
             self._sim.advance()
-            if self.max_cycles is not None and self.cycles - start > self.max_cycles:
-                raise TransportError(f"the simulated board sent {len(self._in)} of {count} bytes in "
-                                     f"{self.max_cycles} cycles")
+            now = (len(self._in), len(self.host.queue))
+            if now != progress[1:] or not self.host.idle:
+                progress = (self.cycles,) + now
+            elif self.cycles - progress[0] > patience:
+                raise TransportError(f"the simulated board sent {len(self._in)} of {count} result bytes and "
+                                     f"then nothing for {patience} cycles")
             if timeout is not None and time.perf_counter() - t0 > timeout:
                 raise TransportError(f"the simulated board sent {len(self._in)} of {count} bytes in {timeout} s")
         self.simulator_seconds += time.perf_counter() - t0

@@ -245,3 +245,26 @@ def test_verilator_vcd(scene, tmp_path):
     for path in (vcd, tmp_path / "board.vcd.1"):         # one waveform per simulator process (board)
         text = path.read_text()
         assert "i_bytes__valid" in text and "\n#1" in text
+
+
+def test_amaranth_transport_reset_and_silence():
+    """The transport's reset clears the board (counters restart, queued bytes dropped), and a
+    board that owes nothing makes recv fail with a clear error instead of hanging."""
+    from blockray.host_driver.simulated import AmaranthTransport
+    from blockray.protocol import BoardProtocol, Identify, ReadCounters, Voxel
+    params = BoardParams(rows=2, cols=2, bits=8, patch_depth=8, voxel_depth=4)
+    proto = BoardProtocol(params)
+    t = AmaranthTransport(params)
+    t.send(proto.encode_all([Voxel(0), Voxel(1), ReadCounters()]))
+    first = proto.decode_result(t.recv(proto.result_bytes(ResultKind.COUNTERS))).counters
+    assert first["cycles"] == 2                         # two empty voxels, one bubble each
+    t.send(proto.encode(Voxel(2)))
+    t.reset()                                           # the queued VOXEL is lost with the reset
+    t.send(proto.encode_all([Identify(), ReadCounters()]))
+    ident = proto.decode_result(t.recv(proto.result_bytes(ResultKind.IDENTITY)))
+    assert ident.identity == proto.identity()
+    after = proto.decode_result(t.recv(proto.result_bytes(ResultKind.COUNTERS))).counters
+    assert after["cycles"] == 1                         # IDENTIFY only: the counters restarted
+    with pytest.raises(TransportError, match="then nothing for"):
+        t.recv(1)
+    t.close()
