@@ -163,15 +163,17 @@ class VerilatorTransport(_Buffered):
         self._flush(count)
 
     def _flush(self, count):
-        """Run what was sent, in pieces of ``depth`` bytes; the last piece owes ``count`` bytes."""
+        """Run what was sent, in pieces of ``depth`` bytes, until ``count`` more result bytes
+        came (the earlier pieces owe nothing; what they bring counts)."""
         self._collect()
+        before = len(self._in)
         while len(self._out) > self.depth:
             piece = bytes(self._out[:self.depth])
             del self._out[:self.depth]
             self._sim.submit([piece], [0])
             self._inflight = True
             self._collect()
-        self._sim.submit([bytes(self._out)], [count])
+        self._sim.submit([bytes(self._out)], [max(0, count - (len(self._in) - before))])
         self._out.clear()
         self._inflight = True
 
