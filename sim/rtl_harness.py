@@ -7,7 +7,8 @@ harness per board), a shared **command memory** of bytes the host fills with ``$
 **result log** the boards write with ``$fwrite``, a line per result byte. Each board reads its own
 slice of the command memory (``base``, ``count``) at one byte per cycle while its board takes it
 (``i_bytes.valid`` stays high until the slice is done, so the host never idles), and always
-accepts result bytes (``o_bytes.ready`` = 1, no back-pressure); those host-timing cases are covered
+accepts result bytes while a batch runs (``o_bytes.ready`` = running: between batches the board
+keeps its results, so every byte is counted by the batch that logs it; no other back-pressure); those host-timing cases are covered
 by tests/test_board_cocotb.py. cocotb is the control plane only (sim/rtl_cocotb.py): it writes the
 slice registers, bumps ``start_id`` and awaits ``done_id``; it also resets the boards on request.
 :class:`HarnessProcess` runs one simulation in a child process and talks to its control plane.
@@ -104,7 +105,7 @@ module {HARNESS_TOP}(input logic clk /*verilator public_flat_rw*/);
     {BOARD_MODULE} u (
       .clk(clk), .rst(rst),
       .i_bytes__payload(cmd_mem[ptr[{aw - 1}:0]]), .i_bytes__valid(cvalid), .i_bytes__ready(cready),
-      .o_bytes__payload(rpayload), .o_bytes__valid(rvalid), .o_bytes__ready(1'b1));
+      .o_bytes__payload(rpayload), .o_bytes__valid(rvalid), .o_bytes__ready(running));
     always_ff @(posedge clk) begin
       if (start) begin
         ptr <= bases[32*b +: {aw + 1}];
@@ -112,7 +113,7 @@ module {HARNESS_TOP}(input logic clk /*verilator public_flat_rw*/);
         got <= '0;
       end else begin
         if (cvalid && cready) ptr <= ptr + 1'b1;
-        if (rvalid) begin
+        if (running && rvalid) begin
           $fwrite(fd, "%0d %h\\n", b, rpayload);
           got <= got + 1;
         end
