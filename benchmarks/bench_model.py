@@ -28,8 +28,8 @@ import numpy as np
 from blockray.exact import blocked_block, blocked_reference, patch_normals
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.sim.model import BoardModel, Command, ModelBoard
-from blockray.timing import Op
+from blockray.protocol import BeginBlock, EndBlock, LoadReceiver, LoadShooter, Voxel
+from blockray.sim.model import BoardModel, ModelBoard
 from blockray.host_driver.board import BlockRay
 from blockray.host_driver.scene import Scene
 
@@ -132,9 +132,9 @@ def check_batch(P, Q, V, bits):
     params = BoardParams(rows=len(Q), cols=len(P), boards=1, bits=bits, patch_depth=len(V), voxel_depth=1)
     bm = BoardModel(params)
     bm.load_memory(V, n, [0], [len(V)])
-    cmds = ([Command(Op.BEGIN_BLOCK)] + [Command(Op.LOAD_RECEIVER, r, tuple(q)) for r, q in enumerate(Ql)]
-            + [Command(Op.LOAD_SHOOTER, s, tuple(p)) for s, p in enumerate(Pl)]
-            + [Command(Op.VOXEL, 0), Command(Op.END_BLOCK)])
+    cmds = ([BeginBlock()] + [LoadReceiver(r, tuple(q)) for r, q in enumerate(Ql)]
+            + [LoadShooter(s, tuple(p)) for s, p in enumerate(Pl)]
+            + [Voxel(0), EndBlock()])
     bad_rays = int((bm.execute(cmds).blocked[0] != ref.any(axis=2)).sum())
     return per.size, bad, bad_rays, int(ref.sum())
 

@@ -6,12 +6,14 @@
 Part 1 builds (or reuses, cached by content) the Verilator simulation of P = 8 boards of 8 x 8
 processors at the Cornell box's B (sim/rtl_harness.py), loads the Cornell partition and sends the
 renderer's block rays of ``--shooters`` shooter columns (all their receivers, one batch per
-shooter as the renderer does) through :class:`blockray.sim.rtl_board.RTLBoard`. It checks the
+shooter as the renderer does) through :class:`blockray.host_driver.driver.BoardDriver` over one
+:class:`~blockray.host_driver.simulated.VerilatorTransport` per board. It checks the
 blocked bits and the board cycles against the bit-exact model and prints
 
 * simulated clock cycles per second while the simulator runs (all P boards advance together in
   each clock cycle) and the same counted in board cycles (sum over the P boards);
-* the host-side overhead per batch (encoding, command file, result log, decoding).
+* the host-side overhead per batch (encoding, command file, result log, decoding);
+* the bytes per ray on one board's link.
 
 Part 2 (``--full``) renders the whole ``cornell`` scene with ``--board verilator`` (the CLI's
 defaults: progressive refinement to tolerance 1e-3) and prints its wall time and phases.
@@ -25,12 +27,12 @@ import time
 import numpy as np
 
 from blockray.host_driver import builtin
+from blockray.host_driver.backends import make_board
 from blockray.host_driver.render import Visibility, render
 from blockray.host_driver.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard
-from blockray.sim.rtl_board import RTLBoard
 
 
 def speed(shooters):
@@ -39,7 +41,7 @@ def speed(shooters):
     params = BoardParams()
     voxels = default_voxels(scene.patches, parallelism=1)
     t0 = time.perf_counter()
-    board = RTLBoard(params, backend="verilator")
+    board = make_board("verilator", params)
     board.prepare(scene, samples)
     grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
     board.load(grid)
@@ -51,23 +53,25 @@ def speed(shooters):
     rng = np.random.default_rng(1)
     columns = [vis._blocks_for(int(i), np.arange(scene.patches))
                for i in rng.choice(scene.patches, shooters, replace=False)]
-    tr = board.transport
-    c0, s0 = tr.cycles, tr.simulator_seconds
+    trs = board.transports
+    c0, s0 = max(t.cycles for t in trs), sum(t.simulator_seconds for t in trs)
     t0 = time.perf_counter()
     bits = [board.run(blocks) for blocks in columns]
     wall = time.perf_counter() - t0
-    cycles, sim_seconds = tr.cycles - c0, tr.simulator_seconds - s0
+    # the simulators run concurrently; collecting from each in turn, the summed waits are the wall time
+    cycles, sim_seconds = max(t.cycles for t in trs) - c0, sum(t.simulator_seconds for t in trs) - s0
     expect = [model.run(blocks) for blocks in columns]
     assert all((g == e).all() for gs, es in zip(bits, expect) for g, e in zip(gs, es)), "bits differ from the model"
     rc, mc = board.counters(), model.counters()
     assert rc["board_cycles"] == mc["board_cycles"] and rc["board_cycles_per_board"] == mc["board_cycles_per_board"]
     board_cycles = sum(mc["board_cycles_per_board"])
-    build = tr.build
+    build = trs[0].build
+    link = rc["link"]
     board.close()
     nblocks = sum(len(b) for b in columns)
     print(f"machine: {platform.machine()}, python {platform.python_version()}")
     print(f"cornell: {scene.patches} patches, {voxels}^3 voxels, B = {board.params.bits}; simulated memories "
-          f"patch_depth {board.rtl_params.patch_depth}, voxel_depth {board.rtl_params.voxel_depth}")
+          f"patch_depth {board.board_params.patch_depth}, voxel_depth {board.board_params.voxel_depth}")
     print(f"harness: {params.boards} boards x {params.rows} x {params.cols}; Verilator build "
           f"{build.seconds:.0f} s (cached: {build.cached}); setup incl. build, start and memory load {setup:.1f} s")
     print(f"{shooters} shooter columns, {nblocks} block rays, {cycles} clock cycles "
@@ -76,6 +80,7 @@ def speed(shooters):
           f"summed over the {params.boards} boards) in {sim_seconds:.2f} s")
     print(f"end to end through the host: {cycles / wall:,.0f} clock cycles/s; host overhead "
           f"{(wall - sim_seconds) / shooters * 1e3:.1f} ms per batch")
+    print(f"link: {link['bytes_per_ray']:.2f} bytes per ray per board")
     return cycles / sim_seconds
 
 
@@ -86,8 +91,9 @@ def full(report_path):
     wall = time.perf_counter() - t0
     r = res.report
     print(f"cornell --board verilator: {wall:.0f} s wall; {r['columns_cast']} columns, {r['blocks']} blocks, "
-          f"board_cycles {r['board_cycles']}, simulated clock cycles {r['rtl']['simulated_clock_cycles']}, "
-          f"simulator {r['rtl']['simulator_seconds']:.0f} s; phases " +
+          f"board_cycles {r['board_cycles']}, simulated clock cycles "
+          f"{max(t['simulated_clock_cycles'] for t in r['driver']['transports'])}, simulator "
+          f"{sum(t['simulator_seconds'] for t in r['driver']['transports']):.0f} s; phases " +
           ", ".join(f"{k} {v:.0f} s" for k, v in r["seconds"].items()))
     if report_path:
         with open(report_path, "w") as f:

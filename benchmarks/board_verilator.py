@@ -2,7 +2,7 @@
 
     python benchmarks/board_verilator.py [--rows 8 --cols 8 --bits 16] [--boards 2]
 
-Builds BoardTop (cached by content under ~/.cache/blockray/verilator: delete the directory, or
+Builds BoardCore (cached by content under ~/.cache/blockray/verilator: delete the directory, or
 set BLOCKRAY_CACHE_DIR to an empty one, to time a fresh build), then runs the Cornell box batch of
 the first ``--boards`` partitions (memory load + block rays + counter reads) with a host that never
 idles and never back-pressures, and prints the build time, the simulated cycles and cycles/s.

@@ -37,11 +37,9 @@ def _positive_int(text):
 
 
 def _add_board_options(p):
+    from .host_driver.backends import BACKENDS, help_text
     g = p.add_argument_group("board")
-    g.add_argument("--board", default="model", help="board back-end: golden (float64 reference), "
-                   "model (bit-exact model of the hardware; default), amaranth (the board's RTL in the "
-                   "Amaranth simulator: small scenes, debugging) or verilator (the board's Verilog under "
-                   "Verilator + cocotb; builds once per design, cached)")
+    g.add_argument("--board", default="model", choices=list(BACKENDS), help=help_text())
     g.add_argument("--bits", type=int, default=None, metavar="B",
                    help="coordinate bits of the quantised scene (default: chosen per scene)")
     g.add_argument("--rows", type=_positive_int, default=8, metavar="R", help="receivers per block (array rows)")
@@ -55,6 +53,28 @@ def _add_board_options(p):
                    help="write a waveform (VCD) of every clock cycle of the simulated boards; --board amaranth "
                         "or verilator only (verilator builds a traced simulation); use it on a short run "
                         "(e.g. --max-shots 1)")
+    g.add_argument("--link-idle", type=float, default=0.0, metavar="P",
+                   help="simulated host idles on the command bytes with probability P per cycle (--board amaranth)")
+    g.add_argument("--link-backpressure", type=float, default=0.0, metavar="P",
+                   help="simulated host refuses a result byte with probability P per cycle (--board amaranth)")
+    g.add_argument("--link-bursts", type=float, default=0.0, metavar="P",
+                   help="with probability P per cycle the simulated host starts a long stall (16 to 256 cycles) "
+                        "on each stream (--board amaranth)")
+    g.add_argument("--link-seed", type=int, default=0, metavar="N", help="seed of the simulated host's timing")
+
+
+def _host_timing(args):
+    """The simulated host's link timing from --link-*: None if it never stalls."""
+    from .errors import ParameterError
+    from .sim.drive import HostTiming
+    if not (args.link_idle or args.link_backpressure or args.link_bursts):
+        return None
+    try:
+        idle = HostTiming(rate=args.link_idle, burst=args.link_bursts)
+        pressure = HostTiming(rate=args.link_backpressure, burst=args.link_bursts)
+    except ValueError as e:
+        raise ParameterError(f"--link-*: {e}") from None
+    return idle, pressure, args.link_seed
 
 
 def _naming_option(run):
@@ -174,7 +194,8 @@ def _cmd_render(args):
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
                     partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
                     threads=args.threads, scheduler=args.scheduler, workers=args.workers,
-                    echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)))
+                    echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
+                    host=_host_timing(args))
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)

@@ -17,6 +17,7 @@ END_BLOCK       1: a marker enters the pipeline behind the block's last record; 
                 later, while the next block already streams (blocks overlap, no drain bubble)
 READ_COUNTERS   1 (a snapshot of the counters, covering the commands before it, follows the
                 same marker path so that results stay in command order)
+IDENTIFY        1 (the built configuration, by the same marker path)
 =============== ======================================================================
 
 ``drain_latency = memory_latency + processor_latency - 1``: END_BLOCK's result word is formed
@@ -28,33 +29,15 @@ cycles, so a command stream's board cycles do not depend on the host's timing.
 :meth:`BoardTiming.for_bits` gives the RTL's latencies (tests assert them against the RTL).
 """
 
-import enum
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import ParameterError
 from .params import Widths
+from .protocol import POINTS_PER_LOAD, Op
 
 __all__ = ["Op", "BoardTiming", "POINTS_PER_LOAD", "load_commands_needed"]
-
-
-class Op(enum.IntEnum):
-    """Board command opcodes (the RTL's command stream uses the same values)."""
-    WRITE_PATCH = 0
-    WRITE_VOXEL = 1
-    BEGIN_BLOCK = 2
-    LOAD_RECEIVER = 3
-    LOAD_SHOOTER = 4
-    VOXEL = 5
-    END_BLOCK = 6
-    READ_COUNTERS = 7
-    LOAD_POINTS = 8
-
-
-#: points one LOAD_POINTS command carries (a block of R receivers and S shooters needs
-#: ceil((R + S) / POINTS_PER_LOAD) of them; 4 keeps the command no wider than WRITE_PATCH's)
-POINTS_PER_LOAD = 4
 
 
 def load_commands_needed(receivers, shooters):

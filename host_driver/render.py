@@ -21,14 +21,14 @@ import numpy as np
 from ..params import BoardParams
 from ..samples import SampleScheme
 from ..errors import ParameterError
+from .backends import backend, make_board
 from .board import BlockBatch, BlockBits, ranges
 from . import formfactor, solver as solvers, threads as host_threads
 from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
-__all__ = ["RenderResult", "make_board", "Visibility", "render", "BOARDS", "SOLVERS", "TRAVERSALS"]
+__all__ = ["RenderResult", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
 
-BOARDS = ("golden", "model", "amaranth", "verilator")
 SOLVERS = ("progressive", "jacobi", "gauss-seidel")
 TRAVERSALS = ("block", "ray")
 PACKINGS = ("voxel", "fill")
@@ -42,28 +42,6 @@ def _morton(ijk):
         for axis in range(3):
             code |= ((ijk[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
     return code
-
-
-def make_board(name, params=None, *, bits=None, vcd=None, partition="deal"):
-    """Build a board back-end by name. ``bits=None`` lets the board choose B for the scene.
-
-    ``amaranth`` / ``verilator``: the board's RTL in the Amaranth simulator or as Verilog under
-    Verilator + cocotb (:class:`blockray.sim.rtl_board.RTLBoard`); ``vcd`` (a path) writes their
-    waveform."""
-    if partition != "deal" and name == "golden":
-        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene")
-    if vcd is not None and name not in ("amaranth", "verilator"):
-        raise ParameterError(f"--vcd needs a simulated RTL board (--board amaranth or verilator), not {name!r}")
-    if name in ("amaranth", "verilator"):
-        from ..sim.rtl_board import RTLBoard
-        return RTLBoard(params or BoardParams(), bits=bits, backend=name, vcd=vcd, partition=partition)
-    if name == "golden":
-        from .golden import GoldenBoard
-        return GoldenBoard()
-    if name == "model":
-        from ..sim.model import ModelBoard
-        return ModelBoard(params or BoardParams(), bits=bits, partition=partition)
-    raise ParameterError(f"--board must be one of {', '.join(BOARDS)}, not {name!r}")
 
 
 class Phases:
@@ -247,8 +225,11 @@ class RenderResult:
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
-           stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None):
+           stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None, host=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
+
+    ``board``: a name of the back-end registry (host_driver/backends.py) or a Board; ``vcd``,
+    ``host``: see :func:`~blockray.host_driver.backends.make_board`.
 
     ``threads``: cores the compiled host kernels use (None: all, see
     :mod:`blockray.host_driver.threads`); the result does not depend on it.
@@ -265,11 +246,11 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                        solver=solver, tolerance=tolerance, max_shots=max_shots, max_iterations=max_iterations,
                        traversal=traversal, packing=packing, partition=partition, sets=sets,
                        progress=progress, stats_fraction=stats_fraction, vcd=vcd,
-                       scheduler=scheduler, workers=workers, echo=echo)
+                       scheduler=scheduler, workers=workers, echo=echo, host=host)
 
 
 def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
-            traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo):
+            traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo, host):
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     if not (np.isfinite(tolerance) and tolerance > 0):
@@ -287,16 +268,19 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         if vcd is not None:
             raise ParameterError("--vcd traces one board's simulation; it cannot be used with --sets, "
                                  "--scheduler or --workers", parameter="vcd")
+        if host is not None:
+            raise ParameterError("--link-idle / --link-backpressure / --link-bursts drive one simulated board; "
+                                 "they cannot be used with --sets, --scheduler or --workers", parameter="sets")
         if scheduler is not None and workers is not None:
             raise ParameterError("--workers sizes the local cluster; a cluster joined with --scheduler has its own "
                                  "workers", parameter="workers")
         check_sets(sets, scene.patches)
-    if bits is not None and board == "golden":
+    if bits is not None and isinstance(board, str) and not backend(board).quantises:
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
     t_start, c_start = time.perf_counter(), time.process_time()
-    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition)
+    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition, host=host)
                  if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
 

@@ -1,7 +1,7 @@
 """One board (the paper's figure 3): host interface, voxel-to-patch memory, R x S processor array.
 
 The host sends one stream of commands and reads one stream of results
-(:class:`~blockray.rtl.protocol.BoardProtocol` layouts; docs/board-protocol.md). Commands run in
+(:class:`~blockray.protocol.BoardProtocol` layouts; rtl/core.py puts the byte format of the link in front; docs/board-protocol.md). Commands run in
 order, one at a time, in a single **execute slot**: a VOXEL occupies the memory controller's issue
 slot, every other command the board's command register. The next command is taken from the
 stream in the cycle the current one does its last step, so a busy host never costs a cycle, and
@@ -18,7 +18,7 @@ empty because the command stream was, or END_BLOCK / READ_COUNTERS waits for a r
 The ``cycles`` counter counts board cycles only, so it equals the model's cycle count whatever
 the host's timing.
 
-END_BLOCK and READ_COUNTERS take one cycle: each sends a **marker** (its kind, the block's row
+END_BLOCK, READ_COUNTERS and IDENTIFY take one cycle: each sends a **marker** (its kind, the block's row
 and column masks, whether the block issued any record) down a register chain of drain_latency
 stages, beside the pipeline, so it arrives exactly when the block's last record has reached the
 accumulators and before the next block's first record has (that one issues after END_BLOCK).
@@ -48,11 +48,11 @@ from amaranth.lib.wiring import In, Out
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import point_layout
-from ..timing import POINTS_PER_LOAD, BoardTiming, Op
+from ..protocol import POINTS_PER_LOAD, BoardProtocol, Op, ResultKind
+from ..timing import BoardTiming
 from .array import ProcessorArray
 from .memctrl import MemoryController
 from .processor import ArrayTiming
-from .protocol import BoardProtocol, ResultKind
 
 __all__ = ["BoardTop"]
 
@@ -168,7 +168,7 @@ class BoardTop(wiring.Component):
         # next block streams while this one drains. Credits bound the results in flight plus
         # those queued, so a host that does not read results stalls the board, never loses one.
         marker_layout = data.StructLayout({
-            "valid": 1, "counters": 1, "fresh": 1, "rows": R, "cols": S,
+            "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
         })
         queue_depth = self.result_queue_depth
         m.submodules.results = results = SyncFIFOBuffered(width=proto.result_layout.size, depth=queue_depth)
@@ -188,7 +188,7 @@ class BoardTop(wiring.Component):
         # -- execute the command register: every command takes one cycle; END_BLOCK and
         # READ_COUNTERS wait (stall) for a result credit
         op = cur.op
-        needs_result = (op == Op.END_BLOCK) | (op == Op.READ_COUNTERS)
+        needs_result = (op == Op.END_BLOCK) | (op == Op.READ_COUNTERS) | (op == Op.IDENTIFY)
         m.d.comb += [
             cur_step.eq(cur_valid & (~needs_result | credit)),
             cur_done.eq(cur_step),
@@ -282,6 +282,7 @@ class BoardTop(wiring.Component):
         m.d.comb += [
             marker.valid.eq(cur_step & needs_result),
             marker.counters.eq(op == Op.READ_COUNTERS),
+            marker.identify.eq(op == Op.IDENTIFY),
             marker.fresh.eq(fresh),
             marker.rows.eq(row_valid),
             marker.cols.eq(col_valid),
@@ -295,6 +296,11 @@ class BoardTop(wiring.Component):
             m.d.comb += [
                 result.kind.eq(ResultKind.COUNTERS),
                 result.data.counters.eq(snapshots.r_data),
+            ]
+        with m.Elif(done.identify):
+            m.d.comb += [
+                result.kind.eq(ResultKind.IDENTITY),
+                result.data.identity.eq(proto.identity_layout.const(proto.identity())),
             ]
         with m.Else():
             m.d.comb += [

@@ -34,7 +34,7 @@ from amaranth.lib.wiring import In, Out
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import patch_layout
-from .protocol import BoardProtocol
+from ..protocol import BoardProtocol
 
 __all__ = ["MemoryController"]
 

@@ -1,11 +1,12 @@
-"""cocotb control plane of the RTL harness (sim/rtl_harness.py); the host is sim/rtl_board.py.
+"""cocotb control plane of the RTL harness (sim/rtl_harness.py); the host is sim/rtl_harness.py's HarnessProcess.
 
 One cocotb test serves batches for the life of the simulator: it connects to the host on
 ``127.0.0.1:$BLOCKRAY_RTL_PORT``, resets the boards, says ``{"ready": ...}``, then for every
 request line ``{"bases": [...], "counts": [...], "expects": [...]}`` writes the harness's slice
 registers, starts the batch (the harness reads the command file itself) and waits, without any
 Python per cycle, until the harness reports it done; it answers ``{"clock": cycles}``. A request
-``{"quit": true}`` or the host closing the socket ends the simulation.
+``{"quit": true}`` or the host closing the socket ends the simulation; ``{"reset": true}`` holds
+the boards' reset for RESET_CYCLES cycles and answers ``{"clock": cycles}``.
 """
 
 import json
@@ -50,6 +51,14 @@ async def serve(dut):
         request = json.loads(line)
         if request.get("quit"):
             break
+        if request.get("reset"):
+            dut.rst.value = 1
+            for _ in range(RESET_CYCLES):
+                await RisingEdge(dut.clk)
+            dut.rst.value = 0
+            await RisingEdge(dut.clk)
+            send({"clock": int(dut.clock.value)})
+            continue
         dut.bases.value = _pack(request["bases"])
         dut.counts.value = _pack(request["counts"])
         dut.expects.value = _pack(request["expects"])

@@ -1,19 +1,22 @@
 """Host-side checking shared by the Amaranth-simulator and cocotb board tests.
 
-A run sends a batch of commands through :class:`blockray.rtl.protocol.ReplayingHost` (with
-resets, replays) and records, per result-producing command, the result word, whether it arrived
-after a reset, and the cycles (since the last reset) at which its command was accepted and its
-result received. :func:`check_run` compares everything with the bit-exact model
-(:class:`blockray.sim.model.BoardModel`) with zero tolerance.
+:class:`BatchRun` is the testbench's host for one board's batch, simulator-neutral and built on
+the one drive loop (:class:`blockray.sim.drive.StreamHost`: random idle and back-pressure with
+bursts) and :class:`blockray.protocol.ReplayingHost` (reset mid-batch, replay). It drives either
+:class:`~blockray.rtl.core.BoardCore` (``link="bytes"``: commands in the wire format, results
+split from the byte stream) or :class:`~blockray.rtl.board.BoardTop` (``link="records"``: one
+command record per transfer). It records a :class:`RunLog` (the cocotb bench's monitor and
+driver); :func:`check_run` is the scoreboard: it compares the log with the bit-exact model
+(:class:`blockray.sim.model.BoardModel`, the reference model) with zero tolerance.
 """
 
 from dataclasses import dataclass, field
 
-from blockray.rtl.protocol import BoardProtocol, ResultKind, RESULT_OPS, replay_after_reset
+from blockray.protocol import RESULT_OPS, BoardProtocol, ReplayingHost, ResultKind, replay_after_reset
+from blockray.sim.drive import HostTiming, StreamHost
 from blockray.sim.model import BoardModel
-from blockray.timing import Op
 
-__all__ = ["RunLog", "expected_results", "check_run"]
+__all__ = ["RunLog", "BatchRun", "expected_results", "check_run"]
 
 MODEL_COUNTERS = ("cycles", "busy", "tests_issued", "tests_useful")
 
@@ -21,15 +24,15 @@ MODEL_COUNTERS = ("cycles", "busy", "tests_issued", "tests_useful")
 @dataclass
 class RunLog:
     """What the host saw. Cycle numbers count clock edges since the last reset's release."""
-    results: dict = field(default_factory=dict)     # original index -> result word
+    results: dict = field(default_factory=dict)     # original index -> result (record int or wire bytes)
     epoch: dict = field(default_factory=dict)       # original index -> number of resets before it arrived
-    accepted: dict = field(default_factory=dict)    # original index -> cycle its command was accepted
-    received: dict = field(default_factory=dict)    # original index -> cycle its result arrived
+    accepted: dict = field(default_factory=dict)    # original index -> cycle its command (last byte) was accepted
+    received: dict = field(default_factory=dict)    # original index -> cycle its result (last byte) arrived
     answered_at_reset: list = field(default_factory=list)   # host.answered at each reset
     order: list = field(default_factory=list)       # original indices in the order kept
 
     def receive(self, host, word, cycle):
-        """A result word arrived in ``cycle``: hand it to the host; log it if the host keeps it."""
+        """A result arrived in ``cycle``: hand it to the host; log it if the host keeps it."""
         index = host.receive(word)
         if index is not None:
             self.results[index] = word
@@ -38,16 +41,73 @@ class RunLog:
             self.order.append(index)
 
 
+class BatchRun:
+    """One board's batch ``commands`` under random host timing, with an optional reset after
+    ``reset_at`` cycles (see the module docstring). The simulator glue, per cycle: if
+    :meth:`reset_due`, reset the board for one edge and call :meth:`after_reset`; else drive
+    ``self.stream`` for one edge (:func:`blockray.sim.drive.amaranth_cycle` or the cocotb
+    equivalent) and call :meth:`after_cycle` with the item received."""
+
+    def __init__(self, params, commands, *, link="bytes", idle=HostTiming(), backpressure=HostTiming(),
+                 seed=0, reset_at=None, max_cycles=10_000_000, encode=None):
+        self.proto = BoardProtocol(params)
+        self.link, self.reset_at, self.max_cycles = link, reset_at, max_cycles
+        self._encode = encode or self.proto.encode         # a test may send other bytes
+        self.host = ReplayingHost(commands)
+        self.stream = StreamHost(idle=idle, backpressure=backpressure, seed=seed)
+        self.log = RunLog()
+        self.total = 0              # clock edges, resets included
+        self._send(self.host.pending())
+
+    def _send(self, pending):
+        items, ends = [], []
+        for index, command in pending:
+            if self.link == "bytes":
+                items += self._encode(command)
+            else:
+                items.append(self.proto.record(command))
+            ends.append((len(items), index))
+        self._ends = ends[::-1]                         # (items taken when accepted, index), popped
+        self._reader = self.proto.reader()
+        self.stream.send(items)
+
+    @property
+    def done(self):
+        return self.host.done
+
+    def reset_due(self):
+        self.total += 1
+        if self.total > self.max_cycles:
+            raise AssertionError("the board stopped making progress")
+        return self.reset_at is not None and self.total == self.reset_at
+
+    def after_reset(self):
+        self.log.answered_at_reset.append(self.host.answered)
+        self.host.reset()
+        self.stream.reset()
+        self._send(self.host.pending())
+
+    def after_cycle(self, item):
+        cycle = self.stream.cycles - 1
+        while self._ends and self._ends[-1][0] <= self.stream.taken:
+            self.log.accepted[self._ends.pop()[1]] = cycle
+        if item is None:
+            return
+        words = self._reader.feed(bytes([item])) if self.link == "bytes" else [item]
+        for word in words:
+            self.log.receive(self.host, word, cycle)
+
+
 def expected_results(params, commands, timing=None):
-    """{original index: ("blocked", word) | ("counters", dict)} from the model."""
+    """{original index: ("blocked", word) | ("counters", dict) | ("identity", dict)} from the model."""
     res = BoardModel(params, timing).execute([c for _, c in commands])
-    words, counters = iter(res.words), iter(res.counters)
+    results = iter(res.results)
     out = {}
     for i, c in commands:
-        if Op(c.op) is Op.END_BLOCK:
-            out[i] = ("blocked", next(words))
-        elif Op(c.op) is Op.READ_COUNTERS:
-            out[i] = ("counters", next(counters))
+        if c.op in RESULT_OPS:
+            r = next(results)
+            out[i] = {ResultKind.BLOCKED: ("blocked", r.blocked), ResultKind.COUNTERS: ("counters", r.counters),
+                      ResultKind.IDENTITY: ("identity", r.identity)}[r.kind]
     return out, res
 
 
@@ -57,7 +117,7 @@ def check_run(params, commands, log):
     reset, every result exactly once and in order, and cycles + stalls within the window the host
     saw."""
     proto = BoardProtocol(params)
-    producers = [i for i, c in enumerate(commands) if Op(c.op) in RESULT_OPS]
+    producers = [i for i, c in enumerate(commands) if c.op in RESULT_OPS]
     assert sorted(log.results) == producers, "results lost or duplicated"
     assert log.order == producers, "results reordered"
 
@@ -69,12 +129,17 @@ def check_run(params, commands, log):
 
     full = expect[0]
     for i in producers:
-        got = proto.decode_result(log.results[i])
+        raw = log.results[i]
+        got = proto.decode_result(raw)
         kind, want = expect[log.epoch[i]][i]
+        if isinstance(raw, bytes):
+            assert len(raw) == proto.result_bytes(got.kind), f"command {i}: {len(raw)} result bytes"
         if kind == "blocked":
             assert got.kind is ResultKind.BLOCKED, f"command {i}: expected a blocked word, got {got}"
             assert got.blocked == want == full[i][1], (
                 f"command {i}: blocked word {got.blocked:#x}, model {want:#x}")
+        elif kind == "identity":
+            assert got.kind is ResultKind.IDENTITY and got.identity == want, f"command {i}: {got}, model {want}"
         else:
             assert got.kind is ResultKind.COUNTERS, f"command {i}: expected counters, got {got}"
             assert {k: got.counters[k] for k in MODEL_COUNTERS} == want, (
@@ -86,4 +151,5 @@ def check_run(params, commands, log):
                 f"command {i}: cycles + stalls = {total} outside "
                 f"[{log.accepted[i] + 1}, {log.received[i] - 1}]")
     return expect
+
 

@@ -9,8 +9,8 @@ import numpy as np
 
 from blockray.exact import patch_normals
 from blockray.records import pack_array, patch_columns, patch_layout
-from blockray.sim.model import Command
-from blockray.timing import POINTS_PER_LOAD, Op
+from blockray.protocol import (POINTS_PER_LOAD, BeginBlock, EndBlock, LoadPoints, LoadReceiver, LoadShooter,
+                               Voxel, WritePatch, WriteVoxel)
 
 __all__ = ["crossing_patches", "random_memory", "load_commands", "random_block", "random_points"]
 
@@ -62,26 +62,26 @@ def load_commands(bits, vertices, patch_ids, start, count):
     """WRITE_PATCH for every memory word, then WRITE_VOXEL for every voxel."""
     V = vertices[patch_ids]
     words = pack_array(patch_layout(bits), patch_columns(V, patch_normals(V)))
-    cmds = [Command(Op.WRITE_PATCH, a, w) for a, w in enumerate(words)]
-    cmds += [Command(Op.WRITE_VOXEL, v, (int(s), int(c))) for v, (s, c) in enumerate(zip(start, count))]
+    cmds = [WritePatch(a, int(w)) for a, w in enumerate(words)]
+    cmds += [WriteVoxel(v, int(s), int(c)) for v, (s, c) in enumerate(zip(start, count))]
     return cmds
 
 
 def random_block(rng, rows, cols, P, Q, voxels, *, max_voxels=6):
     """One well-formed block: BEGIN_BLOCK, LOADs of a random subset of rows and columns, VOXELs
     (random, repeats and empty voxels allowed), END_BLOCK."""
-    cmds = [Command(Op.BEGIN_BLOCK)]
+    cmds = [BeginBlock()]
     nr = int(rng.integers(0, rows + 1)) if rng.random() < 0.3 else rows
     nc = int(rng.integers(0, cols + 1)) if rng.random() < 0.3 else cols
-    loads = [Command(Op.LOAD_RECEIVER, int(r), tuple(int(c) for c in Q[rng.integers(len(Q))]))
+    loads = [LoadReceiver(int(r), tuple(int(c) for c in Q[rng.integers(len(Q))]))
              for r in rng.permutation(rows)[:nr]]
-    loads += [Command(Op.LOAD_SHOOTER, int(s), tuple(int(c) for c in P[rng.integers(len(P))]))
+    loads += [LoadShooter(int(s), tuple(int(c) for c in P[rng.integers(len(P))]))
               for s in rng.permutation(cols)[:nc]]
     rng.shuffle(loads)
     if rng.random() < 0.5:
         # the same loads packed POINTS_PER_LOAD at a time into LOAD_POINTS (in order: a later
         # slot of the same row or column would win, as a later LOAD does)
-        slots = [(Op(c.op) is Op.LOAD_SHOOTER, c.index, c.value) for c in loads]
+        slots = [(True, c.col, c.point) if isinstance(c, LoadShooter) else (False, c.row, c.point) for c in loads]
         if slots and rng.random() < 0.3:       # a row or column loaded twice: the later point counts
             shooter, where, _ = slots[0]
             again = P if shooter else Q
@@ -90,9 +90,9 @@ def random_block(rng, rows, cols, P, Q, voxels, *, max_voxels=6):
         loads = []
         while slots:
             take = int(rng.integers(1, POINTS_PER_LOAD + 1))
-            loads.append(Command(Op.LOAD_POINTS, 0, tuple(slots[:take])))
+            loads.append(LoadPoints(tuple(slots[:take])))
             slots = slots[take:]
     cmds += loads
-    cmds += [Command(Op.VOXEL, int(v)) for v in rng.integers(0, voxels, int(rng.integers(0, max_voxels + 1)))]
-    cmds.append(Command(Op.END_BLOCK))
+    cmds += [Voxel(int(v)) for v in rng.integers(0, voxels, int(rng.integers(0, max_voxels + 1)))]
+    cmds.append(EndBlock())
     return cmds

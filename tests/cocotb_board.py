@@ -1,11 +1,17 @@
-"""cocotb test of the whole board (Verilator), driven by tests/test_board_cocotb.py.
+"""cocotb test of the whole board behind its byte link (Verilator), driven by tests/test_board_cocotb.py.
 
 The pytest side pickles a list of **runs** into ``$BOARD_BATCH``; each run is one board's batch
-(``commands``), a seed for the random host timing, the probabilities of an idle command cycle and
-of a back-pressured result cycle, and an optional cycle at which the host resets the board in the
-middle of the batch (it then replays, :class:`blockray.rtl.protocol.ReplayingHost`). Every run
-starts with a reset. The host here only drives and records; the pytest side compares the
-:class:`board_host.RunLog` of each run with the model (``$BOARD_LOG``).
+(``commands``), a seed for the random host timing, the probabilities of an idle command-byte cycle
+and of a back-pressured result-byte cycle, an optional probability of bursts (long stalls on both
+streams), and an optional cycle at which the host resets the board in the middle of the batch (it
+then replays, :class:`blockray.protocol.ReplayingHost`). Every run starts with a reset.
+
+The parts are kept apart as in cocotb's examples/matrix_multiplier: :class:`LinkDriver` drives
+the command bytes and the result ``ready`` (the shared drive loop,
+:class:`blockray.sim.drive.StreamHost`, inside :class:`board_host.BatchRun`), :class:`LinkMonitor`
+samples the handshakes and the result bytes into the run's :class:`board_host.RunLog`; the
+reference model (:class:`blockray.sim.model.BoardModel`) and the scoreboard
+(:func:`board_host.check_run`) run on the pytest side on the logs written to ``$BOARD_LOG``.
 
 Timing discipline: inputs are driven just after a rising edge; at the falling edge the settled
 ``valid``/``ready`` decide which transfers the next rising edge makes.
@@ -13,82 +19,82 @@ Timing discipline: inputs are driven just after a rising edge; at the falling ed
 
 import os
 import pickle
-import random
 import time
-from collections import deque
 
 import cocotb
 from cocotb.clock import Clock
 from cocotb.triggers import FallingEdge, RisingEdge
 
-from blockray.rtl.protocol import BoardProtocol, ReplayingHost
+from blockray.sim.drive import HostTiming
 
-from board_host import RunLog
+from board_host import BatchRun
 
 
-async def _reset(dut, cycles=2):
-    dut.commands__valid.value = 0
-    dut.results__ready.value = 0
+class LinkDriver:
+    """Puts the host's next command byte and its result ``ready`` on the board's ports."""
+
+    def __init__(self, dut, stream):
+        self.dut, self.stream = dut, stream
+
+    def drive(self):
+        valid, payload, ready = self.stream.drive()
+        self.dut.i_bytes__valid.value = valid
+        self.dut.i_bytes__payload.value = payload
+        self.dut.o_bytes__ready.value = ready
+
+    def idle(self):
+        self.dut.i_bytes__valid.value = 0
+        self.dut.o_bytes__ready.value = 0
+
+
+class LinkMonitor:
+    """Samples the handshakes at the falling edge; reports them after the rising edge."""
+
+    def __init__(self, dut):
+        self.dut = dut
+
+    async def sample(self):
+        await FallingEdge(self.dut.clk)
+        sampled = (int(self.dut.i_bytes__ready.value), int(self.dut.o_bytes__valid.value),
+                   int(self.dut.o_bytes__payload.value) if int(self.dut.o_bytes__valid.value) else 0)
+        await RisingEdge(self.dut.clk)
+        return sampled
+
+
+async def _reset(dut, driver, cycles=2):
+    driver.idle()
     dut.rst.value = 1
     for _ in range(cycles):
         await RisingEdge(dut.clk)
     dut.rst.value = 0
 
 
-async def _run(dut, proto, run):
-    rng = random.Random(run["seed"])
-    host = ReplayingHost(run["commands"])
-    encoded = {}
-    log = RunLog()
-    await _reset(dut)
-    queue = deque(host.pending())
-    offer = None
-    cycle = 0                   # rising edges since the last reset's release
-    total = 0
-    reset_at = run.get("reset_at")
-    while not host.done:
-        total += 1
-        if total > run.get("max_cycles", 10_000_000):
-            raise AssertionError("the board stopped making progress")
-        if reset_at is not None and total == reset_at:
-            await _reset(dut, 1)
-            log.answered_at_reset.append(host.answered)
-            host.reset()
-            queue, offer, cycle = deque(host.pending()), None, 0
+async def _run(dut, params, spec):
+    burst = spec.get("bursts", 0.0)
+    run = BatchRun(params, spec["commands"], link="bytes", seed=spec["seed"], reset_at=spec.get("reset_at"),
+                   idle=HostTiming(spec["idle"], burst=burst), backpressure=HostTiming(spec["backpressure"], burst=burst),
+                   max_cycles=spec.get("max_cycles", 10_000_000))
+    driver, monitor = LinkDriver(dut, run.stream), LinkMonitor(dut)
+    await _reset(dut, driver)
+    while not run.done:
+        if run.reset_due():
+            await _reset(dut, driver, 1)
+            run.after_reset()
             continue
-        if offer is None and queue and rng.random() >= run["idle"]:
-            offer = queue.popleft()
-            word = encoded.get(offer[0])
-            if word is None:
-                word = encoded[offer[0]] = proto.encode(offer[1])
-            dut.commands__payload.value = word
-        dut.commands__valid.value = int(offer is not None)
-        rready = int(rng.random() >= run["backpressure"])
-        dut.results__ready.value = rready
-        await FallingEdge(dut.clk)
-        cready = int(dut.commands__ready.value)
-        rvalid = int(dut.results__valid.value)
-        rword = int(dut.results__payload.value) if rvalid else None
-        await RisingEdge(dut.clk)
-        if offer is not None and cready:
-            log.accepted[offer[0]] = cycle
-            offer = None
-        if rvalid and rready:
-            log.receive(host, rword, cycle)
-        cycle += 1
-    return log, total
+        driver.drive()
+        run.after_cycle(run.stream.sample(*await monitor.sample()))
+    return run.log, run.total
 
 
 @cocotb.test()
 async def board_batches(dut):
     with open(os.environ["BOARD_BATCH"], "rb") as f:
         batch = pickle.load(f)
-    proto = BoardProtocol(batch["params"])
     Clock(dut.clk, 10, unit="ns").start()
     logs = []
-    for run in batch["runs"]:
+    for spec in batch["runs"]:
         t0 = time.perf_counter()
-        log, cycles = await _run(dut, proto, run)
+        log, cycles = await _run(dut, batch["params"], spec)
         seconds = time.perf_counter() - t0
         dut._log.info(f"run: {cycles} cycles in {seconds:.2f} s ({cycles / seconds:.0f} cycles/s), "
                       f"resets {log.answered_at_reset}")

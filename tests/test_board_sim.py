@@ -1,12 +1,12 @@
 """The whole board in the Amaranth simulator against the bit-exact model.
 
 Blocked words and counters are compared with zero tolerance, under random host idle cycles,
-random result back-pressure and a reset in the middle of the batch (the host replays; nothing is
-lost, duplicated or reordered). Also: the protocol's record packing, capacity errors and the
-timing contract's latencies against the RTL's.
+random result back-pressure (with bursts of long stalls) and a reset in the middle of the batch
+(the host replays; nothing is lost, duplicated or reordered), both for ``BoardTop`` fed command
+records and for ``BoardCore``, the board behind its byte link (the wire format). Also: the
+protocol's record packing and wire format, capacity errors and the timing contract's latencies
+against the RTL's.
 """
-
-from collections import deque
 
 import numpy as np
 import pytest
@@ -15,13 +15,16 @@ from amaranth.sim import Simulator
 
 from blockray.errors import CapacityError, ParameterError
 from blockray.params import BoardParams
+from blockray.protocol import (BeginBlock, BoardProtocol, BoardResult, EndBlock, Identify, LoadPoints, LoadReceiver,
+                               LoadShooter, Op, ReadCounters, ReplayingHost, ResultKind, Voxel, WritePatch,
+                               WriteVoxel, check_capacity, fit_params, replay_after_reset)
 from blockray.rtl.board import BoardTop
-from blockray.rtl.protocol import (BoardProtocol, ReplayingHost, ResultKind, BoardResult, check_capacity,
-                                   fit_params, replay_after_reset)
-from blockray.sim.model import Command, result_word
-from blockray.timing import BoardTiming, Op
+from blockray.rtl.core import BoardCore
+from blockray.sim.drive import HostTiming, amaranth_cycle
+from blockray.sim.model import result_word
+from blockray.timing import BoardTiming
 
-from board_host import RunLog, check_run
+from board_host import BatchRun, check_run
 from board_scenes import crossing_patches, load_commands, random_block, random_memory, random_points
 
 
@@ -32,71 +35,48 @@ def make_batch(seed, *, rows, cols, bits, patches=14, voxels=6, blocks=6):
     V = crossing_patches(rng, bits, P, Q, patches)
     ids, start, count = random_memory(rng, bits, V, voxels)
     params = fit_params(BoardParams(rows=rows, cols=cols, bits=bits), records=len(ids), voxels=voxels)
-    cmds = load_commands(bits, V, ids, start, count) + [Command(Op.READ_COUNTERS)]
+    cmds = [Identify()] + load_commands(bits, V, ids, start, count) + [ReadCounters()]
     for b in range(blocks):
         cmds += random_block(rng, rows, cols, P, Q, voxels)
         if rng.random() < 0.5:
-            cmds.append(Command(Op.READ_COUNTERS))
+            cmds.append(ReadCounters())
     # back to back: a VOXEL right after a WRITE_VOXEL of the same voxel, results back to back
-    cmds += [Command(Op.WRITE_VOXEL, 0, (int(start[1]), int(count[1]))), Command(Op.BEGIN_BLOCK)]
-    cmds += [Command(Op.LOAD_RECEIVER, r, tuple(map(int, Q[r]))) for r in range(rows)]
-    cmds += [Command(Op.LOAD_SHOOTER, s, tuple(map(int, P[s]))) for s in range(cols)]
-    cmds += [Command(Op.VOXEL, 0), Command(Op.VOXEL, 1), Command(Op.END_BLOCK), Command(Op.READ_COUNTERS)]
+    cmds += [WriteVoxel(0, int(start[1]), int(count[1])), BeginBlock()]
+    cmds += [LoadReceiver(r, tuple(map(int, Q[r]))) for r in range(rows)]
+    cmds += [LoadShooter(s, tuple(map(int, P[s]))) for s in range(cols)]
+    cmds += [Voxel(0), Voxel(1), EndBlock(), Identify(), ReadCounters()]
     return params, cmds
 
 
-def run_board(params, commands, *, seed, idle=0.0, backpressure=0.0, reset_at=None):
-    """Run the batch on BoardTop in the Amaranth simulator; return (RunLog, clock cycles)."""
-    rng = np.random.default_rng(seed)
-    dut = BoardTop(params)
-    proto = dut.protocol
+def run_board(params, commands, *, seed, idle=HostTiming(), backpressure=HostTiming(), reset_at=None,
+              link="records", encode=None):
+    """Run the batch in the Amaranth simulator on BoardTop (``link="records"``) or BoardCore
+    (``"bytes"``) through the shared drive loop; return (RunLog, clock cycles)."""
+    dut = BoardTop(params) if link == "records" else BoardCore(params)
+    i, o = (dut.commands, dut.results) if link == "records" else (dut.i_bytes, dut.o_bytes)
     top = Module()
     top.domains.sync = cd = ClockDomain()
     top.submodules.board = dut
     sim = Simulator(top)
     sim.add_clock(1e-8)
-    log = RunLog()
-    host = ReplayingHost(commands)
-    state = {"cycles": 0}
+    run = BatchRun(params, commands, link=link, idle=idle, backpressure=backpressure, seed=seed,
+                   reset_at=reset_at, max_cycles=400_000, encode=encode)
 
     async def testbench(ctx):
-        queue = deque(host.pending())
-        offer = None
-        cycle = 0                       # clock edges since the last reset's release
-        total = 0
-        while not host.done:
-            total += 1
-            if total > 200_000:
-                raise AssertionError("the board stopped making progress")
-            if reset_at is not None and total == reset_at:
-                ctx.set(dut.commands.valid, 0)
-                ctx.set(dut.results.ready, 0)
+        while not run.done:
+            if run.reset_due():
+                ctx.set(i.valid, 0)
+                ctx.set(o.ready, 0)
                 ctx.set(cd.rst, 1)
                 await ctx.tick()
                 ctx.set(cd.rst, 0)
-                log.answered_at_reset.append(host.answered)
-                host.reset()
-                queue, offer, cycle = deque(host.pending()), None, 0
+                run.after_reset()
                 continue
-            if offer is None and queue and rng.random() >= idle:
-                offer = queue.popleft()
-                ctx.set(dut.commands.payload.as_value(), proto.encode(offer[1]))
-            ctx.set(dut.commands.valid, offer is not None)
-            ctx.set(dut.results.ready, int(rng.random() >= backpressure))
-            _, _, cvalid, cready, rvalid, rready, rword = await ctx.tick().sample(
-                dut.commands.valid, dut.commands.ready, dut.results.valid, dut.results.ready,
-                dut.results.payload.as_value())
-            if cvalid and cready:
-                log.accepted[offer[0]] = cycle
-                offer = None
-            if rvalid and rready:
-                log.receive(host, rword, cycle)
-            cycle += 1
-        state["cycles"] = total
+            run.after_cycle(await amaranth_cycle(ctx, run.stream, i, o))
 
     sim.add_testbench(testbench)
     sim.run()
-    return log, state["cycles"]
+    return run.log, run.total
 
 
 def test_latencies_match_timing_contract():
@@ -109,7 +89,7 @@ def test_latencies_match_timing_contract():
         assert board.drain_latency == contract.drain_latency
         assert board.memory_latency == contract.memory_latency
         assert board.processor_latency == contract.processor_latency
-        assert contract.cost(Op.END_BLOCK) == 1 == contract.cost(Op.READ_COUNTERS)
+        assert contract.cost(Op.END_BLOCK) == 1 == contract.cost(Op.READ_COUNTERS) == contract.cost(Op.IDENTIFY)
         assert board.result_queue_depth == contract.result_latency + 1
 
 
@@ -130,24 +110,63 @@ def test_board_back_to_back_exact_cycles(seed, rows, cols):
     assert {log.received[i] - log.accepted[i] for i in log.results} == {latency + 1}
 
 
-@pytest.mark.parametrize("seed", [201, 202])
-def test_board_idle_and_backpressure(seed):
+def test_core_back_to_back_counts_board_cycles_only():
+    """BoardCore behind its byte link, host never idle: results and counters equal the model (the
+    bytes cost stalls, not board cycles), every result in as many bytes as its tag says."""
+    seed = 103
+    print(f"seed={seed}")
+    params, cmds = make_batch(seed, rows=2, cols=3, bits=8)
+    log, _ = run_board(params, cmds, seed=seed, link="bytes")
+    check_run(params, cmds, log)
+    counters = BoardProtocol(params).decode_result(log.results[max(log.results)]).counters
+    assert counters["stalls"] > counters["cycles"] // 4, counters     # the link, not the board, is the limit
+
+
+def test_core_drops_unknown_headers_and_padding():
+    """Bytes a host should not send: an unknown opcode's header is dropped, and the padding bits
+    of a short LOAD_POINTS do not load the next slot; the results are the clean stream's."""
+    seed = 104
+    print(f"seed={seed}")
+    params, cmds = make_batch(seed, rows=2, cols=2, bits=8)
+    proto = BoardProtocol(params)
+    slot = proto.point_slot_layout.size
+    spare = 8 - slot % 8 if slot % 8 else 0
+    assert spare, "the test needs a LOAD_POINTS slot that does not fill its last byte"
+
+    def dirty(command):
+        data = bytearray(proto.encode(command))
+        if command.op is Op.LOAD_POINTS and len(command.slots) == 1:
+            data[-1] |= ((1 << spare) - 1) << (8 - spare)     # would set slot 1's valid bit
+        if command.op is Op.BEGIN_BLOCK:
+            data = bytearray([0x0F]) + data                   # opcode 15 does not exist
+        return bytes(data)
+
+    assert any(c.op is Op.LOAD_POINTS and len(c.slots) == 1 for c in cmds)
+    log, _ = run_board(params, cmds, seed=seed, link="bytes", encode=dirty)
+    check_run(params, cmds, log)
+
+
+@pytest.mark.parametrize("seed,link", [(201, "records"), (202, "bytes")])
+def test_board_idle_and_backpressure(seed, link):
+    """Random idle and back-pressure on both streams, with bursts of long stalls."""
     print(f"seed={seed}")
     params, cmds = make_batch(seed, rows=2, cols=2, bits=10)
-    log, _ = run_board(params, cmds, seed=seed, idle=0.3, backpressure=0.4)
+    timing = dict(idle=HostTiming(0.3, burst=0.002, burst_length=(20, 300)),
+                  backpressure=HostTiming(0.4, burst=0.002, burst_length=(20, 300)))
+    log, _ = run_board(params, cmds, seed=seed, link=link, **timing)
     check_run(params, cmds, log)
     last = max(log.results)
     assert BoardProtocol(params).decode_result(log.results[last]).counters["stalls"] > 1
 
 
-@pytest.mark.parametrize("seed,fraction", [(301, 0.5), (302, 0.8)])
-def test_board_reset_mid_batch(seed, fraction):
+@pytest.mark.parametrize("seed,fraction,link", [(301, 0.5, "records"), (302, 0.8, "bytes")])
+def test_board_reset_mid_batch(seed, fraction, link):
     """Reset in the middle of the batch; the host reloads and replays."""
     print(f"seed={seed}")
     params, cmds = make_batch(seed, rows=2, cols=2, bits=8)
-    _, clean = run_board(params, cmds, seed=seed, idle=0.2, backpressure=0.3)
-    log, _ = run_board(params, cmds, seed=seed, idle=0.2, backpressure=0.3,
-                       reset_at=int(clean * fraction))
+    timing = dict(idle=HostTiming(0.2), backpressure=HostTiming(0.3))
+    _, clean = run_board(params, cmds, seed=seed, link=link, **timing)
+    log, _ = run_board(params, cmds, seed=seed, reset_at=int(clean * fraction), link=link, **timing)
     assert log.answered_at_reset, "the reset did not happen"
     print("results answered before the reset:", log.answered_at_reset)
     check_run(params, cmds, log)
@@ -166,36 +185,57 @@ def test_protocol_records_pack_like_amaranth():
     P = random_points(rng, 6, 3)
     V = crossing_patches(rng, 6, P, P, 4)
     cmds = load_commands(6, V, np.arange(4), np.array([0, 2, 2]), np.array([2, 0, 2]))
-    cmds += [Command(Op.BEGIN_BLOCK), Command(Op.LOAD_RECEIVER, 2, (1, 2, 3)),
-             Command(Op.LOAD_SHOOTER, 1, (63, 0, 5)), Command(Op.VOXEL, 8), Command(Op.END_BLOCK),
-             Command(Op.READ_COUNTERS)]
+    cmds += [BeginBlock(), LoadReceiver(2, (1, 2, 3)), LoadShooter(1, (63, 0, 5)), Voxel(8), EndBlock(),
+             ReadCounters(), Identify(), LoadPoints(((True, 1, (1, 2, 3)), (False, 2, (4, 5, 6)))),
+             LoadPoints(((False, 0, (1, 2, 3)),) * 4)]
     for c in cmds:
-        value = proto.command_value(c)
-        word = proto.encode(c)
+        value = {"op": c.op, "arg": {c.member: c.arg(proto)} if c.member else {}}
+        word = proto.record(c)
         assert word == proto.command_layout.const(value).as_bits()
-        back = proto.decode_command(word)
-        assert back["op"] is Op(c.op)
-        member = next(iter(value["arg"]), None)
-        if member is not None:
-            assert back["arg"][member] == value["arg"][member]
+        back = proto.decode_record(word)
+        assert back["op"] is c.op
+        if c.member is not None:
+            assert back["arg"][c.member] == value["arg"][c.member]
+    # the wire format: header, then the member's bits only; the inverse gives the commands back
+    wire = proto.encode_all(cmds)
+    back = proto.decode_commands(wire)
+    assert proto.encode_all(back) == wire
+    # equal but for an empty voxel's start, which the encoding sets to 0 (never read)
+    assert [c for c in back if c.op is not Op.WRITE_VOXEL] == [c for c in cmds if c.op is not Op.WRITE_VOXEL]
+    assert [(c.voxel, c.count, c.start if c.count else 0) for c in cmds if c.op is Op.WRITE_VOXEL] == [
+        (c.voxel, c.count, c.start) for c in back if c.op is Op.WRITE_VOXEL]
+    assert len(proto.encode(Voxel(8))) == 1 + (proto.voxel_width + 7) // 8 == 2
+    assert [len(proto.encode(c)) for c in (BeginBlock(), EndBlock(), ReadCounters(), Identify())] == [1] * 4
+    slot = proto.point_slot_layout.size
+    assert len(proto.encode(cmds[-2])) == 1 + (2 * slot + 7) // 8 < len(proto.encode(cmds[-1]))
+    with pytest.raises(ParameterError, match="byte 0"):
+        proto.decode_commands(bytes([0x0F]))
+    with pytest.raises(ParameterError, match="stream ends"):
+        proto.decode_commands(proto.encode(Voxel(8))[:1])
     for result in (BoardResult(ResultKind.BLOCKED, blocked=0b100101),
                    BoardResult(ResultKind.COUNTERS, counters=dict(cycles=7, busy=1, tests_issued=6,
-                                                                  tests_useful=2, stalls=(1 << 48) - 1))):
+                                                                  tests_useful=2, stalls=(1 << 48) - 1)),
+                   BoardResult(ResultKind.IDENTITY, identity=proto.identity())):
         word = proto.encode_result(result)
         assert proto.decode_result(word) == result
+        wire = proto.result_wire(result)
+        assert len(wire) == proto.result_length(wire[0]) == proto.result_bytes(result.kind)
+        assert proto.decode_result(wire) == result
+    # R x S = 6 blocked bits and the 2-bit tag: one byte
+    assert proto.result_bytes(ResultKind.BLOCKED) == 1
 
 
 def test_protocol_capacity_errors():
     params = BoardParams(rows=2, cols=2, bits=6, patch_depth=8, voxel_depth=4)
     proto = BoardProtocol(params)
     with pytest.raises(CapacityError, match="patch_depth 8"):
-        proto.encode(Command(Op.WRITE_PATCH, 8, 0))
+        proto.encode(WritePatch(8, 0))
     with pytest.raises(CapacityError, match="voxel_depth 4"):
-        proto.encode(Command(Op.VOXEL, 4))
+        proto.encode(Voxel(4))
     with pytest.raises(CapacityError, match="patch_depth 8"):
-        proto.encode(Command(Op.WRITE_VOXEL, 1, (5, 4)))
+        proto.encode(WriteVoxel(1, 5, 4))
     with pytest.raises(CapacityError, match="rows"):
-        proto.encode(Command(Op.LOAD_RECEIVER, 2, (0, 0, 0)))
+        proto.encode(LoadReceiver(2, (0, 0, 0)))
     with pytest.raises(CapacityError, match="patch_depth 8"):
         check_capacity(params, records=9, voxels=4)
     with pytest.raises(CapacityError, match="voxel_depth 4"):
@@ -207,8 +247,8 @@ def test_protocol_capacity_errors():
 
 
 def test_replay_plan():
-    W, B, E, R, L, X = (Command(Op.WRITE_PATCH), Command(Op.BEGIN_BLOCK), Command(Op.END_BLOCK),
-                        Command(Op.READ_COUNTERS), Command(Op.LOAD_RECEIVER), Command(Op.VOXEL))
+    W, B, E, R, L, X = (WritePatch(0, 0), BeginBlock(), EndBlock(),
+                        ReadCounters(), LoadReceiver(0, (0, 0, 0)), Voxel(0))
     cmds = [W, W, B, L, X, E, R, W, B, L, R, X, E, L]
     #       0  1  2  3  4  5  6  7  8  9 10 11 12 13
     idx = lambda plan: [i for i, _ in plan]
@@ -282,14 +322,14 @@ def test_board_executes_in_order_beyond_the_model():
             if (acc == late).all():
                 continue          # the LOAD's timing would not show
         found["abandon" if abandon else "load"] += 1
-        cmds += [Command(Op.BEGIN_BLOCK)] + [Command(Op.LOAD_RECEIVER, r, pt(rc[r])) for r in range(rows)]
-        cmds += [Command(Op.LOAD_SHOOTER, s, pt(sh[s])) for s in range(cols)]
-        cmds.append(Command(Op.VOXEL, va))
+        cmds += [BeginBlock()] + [LoadReceiver(r, pt(rc[r])) for r in range(rows)]
+        cmds += [LoadShooter(s, pt(sh[s])) for s in range(cols)]
+        cmds.append(Voxel(va))
         if abandon:
-            cmds += [Command(Op.BEGIN_BLOCK)] + [Command(Op.LOAD_RECEIVER, r, pt(rc[r])) for r in range(rows)]
-            cmds += [Command(Op.LOAD_SHOOTER, s, pt(sh[s])) for s in range(cols)]
-        cmds += [Command(Op.LOAD_RECEIVER, 1, pt(rc2[1])), Command(Op.LOAD_SHOOTER, 0, pt(sh2[0])),
-                 Command(Op.VOXEL, vb), Command(Op.END_BLOCK)]
+            cmds += [BeginBlock()] + [LoadReceiver(r, pt(rc[r])) for r in range(rows)]
+            cmds += [LoadShooter(s, pt(sh[s])) for s in range(cols)]
+        cmds += [LoadReceiver(1, pt(rc2[1])), LoadShooter(0, pt(sh2[0])),
+                 Voxel(vb), EndBlock()]
         expect.append(word(acc))
     assert found == {"load": 2, "abandon": 2}, found
     print("expected", [hex(w) for w in expect])
@@ -333,11 +373,11 @@ def test_board_overlapped_blocks_and_load_points():
             found["slot_order"] += 1
             slots = [(False, 0, pt(early[0])), (True, 0, pt(sh[0])), (False, 0, pt(rc[0])),
                      (False, 1, pt(rc[1])), (True, 1, pt(sh[1]))]
-        cmds += [Command(Op.BEGIN_BLOCK)]
-        cmds += [Command(Op.LOAD_POINTS, 0, tuple(slots[i:i + 4])) for i in range(0, len(slots), 4)]
-        cmds += [Command(Op.VOXEL, v), Command(Op.END_BLOCK)]
+        cmds += [BeginBlock()]
+        cmds += [LoadPoints(tuple(slots[i:i + 4])) for i in range(0, len(slots), 4)]
+        cmds += [Voxel(v), EndBlock()]
     assert min(found.values()) >= 3, found
-    cmds.append(Command(Op.READ_COUNTERS))
+    cmds.append(ReadCounters())
     log, _ = run_board(params, cmds, seed=seed)
     check_run(params, cmds, log)
     counters = BoardProtocol(params).decode_result(log.results[max(log.results)]).counters
@@ -347,8 +387,8 @@ def test_board_overlapped_blocks_and_load_points():
 def test_protocol_doc_matches_layouts():
     """docs/board-protocol.md embeds the layout tables generated from the layouts themselves."""
     from pathlib import Path
-    from blockray.rtl.protocol import describe
+    from blockray.protocol import describe
     text = (Path(__file__).resolve().parent.parent / "docs" / "board-protocol.md").read_text()
-    begin = "<!-- generated: python -m blockray.rtl.protocol -->\n"
+    begin = "<!-- generated: python -m blockray.protocol -->\n"
     section = text[text.index(begin) + len(begin):text.index("<!-- end generated -->")]
     assert section == describe(BoardParams())

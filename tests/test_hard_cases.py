@@ -16,8 +16,8 @@ from hypothesis import given, settings, strategies as st, HealthCheck
 from blockray.exact import blocked_reference, blocked_block, block_terms, patch_normals
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.sim.model import BoardModel, Command
-from blockray.timing import Op
+from blockray.protocol import BeginBlock, EndBlock, LoadReceiver, LoadShooter, Voxel
+from blockray.sim.model import BoardModel
 
 HYPOTHESIS = settings(derandomize=True, max_examples=200, deadline=None,
                       suppress_health_check=[HealthCheck.too_slow])
@@ -34,10 +34,10 @@ def model_blocked(vertices, shooters, receivers, bits=20):
                          patch_depth=max(1, len(V)), voxel_depth=1)
     bm = BoardModel(params)
     bm.load_memory(V, patch_normals(V), [0], [len(V)])
-    cmds = [Command(Op.BEGIN_BLOCK)]
-    cmds += [Command(Op.LOAD_RECEIVER, r, tuple(q)) for r, q in enumerate(Q.tolist())]
-    cmds += [Command(Op.LOAD_SHOOTER, s, tuple(p)) for s, p in enumerate(P.tolist())]
-    cmds += [Command(Op.VOXEL, 0), Command(Op.END_BLOCK)]
+    cmds = [BeginBlock()]
+    cmds += [LoadReceiver(r, tuple(q)) for r, q in enumerate(Q.tolist())]
+    cmds += [LoadShooter(s, tuple(p)) for s, p in enumerate(P.tolist())]
+    cmds += [Voxel(0), EndBlock()]
     return bm.execute(cmds).blocked[0]
 
 

@@ -10,8 +10,11 @@ from blockray.host_driver.scene import Scene
 from blockray.params import BoardParams
 from blockray.records import patch_layout, unpack_array
 from blockray.samples import SampleScheme
-from blockray.sim.model import BoardModel, Command, ModelBoard, registration, result_word
-from blockray.timing import BoardTiming, Op
+from blockray.memory import registration
+from blockray.protocol import (BeginBlock, EndBlock, LoadReceiver, LoadShooter, ReadCounters, Voxel,
+                               WritePatch, WriteVoxel)
+from blockray.sim.model import BoardModel, ModelBoard, result_word
+from blockray.timing import BoardTiming
 
 
 def make_scene(vertices, triangles, name="t"):
@@ -97,11 +100,11 @@ def test_run_equals_command_streams_per_board():
     blocks = random_blocks(rng, scene, samples, board.params, 12, len(grid.voxel_patches))
     bits = board.run(blocks)
     c = board.counters()
-    stream = [cmd for b in blocks for cmd in board.block_commands(b)]
+    stream = [cmd for b in blocks for cmd in board.memory.block_commands(b)]
     ored = [np.zeros_like(b) for b in bits]
     for b in range(board.params.boards):
         bm = BoardModel(board.params, board.timing)
-        loaded = bm.execute(board.load_commands(b))           # memory filled through WRITE_* commands
+        loaded = bm.execute(board.memory.load_commands(b))           # memory filled through WRITE_* commands
         assert loaded.cycles == c["load_cycles_per_board"][b]
         res = bm.execute(stream)
         assert res.cycles == c["board_cycles_per_board"][b]
@@ -125,7 +128,7 @@ def test_memory_layout_and_partition(partition):
     reg_total = sum(len(x) for x in grid.voxel_patches)
     ids, words = [], []
     for b in range(P):
-        img = board.memory_image(b)
+        img = board.memory.memory_image(b)
         assert len(img["patch"]) <= board.params.patch_depth
         assert all(int(w) < 1 << layout.size for w in img["patch"])
         cols = unpack_array(layout, img["patch"])
@@ -261,11 +264,11 @@ def test_bits_chosen_when_not_forced():
 def test_execute_rejects_bad_addresses():
     bm = BoardModel(BoardParams(rows=2, cols=2, patch_depth=4, voxel_depth=4))
     with pytest.raises(ParameterError, match="voxel_depth"):
-        bm.execute([Command(Op.VOXEL, 9)])
+        bm.execute([Voxel(9)])
     with pytest.raises(ParameterError, match="patch_depth"):
-        bm.execute([Command(Op.WRITE_VOXEL, 0, (2, 3))])
+        bm.execute([WriteVoxel(0, 2, 3)])
     with pytest.raises(ParameterError, match="patch_depth"):
-        bm.execute([Command(Op.WRITE_PATCH, 4, 0)])
+        bm.execute([WritePatch(4, 0)])
 
 
 @pytest.mark.parametrize("bits", [8, 10, 14])
@@ -305,9 +308,9 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
                     BoardTiming(processor_latency=7, memory_latency=2))
     V = np.array([[[0, 0, 5], [9, 0, 5], [0, 9, 5]]] * 4)
     bm.load_memory(V, np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0]), [0, 3], [3, 0])
-    cmds = [Command(Op.READ_COUNTERS), Command(Op.BEGIN_BLOCK), Command(Op.LOAD_RECEIVER, 0, (1, 1, 9)),
-            Command(Op.LOAD_SHOOTER, 2, (1, 1, 0)), Command(Op.VOXEL, 0), Command(Op.VOXEL, 1),
-            Command(Op.END_BLOCK), Command(Op.READ_COUNTERS)]
+    cmds = [ReadCounters(), BeginBlock(), LoadReceiver(0, (1, 1, 9)),
+            LoadShooter(2, (1, 1, 0)), Voxel(0), Voxel(1),
+            EndBlock(), ReadCounters()]
     res = bm.execute(cmds)
     assert res.counters[0] == {"cycles": 0, "busy": 0, "tests_issued": 0, "tests_useful": 0}
     # READ_COUNTERS, BEGIN, two loads, VOXEL (3 records), VOXEL (empty: a bubble), END (one cycle)

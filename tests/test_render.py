@@ -205,3 +205,21 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
 def test_cli_board_parameter_errors_name_the_option(capsys):
     code, err = _run_cli(capsys, ["render", "cornell", "--rows", "200", "--quiet"])
     assert code == 2 and err.startswith("blockray: error: --rows:") and "Traceback" not in err
+
+
+def test_cli_board_choices_come_from_the_registry(capsys):
+    """--board lists the registry's back-ends and their help; an unknown name is refused (exit 2)
+    with the choices, and the link-timing options need a board simulated cycle by cycle."""
+    from blockray.host_driver.backends import BACKENDS
+    with pytest.raises(SystemExit) as e:
+        main(["render", "--help"])
+    assert e.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    for name, entry in BACKENDS.items():
+        assert name in out and " ".join(entry.help.split()) in out, name
+    code, err = _run_cli(capsys, ["render", "cornell", "--board", "nope"])
+    assert code == 2 and "invalid choice: 'nope'" in err and "model-link" in err
+    code, err = _run_cli(capsys, ["render", "cornell", "--board", "model", "--link-bursts", "0.01", "--quiet"])
+    assert code == 2 and "--link-bursts need a board simulated cycle by cycle (--board amaranth)" in err
+    code, err = _run_cli(capsys, ["render", "cornell", "--board", "amaranth", "--link-idle", "1.5", "--quiet"])
+    assert code == 2 and err.startswith("blockray: error: --link-*: host timing rate must be in [0, 1)")

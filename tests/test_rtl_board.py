@@ -1,4 +1,5 @@
-"""Full radiosity runs through the simulated RTL board (sim/rtl_board.py).
+"""Full radiosity runs through the host driver and simulated boards (host_driver/driver.py over
+the transports of host_driver/simulated.py).
 
 A small scene goes through every back-end (golden, model, amaranth, verilator): the simulated RTL
 must give the model's blocked bits, per-patch radiosity to the last bit and counters exactly; the
@@ -15,14 +16,18 @@ import pytest
 
 from blockray.cli import main
 from blockray.errors import CapacityError
+from blockray.host_driver.backends import make_board
+from blockray.host_driver.driver import BoardDriver, blocked_bits
 from blockray.host_driver.objload import load_obj
 from blockray.host_driver.render import Visibility, render
+from blockray.host_driver.simulated import ModelTransport
+from blockray.host_driver.transport import TransportError
 from blockray.host_driver.voxel import VoxelGrid
 from blockray.params import BoardParams
-from blockray.rtl.protocol import BoardProtocol, ResultKind
+from blockray.protocol import MAGIC, BoardResult, ResultKind
 from blockray.samples import SampleScheme
+from blockray.sim.drive import HostTiming
 from blockray.sim.model import ModelBoard
-from blockray.sim.rtl_board import ResultDecoder, RTLBoard, blocked_bits
 
 from test_render import box_faces, write_obj
 
@@ -59,7 +64,7 @@ def _render(scene, board, vcd=None):
 def renders(scene, tmp_path_factory):
     vcd = tmp_path_factory.mktemp("vcd") / "amaranth.vcd"
     out = {name: _render(scene, name, vcd=vcd if name == "amaranth" else None)
-           for name in ("golden", "model", "amaranth", "verilator")}
+           for name in ("golden", "model", "model-link", "amaranth", "verilator")}
     out["vcd"] = vcd
     return out
 
@@ -69,20 +74,27 @@ def test_every_backend_renders_the_small_scene(scene, renders):
     model = renders["model"]
     print(f"{scene.patches} patches, {model.report['blocks']} blocks, {model.report['board_cycles']} board cycles")
     assert model.report["blocks"] > 20 and scene.patches > 30
-    for name in ("amaranth", "verilator"):
+    for name in ("model-link", "amaranth", "verilator"):
         got = renders[name]
         assert got.report["board"] == name
         assert np.array_equal(got.radiosity, model.radiosity), f"{name}: radiosity differs from the model"
         for key in COUNTER_KEYS:
             assert got.report[key] == model.report[key], f"{name}: {key} {got.report[key]} != model {model.report[key]}"
-        rtl = got.report["rtl"]
-        assert rtl["backend"] == name
+        driver = got.report["driver"]
+        assert driver["backend"] == name
         # the memories are sized for the scene's partition
-        assert rtl["params"]["patch_depth"] == max(model.report["load_cycles_per_board"]) - 27
-        assert rtl["params"]["voxel_depth"] == 27
-        # every board cycle was simulated: each board ran its blocks, a READ_COUNTERS per block and the load
-        assert rtl["simulated_clock_cycles"] >= (max(model.report["board_cycles_per_board"]) + model.report["blocks"]
-                                                 + max(model.report["load_cycles_per_board"]))
+        assert driver["params"]["patch_depth"] == max(model.report["load_cycles_per_board"]) - 27
+        assert driver["params"]["voxel_depth"] == 27
+        # the same bytes on every link, whatever answers them
+        assert got.report["link"] == renders["model-link"].report["link"]
+        if name == "model-link":
+            continue
+        # every board cycle was simulated: each board ran its load and its blocks, and the bytes
+        # of every command crossed the link one per clock cycle
+        for b, t in enumerate(driver["transports"]):
+            assert t["simulated_clock_cycles"] >= (model.report["board_cycles_per_board"][b]
+                                                   + model.report["load_cycles_per_board"][b])
+        assert sum(t["simulated_clock_cycles"] for t in driver["transports"]) >= got.report["link"]["bytes_sent"]
     # the golden float64 board: the same picture up to the quantisation of the scene
     golden = renders["golden"]
     rel = np.abs(golden.radiosity - model.radiosity).max() / model.radiosity.max()
@@ -112,11 +124,14 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     blocks = _blocks(scene, model, shooters)
     # the same two batches as the RTL board below: each batch pays its last END_BLOCK's drain
     expect = model.run(blocks[:len(blocks) // 2]) + model.run(blocks[len(blocks) // 2:])
-    board = RTLBoard(PARAMS, bits=BITS, backend=backend)
+    host = (HostTiming(0.2, burst=0.003, burst_length=(30, 200)),
+            HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend == "amaranth" else None
+    board = make_board(backend, PARAMS, bits=BITS, host=host)
     try:
         assert len(_blocks(scene, board, shooters)) == len(blocks)
         if backend == "verilator":
-            board.transport.depth = 37         # the host splits batches anywhere: same results
+            for t in board.transports:
+                t.depth = 37                   # the host splits batches anywhere: same results
         # two calls: the counters carry over between batches
         got = board.run(blocks[:len(blocks) // 2]) + board.run(blocks[len(blocks) // 2:])
     finally:
@@ -134,7 +149,7 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
 def test_scene_that_does_not_fit_fails_before_simulation(scene):
     made = []
     small = PARAMS.with_(patch_depth=8)
-    board = RTLBoard(small, bits=BITS, transport=lambda *a, **k: made.append(a))
+    board = BoardDriver(small, bits=BITS, transport=lambda *a: made.append(a))
     board.prepare(scene, SampleScheme(4))
     grid = VoxelGrid(scene.patch_vertices, 3, margin=board.margin)
     with pytest.raises(CapacityError, match="patch_depth 8"):
@@ -142,38 +157,65 @@ def test_scene_that_does_not_fit_fails_before_simulation(scene):
     assert made == [], "no simulator may start for a scene that does not fit"
 
 
-def test_result_decoder_equals_the_protocol():
+def test_blocked_bits_unpack_the_words():
     seed = 5
     print(f"seed={seed}")
     rng = random.Random(seed)
-    params = BoardParams(rows=3, cols=5, bits=12, patch_depth=100, voxel_depth=64)
-    proto = BoardProtocol(params)
-    dec = ResultDecoder(proto)
-    words = [rng.getrandbits(proto.result_layout.size) for _ in range(200)]
-    kinds = dec.kinds(words)
-    blocked = dec.blocked_words(words)
+    words = [rng.getrandbits(15) for _ in range(50)]
+    bits = blocked_bits(words, 3, 5)
     for i, w in enumerate(words):
-        ref = proto.decode_result(w)
-        assert kinds[i] == int(ref.kind)
-        if ref.kind is ResultKind.BLOCKED:
-            assert blocked[i] == ref.blocked
-        else:
-            for name, value in ref.counters.items():
-                assert dec.counter_array([w], name)[0] == value
-    bits = blocked_bits(blocked, 3, 5)
-    for i, w in enumerate(blocked):
         for r in range(3):
             for s in range(5):
                 assert bits[i, r, s] == bool(w >> (r * 5 + s) & 1)
 
 
+class _Liar(ModelTransport):
+    """A model board that answers IDENTIFY with other fields."""
+
+    def __init__(self, params, **fields):
+        super().__init__(params)
+        self.fields = fields
+
+    def recv(self, count, *, timeout=None):
+        data = super().recv(count, timeout=timeout)
+        got = self.protocol.decode_result(data)
+        if got.kind is ResultKind.IDENTITY:
+            data = self.protocol.result_wire(BoardResult(got.kind, identity={**got.identity, **self.fields}))
+        return data
+
+
+@pytest.mark.parametrize("fields,error,match", [
+    ({"magic": MAGIC ^ 1}, TransportError, "is not a blockray board"),
+    ({"version": 1}, TransportError, "protocol version"),
+    ({"rows": 4}, CapacityError, "rows 4 \\(host 2\\)"),
+    ({"patch_depth": 7}, CapacityError, "patch_depth 7"),
+])
+def test_driver_checks_the_identity(scene, fields, error, match):
+    """IDENTIFY comes first: a board of another protocol or configuration is refused before the
+    memories are loaded."""
+    opened = []
+
+    def transport(params, b):
+        opened.append(_Liar(params, **fields) if b == 1 else ModelTransport(params))
+        return opened[-1]
+
+    board = BoardDriver(PARAMS, bits=BITS, transport=transport)
+    board.prepare(scene, SampleScheme(4))
+    with pytest.raises(error, match=match):
+        board.load(VoxelGrid(scene.patch_vertices, 3, margin=board.margin))
+    assert len(opened) == 2 and not opened[0]._out, "nothing but IDENTIFY may have been sent"
+    board.close()
+
+
 @pytest.mark.cocotb
 def test_amaranth_vcd(renders):
-    """The amaranth render above wrote a waveform of both boards for the whole run."""
-    text = renders["vcd"].read_text()
-    assert "commands__valid" in text and "results__payload" in text and "board1" in text
-    last = max(int(line[1:]) for line in text.splitlines() if line.startswith("#") and line[1:].isdigit())
-    assert last >= renders["amaranth"].report["rtl"]["simulated_clock_cycles"] * 10_000_000  # 10 ns clock in fs
+    """The amaranth render above wrote a waveform of each board (FILE, FILE.1) for the whole run."""
+    for b, path in enumerate((renders["vcd"], renders["vcd"].with_name(renders["vcd"].name + ".1"))):
+        text = path.read_text()
+        assert "i_bytes__valid" in text and "o_bytes__payload" in text and "commands__valid" in text
+        last = max(int(line[1:]) for line in text.splitlines() if line.startswith("#") and line[1:].isdigit())
+        cycles = renders["amaranth"].report["driver"]["transports"][b]["simulated_clock_cycles"]
+        assert last >= (cycles - 1) * 10_000_000                 # 10 ns clock in fs
 
 
 @pytest.mark.cocotb
@@ -202,4 +244,27 @@ def test_verilator_vcd(scene, tmp_path):
     render(scene, board="verilator", params=PARAMS, bits=BITS, samples=4, max_shots=1, voxels=3, vcd=vcd)
     for path in (vcd, tmp_path / "board.vcd.1"):         # one waveform per simulator process (board)
         text = path.read_text()
-        assert "commands__valid" in text and "\n#1" in text
+        assert "i_bytes__valid" in text and "\n#1" in text
+
+
+def test_amaranth_transport_reset_and_silence():
+    """The transport's reset clears the board (counters restart, queued bytes dropped), and a
+    board that owes nothing makes recv fail with a clear error instead of hanging."""
+    from blockray.host_driver.simulated import AmaranthTransport
+    from blockray.protocol import BoardProtocol, Identify, ReadCounters, Voxel
+    params = BoardParams(rows=2, cols=2, bits=8, patch_depth=8, voxel_depth=4)
+    proto = BoardProtocol(params)
+    t = AmaranthTransport(params)
+    t.send(proto.encode_all([Voxel(0), Voxel(1), ReadCounters()]))
+    first = proto.decode_result(t.recv(proto.result_bytes(ResultKind.COUNTERS))).counters
+    assert first["cycles"] == 2                         # two empty voxels, one bubble each
+    t.send(proto.encode(Voxel(2)))
+    t.reset()                                           # the queued VOXEL is lost with the reset
+    t.send(proto.encode_all([Identify(), ReadCounters()]))
+    ident = proto.decode_result(t.recv(proto.result_bytes(ResultKind.IDENTITY)))
+    assert ident.identity == proto.identity()
+    after = proto.decode_result(t.recv(proto.result_bytes(ResultKind.COUNTERS))).counters
+    assert after["cycles"] == 1                         # IDENTIFY only: the counters restarted
+    with pytest.raises(TransportError, match="then nothing for"):
+        t.recv(1)
+    t.close()

@@ -1,0 +1,613 @@
+"""The board's host protocol, in one place: opcodes, typed command records, record layouts, and
+the compact byte format on the link.
+
+One definition serves the gateware (``rtl/board.py`` executes the wide command record,
+``rtl/core.py`` decodes the byte stream into it), the bit-exact model (``sim/model.py`` executes
+the typed commands), the host driver (``host_driver/driver.py`` encodes them and decodes results)
+and the testbenches. docs/board-protocol.md embeds :func:`describe`'s output (a test keeps them
+equal).
+
+**Command records.** One small frozen dataclass per opcode (:class:`WritePatch` ...
+:class:`Identify`); ``command.op`` is its :class:`Op`. :meth:`BoardProtocol.record` packs one into
+the board's internal command record ``{op, arg}`` (:attr:`BoardProtocol.command_layout`: ``arg``
+a union with one member per command that has operands; the RTL's command register holds it).
+
+**Wire format** (what crosses the link, :meth:`BoardProtocol.encode`): a command is a header byte
+(bits 3:0 the opcode; for LOAD_POINTS bits 5:4 = points - 1) followed by the bits of its ``arg``
+member only, least significant first, in ``ceil(bits / 8)`` bytes (LOAD_POINTS: only the slots it
+carries). Widths come from the scene's B and the memory depths, so a VOXEL command of a
+32 768-entry voxel table is 3 bytes. A result is the low ``ceil((2 + member bits) / 8)`` bytes of
+the result record ``{kind, data}``: a 2-bit :class:`ResultKind` tag, then the R x S blocked bits
+(END_BLOCK), the counters (READ_COUNTERS) or the board's identity (IDENTIFY). The first byte of a
+result tells its length.
+
+Address widths come from the memory sizes ("model only what a scene needs"): a patch address is
+``ceil(log2(patch_depth))`` bits, a record count ``bits_for(patch_depth)`` (a voxel may hold the
+whole memory), a voxel number ``ceil(log2(voxel_depth))`` bits. :func:`fit_params` gives the
+smallest memories for a scene's partition and :func:`check_capacity` raises
+:class:`~blockray.errors.CapacityError` before anything is simulated.
+"""
+
+import enum
+from dataclasses import dataclass
+from typing import ClassVar
+
+from amaranth.hdl import Shape, unsigned
+from amaranth.lib import data
+from amaranth.utils import bits_for, ceil_log2
+
+from .errors import CapacityError, ParameterError
+from .params import BoardParams
+from .records import pack, patch_layout, point_layout, unpack
+
+__all__ = ["Op", "POINTS_PER_LOAD", "MAGIC", "VERSION", "ResultKind", "COUNTERS", "COUNTER_WIDTH",
+           "IDENTITY_FIELDS", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
+           "LoadShooter", "LoadPoints", "Voxel", "EndBlock", "ReadCounters", "Identify", "COMMANDS",
+           "BoardProtocol", "BoardResult", "ResultReader", "fit_params", "check_capacity", "RESULT_OPS",
+           "MEMORY_OPS", "result_producers", "replay_after_reset", "ReplayingHost", "describe"]
+
+
+class Op(enum.IntEnum):
+    """Board command opcodes (bits 3:0 of a command's header byte and the RTL's ``op`` field)."""
+    WRITE_PATCH = 0
+    WRITE_VOXEL = 1
+    BEGIN_BLOCK = 2
+    LOAD_RECEIVER = 3
+    LOAD_SHOOTER = 4
+    VOXEL = 5
+    END_BLOCK = 6
+    READ_COUNTERS = 7
+    LOAD_POINTS = 8
+    IDENTIFY = 9
+
+
+#: points one LOAD_POINTS command carries (a block of R receivers and S shooters needs
+#: ceil((R + S) / POINTS_PER_LOAD) of them)
+POINTS_PER_LOAD = 4
+#: IDENTIFY's ``magic`` and ``version``: the host checks both before it trusts a board
+MAGIC = 0xB10C
+VERSION = 2
+
+
+class ResultKind(enum.IntEnum):
+    """What a result record holds (its 2-bit tag)."""
+    BLOCKED = 0     # END_BLOCK: the R x S blocked bits
+    COUNTERS = 1    # READ_COUNTERS: the counter snapshot
+    IDENTITY = 2    # IDENTIFY: the built configuration
+
+
+#: the counters of a READ_COUNTERS result, in layout order (docs/board-protocol.md defines them)
+COUNTERS = ("cycles", "busy", "tests_issued", "tests_useful", "stalls")
+#: bits per counter: 2**48 cycles is 32 days at 100 MHz
+COUNTER_WIDTH = 48
+#: IDENTIFY's result fields and widths
+IDENTITY_FIELDS = {"magic": 16, "version": 8, "rows": 8, "cols": 8, "bits": 8,
+                   "patch_depth": 32, "voxel_depth": 32}
+
+
+# -- typed command records ------------------------------------------------------------------------
+
+def _point(p):
+    return dict(zip("xyz", (int(c) for c in p)))
+
+
+@dataclass(frozen=True)
+class Command:
+    """A board command. Subclasses set ``op`` and ``member`` (their ``arg`` union member, or
+    None) and give the member's value with :meth:`arg`."""
+    op: ClassVar[Op]
+    member: ClassVar[str] = None
+
+    def arg(self, proto):
+        return {}
+
+
+@dataclass(frozen=True)
+class WritePatch(Command):
+    """Patch memory word ``address`` := ``patch`` (a packed :func:`~blockray.records.patch_layout`)."""
+    address: int
+    patch: int
+    op: ClassVar[Op] = Op.WRITE_PATCH
+    member: ClassVar[str] = "write_patch"
+
+    def arg(self, proto):
+        p = proto.params
+        proto.check(self.address, p.patch_depth, "patch address", "patch_depth")
+        return {"address": self.address, "patch": unpack(patch_layout(p.bits), self.patch)}
+
+
+@dataclass(frozen=True)
+class WriteVoxel(Command):
+    """Voxel table entry ``voxel`` := (``start``, ``count``): records start .. start + count - 1."""
+    voxel: int
+    start: int
+    count: int
+    op: ClassVar[Op] = Op.WRITE_VOXEL
+    member: ClassVar[str] = "write_voxel"
+
+    def arg(self, proto):
+        p = proto.params
+        proto.check(self.voxel, p.voxel_depth, "voxel", "voxel_depth")
+        start, count = int(self.start), int(self.count)
+        if start < 0 or count < 0 or start + count > p.patch_depth:
+            raise CapacityError(f"voxel {self.voxel}: records {start}..{start + count - 1} are outside "
+                                f"patch memory (patch_depth {p.patch_depth})")
+        if count == 0:
+            start = 0       # an empty voxel's start is never read; keep it in range
+        return {"voxel": self.voxel, "entry": {"start": start, "count": count}}
+
+
+@dataclass(frozen=True)
+class BeginBlock(Command):
+    """Clear the row/column valid masks; the next record clears the accumulators."""
+    op: ClassVar[Op] = Op.BEGIN_BLOCK
+
+
+@dataclass(frozen=True)
+class LoadReceiver(Command):
+    """Receiver end point of array row ``row`` := ``point`` (x, y, z); row valid."""
+    row: int
+    point: tuple
+    op: ClassVar[Op] = Op.LOAD_RECEIVER
+    member: ClassVar[str] = "load_receiver"
+
+    def arg(self, proto):
+        proto.check(self.row, proto.params.rows, "receiver row", "rows")
+        return {"row": self.row, "point": _point(self.point)}
+
+
+@dataclass(frozen=True)
+class LoadShooter(Command):
+    """Shooter sample point of array column ``col`` := ``point`` (x, y, z); column valid."""
+    col: int
+    point: tuple
+    op: ClassVar[Op] = Op.LOAD_SHOOTER
+    member: ClassVar[str] = "load_shooter"
+
+    def arg(self, proto):
+        proto.check(self.col, proto.params.cols, "shooter column", "cols")
+        return {"col": self.col, "point": _point(self.point)}
+
+
+@dataclass(frozen=True)
+class LoadPoints(Command):
+    """Up to :data:`POINTS_PER_LOAD` loads at once: ``slots`` = ((shooter, index, (x, y, z)), ...),
+    ``shooter`` False for receiver row ``index``, True for shooter column ``index``; in order (a
+    later slot wins)."""
+    slots: tuple
+    op: ClassVar[Op] = Op.LOAD_POINTS
+    member: ClassVar[str] = "load_points"
+
+    def arg(self, proto):
+        p = proto.params
+        if not 1 <= len(self.slots) <= POINTS_PER_LOAD:
+            raise ParameterError(f"LOAD_POINTS carries 1 to {POINTS_PER_LOAD} points, not {len(self.slots)}")
+        out = []
+        for shooter, where, point in self.slots:
+            proto.check(int(where), p.cols if shooter else p.rows,
+                        "shooter column" if shooter else "receiver row", "cols" if shooter else "rows")
+            out.append({"valid": 1, "shooter": int(bool(shooter)), "index": int(where), "point": _point(point)})
+        empty = {"valid": 0, "shooter": 0, "index": 0, "point": {"x": 0, "y": 0, "z": 0}}
+        return out + [empty] * (POINTS_PER_LOAD - len(out))
+
+
+@dataclass(frozen=True)
+class Voxel(Command):
+    """Stream voxel ``voxel``'s records to all R x S processors."""
+    voxel: int
+    op: ClassVar[Op] = Op.VOXEL
+    member: ClassVar[str] = "voxel"
+
+    def arg(self, proto):
+        proto.check(self.voxel, proto.params.voxel_depth, "voxel", "voxel_depth")
+        return {"voxel": self.voxel}
+
+
+@dataclass(frozen=True)
+class EndBlock(Command):
+    """Close the block: one BLOCKED result."""
+    op: ClassVar[Op] = Op.END_BLOCK
+
+
+@dataclass(frozen=True)
+class ReadCounters(Command):
+    """One COUNTERS result: a snapshot covering the commands before it."""
+    op: ClassVar[Op] = Op.READ_COUNTERS
+
+
+@dataclass(frozen=True)
+class Identify(Command):
+    """One IDENTITY result: the configuration the board was built for."""
+    op: ClassVar[Op] = Op.IDENTIFY
+
+
+#: the command record class of each opcode
+COMMANDS = {c.op: c for c in (WritePatch, WriteVoxel, BeginBlock, LoadReceiver, LoadShooter, LoadPoints,
+                              Voxel, EndBlock, ReadCounters, Identify)}
+
+
+@dataclass(frozen=True)
+class BoardResult:
+    """A decoded result: ``blocked`` (int, bit r*S + s), ``counters`` or ``identity`` (dicts)."""
+    kind: ResultKind
+    blocked: int = None
+    counters: dict = None
+    identity: dict = None
+
+
+def _index_width(n):
+    return max(1, ceil_log2(n))
+
+
+def _nbytes(bits):
+    return (bits + 7) // 8
+
+
+class BoardProtocol:
+    """Record layouts, the wire format and their packing for one board configuration."""
+
+    def __init__(self, params):
+        if not isinstance(params, BoardParams):
+            raise ParameterError(f"board protocol needs BoardParams, not {params!r}")
+        self._params = params
+        self.address_width = _index_width(params.patch_depth)
+        self.count_width = bits_for(params.patch_depth)
+        self.voxel_width = _index_width(params.voxel_depth)
+        self.row_width = _index_width(params.rows)
+        self.col_width = _index_width(params.cols)
+        point = point_layout(params.bits)
+        self.point_slot_layout = data.StructLayout({
+            "valid": unsigned(1),
+            "shooter": unsigned(1),                     # 0: receiver row `index`, 1: shooter column
+            "index": unsigned(max(self.row_width, self.col_width)),
+            "point": point,
+        })
+        self.table_entry_layout = data.StructLayout({
+            "start": unsigned(self.address_width),
+            "count": unsigned(self.count_width),
+        })
+        self.arg_layout = data.UnionLayout({
+            "write_patch": data.StructLayout({"address": unsigned(self.address_width),
+                                              "patch": patch_layout(params.bits)}),
+            "write_voxel": data.StructLayout({"voxel": unsigned(self.voxel_width),
+                                              "entry": self.table_entry_layout}),
+            "load_receiver": data.StructLayout({"row": unsigned(self.row_width), "point": point}),
+            "load_shooter": data.StructLayout({"col": unsigned(self.col_width), "point": point}),
+            "voxel": data.StructLayout({"voxel": unsigned(self.voxel_width)}),
+            "load_points": data.ArrayLayout(self.point_slot_layout, POINTS_PER_LOAD),
+        })
+        self.command_layout = data.StructLayout({"op": Op, "arg": self.arg_layout})
+        self.counters_layout = data.StructLayout({name: unsigned(COUNTER_WIDTH) for name in COUNTERS})
+        self.identity_layout = data.StructLayout({name: unsigned(w) for name, w in IDENTITY_FIELDS.items()})
+        self.result_layout = data.StructLayout({
+            "kind": ResultKind,
+            "data": data.UnionLayout({
+                "blocked": unsigned(params.processors),
+                "counters": self.counters_layout,
+                "identity": self.identity_layout,
+            }),
+        })
+        self._arg_offset = self.command_layout["arg"].offset
+        self._kind_width = Shape.cast(ResultKind).width
+        self._members = {kind: name for kind, name in zip(ResultKind, ("blocked", "counters", "identity"))}
+
+    @property
+    def params(self):
+        return self._params
+
+    def identity(self):
+        """The IDENTIFY result's fields for this configuration."""
+        p = self._params
+        return {"magic": MAGIC, "version": VERSION, "rows": p.rows, "cols": p.cols, "bits": p.bits,
+                "patch_depth": p.patch_depth, "voxel_depth": p.voxel_depth}
+
+    # -- the internal command record --------------------------------------------------------------
+
+    def arg_bits(self, command):
+        """The bits of ``command``'s ``arg`` member (0 for a command without operands)."""
+        if command.member is None:
+            return 0
+        return pack(self.arg_layout[command.member].shape, command.arg(self))
+
+    def record(self, command):
+        """Pack one command into the board's internal command record (``command_layout``)."""
+        return int(command.op) | self.arg_bits(command) << self._arg_offset
+
+    def decode_record(self, word):
+        """Unpack a command record: ``{"op": Op, "arg": {member: ...}}`` (every union member)."""
+        value = unpack(self.command_layout, word)
+        value["op"] = Op(value["op"])
+        return value
+
+    # -- the wire format ----------------------------------------------------------------------------
+
+    def payload_bits(self, op, points=POINTS_PER_LOAD):
+        """Payload bits of a command (``points``: LOAD_POINTS slots carried)."""
+        op = Op(op)
+        if op is Op.LOAD_POINTS:
+            return points * self.point_slot_layout.size
+        member = COMMANDS[op].member
+        return 0 if member is None else self.arg_layout[member].shape.size
+
+    def command_bytes(self, op, points=POINTS_PER_LOAD):
+        """Bytes of a command on the link: the header and its payload."""
+        return 1 + _nbytes(self.payload_bits(op, points))
+
+    def encode(self, command):
+        """One command in the wire format (bytes)."""
+        points = len(command.slots) if command.op is Op.LOAD_POINTS else POINTS_PER_LOAD
+        header = int(command.op) | (points - 1) << 4 if command.op is Op.LOAD_POINTS else int(command.op)
+        n = _nbytes(self.payload_bits(command.op, points))
+        return bytes([header]) + self.arg_bits(command).to_bytes(n, "little")
+
+    def encode_all(self, commands):
+        return b"".join(self.encode(c) for c in commands)
+
+    def decode_commands(self, stream):
+        """The typed commands of a wire-format byte string (the inverse of :meth:`encode_all`)."""
+        out, i = [], 0
+        stream = bytes(stream)
+        while i < len(stream):
+            header = stream[i]
+            try:
+                op = Op(header & 0xF)
+            except ValueError:
+                raise ParameterError(f"byte {i}: {header:#04x} is not a command header") from None
+            points = (header >> 4 & 3) + 1
+            n = _nbytes(self.payload_bits(op, points))
+            if i + 1 + n > len(stream):
+                raise ParameterError(f"byte {i}: {op.name} needs {n} payload bytes, the stream ends first")
+            bits = int.from_bytes(stream[i + 1:i + 1 + n], "little")
+            out.append(self._command(op, bits, points))
+            i += 1 + n
+        return out
+
+    def _command(self, op, bits, points):
+        cls = COMMANDS[op]
+        if cls.member is None:
+            return cls()
+        v = unpack(self.arg_layout[cls.member].shape, bits)
+        pt = lambda d: (d["x"], d["y"], d["z"])                     # noqa: E731
+        if op is Op.WRITE_PATCH:
+            return WritePatch(v["address"], pack(patch_layout(self._params.bits), v["patch"]))
+        if op is Op.WRITE_VOXEL:
+            return WriteVoxel(v["voxel"], v["entry"]["start"], v["entry"]["count"])
+        if op is Op.LOAD_RECEIVER:
+            return LoadReceiver(v["row"], pt(v["point"]))
+        if op is Op.LOAD_SHOOTER:
+            return LoadShooter(v["col"], pt(v["point"]))
+        if op is Op.VOXEL:
+            return Voxel(v["voxel"])
+        return LoadPoints(tuple((bool(s["shooter"]), s["index"], pt(s["point"])) for s in v[:points]))
+
+    def result_bytes(self, kind):
+        """Bytes of a result of ``kind`` on the link."""
+        member = self.result_layout["data"].shape[self._members[ResultKind(kind)]].shape
+        return _nbytes(self._kind_width + Shape.cast(member).width)
+
+    def result_length(self, first_byte):
+        """Bytes of the result whose first byte is ``first_byte``."""
+        kind = first_byte & ((1 << self._kind_width) - 1)
+        try:
+            return self.result_bytes(ResultKind(kind))
+        except ValueError:
+            raise ParameterError(f"result tag {kind} is not a result kind") from None
+
+    def encode_result(self, result):
+        """A :class:`BoardResult` as its result record (int); its wire bytes are the low
+        :meth:`result_bytes` bytes."""
+        member = self._members[result.kind]
+        return pack(self.result_layout, {"kind": result.kind, "data": {member: getattr(result, member)}})
+
+    def result_wire(self, result):
+        return self.encode_result(result).to_bytes(self.result_bytes(result.kind), "little")
+
+    def decode_result(self, word):
+        """Unpack a result record (int or its wire bytes) into a :class:`BoardResult`."""
+        if isinstance(word, (bytes, bytearray)):
+            word = int.from_bytes(word, "little")
+        value = unpack(self.result_layout, word)
+        kind = ResultKind(value["kind"])
+        member = self._members[kind]
+        return BoardResult(kind, **{member: value["data"][member]})
+
+    def reader(self):
+        return ResultReader(self)
+
+    def check(self, index, depth, what, param):
+        if not 0 <= int(index) < depth:
+            raise CapacityError(f"{what} {index} does not fit the board ({param} {depth})")
+
+
+class ResultReader:
+    """Splits a result byte stream into results: :meth:`feed` bytes, get complete results' wire
+    bytes; :meth:`need` says how many more bytes complete ``n`` more results is at least."""
+
+    def __init__(self, protocol):
+        self.protocol = protocol
+        self._buf = bytearray()
+
+    def feed(self, data):
+        self._buf += data
+        out = []
+        while self._buf:
+            n = self.protocol.result_length(self._buf[0])
+            if len(self._buf) < n:
+                break
+            out.append(bytes(self._buf[:n]))
+            del self._buf[:n]
+        return out
+
+    @property
+    def pending(self):
+        return len(self._buf)
+
+
+def fit_params(params, *, records, voxels):
+    """``params`` with the smallest memories that hold a scene's partition.
+
+    ``records``: the largest number of patch records (registrations) of any board's partition;
+    ``voxels``: entries of the voxel table (v**3).
+    """
+    return params.with_(patch_depth=max(1, int(records)), voxel_depth=max(1, int(voxels)))
+
+
+def check_capacity(params, *, records, voxels):
+    """Raise :class:`CapacityError` if a partition of ``records`` records over ``voxels`` voxels
+    does not fit the memories of ``params``."""
+    if records > params.patch_depth:
+        raise CapacityError(f"patch memory: {records} patch records (registrations) of one board's "
+                            f"partition do not fit patch_depth {params.patch_depth}")
+    if voxels > params.voxel_depth:
+        raise CapacityError(f"voxel table: {voxels} voxels do not fit voxel_depth {params.voxel_depth}")
+
+
+# -- host side: ordering and replay after a reset ---------------------------------------------------
+
+#: commands that put a result record on the result stream (one each, in command order)
+RESULT_OPS = (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY)
+#: commands whose effect (board memory) outlives a block
+MEMORY_OPS = (Op.WRITE_PATCH, Op.WRITE_VOXEL)
+
+
+def result_producers(commands):
+    """Indices of the commands that produce a result, in the order their results arrive."""
+    return [i for i, c in enumerate(commands) if c.op in RESULT_OPS]
+
+
+def replay_after_reset(commands, answered):
+    """What the host sends after a board reset, given that the results of the first ``answered``
+    result-producing commands of ``commands`` have been received.
+
+    A reset loses board memory, the block in progress, every queued command and every result not
+    yet received. The host replays from the start of the block holding the first unanswered
+    result (or from just after the last answered one), preceded by every memory write before that
+    point. Returns a list of ``(original index, command)``; results of replayed commands that were
+    already answered (a READ_COUNTERS inside the replayed block) must be dropped by the host, so
+    it receives every result exactly once and in order (:class:`ReplayingHost` does this).
+    """
+    producers = result_producers(commands)
+    if not 0 <= answered <= len(producers):
+        raise ValueError(f"{answered} results answered, but the stream has {len(producers)}")
+    restart = producers[answered] if answered < len(producers) else (
+        producers[-1] + 1 if producers else 0)
+    # back to the BEGIN_BLOCK of the block that is open at `restart`, if any
+    for i in range(min(restart, len(commands)) - 1, -1, -1):
+        op = commands[i].op
+        if op is Op.END_BLOCK:
+            break
+        if op is Op.BEGIN_BLOCK:
+            restart = i
+            break
+    replay = [(i, c) for i, c in enumerate(commands[:restart]) if c.op in MEMORY_OPS]
+    replay += [(i, c) for i, c in enumerate(commands) if i >= restart]
+    return replay
+
+
+class ReplayingHost:
+    """Host bookkeeping for one board's batch across resets: which commands to send next and which
+    received results to keep.
+
+    ``pending()`` gives the ``(original index, command)`` list to send (the whole batch at first,
+    a replay after :meth:`reset`); :meth:`receive` takes results in arrival order and keeps each
+    original result exactly once. ``results`` maps original command index -> result.
+    """
+
+    def __init__(self, commands):
+        self.commands = list(commands)
+        self.producers = result_producers(self.commands)
+        self.results = {}
+        self.resets = 0
+        self._stream = list(enumerate(self.commands))
+        self._expect = [i for i, c in self._stream if c.op in RESULT_OPS]
+
+    def pending(self):
+        return list(self._stream)
+
+    def receive(self, word):
+        """A result arrived. Returns the original command index it answers (or None if it
+        duplicates one already kept)."""
+        if not self._expect:
+            raise AssertionError("a result arrived that no command asked for")
+        index = self._expect.pop(0)
+        if index in self.results:
+            return None
+        self.results[index] = word
+        return index
+
+    @property
+    def answered(self):
+        n = 0
+        while n < len(self.producers) and self.producers[n] in self.results:
+            n += 1
+        return n
+
+    @property
+    def done(self):
+        return len(self.results) == len(self.producers)
+
+    def reset(self):
+        """The board was reset: plan the replay."""
+        self.resets += 1
+        self._stream = replay_after_reset(self.commands, self.answered)
+        self._expect = [i for i, c in self._stream if c.op in RESULT_OPS]
+
+
+# -- documentation ------------------------------------------------------------------------------
+
+def _leaf_rows(layout, prefix="", offset=0):
+    if isinstance(layout, data.Layout):
+        for key, field in layout:
+            yield from _leaf_rows(field.shape, f"{prefix}.{key}" if prefix else str(key), offset + field.offset)
+    else:
+        shape = Shape.cast(layout)
+        kind = "signed" if shape.signed else "unsigned"
+        yield prefix, offset, shape.width, kind
+
+
+def _table(layout, prefix, offset=0):
+    lines = ["| field | bits | width | type |", "|---|---|---|---|"]
+    for name, lo, width, kind in _leaf_rows(layout, prefix, offset):
+        lines.append(f"| `{name}` | {lo + width - 1}:{lo} | {width} | {kind} |")
+    return "\n".join(lines)
+
+
+def describe(params):
+    """Markdown tables of the wire format and the records for ``params`` (docs/board-protocol.md
+    embeds the output for the default parameters; a test keeps them equal)."""
+    proto = BoardProtocol(params)
+    out = [f"Parameters: `{params!r}`", "",
+           "Wire format: a command is its header byte (bits 3:0 `op`; LOAD_POINTS: bits 5:4 = points - 1) "
+           "and the payload, the bits of its `arg` member below from bit 0 of `arg`, least significant "
+           "first, zero-padded to whole bytes. A result is the low bytes of the result record "
+           "(`kind`, then the member).", "",
+           "| command | op | `arg` member | bytes on the link |", "|---|---|---|---|"]
+    for op, cls in COMMANDS.items():
+        size = (" to ".join(str(proto.command_bytes(op, n)) for n in (1, POINTS_PER_LOAD))
+                if op is Op.LOAD_POINTS else str(proto.command_bytes(op)))
+        out.append(f"| {cls.__name__} | {op.name} = {op.value} | "
+                   f"{('`' + cls.member + '`') if cls.member else '(none)'} | {size} |")
+    out += ["", "| result | `kind` | bytes on the link |", "|---|---|---|"]
+    for kind in ResultKind:
+        out.append(f"| `data.{proto._members[kind]}` | {kind.name} = {kind.value} | {proto.result_bytes(kind)} |")
+    arg_offset = proto._arg_offset
+    out += ["", f"Internal command record (the board's command register): {proto.command_layout.size} bits, "
+            f"`op` in bits {Shape.cast(Op).width - 1}:0."]
+    for op, cls in COMMANDS.items():
+        if cls.member:
+            out += ["", f"`arg.{cls.member}` ({op.name}):", "",
+                    _table(proto.arg_layout[cls.member].shape, f"arg.{cls.member}", arg_offset)]
+    res_offset = proto.result_layout["data"].offset
+    out += ["", f"Result record: {proto.result_layout.size} bits. `kind` (bits {res_offset - 1}:0): "
+            + ", ".join(f"{k.value} = {k.name}" for k in ResultKind) + ".", "",
+            "`data.blocked` (END_BLOCK): bit `r * S + s` of the field is ray (shooter column s, receiver row r).", "",
+            _table(proto.result_layout["data"].shape["blocked"].shape, "data.blocked", res_offset), "",
+            "`data.counters` (READ_COUNTERS):", "",
+            _table(proto.counters_layout, "data.counters", res_offset), "",
+            f"`data.identity` (IDENTIFY; magic {MAGIC:#06x}, version {VERSION}):", "",
+            _table(proto.identity_layout, "data.identity", res_offset)]
+    return "\n".join(out) + "\n"
+
+
+if __name__ == "__main__":
+    print(describe(BoardParams()), end="")

@@ -1,0 +1,120 @@
+"""The board back-ends by name: one registry for ``render.make_board`` and the CLI's ``--board``
+(its choices and help text come from here).
+
+A back-end is a factory ``(params, *, bits, partition, vcd, host) -> Board``. The driven ones are a
+:class:`~blockray.host_driver.driver.BoardDriver` over one transport per board
+(host_driver/simulated.py); a back-end for real hardware (issue 15: ``ulx3s`` over a serial link,
+``ulx3s-sim``) registers the same way with its own transport.
+"""
+
+from dataclasses import dataclass
+from typing import Callable
+
+from ..errors import ParameterError
+
+__all__ = ["Backend", "BACKENDS", "register", "backend", "make_board"]
+
+
+@dataclass(frozen=True)
+class Backend:
+    """``name``; ``help`` (one phrase for ``--board``); ``factory``; ``quantises``: the board
+    quantises the scene (``--bits``, ``--partition`` apply); ``waveform``: it can write ``--vcd``;
+    ``host_timing``: it takes random host idle / back-pressure (``--link-*``)."""
+    name: str
+    help: str
+    factory: Callable
+    quantises: bool = True
+    waveform: bool = False
+    host_timing: bool = False
+
+
+BACKENDS = {}
+
+
+def register(entry):
+    if entry.name in BACKENDS:
+        raise ValueError(f"board back-end {entry.name!r} is registered twice")
+    BACKENDS[entry.name] = entry
+    return entry
+
+
+def backend(name):
+    """The registered back-end ``name``, or ParameterError naming the choices."""
+    try:
+        return BACKENDS[name]
+    except KeyError:
+        raise ParameterError(f"--board must be one of {', '.join(BACKENDS)}, not {name!r}",
+                             parameter="board") from None
+
+
+def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host=None):
+    """Build back-end ``name``. ``bits=None`` lets the board choose B for the scene; ``vcd`` (a
+    path) a waveform of a simulated board (board b > 0 writes ``FILE.b``); ``host``: the host's
+    timing on a simulated board's link: ``(idle, backpressure, seed)``, two
+    :class:`blockray.sim.drive.HostTiming` and a seed."""
+    entry = backend(name)
+    if not entry.quantises and partition != "deal":
+        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene",
+                             parameter="partition")
+    if vcd is not None and not entry.waveform:
+        able = " or ".join(n for n, b in BACKENDS.items() if b.waveform)
+        raise ParameterError(f"--vcd needs a simulated RTL board (--board {able}), not {name!r}", parameter="vcd")
+    if host is not None and not entry.host_timing:
+        able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
+        raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
+                             f"by cycle (--board {able}), not {name!r}")
+    return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host)
+
+
+def _wave(vcd, b):
+    return None if vcd is None else (str(vcd) if b == 0 else f"{vcd}.{b}")
+
+
+def _golden(params, *, bits, partition, vcd, host):
+    from .golden import GoldenBoard
+    return GoldenBoard()
+
+
+def _model(params, *, bits, partition, vcd, host):
+    from ..sim.model import ModelBoard
+    return ModelBoard(params, bits=bits, partition=partition)
+
+
+def _driven(name, open_transport):
+    def factory(params, *, bits, partition, vcd, host):
+        from .driver import BoardDriver
+        return BoardDriver(params, bits=bits, partition=partition, name=name,
+                           transport=lambda p, b: open_transport(p, b, vcd=_wave(vcd, b), host=host))
+    return factory
+
+
+def _amaranth(p, b, *, vcd, host):
+    from .simulated import AmaranthTransport
+    idle, backpressure, seed = host or (None, None, 0)
+    return AmaranthTransport(p, vcd=vcd, idle=idle, backpressure=backpressure, seed=seed * 1000 + b)
+
+
+def _verilator(p, b, *, vcd, host):
+    from .simulated import VerilatorTransport
+    return VerilatorTransport(p, vcd=vcd)
+
+
+def _model_link(p, b, *, vcd, host):
+    from .simulated import ModelTransport
+    return ModelTransport(p)
+
+
+register(Backend("golden", "float64 reference", _golden, quantises=False))
+register(Backend("model", "bit-exact model of the hardware; default", _model))
+register(Backend("model-link", "the host driver and the board's byte link answered by the bit-exact model "
+                 "(no RTL; link traffic)", _driven("model-link", _model_link)))
+register(Backend("amaranth", "the board's RTL in the Amaranth simulator: small scenes, debugging",
+                 _driven("amaranth", _amaranth), waveform=True, host_timing=True))
+register(Backend("verilator", "the board's Verilog under Verilator + cocotb; builds once per design, cached",
+                 _driven("verilator", _verilator), waveform=True))
+# issue 15 adds "ulx3s" (a real board over a serial link) and "ulx3s-sim" here
+
+
+def help_text():
+    """``--board``'s help: every back-end with its phrase."""
+    return "board back-end: " + "; ".join(f"{n} ({b.help})" for n, b in BACKENDS.items())
