@@ -110,7 +110,7 @@ def _filter_board(formats):
 
 
 def part_rate(scene_name, max_shots, bits, formats):
-    from blockray.host_driver.objload import load_scene
+    from blockray.host_driver.builtin import load_scene
     from blockray.host_driver.render import render
     from blockray.params import BoardParams
     scene = load_scene(scene_name)

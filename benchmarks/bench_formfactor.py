@@ -121,7 +121,7 @@ def icosphere(levels, centre, radius):
 
 def closed_scenes():
     from test_formfactor import closed_box, make_scene
-    from blockray.host_driver.objload import load_scene
+    from blockray.host_driver.builtin import load_scene
     rho = [0.5, 0.3, 0.7]
     box, face = closed_box(4)
     E = np.zeros((len(box), 3))

@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from _run_header import print_run_header
-from blockray.host_driver.objload import load_scene
+from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.render import make_board, render
 from blockray.params import BoardParams
 
@@ -93,7 +93,7 @@ def link(board, batches):
 def traverse_only(scene, board, batches, voxels, threads):
     """CPU us per ray of the block traversal kernel alone (VoxelGrid.traverse_blocks, no packing,
     no statistics) on the render's batches, one call per batch as the render makes them."""
-    from blockray.host_driver import threads as host_threads
+    from blockray import threads as host_threads
     from blockray.host_driver.voxel import VoxelGrid
     grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
     points = board.samples.points(scene.patch_vertices)
@@ -137,7 +137,7 @@ def main(argv=None):
                     help="batches of at least this many rays run on the thread pool (default: threads.PARALLEL_MIN_RAYS)")
     args = ap.parse_args(argv)
     if args.parallel_min_rays is not None:
-        from blockray.host_driver import threads as host_threads
+        from blockray import threads as host_threads
         host_threads.PARALLEL_MIN_RAYS = args.parallel_min_rays
     print_run_header()
     for name in args.scenes:

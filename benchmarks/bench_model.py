@@ -190,7 +190,7 @@ def part_throughput(seed, patches=2000, blocks=300):
 
 
 def _load_scene(name):
-    from blockray.host_driver.objload import load_scene
+    from blockray.host_driver.builtin import load_scene
     return load_scene(name)
 
 

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from _run_header import print_run_header
-from blockray.host_driver.objload import load_scene
+from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.render import render
 
 

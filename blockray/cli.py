@@ -176,7 +176,7 @@ def _render_parser(sub):
 def _cmd_render(args):
     from .errors import ParameterError
     from .params import MIN_BITS, MAX_BITS
-    from .host_driver.objload import load_scene
+    from .host_driver.builtin import load_scene
     from .host_driver.render import render
     from .host_driver.output import write_patches_csv, write_report_json
     from .host_driver.solver import check_matrix_memory

@@ -14,12 +14,14 @@
 """
 
 import math
+import os
 from pathlib import Path
 
-from .objload import load_obj, subdivide
+from ..errors import SceneError
+from .objload import LoadLimits, _check_max_edge, load_obj, subdivide
 from .scene import Camera
 
-__all__ = ["NAMES", "DEFAULT_MAX_EDGE", "CAMERAS", "load", "path"]
+__all__ = ["NAMES", "DEFAULT_MAX_EDGE", "CAMERAS", "load", "load_scene", "path"]
 
 NAMES = ("cornell", "room")
 
@@ -49,3 +51,21 @@ def load(name, *, max_edge=None, max_triangles=None):
     scene.source = f"builtin:{name}"
     return subdivide(scene, DEFAULT_MAX_EDGE[name] if max_edge is None else max_edge,
                      max_triangles=max_triangles)
+
+
+def load_scene(spec, *, max_edge=None, limits=None):
+    """A built-in scene by name (``cornell``, ``room``) or an OBJ file by path.
+
+    For a built-in scene ``max_edge=None`` means its documented default subdivision
+    (see this module); for a file it means no subdivision.
+    ``limits``: :class:`LoadLimits` (files read, subdivision size).
+    """
+    limits = LoadLimits() if limits is None else limits
+    if max_edge is not None:
+        _check_max_edge(max_edge)
+    if spec in NAMES:
+        return load(spec, max_edge=max_edge, max_triangles=limits.max_triangles)
+    if not os.path.lexists(spec):
+        raise SceneError(f"no such scene file or built-in scene (built-ins: "
+                         f"{', '.join(NAMES)})", path=spec)
+    return load_obj(spec, max_edge=max_edge, limits=limits)

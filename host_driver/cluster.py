@@ -29,8 +29,10 @@ import numpy as np
 
 from ..errors import ParameterError
 from . import formfactor, solver as solvers
+from .backends import make_board
 from .scaleout import assign_sets, receiver_work
-from .threads import available, set_threads
+from .visibility import Phases, Visibility, visible_fraction
+from ..threads import available, set_threads
 
 __all__ = ["SetJob", "SetRows", "cluster_client", "cast_set", "solve_sets", "LOOPBACK", "CONNECT_TIMEOUT"]
 
@@ -148,7 +150,6 @@ def cast_set(k, scene, grid, owner, job):
     """On a worker: set k builds its board, loads the grid and casts the rays ending on its own
     patches, shooter by shooter. Returns its :class:`SetRows`."""
     from distributed import get_worker
-    from .render import Phases, Visibility, make_board, visible_fraction
     from .voxel import TraversalStats
     t0, cpu0 = time.perf_counter(), time.process_time()
     if job.threads is not None:

@@ -59,7 +59,7 @@ from blockray.errors import ParameterError, SceneError, printable
 
 from .scene import COORDINATE_LIMIT, Scene, check_range
 
-__all__ = ["DEFAULT_REFLECTANCE", "LoadLimits", "SceneWarning", "TOKEN_CHARS", "load_obj", "load_scene",
+__all__ = ["DEFAULT_REFLECTANCE", "LoadLimits", "SceneWarning", "TOKEN_CHARS", "load_obj",
            "subdivide", "subdivision_lower_bound"]
 
 #: At most this many characters of a token are quoted in an error message.
@@ -611,22 +611,3 @@ def subdivide(scene, max_edge, *, max_triangles=None):
                  reflectance=scene.reflectance[parent].copy(),
                  emission=scene.emission[parent].copy(), group=scene.group[parent].copy(),
                  group_names=list(scene.group_names), camera=scene.camera, source=scene.source)
-
-
-def load_scene(spec, *, max_edge=None, limits=None):
-    """A built-in scene by name (``cornell``, ``room``) or an OBJ file by path.
-
-    For a built-in scene ``max_edge=None`` means its documented default subdivision
-    (see :mod:`blockray.host_driver.builtin`); for a file it means no subdivision.
-    ``limits``: :class:`LoadLimits` (files read, subdivision size).
-    """
-    from . import builtin
-    limits = LoadLimits() if limits is None else limits
-    if max_edge is not None:
-        _check_max_edge(max_edge)
-    if spec in builtin.NAMES:
-        return builtin.load(spec, max_edge=max_edge, max_triangles=limits.max_triangles)
-    if not os.path.lexists(spec):
-        raise SceneError(f"no such scene file or built-in scene (built-ins: "
-                         f"{', '.join(builtin.NAMES)})", path=spec)
-    return load_obj(spec, max_edge=max_edge, limits=limits)

@@ -22,196 +22,15 @@ from ..params import BoardParams
 from ..samples import SampleScheme
 from ..errors import ParameterError
 from .backends import backend, make_board
-from .board import BlockBatch, BlockBits, ranges
-from . import formfactor, solver as solvers, threads as host_threads
+from .. import threads as host_threads
+from . import formfactor, solver as solvers
 from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
+from .visibility import PACKINGS, TRAVERSALS, Phases, Visibility, _morton, visible_fraction
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
 
 SOLVERS = ("progressive", "jacobi", "gauss-seidel")
-TRAVERSALS = ("block", "ray")
-PACKINGS = ("voxel", "fill")
-
-
-def _morton(ijk):
-    """Interleave the bits of voxel coordinates (M, 3) -> (M,) int64 (Z-order)."""
-    ijk = np.asarray(ijk, dtype=np.int64)
-    code = np.zeros(len(ijk), dtype=np.int64)
-    for bit in range(9):
-        for axis in range(3):
-            code |= ((ijk[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
-    return code
-
-
-class Phases:
-    """Seconds spent per phase: wall clock (``seconds``) and CPU time of the whole process, every
-    thread (``cpu``; on a shared machine the steadier measure of the host's own work)."""
-
-    def __init__(self):
-        self.seconds = {}
-        self.cpu = {}
-
-    def add(self, phase, dt, dcpu=0.0):
-        self.seconds[phase] = self.seconds.get(phase, 0.0) + dt
-        self.cpu[phase] = self.cpu.get(phase, 0.0) + dcpu
-
-    def timed(self, phase):
-        phases = self
-
-        class _T:
-            def __enter__(self):
-                self.t0, self.c0 = time.perf_counter(), time.process_time()
-
-            def __exit__(self, *exc):
-                phases.add(phase, time.perf_counter() - self.t0, time.process_time() - self.c0)
-        return _T()
-
-
-class Visibility:
-    """Casts the rays of one shooter to many receivers through the board, as block rays.
-
-    Receivers are grouped by the voxel that holds their end point (the paper's block): each group
-    of at most R receivers and each chunk of at most S shooter samples is one block ray.
-    ``traversal="ray"`` sends one block per ray with its 3D-DDA voxels instead (the per-ray
-    reference, for measuring what block traversal saves).
-    """
-
-    def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", packing="voxel",
-                 phases=None, stats=None):
-        if traversal not in TRAVERSALS:
-            raise ParameterError(f"--traversal must be one of {', '.join(TRAVERSALS)}, not {traversal!r}")
-        self.scene, self.board, self.grid, self.samples = scene, board, grid, samples
-        self.rows, self.cols, self.traversal = rows, cols, traversal
-        self.phases = phases or Phases()
-        self.stats = stats
-        self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
-        self.centroids = scene.centroids
-        self.end_voxel = grid.voxel_of(self.centroids)
-        self.end_morton = _morton(grid.cell_of(self.centroids))
-        if packing not in PACKINGS:
-            raise ParameterError(f"--packing must be one of {', '.join(PACKINGS)}, not {packing!r}")
-        self.packing = packing
-        self.nonempty = grid.count > 0
-        self.rays = 0
-        self.blocks = 0
-        self.columns = 0     # shooters whose rays were cast
-
-    def _ray_batch(self, i, receivers):
-        """One block per ray (receivers in order, samples inner) with its 3D-DDA voxels."""
-        K = self.samples.count
-        rec = np.repeat(receivers, K)
-        ks = np.tile(np.arange(K), len(receivers))
-        with self.phases.timed("traverse"):
-            vox, off = self.grid.rays_voxels(self.sample_points[i][ks], self.centroids[rec], nonempty_only=True)
-        one = np.arange(len(rec) + 1)
-        return BlockBatch(np.full(len(rec), i), ks, one, rec, one, vox, off)
-
-    def _blocks_for(self, i, receivers):
-        """The block rays of shooter i to ``receivers``, packed and traversed, as a BlockBatch."""
-        if self.traversal == "ray":
-            return self._ray_batch(i, receivers)
-        K = self.samples.count
-        with self.phases.timed("commands"):
-            if self.packing == "fill":
-                # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
-                # A block then spans neighbouring voxels; its bundle is a little wider.
-                rec = receivers[np.argsort(self.end_morton[receivers], kind="stable")]
-                first = np.zeros(len(rec), bool)
-                first[:1] = True
-            else:
-                # The paper's block: the receivers whose end points share a voxel.
-                rec = receivers[np.argsort(self.end_voxel[receivers], kind="stable")]
-                key = self.end_voxel[rec]
-                first = np.concatenate([[True], key[1:] != key[:-1]])
-            # runs of at most R receivers within each group, times chunks of at most S samples
-            group_start = np.flatnonzero(first)
-            pos = np.arange(len(rec)) - group_start[np.cumsum(first) - 1]
-            run_start = np.flatnonzero(pos % self.rows == 0)
-            run_len = np.diff(np.append(run_start, len(rec)))
-            chunk_start = np.arange(0, K, self.cols)
-            chunk_len = np.minimum(self.cols, K - chunk_start)
-            nr, nc = len(run_start), len(chunk_start)
-            rows, cols = np.repeat(run_len, nc), np.tile(chunk_len, nr)
-            receiver_patch = rec[ranges(np.repeat(run_start, nc), rows)]
-            shooter_sample = ranges(np.tile(chunk_start, nr), cols)
-            row_off = np.concatenate([[0], np.cumsum(rows)])
-            col_off = np.concatenate([[0], np.cumsum(cols)])
-            starts, ends = self.sample_points[i][shooter_sample], self.centroids[receiver_patch]
-        with self.phases.timed("traverse"):
-            vox, vox_off, visited, tests = self.grid.traverse_blocks(starts, col_off, ends, row_off,
-                                                                     nonempty_only=True)
-            if self.stats is not None:
-                self.stats.add_blocks(starts, col_off, ends, row_off, visited, tests)
-        return BlockBatch(np.full(len(shooter_sample), i), shooter_sample, col_off, receiver_patch, row_off,
-                          vox, vox_off)
-
-    def clear_fraction(self, i, receivers, weights=None):
-        """Fraction of the K rays from shooter i to each receiver that is not blocked; with
-        ``weights`` (len(receivers), K), the weighted fraction (a receiver whose weights are all
-        0 gets the plain one)."""
-        receivers = np.asarray(receivers, dtype=np.int64)
-        self.columns += 1
-        if len(receivers) == 0:
-            return np.zeros(0)
-        batch = self._blocks_for(i, receivers)
-        with self.phases.timed("board"):
-            bits = self.board.run(batch)
-        # clear rays per receiver, summed over every block (and sample chunk) it appears in
-        if isinstance(bits, BlockBits):
-            clear_rays = bits.clear_per_row()
-        else:
-            clear_rays = np.concatenate([(~np.asarray(b, dtype=bool)).sum(axis=1) for b in bits])
-        position = np.empty(self.scene.patches, dtype=np.int64)
-        position[receivers] = np.arange(len(receivers))
-        clear = np.bincount(position[batch.receiver_patch], weights=clear_rays, minlength=len(receivers))
-        self.rays += batch.rays
-        self.blocks += len(batch)
-        plain = clear / self.samples.count
-        if weights is None:
-            return plain
-        # the clear bit of every (receiver, sample) ray, then one weighted sum in sample order:
-        # the same float result however the rays were grouped into blocks
-        bit = np.zeros((len(receivers), self.samples.count))
-        receiver, sample = _ray_endpoints(batch)
-        flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
-            [np.asarray(b, dtype=bool).ravel() for b in bits])
-        bit[position[receiver], sample] = ~flat
-        w_clear = (bit * weights).sum(axis=1)
-        total = weights.sum(axis=1)
-        return np.where(total > 0, w_clear / np.where(total > 0, total, 1), plain)
-
-
-def visible_fraction(scene, vis, samples, i, receivers, phases):
-    """The board's clear fraction of each (shooter ``i``, receiver) pair, for the exact factor.
-
-    Each ray weighs by the light its sample sends to the receiver (0 from samples behind the
-    receiver's plane: the exact factor already leaves out that part of i, so counting those rays
-    would clip it twice). A receiver straddling i's plane with its centroid behind it gets the
-    reverse rays, from its samples in front of i's plane to i's centroid (visibility is symmetric).
-    """
-    with phases.timed("formfactor"):
-        direct = formfactor.centroid_in_front(scene, i, receivers)
-        forward = receivers[direct]
-        weights = formfactor.sample_weights(scene, samples, i, forward)
-    frac = np.empty(len(receivers))
-    frac[direct] = vis.clear_fraction(i, forward, weights)
-    for m in np.flatnonzero(~direct):
-        j = receivers[m]
-        with phases.timed("formfactor"):
-            back = formfactor.sample_weights(scene, samples, j, [i])
-        frac[m] = vis.clear_fraction(j, np.array([i]), back)[0]
-    return frac
-
-
-def _ray_endpoints(batch):
-    """(receiver patch, shooter sample) of every ray of ``batch``, in its flat ray order (block by
-    block, each (R_b, S_b) row-major)."""
-    rows, cols = batch.rows, batch.cols
-    block = np.repeat(np.arange(len(batch)), rows * cols)
-    within = np.arange(len(block)) - batch.ray_off[block]
-    r, s = within // cols[block], within % cols[block]
-    return batch.receiver_patch[batch.row_off[block] + r], batch.shooter_sample[batch.col_off[block] + s]
 
 
 @dataclass
@@ -232,7 +51,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     ``host``: see :func:`~blockray.host_driver.backends.make_board`.
 
     ``threads``: cores the compiled host kernels use (None: all, see
-    :mod:`blockray.host_driver.threads`); the result does not depend on it.
+    :mod:`blockray.threads`); the result does not depend on it.
 
     ``sets`` > 1, a ``scheduler`` address or a number of ``workers`` run the render as ``sets``
     host + board sets on a Dask cluster (host_driver/cluster.py): the user's at ``scheduler``,

@@ -29,7 +29,7 @@ from numba import njit, prange
 
 from blockray.errors import ParameterError
 
-from . import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
+from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
 
 __all__ = ["VoxelGrid", "TraversalStats", "default_voxels", "cost_model", "COST_MODEL"]
 

@@ -21,7 +21,7 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 
 from ..filtered import FilterFormat
-from ..synth.target import product_platform
+from .platform import product_platform
 from ..params import Widths
 from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _product,
                         query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)

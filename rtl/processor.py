@@ -34,7 +34,7 @@ from amaranth.lib.wiring import In, Out
 from ..errors import ParameterError
 from ..params import MAX_BITS, MIN_BITS, Widths
 from ..records import patch_layout, point_layout, vector_layout
-from ..synth.target import product_platform
+from .platform import product_platform
 
 __all__ = [
     "shooter_terms_layout", "receiver_terms_layout", "query_layout", "result_layout",

@@ -29,7 +29,7 @@ results do not depend on the number of threads.
 import numpy as np
 from numba import njit, prange
 
-from ..host_driver import threads as _threads  # noqa: F401  (chooses the threading layer)
+from .. import threads as _threads  # noqa: F401  (chooses the threading layer)
 
 __all__ = ["any_blocked", "run_blocks"]
 
@@ -173,7 +173,7 @@ def run_blocks(shooters, receivers, col_off, shooter_patch, shooter_sample, row_
 
     Returns ``bits`` (rays,) uint8, block b's ray (r, s) at ``ray_off[b] + r * S_b + s``;
     ``records`` (B, P) records streamed and ``streamed`` (B, P) cycles of the VOXEL commands.
-    Runs on the thread pool when the batch is large enough (:func:`blockray.host_driver.threads.parallel`).
+    Runs on the thread pool when the batch is large enough (:func:`blockray.threads.parallel`).
     """
     B, nb = len(col_off) - 1, start.shape[0]
     bits = np.zeros(ray_off[B], np.uint8)

@@ -31,6 +31,7 @@ stand-in) gets the generic netlist.
 from pathlib import Path
 
 from ..errors import ParameterError
+from ..rtl.platform import product_platform
 
 __all__ = ["TARGETS", "FABRIC_UNITS", "ECP5Target", "target_platform", "product_platform", "MULT18X18D_SIM"]
 
@@ -62,12 +63,6 @@ class ECP5Target:
     def __repr__(self):
         units = ", ".join(repr(u) for u in FABRIC_UNITS if u in self.fabric_units)
         return f"ECP5Target(fabric_units={{{units}}})" if units else "ECP5Target()"
-
-
-def product_platform(platform, unit):
-    """The platform a unit's products see: ``platform``, or None (generic products) when
-    ``unit`` is one of ``platform.fabric_units``."""
-    return None if unit in getattr(platform, "fabric_units", ()) else platform
 
 
 def target_platform(target, fabric_units=()):

@@ -18,8 +18,8 @@ from blockray import extras
 from blockray.cli import main
 from blockray.errors import ParameterError, SceneError
 from blockray.host_driver import builtin
-from blockray.host_driver.objload import (LoadLimits, TOKEN_CHARS, load_obj, load_scene,
-                                          subdivide, subdivision_lower_bound)
+from blockray.host_driver.objload import (LoadLimits, TOKEN_CHARS, load_obj, subdivide, subdivision_lower_bound)
+from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.render import render
 from blockray.host_driver.scene import COORDINATE_LIMIT
 

@@ -8,7 +8,7 @@ from PIL import Image
 
 from blockray.errors import ParameterError
 from blockray.host_driver.image import render_image, save_png, vertex_radiosity
-from blockray.host_driver.objload import load_scene
+from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.scene import Camera, Scene
 
 W = H = 64

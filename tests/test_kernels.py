@@ -8,7 +8,7 @@ import pytest
 
 from blockray.cli import main
 from blockray.exact import blocked_reference, patch_normals
-from blockray.host_driver import threads
+from blockray import threads
 from blockray.host_driver.render import render
 from blockray.host_driver.voxel import TraversalStats, VoxelGrid
 from blockray.params import BoardParams

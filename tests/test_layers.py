@@ -22,10 +22,9 @@ LAYERS = {"blockray": 0, "blockray.rtl": 1, "blockray.synth": 2, "blockray.sim":
           "blockray.host_driver": 3, "blockray.cli": 4}
 #: known violations, each with the issue that removes it (the test fails once it is gone, so the
 #: entry is deleted with the fix)
-KNOWN = {("blockray.rtl.processor", "blockray.synth.target"): "issue 16: product_platform belongs below rtl"}
+KNOWN = {}
 #: known module cycles, likewise
-KNOWN_CYCLES = {("blockray.host_driver.builtin", "blockray.host_driver.objload"):
-                "issue 18: objload.load_scene imports builtin, which imports objload"}
+KNOWN_CYCLES = {}
 
 
 def modules():

@@ -14,7 +14,7 @@ import pytest
 from blockray.cli import main
 from blockray.errors import ParameterError
 from blockray.host_driver import solver as solvers
-from blockray.host_driver.objload import load_scene
+from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.render import render
 from blockray.host_driver.scaleout import assign_sets, exchange_bytes_per_sweep
 from blockray.host_driver.scene import Scene

@@ -11,8 +11,8 @@ import pytest
 
 from blockray.errors import ParameterError, SceneError
 from blockray.host_driver import builtin
-from blockray.host_driver.objload import (DEFAULT_REFLECTANCE, SceneWarning, load_obj,
-                                          load_scene, subdivide)
+from blockray.host_driver.objload import (DEFAULT_REFLECTANCE, SceneWarning, load_obj, subdivide)
+from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.scene import Scene
 
 MTL = """\

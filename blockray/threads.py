@@ -18,7 +18,7 @@ from contextlib import contextmanager
 
 import numba
 
-from ..errors import ParameterError
+from .errors import ParameterError
 
 __all__ = ["available", "get", "set_threads", "using", "parallel", "PARALLEL_MIN_RAYS"]
 
