@@ -72,21 +72,27 @@ def queries(scene, board, batches, cap, seed=13):
 
 
 def link(board, batches):
-    """Bytes per ray on one board's link: every block's commands (BEGIN_BLOCK, LOAD_POINTS, one
-    VOXEL per nonempty voxel, END_BLOCK) and its result word, each a whole word of
-    blockray.rtl.protocol's layouts rounded up to bytes; and the board cycles per ray."""
-    from blockray.rtl.protocol import BoardProtocol
+    """Bytes per ray on one board's link in the compact wire format (blockray.protocol): every
+    block's BEGIN_BLOCK, LOAD_POINTS (the last one partly filled), one VOXEL per nonempty voxel and
+    END_BLOCK, and its result; and the board cycles per ray."""
+    from blockray.protocol import BoardProtocol, Op, ResultKind
     from blockray.timing import POINTS_PER_LOAD
     proto = BoardProtocol(board.params)
-    cmd_bytes, res_bytes = -(-proto.command_layout.size // 8), -(-proto.result_layout.size // 8)
-    commands = results = rays = 0
+    size = lambda op, points=POINTS_PER_LOAD: proto.command_bytes(op, points)     # noqa: E731
+    commands = command_bytes = results = rays = 0
     for blocks, _ in batches:
-        loads = -(-(blocks.rows + blocks.cols) // POINTS_PER_LOAD)
-        commands += int((2 + loads + np.diff(blocks.vox_off)).sum())
+        points = blocks.rows + blocks.cols
+        full, rest = points // POINTS_PER_LOAD, points % POINTS_PER_LOAD
+        voxels = np.diff(blocks.vox_off)
+        partial = np.array([0] + [size(Op.LOAD_POINTS, k) for k in range(1, POINTS_PER_LOAD)])
+        command_bytes += int((size(Op.BEGIN_BLOCK) + size(Op.END_BLOCK) + full * size(Op.LOAD_POINTS)
+                              + partial[rest] + voxels * size(Op.VOXEL)).sum())
+        commands += int((2 + full + (rest > 0) + voxels).sum())
         results += len(blocks)
         rays += blocks.rays
-    return {"command_bytes": cmd_bytes, "result_bytes": res_bytes, "commands_per_ray": round(commands / rays, 4),
-            "link_bytes_per_ray": round((commands * cmd_bytes + results * res_bytes) / rays, 3),
+    result_bytes = proto.result_bytes(ResultKind.BLOCKED)
+    return {"result_bytes": result_bytes, "commands_per_ray": round(commands / rays, 4),
+            "link_bytes_per_ray": round((command_bytes + results * result_bytes) / rays, 3),
             "board_cycles_per_ray": round(board.counters()["board_cycles"] / rays, 4)}
 
 

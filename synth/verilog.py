@@ -46,7 +46,7 @@ MAX_MEMORY_BITS = 1 << 24
 def board_memory_bits(params):
     """(patch memory bits, voxel table bits) of the board for ``params``."""
     from ..rtl.memctrl import patch_layout
-    from ..rtl.protocol import BoardProtocol
+    from ..protocol import BoardProtocol
     return (params.patch_depth * patch_layout(params.bits).size,
             params.voxel_depth * BoardProtocol(params).table_entry_layout.size)
 

@@ -245,7 +245,9 @@ def test_scene_at_the_ends_of_the_range_renders_as_at_unit_scale(tmp_path, scale
                     solver="jacobi", voxels=3)
     assert np.isfinite(scaled.report["residual"]) and scaled.report["rays"] == unit.report["rays"] > 0
     assert np.count_nonzero(unit.radiosity[:, 0] > 0) > len(unit.radiosity) // 2   # lit, not all zero
-    np.testing.assert_allclose(scaled.radiosity, unit.radiosity, rtol=1e-12)
+    # the exact form factors' logarithms and arctangents round differently at another scale
+    # (measured: 2.3e-12 relative at 2**99); everything else is an exact power-of-two scaling
+    np.testing.assert_allclose(scaled.radiosity, unit.radiosity, rtol=1e-10)
 
 
 @pytest.mark.parametrize("ending", ["", "\n"])
