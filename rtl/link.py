@@ -56,7 +56,11 @@ class LinkBridge(wiring.Component):
     Ports: ``rx_bytes`` (from the UART receiver: a byte that finds the FIFO full is lost and
     sets ``overrun``, which a host keeping to its credits never causes), ``commands`` (to the
     core), ``results`` (from the core), ``tx_bytes`` (to the UART transmitter), ``owed`` (credits
-    owed to the host: the command bytes taken since their grant, plus the initial fifo_depth).
+    owed to the host: the command bytes taken since their grant, plus the initial fifo_depth),
+    ``tx_header`` (the byte offered on ``tx_bytes`` is a frame header), ``command_level`` /
+    ``result_level`` (bytes in the two FIFOs): status, and what the formal proofs' invariants
+    are stated in. Elaborated for ``platform="formal"`` it asserts its own invariants: a grant
+    being sent never exceeds the credits owed, a result frame never the bytes queued.
     """
 
     def __init__(self, *, fifo_depth=2048, result_depth=512, grant_min=None):
@@ -76,6 +80,9 @@ class LinkBridge(wiring.Component):
             "tx_bytes": Out(stream.Signature(8)),
             "owed": Out(range(self._fifo_depth + 1), init=self._fifo_depth),
             "overrun": Out(1),
+            "tx_header": Out(1),
+            "command_level": Out(range(self._fifo_depth + 1)),
+            "result_level": Out(range(self._result_depth + 1)),
         })
         self._MustUse__silence = False
 
@@ -91,6 +98,8 @@ class LinkBridge(wiring.Component):
         m = Module()
         m.submodules.command_fifo = cmd = SyncFIFOBuffered(width=8, depth=self._fifo_depth)
         m.submodules.result_fifo = res = SyncFIFOBuffered(width=8, depth=self._result_depth)
+
+        m.d.comb += [self.command_level.eq(cmd.r_level), self.result_level.eq(res.r_level)]
 
         # command path: UART -> FIFO -> core
         m.d.comb += [cmd.w_data.eq(self.rx_bytes.payload), cmd.w_en.eq(self.rx_bytes.valid),
@@ -112,7 +121,7 @@ class LinkBridge(wiring.Component):
             grant_n.eq(Mux(self.owed > FRAME_MAX, FRAME_MAX, self.owed)),
             frame_n.eq(Mux(res.r_level > FRAME_MAX, FRAME_MAX, res.r_level)),
         ]
-        with m.FSM():
+        with m.FSM() as fsm:
             with m.State("Choose"):
                 with m.If((self.owed >= self._grant_min) | ((self.owed != 0) & (res.r_level == 0))):
                     m.d.sync += [header.eq(GRANT_FLAG | (grant_n - 1)), amount.eq(grant_n), is_grant.eq(1)]
@@ -121,7 +130,7 @@ class LinkBridge(wiring.Component):
                     m.d.sync += [header.eq(frame_n - 1), amount.eq(frame_n), is_grant.eq(0)]
                     m.next = "Header"
             with m.State("Header"):
-                m.d.comb += [self.tx_bytes.valid.eq(1), self.tx_bytes.payload.eq(header)]
+                m.d.comb += [self.tx_bytes.valid.eq(1), self.tx_bytes.payload.eq(header), self.tx_header.eq(1)]
                 with m.If(self.tx_bytes.ready):
                     with m.If(is_grant):
                         m.d.comb += granted.eq(amount)
@@ -141,6 +150,19 @@ class LinkBridge(wiring.Component):
         taken = Signal()
         m.d.comb += taken.eq(self.commands.valid & self.commands.ready)
         m.d.sync += self.owed.eq(self.owed + taken - granted)
+
+        if platform == "formal":
+            from amaranth.hdl import Assert
+            with m.If(fsm.ongoing("Header")):
+                m.d.comb += [Assert((amount >= 1) & (amount <= FRAME_MAX)),
+                             Assert(header == Mux(is_grant, GRANT_FLAG | (amount - 1), amount - 1))]
+                with m.If(is_grant):
+                    m.d.comb += Assert(amount <= self.owed)
+                with m.Else():
+                    m.d.comb += Assert(amount <= res.r_level)
+            with m.If(fsm.ongoing("Data")):
+                m.d.comb += Assert((left >= 1) & (left <= res.r_level))
+            m.d.comb += Assert(self.owed + cmd.r_level <= self._fifo_depth)
         return m
 
 
