@@ -241,12 +241,67 @@ def _cmd_synth(args):
     return 0
 
 
+def _bitstream_parser(sub):
+    p = sub.add_parser("bitstream", help="build a board's bitstream for an FPGA board (ULX3S-85F)",
+                       description="Build the bitstream of a blockray board on the ULX3S-85F (LFE5U-85F, speed "
+                                   "grade -6): PLL from the 25 MHz oscillator, reset synchroniser, UART link on "
+                                   "the FT231X, the board core; Yosys, nextpnr-ecp5 and ecppack from YoWASP. "
+                                   "Options that cannot fit the part are refused before the tools run.")
+    p.add_argument("--platform", default="ulx3s-85f", help="FPGA board (ulx3s-85f)")
+    g = p.add_argument_group("board")
+    g.add_argument("--rows", type=_positive_int, default=2, metavar="R",
+                   help="array rows (default 2: the 2 x 2 array routes at -6, docs/synthesis.md)")
+    g.add_argument("--cols", type=_positive_int, default=2, metavar="S", help="array columns (default 2)")
+    g.add_argument("--bits", type=int, default=16, metavar="B", help="coordinate bits (default 16)")
+    g.add_argument("--patch-depth", type=_positive_int, default=None, metavar="N",
+                   help="patch memory words (default: the most the block RAMs hold)")
+    g.add_argument("--voxel-depth", type=_positive_int, default=None, metavar="N",
+                   help="voxel table entries (default: up to 32**3, as the block RAMs allow)")
+    g.add_argument("--core", default="board", choices=["board", "echo"],
+                   help="board: the blockray board (default); echo: the link's test core (link bring-up)")
+    t = p.add_argument_group("link and clock")
+    t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
+    t.add_argument("--freq", type=_positive_float, default=60.0, metavar="MHZ",
+                   help="board clock from the PLL (default 60: 3 Mbaud x 20)")
+    t.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
+    t.add_argument("--workdir", metavar="DIR", help="keep the tools' files and logs here")
+    p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
+    p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
+    p.set_defaults(func=_cmd_bitstream)
+
+
+def _cmd_bitstream(args):
+    from .synth.bitstream import build_bitstream, largest_fit
+    from .synth.nextpnr import write_report
+    params = _board_params(rows=args.rows, cols=args.cols, bits=args.bits)
+    params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
+                                                voxel_depth=args.voxel_depth))
+    report = _naming_option(lambda: build_bitstream(
+        params, out=args.out, platform=args.platform, core=args.core, freq=args.freq, baud=args.baud,
+        seed=args.seed, workdir=args.workdir))
+    if args.report:
+        write_report(args.report, report)
+    res, fmax = report["resources"], report["fmax_mhz"]
+    print(f"{report['device']} {report['speed_grade']}, core {report['core']} {report['params']}: "
+          + ", ".join(f"{k} {v}" for k, v in res.items())
+          + f"; fits: {report['fits']}" + (f"; Fmax {fmax:.1f} MHz at {report['clock']['pll_mhz']:g} MHz" if fmax else "")
+          + (f"; wrote {args.out}" if "bitstream" in report else ""), file=sys.stderr)
+    if not report["fits"]:
+        print(f"blockray: error: the design does not fit the {report['device']} (see the report)", file=sys.stderr)
+        return 1
+    if not report["timing_met"]:
+        print(f"blockray: warning: Fmax {fmax:.1f} MHz is below the {report['clock']['pll_mhz']:g} MHz clock: "
+              f"lower --freq (a multiple of --baud)", file=sys.stderr)
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="blockray", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _render_parser(sub)
     _verilog_parser(sub)
     _synth_parser(sub)
+    _bitstream_parser(sub)
     return parser
 
 
