@@ -100,6 +100,7 @@ def _render_parser(sub):
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
                         "radiosities between gathering sweeps (--solver jacobi or gauss-seidel)")
     _add_board_options(p)
+    _add_link_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--image", metavar="PNG", help="write a picture from the scene's camera")
     out.add_argument("--size", type=_positive_int, default=512, metavar="PX", help="image width and height")
@@ -108,6 +109,40 @@ def _render_parser(sub):
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=_cmd_render)
     return p
+
+
+def _add_link_options(p):
+    g = p.add_argument_group("real board (--board ulx3s)")
+    g.add_argument("--port", default=None, metavar="DEV[,DEV...]",
+                   help="serial port of each board (e.g. /dev/ttyUSB0; one per board, --boards of them)")
+    g.add_argument("--baud", type=_positive_int, default=3_000_000, help="the bitstream's baud rate (default 3000000)")
+
+
+def _ulx3s_board(args, params):
+    """--board ulx3s: open and reset every board's serial link first (a missing port or a silent
+    board fails here, in seconds), then the host driver over those links."""
+    from .errors import ParameterError
+    from .host_driver.serial_link import SerialTransport
+    if not args.port:
+        raise ParameterError("--port: --board ulx3s needs the board's serial port, e.g. --port /dev/ttyUSB0")
+    ports = [p for p in args.port.split(",") if p]
+    if len(ports) != params.boards:
+        raise ParameterError(f"--boards: {params.boards} boards need {params.boards} ports, --port names {len(ports)}")
+    links = []
+    try:
+        for port in ports:
+            links.append(SerialTransport(port, baud=args.baud))
+        try:
+            from .host_driver.driver import BoardDriver
+        except ImportError:
+            raise ParameterError("--board ulx3s: this tree has no host board driver over transports "
+                                 "(blockray.host_driver.driver.BoardDriver)") from None
+    except BaseException:
+        for link in links:
+            link.close()
+        raise
+    return BoardDriver(params, bits=args.bits, fit=False, name="ulx3s", partition=args.partition,
+                       transport=lambda p, b: links[b])
 
 
 def _cmd_render(args):
@@ -123,7 +158,8 @@ def _cmd_render(args):
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")
     params = _board_params(rows=args.rows, cols=args.cols, boards=args.boards)
     progress = not args.quiet and sys.stderr.isatty()
-    result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
+    board = _ulx3s_board(args, params) if args.board == "ulx3s" else args.board
+    result = render(scene, board=board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
                     partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
