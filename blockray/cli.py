@@ -116,11 +116,35 @@ def _add_link_options(p):
     g.add_argument("--port", default=None, metavar="DEV[,DEV...]",
                    help="serial port of each board (e.g. /dev/ttyUSB0; one per board, --boards of them)")
     g.add_argument("--baud", type=_positive_int, default=3_000_000, help="the bitstream's baud rate (default 3000000)")
+    g.add_argument("--patch-depth", type=_positive_int, default=None, metavar="N",
+                   help="the bitstream's patch memory words (default: what blockray bitstream chose for R, S, B)")
+    g.add_argument("--voxel-depth", type=_positive_int, default=None, metavar="N",
+                   help="the bitstream's voxel table entries (default: as blockray bitstream chose)")
+
+
+def _ulx3s_params(args, params):
+    """The configuration the host expects of the bitstream: R, S, B (16 unless --bits) and the
+    memories ``blockray bitstream`` chose for them (unless --patch-depth / --voxel-depth)."""
+    from .synth.bitstream import largest_fit
+    params = _board_params(rows=params.rows, cols=params.cols, boards=params.boards, bits=args.bits or 16)
+    return _naming_option(lambda: largest_fit(params, patch_depth=args.patch_depth, voxel_depth=args.voxel_depth))
+
+
+def _capacity_hint(error, params):
+    """A scene that does not fit the bitstream's memories: say what to change."""
+    from .errors import CapacityError
+    from .synth.bitstream import largest_fit
+    most = largest_fit(params.with_(voxel_depth=1)).patch_depth
+    return CapacityError(f"{error}; rebuild the bitstream with larger memories (blockray bitstream --patch-depth, "
+                         f"--voxel-depth: the LFE5U-85F holds about {most} patch records at {params.rows} x "
+                         f"{params.cols}, B = {params.bits}), spread the scene over more boards (--boards with "
+                         f"a --port each), or subdivide it less (--max-edge)")
 
 
 def _ulx3s_board(args, params):
     """--board ulx3s: open and reset every board's serial link first (a missing port or a silent
-    board fails here, in seconds), then the host driver over those links."""
+    board fails here, in seconds), then the host driver over those links (it checks each
+    board's IDENTIFY against ``params`` before uploading)."""
     from .errors import ParameterError
     from .host_driver.serial_link import SerialTransport
     if not args.port:
@@ -146,7 +170,7 @@ def _ulx3s_board(args, params):
 
 
 def _cmd_render(args):
-    from .errors import ParameterError
+    from .errors import CapacityError, ParameterError
     from .params import MIN_BITS, MAX_BITS
     from .host_driver.objload import load_scene
     from .host_driver.render import render
@@ -158,11 +182,19 @@ def _cmd_render(args):
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")
     params = _board_params(rows=args.rows, cols=args.cols, boards=args.boards)
     progress = not args.quiet and sys.stderr.isatty()
-    board = _ulx3s_board(args, params) if args.board == "ulx3s" else args.board
-    result = render(scene, board=board, params=params, bits=args.bits, voxels=args.voxels,
-                    samples=args.samples, solver=args.solver, tolerance=args.tolerance,
-                    max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
+    board, bits = args.board, args.bits
+    if args.board == "ulx3s":
+        params = _ulx3s_params(args, params)
+        board, bits = _ulx3s_board(args, params), params.bits
+    try:
+        result = render(scene, board=board, params=params, bits=bits, voxels=args.voxels,
+                        samples=args.samples, solver=args.solver, tolerance=args.tolerance,
+                        max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
+                        partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
+    except CapacityError as e:
+        if args.board != "ulx3s":
+            raise
+        raise _capacity_hint(e, params) from None
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
