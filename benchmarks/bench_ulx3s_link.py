@@ -102,10 +102,12 @@ def main():
           f"(bound by {'host -> board' if down >= up else 'board -> host'})")
     print(f"array: {rays / r['board_cycles']:.3f} rays/cycle x {args.clock:g} MHz = {array_rate:,.0f} rays/s; "
           f"the link is {array_rate / link_rate:.1f}x slower")
-    for name, rate in (("FT2232H synchronous FIFO (~40 MB/s)", 40e6), ("PCIe Gen2 x1 (~400 MB/s)", 400e6)):
+    for name, rate in (("USB 1.1 full speed on the ULX3S's US2 port (~1 MB/s bulk)", 1e6),
+                       ("FT2232H synchronous FIFO (~40 MB/s)", 40e6), ("PCIe Gen2 x1 (~400 MB/s)", 400e6)):
         r_link = rate / max(r["down_wire"], r["up_wire"] - r["records"]) * rays
-        print(f"{name}: {r_link:,.0f} rays/s, {min(r_link, array_rate) / link_rate:.0f}x the UART "
-              f"({'link' if r_link < array_rate else 'array'}-bound)")
+        print(f"{name}: link {r_link:,.0f} rays/s; the board {min(r_link, array_rate):,.0f} rays/s, "
+              f"{min(r_link, array_rate) / link_rate:.1f}x the UART ({'link' if r_link < array_rate else 'array'}-bound; "
+              f"the link could feed {r_link / array_rate:.2f} such arrays)")
 
 
 if __name__ == "__main__":
