@@ -145,7 +145,7 @@ def _ulx3s_board(args, params):
     """--board ulx3s: open and reset every board's serial link first (a missing port or a silent
     board fails here, in seconds), then the host driver over those links (it checks each
     board's IDENTIFY against ``params`` before uploading)."""
-    from .errors import ParameterError
+    from .errors import CapacityError, ParameterError
     from .host_driver.serial_link import SerialTransport
     if not args.port:
         raise ParameterError("--port: --board ulx3s needs the board's serial port, e.g. --port /dev/ttyUSB0")
@@ -165,12 +165,20 @@ def _ulx3s_board(args, params):
         for link in links:
             link.close()
         raise
-    return BoardDriver(params, bits=args.bits, fit=False, name="ulx3s", partition=args.partition,
+
+    class ULX3SDriver(BoardDriver):
+        def load(self, grid):
+            try:
+                return super().load(grid)
+            except CapacityError as e:      # the scene does not fit the bitstream's memories
+                raise _capacity_hint(e, self.params) from None
+
+    return ULX3SDriver(params, bits=params.bits, fit=False, name="ulx3s", partition=args.partition,
                        transport=lambda p, b: links[b])
 
 
 def _cmd_render(args):
-    from .errors import CapacityError, ParameterError
+    from .errors import ParameterError
     from .params import MIN_BITS, MAX_BITS
     from .host_driver.objload import load_scene
     from .host_driver.render import render
@@ -181,20 +189,15 @@ def _cmd_render(args):
         raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")
     params = _board_params(rows=args.rows, cols=args.cols, boards=args.boards)
-    progress = not args.quiet and sys.stderr.isatty()
-    board, bits = args.board, args.bits
-    if args.board == "ulx3s":
+    if args.board == "ulx3s":       # a real board: its links are opened and reset first
         params = _ulx3s_params(args, params)
-        board, bits = _ulx3s_board(args, params), params.bits
-    try:
-        result = render(scene, board=board, params=params, bits=bits, voxels=args.voxels,
-                        samples=args.samples, solver=args.solver, tolerance=args.tolerance,
-                        max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                        partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
-    except CapacityError as e:
-        if args.board != "ulx3s":
-            raise
-        raise _capacity_hint(e, params) from None
+        args.board, args.bits = _ulx3s_board(args, params), params.bits
+
+    progress = not args.quiet and sys.stderr.isatty()
+    result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
+                    samples=args.samples, solver=args.solver, tolerance=args.tolerance,
+                    max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
+                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
