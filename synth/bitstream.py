@@ -35,8 +35,8 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import patch_layout
-from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _critical_path, _machine, _run, _tail, _versions,
-                      dsp_estimate, nextpnr_command)
+from .nextpnr import (DEVICES, PACKAGE, _NEXTPNR_BELS, _cells_resources, _critical_path, _machine, _run, _tail,
+                      _versions, dsp_estimate, nextpnr_command)
 from .yosys import yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "bram_estimate", "check_fit", "largest_fit", "pll_config",
@@ -274,9 +274,7 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp
     report["timing_met"] = bool(clock) and fmax[clock]["achieved"] >= pll.f_out_mhz
     report["nextpnr"].update({
         "clock": clock,
-        "placed": {k: pnr["utilization"][bel] for k, bel in
-                   {"luts": "TRELLIS_COMB", "ffs": "TRELLIS_FF", "dsps": "MULT18X18D", "brams": "DP16KD"}.items()
-                   if bel in pnr["utilization"]},
+        "placed": {k: pnr["utilization"][bel] for k, bel in _NEXTPNR_BELS.items() if bel in pnr["utilization"]},
         "critical_path": _critical_path(pnr, clock) if clock else None,
     })
 
