@@ -55,13 +55,14 @@ def test_cli_render_needs_a_port(capsys):
 
 class PtyBoard(threading.Thread):
     """A board on the master side of a pty, from the framing definition: ``depth`` credits
-    granted after ``delay`` s (after the host's reset), every command byte b answered with the
+    granted once ``released`` is set (the host ended its break), every command byte b answered with the
     result b ^ 0x5A in frames of random length, a grant per few bytes taken. Records whether the
     host ever sent beyond its credits."""
 
-    def __init__(self, fd, *, depth, seed, delay=1.0):
+    def __init__(self, fd, *, depth, seed):
         super().__init__(daemon=True)
-        self.fd, self.depth, self.rng, self.delay = fd, depth, random.Random(seed), delay
+        self.fd, self.depth, self.rng = fd, depth, random.Random(seed)
+        self.released = threading.Event()      # a pty carries no break: the test's transport says
         self.overrun = False
         self.received = 0
         self.stop = False
@@ -73,7 +74,7 @@ class PtyBoard(threading.Thread):
             pass
 
     def _serve(self):
-        time.sleep(self.delay)
+        self.released.wait()
         os.write(self.fd, bytes([0x80 | (self.depth - 1)]))
         owed, granted, pending = 0, self.depth, bytearray()
         while not self.stop:
@@ -109,7 +110,14 @@ def test_credits_and_frames_over_a_pty(pty_pair):
     board.start()
     rng = random.Random(seed)
     data = bytes(rng.randrange(256) for _ in range(600))
-    with SerialTransport(name, answer_timeout=5.0, timeout=5.0) as link:
+
+    class Transport(SerialTransport):
+        def _set_break(self, on):
+            super()._set_break(on)
+            if not on:
+                board.released.set()
+
+    with Transport(name, answer_timeout=5.0, timeout=5.0) as link:
         got = bytearray()
         for i in range(0, len(data), 50):
             link.send(data[i:i + 50])
