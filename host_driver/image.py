@@ -23,9 +23,26 @@ from blockray.errors import ParameterError
 
 from .scene import Camera
 
-__all__ = ["default_camera", "project", "vertex_radiosity", "render_image", "save_png"]
+__all__ = ["default_camera", "project", "vertex_radiosity", "render_image", "save_png", "check_image_size",
+           "MAX_PIXELS", "BYTES_PER_PIXEL"]
 
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+#: Peak memory of :func:`render_image` per pixel (tracemalloc, cornell: 135 B at 512 x 512,
+#: 130 B at 1024 x 1024; docs/input.md has the command)
+BYTES_PER_PIXEL = 135
+#: Largest image: 8192 x 8192 pixels, ~9 GB at :data:`BYTES_PER_PIXEL`
+MAX_PIXELS = 1 << 26
+
+
+def check_image_size(width, height, option="--size"):
+    """Raise :class:`ParameterError` (naming ``option``) for an image of more than
+    :data:`MAX_PIXELS` pixels: its buffers would not fit in memory."""
+    pixels = int(width) * int(height)
+    if pixels > MAX_PIXELS:
+        raise ParameterError(f"{option}: a {width} x {height} image needs about "
+                             f"{pixels * BYTES_PER_PIXEL / 2**30:.3g} GiB of memory; at most {MAX_PIXELS} "
+                             f"pixels (8192 x 8192)")
 
 
 def default_camera(scene, fov=40.0):
@@ -126,6 +143,7 @@ def render_image(scene, radiosity, *, width=512, height=512, camera=None,
     for value, flag in ((width, "width"), (height, "height")):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ParameterError(f"image {flag} must be a positive integer, not {value!r}")
+    check_image_size(width, height)
     radiosity = np.asarray(radiosity, dtype=np.float64)
     if radiosity.shape != (scene.patches, 3):
         raise ValueError(f"radiosity must have shape ({scene.patches}, 3), not {radiosity.shape}")

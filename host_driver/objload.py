@@ -22,20 +22,68 @@ crack-free across them). Unused vertices are dropped.
 Bad input raises :class:`~blockray.errors.SceneError` naming the file and line. Zero-area
 triangles are dropped with one :class:`SceneWarning` (a :mod:`warnings` warning) that counts them;
 the CLI prints it.
+
+Untrusted files (downloaded models, a service rendering uploads) are read under
+:class:`LoadLimits`:
+
+- Only regular files are read (a FIFO or ``/dev/zero`` is refused before it is read), at most
+  ``max_file_bytes`` each.
+- ``mtllib`` files must lie inside the OBJ file's folder tree (after following symbolic links)
+  unless ``allow_mtl_outside``; a path outside is refused without looking at it, so the error does
+  not say whether it exists.
+- An error message quotes at most the offending token, cut to :data:`TOKEN_CHARS` characters and
+  with control characters escaped, never a whole line of a file.
+- Text is UTF-8 (a byte-order mark is skipped); lines end at line feeds; a trailing backslash joins
+  the next line (also on the last line); fields are separated by ASCII blanks.
+- Numbers are the OBJ format's: ``[+-]digits[.digits][(e|E)[+-]digits]`` in ASCII digits (no
+  ``inf``, ``nan``, ``1_0`` or other scripts' digits); indices are ASCII integers.
+- A vertex coordinate beyond :data:`~blockray.host_driver.scene.COORDINATE_LIMIT` in magnitude,
+  and a scene smaller than :data:`~blockray.host_driver.scene.MIN_EXTENT`, are refused (see
+  :func:`~blockray.host_driver.scene.check_range`).
+- A material defined twice (``newmtl`` with a name already defined) is an error.
+- :func:`subdivide` refuses, before it starts, a ``max_edge`` whose subdivision would give more
+  than ``max_triangles`` triangles (a lower bound of the count is computed first).
 """
 
 import math
 import os
+import re
+import stat
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from blockray.errors import ParameterError, SceneError
+from blockray.errors import ParameterError, SceneError, printable
 
-from .scene import Scene
+from .scene import COORDINATE_LIMIT, Scene, check_range
 
-__all__ = ["DEFAULT_REFLECTANCE", "SceneWarning", "load_obj", "load_scene", "subdivide"]
+__all__ = ["DEFAULT_REFLECTANCE", "LoadLimits", "SceneWarning", "TOKEN_CHARS", "load_obj", "load_scene",
+           "subdivide", "subdivision_lower_bound"]
+
+#: At most this many characters of a token are quoted in an error message.
+TOKEN_CHARS = 24
+
+# The OBJ format's numbers (ASCII only: Python's float() also takes "1_0", "inf" and other
+# scripts' digits) and indices.
+_FLOAT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INT = re.compile(r"[+-]?[0-9]+")
+_BLANKS = re.compile(r"[ \t\r\f\v]+")
+
+
+@dataclass(frozen=True)
+class LoadLimits:
+    """What the loader may read (see the module docstring). The CLI sets these from
+    ``--allow-mtl-outside``, ``--max-file-mb`` and ``--max-patches``."""
+    allow_mtl_outside: bool = False
+    max_file_bytes: int = 256 << 20         # a 256 MiB OBJ holds millions of triangles
+    max_triangles: int = 1_000_000          # subdivision output; cornell to 110 k takes ~10 s (docs/input.md)
+
+
+def _token(text):
+    """A token of a file as an error message may quote it: cut short, escapes escaped."""
+    return "'" + printable(text, TOKEN_CHARS) + "'"
 
 #: Reflectance of a material without ``Kd`` and of faces before any ``usemtl`` (the usual
 #: exporter default, e.g. Blender's).
@@ -58,10 +106,10 @@ class SceneWarning(UserWarning):
 
 
 class _Material:
-    __slots__ = ("name", "reflectance", "emission")
+    __slots__ = ("name", "path", "line", "reflectance", "emission")
 
-    def __init__(self, name):
-        self.name = name
+    def __init__(self, name, path, line):
+        self.name, self.path, self.line = name, path, line
         self.reflectance = DEFAULT_REFLECTANCE
         self.emission = (0.0, 0.0, 0.0)
 
@@ -71,26 +119,47 @@ def _numbers(fields, counts, path, lineno, what):
         expected = " or ".join(str(c) for c in counts)
         raise SceneError(f"'{what}' needs {expected} numbers, got {len(fields)}",
                          path=path, line=lineno)
-    try:
-        values = [float(f) for f in fields]
-    except ValueError:
-        raise SceneError(f"'{what}' has a value that is not a number: {' '.join(fields)}",
-                         path=path, line=lineno) from None
+    values = []
+    for f in fields:
+        if not _FLOAT.fullmatch(f):
+            raise SceneError(f"'{what}' has a value that is not a number: {_token(f)}",
+                             path=path, line=lineno)
+        values.append(float(f))
     return values
 
 
-def _read_lines(path, error_path=None, error_line=None):
-    """Yield (line number, keyword, fields) of a text file, joining backslash continuations."""
+def _read_text(path, limits, error_path=None, error_line=None, what="file"):
+    """The text of ``path``: a regular file of at most ``limits.max_file_bytes``, UTF-8 with an
+    optional byte-order mark. Errors name ``error_path`` (default ``path``) and ``error_line``."""
+    where = {"path": error_path if error_path is not None else path, "line": error_line}
     try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            text = f.read()
+        # stat before open: opening a FIFO blocks, opening a device may do things
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise SceneError(f"{what} is not a regular file", **where)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):     # replaced since the stat
+                raise SceneError(f"{what} is not a regular file", **where)
+            data = f.read(limits.max_file_bytes + 1)
+    except FileNotFoundError:
+        raise SceneError(f"{what} not found", **where) from None
     except OSError as e:
-        raise SceneError(f"cannot read {path}: {e.strerror or e}",
-                         path=error_path if error_path is not None else path,
-                         line=error_line) from None
+        raise SceneError(f"cannot read {what}: {e.strerror or type(e).__name__}", **where) from None
+    except ValueError:                      # a NUL character in the name
+        raise SceneError(f"{what} is not a file name", **where) from None
+    if len(data) > limits.max_file_bytes:
+        raise SceneError(f"{what} is larger than {limits.max_file_bytes / 2**20:.3g} MiB "
+                         f"(raise the limit with --max-file-mb)", **where)
+    return data.decode("utf-8-sig", errors="replace")
+
+
+def _read_lines(path, limits, error_path=None, error_line=None, what="file"):
+    """Yield (line number, keyword, fields) of a text file, joining backslash continuations."""
+    text = _read_text(path, limits, error_path, error_line, what)
     pending, start = "", None
-    for lineno, raw in enumerate(text.splitlines(), 1):
-        line = raw.split("#", 1)[0].rstrip()
+    for lineno, raw in enumerate(text.split("\n"), 1):
+        line = raw.split("#", 1)[0].rstrip(" \t\r\f\v")
         if line.endswith("\\"):
             if start is None:
                 start = lineno
@@ -98,20 +167,30 @@ def _read_lines(path, error_path=None, error_line=None):
             continue
         line = pending + line
         first, pending, start = (start or lineno), "", None
-        fields = line.split()
+        fields = [f for f in _BLANKS.split(line) if f]
         if fields:
             yield first, fields[0], fields[1:]
+    if pending:                  # a continuation on the last line: the statement ends there
+        fields = [f for f in _BLANKS.split(pending) if f]
+        if fields:
+            yield start, fields[0], fields[1:]
 
 
-def _load_mtl(path, materials, obj_path, obj_line):
-    """Read materials from ``path`` into ``materials`` (name -> (_Material, path, line))."""
+def _load_mtl(path, materials, limits, obj_path, obj_line, shown):
+    """Read materials from ``path`` into ``materials`` (name -> _Material). ``shown``: the
+    ``mtllib`` token, quoted in errors about the file as a whole (at the OBJ's line)."""
     current = None
-    for lineno, key, fields in _read_lines(path, obj_path, obj_line):
+    for lineno, key, fields in _read_lines(path, limits, obj_path, obj_line,
+                                           what=f"material library {_token(shown)}"):
         if key == "newmtl":
             if not fields:
                 raise SceneError("'newmtl' needs a name", path=path, line=lineno)
-            current = _Material(" ".join(fields))
-            materials[current.name] = current
+            name = " ".join(fields)
+            if name in materials:
+                first = materials[name]
+                raise SceneError(f"material {_token(name)} is defined twice (first at "
+                                 f"{printable(first.path, 200)}:{first.line})", path=path, line=lineno)
+            current = materials[name] = _Material(name, path, lineno)
         elif key in ("Kd", "Ke"):
             if current is None:
                 raise SceneError(f"'{key}' before any 'newmtl'", path=path, line=lineno)
@@ -122,25 +201,42 @@ def _load_mtl(path, materials, obj_path, obj_line):
             if len(values) == 1:
                 values = values * 3
             if key == "Kd":
-                if not all(0.0 <= c < 1.0 for c in values):  # also rejects NaN
-                    raise SceneError(
-                        f"material '{current.name}': reflectance Kd {' '.join(fields)} is "
-                        f"outside [0, 1)", path=path, line=lineno)
+                bad = [f for f, c in zip(fields * 3, values) if not 0.0 <= c < 1.0]   # also NaN
+                if bad:
+                    raise SceneError(f"material {_token(current.name)}: reflectance Kd {_token(bad[0])} "
+                                     f"is outside [0, 1)", path=path, line=lineno)
                 current.reflectance = tuple(values)
             else:
-                if not all(0.0 <= c < math.inf for c in values):
-                    raise SceneError(
-                        f"material '{current.name}': emission Ke {' '.join(fields)} must be "
-                        f"finite and >= 0", path=path, line=lineno)
+                bad = [f for f, c in zip(fields * 3, values) if not 0.0 <= c < math.inf]
+                if bad:
+                    raise SceneError(f"material {_token(current.name)}: emission Ke {_token(bad[0])} "
+                                     f"must be finite and >= 0", path=path, line=lineno)
                 current.emission = tuple(values)
 
 
-def _triangulate(poly, coords):
-    """Split a polygon (list of vertex indices) into triangles (list of index triples)."""
+def _may_read(folder, mtl, limits):
+    """Whether ``mtllib`` may read ``mtl`` (relative to the OBJ's ``folder``) under ``limits``."""
+    return limits.allow_mtl_outside or _inside(folder, folder / mtl)
+
+
+def _inside(folder, target):
+    """Whether ``target`` is in the folder tree of ``folder`` once symbolic links are followed."""
+    if "\0" in str(target):
+        return False
+    root = os.path.realpath(folder)
+    return os.path.commonpath([root, os.path.realpath(target)]) == root
+
+
+#: Concave polygons with more corners are refused: ear clipping takes O(n**3) steps here.
+MAX_CONCAVE_CORNERS = 200
+
+
+def _triangulate(poly, p):
+    """Split a polygon (list of vertex indices, ``p`` their (n, 3) positions) into triangles
+    (list of index triples). Raises ValueError for a concave polygon of too many corners."""
     n = len(poly)
     if n == 3:
         return [tuple(poly)]
-    p = coords[poly]
     # Newell normal: robust best-fit plane normal of a (possibly non-planar) polygon.
     q = np.roll(p, -1, axis=0)
     normal = np.array([
@@ -163,6 +259,9 @@ def _triangulate(poly, coords):
         return [(poly[0], poly[i], poly[i + 1]) for i in range(1, n - 1)]
 
     # Ear clipping for a concave polygon.
+    if n > MAX_CONCAVE_CORNERS:
+        raise ValueError(f"a concave polygon of {n} corners (at most {MAX_CONCAVE_CORNERS}); "
+                         "split it into smaller faces")
     remaining = list(range(n))
     triangles = []
     while len(remaining) > 3:
@@ -185,7 +284,7 @@ def _triangulate(poly, coords):
     return triangles
 
 
-def load_obj(path, *, max_edge=None, name=None):
+def load_obj(path, *, max_edge=None, name=None, limits=None):
     """Load a Wavefront OBJ file (and its MTL files) as a :class:`Scene`.
 
     Parameters
@@ -196,15 +295,19 @@ def load_obj(path, *, max_edge=None, name=None):
         If given, :func:`subdivide` the scene so no edge is longer than this.
     name : str, optional
         Scene name; the file's stem by default.
+    limits : LoadLimits, optional
+        What may be read (default :class:`LoadLimits()`: MTL files inside the OBJ's folder tree,
+        256 MiB per file, at most a million triangles after subdivision).
 
     Raises
     ------
     SceneError
-        Unreadable or malformed file, index out of range, non-finite coordinate, reflectance
-        outside [0, 1), negative emission, unknown material, missing MTL file, no triangles.
-        The message names the file and line.
+        Unreadable, non-regular, too large or malformed file, index out of range, coordinate
+        out of range, reflectance outside [0, 1), negative emission, unknown or twice-defined
+        material, missing MTL file or one outside the folder tree, no triangles. The message
+        names the file and line.
     ParameterError
-        ``max_edge`` is not a positive number.
+        ``max_edge`` is not a positive number, or gives too many triangles.
 
     Warns
     -----
@@ -213,10 +316,12 @@ def load_obj(path, *, max_edge=None, name=None):
     """
     path = Path(path)
     folder = path.parent
+    limits = LoadLimits() if limits is None else limits
     vertices, texcoords, normals = [], 0, 0
     faces, face_group, face_mat = [], [], []   # faces: list of index triples
     group_names, group_ids = [], {}
     materials = {}
+    libraries = set()                          # real paths of the MTL files read
     usemtl_lines = {}                          # material name -> first OBJ line using it
     group, material = None, None
 
@@ -227,10 +332,9 @@ def load_obj(path, *, max_edge=None, name=None):
         return group_ids[gname]
 
     def resolve(token, count, lineno, kind):
-        try:
-            i = int(token)
-        except ValueError:
-            raise SceneError(f"bad {kind} index '{token}' in 'f'", path=path, line=lineno) from None
+        if not _INT.fullmatch(token):
+            raise SceneError(f"bad {kind} index {_token(token)} in 'f'", path=path, line=lineno)
+        i = int(token)
         if i > 0 and i <= count:
             return i - 1
         if i < 0 and -i <= count:
@@ -238,15 +342,15 @@ def load_obj(path, *, max_edge=None, name=None):
         raise SceneError(f"{kind} index {i} out of range (there are {count} {kind}s so far)",
                          path=path, line=lineno)
 
-    coords = None
-    for lineno, key, fields in _read_lines(path):
+    for lineno, key, fields in _read_lines(path, limits, what="scene file"):
         if key == "v":
             values = _numbers(fields, (3, 4, 6), path, lineno, "v")
-            if not all(math.isfinite(c) for c in values[:3]):
-                raise SceneError(f"vertex coordinate is not finite: {' '.join(fields[:3])}",
-                                 path=path, line=lineno)
+            for f, c in zip(fields, values[:3]):
+                if not abs(c) <= COORDINATE_LIMIT:
+                    raise SceneError(f"vertex coordinate {_token(f)} is beyond +-{COORDINATE_LIMIT:g}, "
+                                     f"the range the boards compute in (scale the scene down)",
+                                     path=path, line=lineno)
             vertices.append(values[:3])
-            coords = None
         elif key == "vt":
             _numbers(fields, (1, 2, 3), path, lineno, "vt")
             texcoords += 1
@@ -261,16 +365,18 @@ def load_obj(path, *, max_edge=None, name=None):
             for corner in fields:
                 parts = corner.split("/")
                 if len(parts) > 3 or not parts[0]:
-                    raise SceneError(f"bad face corner '{corner}'", path=path, line=lineno)
+                    raise SceneError(f"bad face corner {_token(corner)}", path=path, line=lineno)
                 poly.append(resolve(parts[0], len(vertices), lineno, "vertex"))
                 if len(parts) > 1 and parts[1]:
                     resolve(parts[1], texcoords, lineno, "texture coordinate")
                 if len(parts) > 2 and parts[2]:
                     resolve(parts[2], normals, lineno, "normal")
-            if coords is None:
-                coords = np.array(vertices, dtype=np.float64)
+            try:
+                triangles = _triangulate(poly, np.array([vertices[i] for i in poly], dtype=np.float64))
+            except ValueError as e:
+                raise SceneError(str(e), path=path, line=lineno) from None
             g = group_id(group if group is not None else "default")
-            for tri in _triangulate(poly, coords):
+            for tri in triangles:
                 faces.append(tri)
                 face_group.append(g)
                 face_mat.append(material)
@@ -279,13 +385,23 @@ def load_obj(path, *, max_edge=None, name=None):
         elif key == "mtllib":
             if not fields:
                 raise SceneError("'mtllib' needs a file name", path=path, line=lineno)
+            # one file name with blanks, else several names; a path outside the folder tree is
+            # not even looked at unless allowed (whether it exists is not revealed)
             whole = " ".join(fields)
-            names = [whole] if (folder / whole).is_file() else fields
+            names = fields
+            if len(fields) > 1 and _may_read(folder, whole, limits) and (folder / whole).is_file():
+                names = [whole]
             for mtl in names:
-                mtl_path = folder / mtl
-                if not mtl_path.is_file():
-                    raise SceneError(f"material library '{mtl}' not found", path=path, line=lineno)
-                _load_mtl(mtl_path, materials, path, lineno)
+                if "\0" in mtl:           # no file name holds one; os.path would raise
+                    raise SceneError(f"material library {_token(mtl)} is not a file name", path=path,
+                                     line=lineno)
+                if not _may_read(folder, mtl, limits):
+                    raise SceneError(f"material library {_token(mtl)} is outside the scene's folder "
+                                     f"(allow it with --allow-mtl-outside)", path=path, line=lineno)
+                real = os.path.realpath(folder / mtl)
+                if real not in libraries:          # a library named again is not read twice
+                    libraries.add(real)
+                    _load_mtl(folder / mtl, materials, limits, path, lineno, mtl)
         elif key == "usemtl":
             if not fields:
                 raise SceneError("'usemtl' needs a material name", path=path, line=lineno)
@@ -296,11 +412,11 @@ def load_obj(path, *, max_edge=None, name=None):
         elif key in _OBJ_FREEFORM:
             raise SceneError(f"free-form geometry ('{key}') is not supported", path=path, line=lineno)
         else:
-            raise SceneError(f"unknown statement '{key}'", path=path, line=lineno)
+            raise SceneError(f"unknown statement {_token(key)}", path=path, line=lineno)
 
     for mname, lineno in usemtl_lines.items():
         if mname not in materials:
-            raise SceneError(f"unknown material '{mname}'", path=path, line=lineno)
+            raise SceneError(f"unknown material {_token(mname)}", path=path, line=lineno)
 
     if not faces:
         raise SceneError("the scene has no triangles", path=path)
@@ -323,7 +439,7 @@ def load_obj(path, *, max_edge=None, name=None):
     keep = ~_degenerate(coords[tris])
     dropped = int(np.count_nonzero(~keep))
     if dropped:
-        warnings.warn(f"{path}: dropped {dropped} zero-area triangle{'s' if dropped > 1 else ''}",
+        warnings.warn(f"{printable(path, 200)}: dropped {dropped} zero-area triangle{'s' if dropped > 1 else ''}",
                       SceneWarning, stacklevel=2)
         if not keep.any():
             raise SceneError("the scene has no triangles of non-zero area", path=path)
@@ -335,8 +451,9 @@ def load_obj(path, *, max_edge=None, name=None):
     scene = Scene(name=name if name is not None else path.stem, vertices=coords, triangles=tris,
                   reflectance=refl, emission=emis, group=groups, group_names=group_names,
                   source=str(path))
+    check_range(scene.vertices, path=path)
     if max_edge is not None:
-        scene = subdivide(scene, max_edge)
+        scene = subdivide(scene, max_edge, max_triangles=limits.max_triangles)
     return scene
 
 
@@ -359,7 +476,35 @@ def _check_max_edge(max_edge):
     return value
 
 
-def subdivide(scene, max_edge):
+def subdivision_lower_bound(scene, max_edge):
+    """A lower bound of the triangle count :func:`subdivide` gives (float; inf if huge).
+
+    A child has every edge <= ``max_edge`` = L, so its area is at most the equilateral
+    triangle's, sqrt(3)/4 L**2, and an edge of length l is cut into at least ceil(l / L) pieces,
+    each on a different child: a triangle of area A becomes at least
+    max(1, A / (sqrt(3)/4 L**2), ceil(l_max / L)) triangles.
+    """
+    limit = _check_max_edge(max_edge)
+    v = scene.patch_vertices
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], axis=1)
+    longest = np.max(np.linalg.norm(edges, axis=2), axis=1)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        by_area = scene.areas / limit / limit / (math.sqrt(3) / 4)   # not limit**2: it may underflow
+        by_edge = np.ceil(longest / limit)
+        per = np.maximum(1.0, np.maximum(by_area, by_edge))
+        return float(np.sum(np.where(np.isnan(per), math.inf, per)))
+
+
+def _too_many(max_edge, count, max_triangles, at_least=True):
+    if not math.isfinite(count):
+        shown = "more than 1e308"
+    else:
+        shown = f"at least {count:.3g}" if at_least else f"{count}"
+    return ParameterError(f"--max-edge {max_edge:g} would subdivide the scene into {shown} triangles, more than the limit of {max_triangles} (use a larger "
+                          f"--max-edge, or raise the limit with --max-patches)")
+
+
+def subdivide(scene, max_edge, *, max_triangles=None):
     """Split the triangles of ``scene`` until no edge is longer than ``max_edge``.
 
     Conforming longest-edge bisection (Rivara): each pass marks the longest edge of every
@@ -371,12 +516,21 @@ def subdivide(scene, max_edge):
     emission of their parent and its orientation (normal direction). Ties between equally long
     edges are broken by vertex indices, so the choice depends on the edge only.
 
+    ``max_triangles`` (default ``LoadLimits().max_triangles``): a ``max_edge`` whose
+    :func:`subdivision_lower_bound` exceeds it is refused before any work, and the subdivision
+    stops with the same error if it passes it.
+
     Raises
     ------
     ParameterError
-        ``max_edge`` is not a positive number (names ``--max-edge``).
+        ``max_edge`` is not a positive number, or gives more than ``max_triangles`` triangles
+        (names ``--max-edge`` and the count).
     """
     limit = _check_max_edge(max_edge)
+    max_triangles = LoadLimits().max_triangles if max_triangles is None else max_triangles
+    estimate = subdivision_lower_bound(scene, limit)
+    if estimate > max_triangles:
+        raise _too_many(limit, estimate, max_triangles)
     limit2 = limit * limit
     verts = [tuple(v) for v in scene.vertices]
     tris = [tuple(int(i) for i in t) for t in scene.triangles]
@@ -448,6 +602,8 @@ def subdivide(scene, max_edge):
                     new_tris.append(half)
                     new_parent.append(p)
         tris, parent = new_tris, new_parent
+        if len(tris) > max_triangles:
+            raise _too_many(limit, len(tris), max_triangles, at_least=False)
 
     parent = np.array(parent, dtype=np.int64)
     return Scene(name=scene.name, vertices=np.array(verts, dtype=np.float64),
@@ -457,18 +613,20 @@ def subdivide(scene, max_edge):
                  group_names=list(scene.group_names), camera=scene.camera, source=scene.source)
 
 
-def load_scene(spec, *, max_edge=None):
+def load_scene(spec, *, max_edge=None, limits=None):
     """A built-in scene by name (``cornell``, ``room``) or an OBJ file by path.
 
     For a built-in scene ``max_edge=None`` means its documented default subdivision
     (see :mod:`blockray.host_driver.builtin`); for a file it means no subdivision.
+    ``limits``: :class:`LoadLimits` (files read, subdivision size).
     """
     from . import builtin
+    limits = LoadLimits() if limits is None else limits
     if max_edge is not None:
         _check_max_edge(max_edge)
     if spec in builtin.NAMES:
-        return builtin.load(spec, max_edge=max_edge)
-    if not os.path.exists(spec):
+        return builtin.load(spec, max_edge=max_edge, max_triangles=limits.max_triangles)
+    if not os.path.lexists(spec):
         raise SceneError(f"no such scene file or built-in scene (built-ins: "
                          f"{', '.join(builtin.NAMES)})", path=spec)
-    return load_obj(spec, max_edge=max_edge)
+    return load_obj(spec, max_edge=max_edge, limits=limits)

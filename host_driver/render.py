@@ -18,8 +18,8 @@ import numpy as np
 from ..params import BoardParams
 from ..samples import SampleScheme
 from ..errors import ParameterError
-from .board import BlockRay
-from . import formfactor, solver as solvers
+from .board import BlockBatch, BlockBits, ranges
+from . import formfactor, solver as solvers, threads as host_threads
 from .scaleout import SetVisibility, assign_sets, check_sets, exchange_bytes_per_sweep, receiver_work
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
@@ -64,23 +64,26 @@ def make_board(name, params=None, *, bits=None, vcd=None, partition="deal"):
 
 
 class Phases:
-    """Wall-clock seconds spent per phase."""
+    """Seconds spent per phase: wall clock (``seconds``) and CPU time of the whole process, every
+    thread (``cpu``; on a shared machine the steadier measure of the host's own work)."""
 
     def __init__(self):
         self.seconds = {}
+        self.cpu = {}
 
-    def add(self, phase, dt):
+    def add(self, phase, dt, dcpu=0.0):
         self.seconds[phase] = self.seconds.get(phase, 0.0) + dt
+        self.cpu[phase] = self.cpu.get(phase, 0.0) + dcpu
 
     def timed(self, phase):
         phases = self
 
         class _T:
             def __enter__(self):
-                self.t0 = time.perf_counter()
+                self.t0, self.c0 = time.perf_counter(), time.process_time()
 
             def __exit__(self, *exc):
-                phases.add(phase, time.perf_counter() - self.t0)
+                phases.add(phase, time.perf_counter() - self.t0, time.process_time() - self.c0)
         return _T()
 
 
@@ -113,43 +116,54 @@ class Visibility:
         self.blocks = 0
         self.columns = 0     # shooters whose rays were cast
 
-    def _blocks_for(self, i, receivers):
+    def _ray_batch(self, i, receivers):
+        """One block per ray (receivers in order, samples inner) with its 3D-DDA voxels."""
         K = self.samples.count
-        starts_all = self.sample_points[i]
-        blocks = []
+        rec = np.repeat(receivers, K)
+        ks = np.tile(np.arange(K), len(receivers))
+        with self.phases.timed("traverse"):
+            vox, off = self.grid.rays_voxels(self.sample_points[i][ks], self.centroids[rec], nonempty_only=True)
+        one = np.arange(len(rec) + 1)
+        return BlockBatch(np.full(len(rec), i), ks, one, rec, one, vox, off)
+
+    def _blocks_for(self, i, receivers):
+        """The block rays of shooter i to ``receivers``, packed and traversed, as a BlockBatch."""
         if self.traversal == "ray":
-            for j in receivers:
-                for k in range(K):
-                    vox = self.grid.ray_voxels(starts_all[k], self.centroids[j])
-                    vox = vox[self.nonempty[vox]]
-                    blocks.append(BlockRay(np.array([i]), np.array([k]), np.array([j]), vox))
-            return blocks
-        if self.packing == "fill":
-            # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
-            # A block then spans neighbouring voxels; its bundle is a little wider.
-            order = np.argsort(self.end_morton[receivers], kind="stable")
-            groups = [receivers[order]]
-        else:
-            # The paper's block: the receivers whose end points share a voxel.
-            order = np.argsort(self.end_voxel[receivers], kind="stable")
-            rec = receivers[order]
-            cuts = np.flatnonzero(np.diff(self.end_voxel[rec])) + 1
-            groups = np.split(rec, cuts)
-        pieces = []
-        for group in groups:
-            for r0 in range(0, len(group), self.rows):
-                rgroup = group[r0:r0 + self.rows]
-                for s0 in range(0, K, self.cols):
-                    pieces.append((np.arange(s0, min(K, s0 + self.cols)), rgroup))
-        bundles = [(starts_all[ks], self.centroids[rg]) for ks, rg in pieces]
-        # one vectorised traversal for all of this shooter's block rays
-        voxel_lists = self.grid.block_voxels_many(bundles)
-        for (ks, rgroup), (starts, ends), vox in zip(pieces, bundles, voxel_lists):
+            return self._ray_batch(i, receivers)
+        K = self.samples.count
+        with self.phases.timed("commands"):
+            if self.packing == "fill":
+                # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
+                # A block then spans neighbouring voxels; its bundle is a little wider.
+                rec = receivers[np.argsort(self.end_morton[receivers], kind="stable")]
+                first = np.zeros(len(rec), bool)
+                first[:1] = True
+            else:
+                # The paper's block: the receivers whose end points share a voxel.
+                rec = receivers[np.argsort(self.end_voxel[receivers], kind="stable")]
+                key = self.end_voxel[rec]
+                first = np.concatenate([[True], key[1:] != key[:-1]])
+            # runs of at most R receivers within each group, times chunks of at most S samples
+            group_start = np.flatnonzero(first)
+            pos = np.arange(len(rec)) - group_start[np.cumsum(first) - 1]
+            run_start = np.flatnonzero(pos % self.rows == 0)
+            run_len = np.diff(np.append(run_start, len(rec)))
+            chunk_start = np.arange(0, K, self.cols)
+            chunk_len = np.minimum(self.cols, K - chunk_start)
+            nr, nc = len(run_start), len(chunk_start)
+            rows, cols = np.repeat(run_len, nc), np.tile(chunk_len, nr)
+            receiver_patch = rec[ranges(np.repeat(run_start, nc), rows)]
+            shooter_sample = ranges(np.tile(chunk_start, nr), cols)
+            row_off = np.concatenate([[0], np.cumsum(rows)])
+            col_off = np.concatenate([[0], np.cumsum(cols)])
+            starts, ends = self.sample_points[i][shooter_sample], self.centroids[receiver_patch]
+        with self.phases.timed("traverse"):
+            vox, vox_off, visited, tests = self.grid.traverse_blocks(starts, col_off, ends, row_off,
+                                                                     nonempty_only=True)
             if self.stats is not None:
-                self.stats.add_block(vox, starts, ends)
-            vox = vox[self.nonempty[vox]]
-            blocks.append(BlockRay(np.full(len(ks), i), ks, rgroup, vox))
-        return blocks
+                self.stats.add_blocks(starts, col_off, ends, row_off, visited, tests)
+        return BlockBatch(np.full(len(shooter_sample), i), shooter_sample, col_off, receiver_patch, row_off,
+                          vox, vox_off)
 
     def clear_fraction(self, i, receivers):
         """Fraction of the K rays from shooter i to each receiver that is not blocked."""
@@ -157,18 +171,19 @@ class Visibility:
         self.columns += 1
         if len(receivers) == 0:
             return np.zeros(0)
-        with self.phases.timed("traverse"):
-            blocks = self._blocks_for(i, receivers)
+        batch = self._blocks_for(i, receivers)
         with self.phases.timed("board"):
-            bits = self.board.run(blocks)
+            bits = self.board.run(batch)
         # clear rays per receiver, summed over every block (and sample chunk) it appears in
+        if isinstance(bits, BlockBits):
+            clear_rays = bits.clear_per_row()
+        else:
+            clear_rays = np.concatenate([(~np.asarray(b, dtype=bool)).sum(axis=1) for b in bits])
         position = np.empty(self.scene.patches, dtype=np.int64)
         position[receivers] = np.arange(len(receivers))
-        rows = np.concatenate([block.receiver_patch for block in blocks])
-        clear_rays = np.concatenate([(~np.asarray(b, dtype=bool)).sum(axis=1) for b in bits])
-        clear = np.bincount(position[rows], weights=clear_rays, minlength=len(receivers))
-        self.rays += sum(block.rays for block in blocks)
-        self.blocks += len(blocks)
+        clear = np.bincount(position[batch.receiver_patch], weights=clear_rays, minlength=len(receivers))
+        self.rays += batch.rays
+        self.blocks += len(batch)
         return clear / self.samples.count
 
 
@@ -183,11 +198,22 @@ class RenderResult:
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
-           stats_fraction=0.02, vcd=None):
+           stats_fraction=0.02, vcd=None, threads=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
+    ``threads``: cores the compiled host kernels use (None: all, see
+    :mod:`blockray.host_driver.threads`); the result does not depend on it.
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
     """
+    with host_threads.using(threads):
+        return _render(scene, board=board, params=params, bits=bits, voxels=voxels, samples=samples,
+                       solver=solver, tolerance=tolerance, max_shots=max_shots, max_iterations=max_iterations,
+                       traversal=traversal, packing=packing, partition=partition, sets=sets,
+                       progress=progress, stats_fraction=stats_fraction, vcd=vcd)
+
+
+def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
+            traversal, packing, partition, sets, progress, stats_fraction, vcd):
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     if not (np.isfinite(tolerance) and tolerance > 0):
@@ -206,7 +232,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition)
                  if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
@@ -287,12 +313,16 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                 result = solvers.gauss_seidel(scene, F, tolerance=tolerance, max_iterations=max_iterations)
     if bar is not None:
         bar.close()
-    for phase in ("formfactor", "traverse", "board"):
-        phases.seconds.setdefault(phase, 0.0)
-    # time inside shoot() is also inside "solve": report the solver's own arithmetic separately
-    phases.seconds["solve"] -= sum(phases.seconds[p] for p in ("formfactor", "traverse", "board"))
+    inner = ("formfactor", "commands", "traverse", "board")
+    for times in (phases.seconds, phases.cpu):
+        for phase in inner:
+            times.setdefault(phase, 0.0)
+        # time inside shoot() is also inside "solve": report the solver's own arithmetic separately
+        times["solve"] -= sum(times[p] for p in inner)
     seconds = dict(phases.seconds)
     seconds["total"] = time.perf_counter() - t_start
+    cpu_seconds = dict(phases.cpu)
+    cpu_seconds["total"] = time.process_time() - c_start
 
     counters = vis.counters() if owner is not None else board_obj.counters()
     if isinstance(board, str):
@@ -324,8 +354,10 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
         "tests_per_ray": float(counters.get("tests", 0)) / max(1, vis.rays),
         "residual": float(result.residual),
         "seconds": seconds,
-        "host_seconds_per_ray": (seconds["traverse"] + seconds["board"]) / max(1, vis.rays),
+        "cpu_seconds": cpu_seconds,
+        "host_seconds_per_ray": (seconds["commands"] + seconds["traverse"] + seconds["board"]) / max(1, vis.rays),
         "traversal_stats": stats.summary(),
+        "threads": host_threads.get(),
     }
     for key, value in counters.items():
         report.setdefault(key, value)

@@ -9,7 +9,33 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["Camera", "Scene"]
+from blockray.errors import SceneError
+
+__all__ = ["COORDINATE_LIMIT", "MIN_EXTENT", "Camera", "Scene", "check_range"]
+
+#: Largest coordinate magnitude and smallest scene extent (largest side of the bounding box)
+#: accepted. The host and the golden board compute in float64 with products of up to 8 coordinate
+#: differences (squared cross products for areas, orient3d, r**4 of the form factors); within
+#: these bounds every such product, (2e30)**8 ~ 3e243 down to (1e-30)**8 = 1e-240, is a normal
+#: float64 (1.8e308 .. 2.2e-308), so areas cannot overflow to inf or underflow to 0. The
+#: hardware boards quantise the bounding box to B-bit integers and are scale-free.
+COORDINATE_LIMIT = 1e30
+MIN_EXTENT = 1e-30
+
+
+def check_range(vertices, *, path=None):
+    """Raise :class:`SceneError` unless ``vertices`` lie within the range the boards compute in
+    (see :data:`COORDINATE_LIMIT` and :data:`MIN_EXTENT`)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.size == 0:
+        return
+    if not np.all(np.abs(v) <= COORDINATE_LIMIT):          # also NaN
+        raise SceneError(f"a vertex coordinate is beyond +-{COORDINATE_LIMIT:g} or not finite "
+                         "(scale the scene down)", path=path)
+    extent = float(np.max(v.max(axis=0) - v.min(axis=0)))
+    if not extent >= MIN_EXTENT:
+        raise SceneError(f"the scene's extent {extent:.3g} is below {MIN_EXTENT:g}, the smallest the "
+                         "boards compute with (scale the scene up)", path=path)
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from blockray.errors import ParameterError
+
 __all__ = ["gauss_seidel_sets", "SolveResult", "progressive_refinement", "jacobi", "gauss_seidel", "residual",
-           "ambient"]
+           "ambient", "MAX_MATRIX_BYTES", "check_matrix_memory"]
+
+#: Largest form-factor matrix the gathering solvers hold: N x N float64 of 8 GiB (N = 32768).
+MAX_MATRIX_BYTES = 8 << 30
+
+
+def check_matrix_memory(patches, solver):
+    """Raise :class:`ParameterError` (naming ``--solver``) if a gathering ``solver`` would need a
+    form-factor matrix of more than :data:`MAX_MATRIX_BYTES` for ``patches`` patches."""
+    need = 8 * patches * patches
+    if solver != "progressive" and need > MAX_MATRIX_BYTES:
+        raise ParameterError(f"--solver {solver}: the form factors of {patches} patches need "
+                             f"{need / 2**30:.3g} GiB, more than {MAX_MATRIX_BYTES / 2**30:g} GiB; use "
+                             f"--solver progressive or a larger --max-edge")
 
 
 @dataclass

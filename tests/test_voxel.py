@@ -441,12 +441,17 @@ def test_default_voxels_minimises_the_model():
     assert default_voxels(3013, parallelism=512) <= default_voxels(3013)
 
 
-def test_block_voxels_many_matches_single_calls():
+def test_block_voxels_many_matches_single_calls(monkeypatch):
+    """A batch (cut into sub-batches of a few blocks, as a large one is) equals the blocks one by one."""
+    from blockray.host_driver import voxel
     rng = rng_for("block-many")
     for v, margin in ((1, 0.0), (2, 0.25), (7, 0.0), (32, 0.1)):
         grid = VoxelGrid(np.zeros((0, 3, 3)), v, lo=[0, 0, 0], hi=[v, v, v], margin=margin)
         blocks = bundles(rng, v) + [(e, s) for s, e in bundles(rng, v)] + [(np.zeros((0, 3)), np.ones((2, 3)))]
-        many = grid.block_voxels_many(blocks, chunk=5000)
+        single = [grid.block_voxels(s, e) for s, e in blocks]
+        monkeypatch.setattr(voxel, "_SLAB_ROWS", 3 * v)
+        many = grid.block_voxels_many(blocks)
+        monkeypatch.undo()
         assert len(many) == len(blocks)
-        for (starts, ends), got in zip(blocks, many):
-            assert np.array_equal(got, grid.block_voxels(starts, ends)), (starts, ends)
+        for (starts, ends), got, one in zip(blocks, many, single):
+            assert np.array_equal(got, one), (starts, ends)

@@ -1,0 +1,185 @@
+"""The model board's arithmetic, compiled: the exact predicate of :mod:`blockray.exact` over whole
+batches of block rays, with numba (``cache=True``: compiled once per machine, kept on disk).
+
+What it computes is exactly :func:`blockray.exact.blocked_block` OR-ed over a block's records,
+and so exactly what the R x S array computes; tests check it against
+:func:`blockray.exact.blocked_reference` (Python integers) on the hard cases and random queries.
+It differs only in *how much* arithmetic it does, never in the answer:
+
+- the shared terms of the array: ``pP`` once per (column, record), ``pQ`` and
+  ``w_k = (Q - V_k) x (V_{k+1} - V_k)`` once per (row, record), computed only when some ray of
+  the row is still open and crosses the record's plane;
+- early exits: a record no shooter point lies off the plane of is skipped, a row whose rays are
+  all blocked or none crosses the plane is skipped, and a block stops once all its rays are
+  blocked (a ray is blocked by its first blocking record);
+- a row's S processors (the edge sides s_k and the decision) run without branches over the
+  columns (transposed, P.T), so that the compiler can vectorise them: measured 1.45x faster than
+  stopping each ray's edge test at its first pair of sides of opposite sign.
+
+int64 products wrap modulo 2**64 (numba, like numpy, does not trap), a ring, and every value that
+decides the answer fits 3B + 2 <= 62 bits, so the sums are exact (see :mod:`blockray.exact`).
+
+The board's cycles do not depend on any test result, so they are not computed here: the batch
+kernel returns, per block and board, the records streamed and the VOXEL commands' cycles
+(``max(1, count)`` per voxel), from which :meth:`blockray.timing.BoardTiming.block_cycles` gives
+the block's cycles. Blocks run in parallel (``prange``); each writes only its own bits, so the
+results do not depend on the number of threads.
+"""
+
+import numpy as np
+from numba import njit, prange
+
+from ..host_driver import threads as _threads  # noqa: F401  (chooses the threading layer)
+
+__all__ = ["any_blocked", "run_blocks"]
+
+
+@njit(cache=True, inline="always")
+def _sign(x):
+    return (x > 0) - (x < 0)
+
+
+@njit(cache=True)
+def _test_records(P, PT, Q, V, n, t0, t1, hit, row_left, left, sp):
+    """Test records t0 .. t1-1 against every ray (r, s) of one block not yet blocked.
+
+    ``hit`` (R, S) uint8 is OR-ed in place; ``row_left`` (R,) counts each row's rays not yet
+    blocked; ``left`` is their total, returned updated (0: the block is decided). ``PT`` (3, S)
+    is P transposed; ``sp`` (S,) is scratch for the shooters' plane signs.
+    """
+    R, S = Q.shape[0], P.shape[0]
+    for t in range(t0, t1):
+        if left == 0:
+            break
+        ax, ay, az = V[t, 0, 0], V[t, 0, 1], V[t, 0, 2]
+        bx, by, bz = V[t, 1, 0], V[t, 1, 1], V[t, 1, 2]
+        cx, cy, cz = V[t, 2, 0], V[t, 2, 1], V[t, 2, 2]
+        nx, ny, nz = n[t, 0], n[t, 1], n[t, 2]
+        # shooter units: the plane side of every column's start point
+        crossing = False
+        for s in range(S):
+            sp[s] = _sign((P[s, 0] - ax) * nx + (P[s, 1] - ay) * ny + (P[s, 2] - az) * nz)
+            crossing |= sp[s] != 0
+        if not crossing:
+            continue
+        # edges e_k = V_{k+1} - V_k
+        e0x, e0y, e0z = bx - ax, by - ay, bz - az
+        e1x, e1y, e1z = cx - bx, cy - by, cz - bz
+        e2x, e2y, e2z = ax - cx, ay - cy, az - cz
+        for r in range(R):
+            if row_left[r] == 0:
+                continue
+            qx, qy, qz = Q[r, 0], Q[r, 1], Q[r, 2]
+            sq = _sign((qx - ax) * nx + (qy - ay) * ny + (qz - az) * nz)
+            if sq == 0:
+                continue
+            need = False
+            for s in range(S):
+                need |= hit[r, s] == 0 and sp[s] * sq < 0
+            if not need:
+                continue
+            # receiver unit: w_k = (Q - V_k) x e_k
+            dx, dy, dz = qx - ax, qy - ay, qz - az
+            w0x, w0y, w0z = dy * e0z - dz * e0y, dz * e0x - dx * e0z, dx * e0y - dy * e0x
+            dx, dy, dz = qx - bx, qy - by, qz - bz
+            w1x, w1y, w1z = dy * e1z - dz * e1y, dz * e1x - dx * e1z, dx * e1y - dy * e1x
+            dx, dy, dz = qx - cx, qy - cy, qz - cz
+            w2x, w2y, w2z = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            # the row's processors, without branches (so the compiler can vectorise over the columns)
+            newly = 0
+            for s in range(S):
+                px, py, pz = PT[0, s], PT[1, s], PT[2, s]
+                s0 = (px - ax) * w0x + (py - ay) * w0y + (pz - az) * w0z
+                s1 = (px - bx) * w1x + (py - by) * w1y + (pz - bz) * w1z
+                s2 = (px - cx) * w2x + (py - cy) * w2y + (pz - cz) * w2z
+                inside = ((s0 >= 0) & (s1 >= 0) & (s2 >= 0)) | ((s0 <= 0) & (s1 <= 0) & (s2 <= 0))
+                b = inside & (sp[s] * sq < 0) & (hit[r, s] == 0)
+                hit[r, s] |= b
+                newly += b
+            row_left[r] -= newly
+            left -= newly
+    return left
+
+
+@njit(cache=True)
+def any_blocked(P, Q, V, n):
+    """(R, S) bool: is the ray from shooter P[s] to receiver Q[r] blocked by any record (V[t], n[t])?
+
+    P (S, 3), Q (R, 3), V (N, 3, 3), n (N, 3) int64; n[t] = (V1 - V0) x (V2 - V0).
+    """
+    R, S = Q.shape[0], P.shape[0]
+    hit = np.zeros((R, S), np.uint8)
+    row_left = np.full(R, S, np.int64)
+    _test_records(P, np.ascontiguousarray(P.T), Q, V, n, 0, V.shape[0], hit, row_left, R * S, np.empty(S, np.int64))
+    return hit.astype(np.bool_)
+
+
+@njit(cache=True)
+def _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+               vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
+    """Block b of :func:`run_blocks`: its bits, and per board its records and VOXEL cycles."""
+    c0, c1 = col_off[b], col_off[b + 1]
+    r0, r1 = row_off[b], row_off[b + 1]
+    S, R = c1 - c0, r1 - r0
+    P = np.empty((S, 3), np.int64)
+    for s in range(S):
+        P[s] = shooters[shooter_patch[c0 + s], shooter_sample[c0 + s]]
+    Q = np.empty((R, 3), np.int64)
+    for r in range(R):
+        Q[r] = receivers[receiver_patch[r0 + r]]
+    hit = np.zeros((R, S), np.uint8)
+    row_left = np.full(R, S, np.int64)
+    left = R * S
+    sp = np.empty(S, np.int64)
+    PT = np.ascontiguousarray(P.T)
+    for p in range(start.shape[0]):
+        for k in range(vox_off[b], vox_off[b + 1]):
+            x = voxels[k]
+            c = count[p, x]
+            records[b, p] += c
+            streamed[b, p] += max(c, 1)
+            if left:
+                left = _test_records(P, PT, Q, V, n, start[p, x], start[p, x] + c, hit, row_left, left, sp)
+    o = ray_off[b]
+    for r in range(R):
+        for s in range(S):
+            bits[o + r * S + s] = hit[r, s]
+
+
+@njit(cache=True, parallel=True)
+def _run_par(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+             vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
+    for b in prange(len(col_off) - 1):
+        _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+                   vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed)
+
+
+@njit(cache=True)
+def _run_ser(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+             vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
+    for b in range(len(col_off) - 1):
+        _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+                   vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed)
+
+
+def run_blocks(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+               vox_off, voxels, start, count, V, n, ray_off):
+    """Blocked bits of a batch of block rays on P boards (their OR), and what the boards stream.
+
+    shooters (N, K, 3), receivers (N, 3): the quantised sample points and centroids. Block b has
+    columns ``col_off[b]:col_off[b+1]`` of (shooter_patch, shooter_sample), rows
+    ``row_off[b]:row_off[b+1]`` of receiver_patch and voxels ``vox_off[b]:vox_off[b+1]``.
+    Board p holds voxel x's records at ``start[p, x] .. start[p, x] + count[p, x] - 1`` of V, n.
+
+    Returns ``bits`` (rays,) uint8, block b's ray (r, s) at ``ray_off[b] + r * S_b + s``;
+    ``records`` (B, P) records streamed and ``streamed`` (B, P) cycles of the VOXEL commands.
+    Runs on the thread pool when the batch is large enough (:func:`blockray.host_driver.threads.parallel`).
+    """
+    B, nb = len(col_off) - 1, start.shape[0]
+    bits = np.zeros(ray_off[B], np.uint8)
+    records = np.zeros((B, nb), np.int64)
+    streamed = np.zeros((B, nb), np.int64)
+    run = _run_par if _threads.parallel(int(ray_off[B])) else _run_ser
+    run(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+        vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed)
+    return bits, records, streamed
