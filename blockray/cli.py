@@ -163,6 +163,7 @@ def _render_parser(sub):
                    help="host cores the compiled kernels use (default: all); the result does not depend on it")
     _add_board_options(p)
     _add_input_options(p)
+    _add_link_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--image", metavar="PNG", help="write a picture from the scene's camera")
     out.add_argument("--size", type=_positive_int, default=512, metavar="PX", help="image width and height")
@@ -171,6 +172,72 @@ def _render_parser(sub):
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=_cmd_render)
     return p
+
+
+def _add_link_options(p):
+    g = p.add_argument_group("real board (--board ulx3s)")
+    g.add_argument("--port", default=None, metavar="DEV[,DEV...]",
+                   help="serial port of each board (e.g. /dev/ttyUSB0; one per board, --boards of them)")
+    g.add_argument("--baud", type=_positive_int, default=3_000_000, help="the bitstream's baud rate (default 3000000)")
+    g.add_argument("--patch-depth", type=_positive_int, default=None, metavar="N",
+                   help="the bitstream's patch memory words (default: what blockray bitstream chose for R, S, B)")
+    g.add_argument("--voxel-depth", type=_positive_int, default=None, metavar="N",
+                   help="the bitstream's voxel table entries (default: as blockray bitstream chose)")
+
+
+def _ulx3s_params(args, params):
+    """The configuration the host expects of the bitstream: R, S, B (16 unless --bits) and the
+    memories ``blockray bitstream`` chose for them (unless --patch-depth / --voxel-depth)."""
+    from .synth.bitstream import largest_fit
+    params = _board_params(rows=params.rows, cols=params.cols, boards=params.boards, bits=args.bits or 16)
+    return _naming_option(lambda: largest_fit(params, patch_depth=args.patch_depth, voxel_depth=args.voxel_depth))
+
+
+def _capacity_hint(error, params):
+    """A scene that does not fit the bitstream's memories: say what to change."""
+    from .errors import CapacityError
+    from .synth.bitstream import largest_fit
+    most = largest_fit(params.with_(voxel_depth=1)).patch_depth
+    return CapacityError(f"{error}; rebuild the bitstream with larger memories (blockray bitstream --patch-depth, "
+                         f"--voxel-depth: the LFE5U-85F holds about {most} patch records at {params.rows} x "
+                         f"{params.cols}, B = {params.bits}), spread the scene over more boards (--boards with "
+                         f"a --port each), or subdivide it less (--max-edge)")
+
+
+def _ulx3s_board(args, params):
+    """--board ulx3s: open and reset every board's serial link first (a missing port or a silent
+    board fails here, in seconds), then the host driver over those links (it checks each
+    board's IDENTIFY against ``params`` before uploading)."""
+    from .errors import CapacityError, ParameterError
+    from .host_driver.serial_link import SerialTransport
+    if not args.port:
+        raise ParameterError("--port: --board ulx3s needs the board's serial port, e.g. --port /dev/ttyUSB0")
+    ports = [p for p in args.port.split(",") if p]
+    if len(ports) != params.boards:
+        raise ParameterError(f"--boards: {params.boards} boards need {params.boards} ports, --port names {len(ports)}")
+    links = []
+    try:
+        for port in ports:
+            links.append(SerialTransport(port, baud=args.baud))
+        try:
+            from .host_driver.driver import BoardDriver
+        except ImportError:
+            raise ParameterError("--board ulx3s: this tree has no host board driver over transports "
+                                 "(blockray.host_driver.driver.BoardDriver)") from None
+    except BaseException:
+        for link in links:
+            link.close()
+        raise
+
+    class ULX3SDriver(BoardDriver):
+        def load(self, grid):
+            try:
+                return super().load(grid)
+            except CapacityError as e:      # the scene does not fit the bitstream's memories
+                raise _capacity_hint(e, self.params) from None
+
+    return ULX3SDriver(params, bits=params.bits, fit=False, name="ulx3s", partition=args.partition,
+                       transport=lambda p, b: links[b])
 
 
 def _cmd_render(args):
@@ -188,6 +255,10 @@ def _cmd_render(args):
         raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
                              f"needs 3*B+2 <= 62 bits), not {args.bits}")
     params = _board_params(rows=args.rows, cols=args.cols, boards=args.boards)
+    if args.board == "ulx3s":       # a real board: its links are opened and reset first
+        params = _ulx3s_params(args, params)
+        args.board, args.bits = _ulx3s_board(args, params), params.bits
+
     progress = not args.quiet and sys.stderr.isatty()
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
                     samples=args.samples, solver=args.solver, tolerance=args.tolerance,
@@ -352,12 +423,67 @@ def _cmd_synth(args):
     return 0
 
 
+def _bitstream_parser(sub):
+    p = sub.add_parser("bitstream", help="build a board's bitstream for an FPGA board (ULX3S-85F)",
+                       description="Build the bitstream of a blockray board on the ULX3S-85F (LFE5U-85F, speed "
+                                   "grade -6): PLL from the 25 MHz oscillator, reset synchroniser, UART link on "
+                                   "the FT231X, the board core; Yosys, nextpnr-ecp5 and ecppack from YoWASP. "
+                                   "Options that cannot fit the part are refused before the tools run.")
+    p.add_argument("--platform", default="ulx3s-85f", help="FPGA board (ulx3s-85f)")
+    g = p.add_argument_group("board")
+    g.add_argument("--rows", type=_positive_int, default=2, metavar="R",
+                   help="array rows (default 2: the 2 x 2 array routes at -6, docs/synthesis.md)")
+    g.add_argument("--cols", type=_positive_int, default=2, metavar="S", help="array columns (default 2)")
+    g.add_argument("--bits", type=int, default=16, metavar="B", help="coordinate bits (default 16)")
+    g.add_argument("--patch-depth", type=_positive_int, default=None, metavar="N",
+                   help="patch memory words (default: the most the block RAMs hold)")
+    g.add_argument("--voxel-depth", type=_positive_int, default=None, metavar="N",
+                   help="voxel table entries (default: up to 32**3, as the block RAMs allow)")
+    g.add_argument("--core", default="board", choices=["board", "echo"],
+                   help="board: the blockray board (default); echo: the link's test core (link bring-up)")
+    t = p.add_argument_group("link and clock")
+    t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
+    t.add_argument("--freq", type=_positive_float, default=60.0, metavar="MHZ",
+                   help="board clock from the PLL (default 60: 3 Mbaud x 20)")
+    t.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
+    t.add_argument("--workdir", metavar="DIR", help="keep the tools' files and logs here")
+    p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
+    p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
+    p.set_defaults(func=_cmd_bitstream)
+
+
+def _cmd_bitstream(args):
+    from .synth.bitstream import build_bitstream, largest_fit
+    from .synth.nextpnr import write_report
+    params = _board_params(rows=args.rows, cols=args.cols, bits=args.bits)
+    params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
+                                                voxel_depth=args.voxel_depth))
+    report = _naming_option(lambda: build_bitstream(
+        params, out=args.out, platform=args.platform, core=args.core, freq=args.freq, baud=args.baud,
+        seed=args.seed, workdir=args.workdir))
+    if args.report:
+        write_report(args.report, report)
+    res, fmax = report["resources"], report["fmax_mhz"]
+    print(f"{report['device']} {report['speed_grade']}, core {report['core']} {report['params']}: "
+          + ", ".join(f"{k} {v}" for k, v in res.items())
+          + f"; fits: {report['fits']}" + (f"; Fmax {fmax:.1f} MHz at {report['clock']['pll_mhz']:g} MHz" if fmax else "")
+          + (f"; wrote {args.out}" if "bitstream" in report else ""), file=sys.stderr)
+    if not report["fits"]:
+        print(f"blockray: error: the design does not fit the {report['device']} (see the report)", file=sys.stderr)
+        return 1
+    if not report["timing_met"]:
+        print(f"blockray: warning: Fmax {fmax:.1f} MHz is below the {report['clock']['pll_mhz']:g} MHz clock: "
+              f"lower --freq (a multiple of --baud)", file=sys.stderr)
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="blockray", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _render_parser(sub)
     _verilog_parser(sub)
     _synth_parser(sub)
+    _bitstream_parser(sub)
     return parser
 
 

@@ -112,7 +112,23 @@ register(Backend("amaranth", "the board's RTL in the Amaranth simulator: small s
                  _driven("amaranth", _amaranth), waveform=True, host_timing=True))
 register(Backend("verilator", "the board's Verilog under Verilator + cocotb; builds once per design, cached",
                  _driven("verilator", _verilator), waveform=True))
-# issue 15 adds "ulx3s" (a real board over a serial link) and "ulx3s-sim" here
+
+
+def _ulx3s_sim(p, b, *, vcd, host):
+    from .ulx3s import ulx3s_sim_transport
+    return ulx3s_sim_transport(p, b, vcd=vcd, host=host)
+
+
+def _ulx3s(params, *, bits, partition, vcd, host):
+    # a real board's links are opened (and checked) by the CLI from --port / --baud, before the
+    # scene is loaded; a library caller builds the driver over host_driver.ulx3s.ulx3s_transport
+    raise ParameterError("--board ulx3s needs --port (the CLI opens the serial links); from Python, build a "
+                         "BoardDriver over blockray.host_driver.ulx3s.ulx3s_transport", parameter="board")
+
+
+register(Backend("ulx3s-sim", "the ULX3S top level, UART included, under Verilator (bit-identical to model)",
+                 _driven("ulx3s-sim", _ulx3s_sim)))
+register(Backend("ulx3s", "a ULX3S-85F board on a serial port (--port, --baud; docs/ulx3s.md)", _ulx3s))
 
 
 def help_text():

@@ -1,0 +1,114 @@
+"""The ULX3S's serial link against the array: bytes per ray each way, rays per second through a
+UART, and the array's own rate.
+
+    python benchmarks/bench_ulx3s_link.py [--scene cornell] [--shooters 40] [--seed 1] [--clock 60] [--baud 3000000]
+
+A one-part 2 x 2 board (what fits the LFE5U-85F at B = 16, docs/synthesis.md): the renderer's
+block rays of ``--shooters`` random shooter columns go through the host driver over the bit-exact
+model behind the link (:class:`~blockray.host_driver.simulated.ModelTransport`, counted here at
+the transport: every byte the driver sends and receives, identify and load excluded). The link's
+own framing is added (:mod:`blockray.link`): a header byte per result frame (counted as one frame
+per result record: the board sends each as it forms, at UART pace) and a credit grant byte per
+32 command bytes (the bridge's batch while results wait; at most). A UART moves 10 bits per byte,
+so ``baud / 10`` bytes per second each way; the array's own rate is rays / board cycles x clock.
+"""
+
+import argparse
+import platform
+
+import numpy as np
+
+from blockray.host_driver import builtin
+from blockray.host_driver.driver import BoardDriver
+from blockray.host_driver.render import Visibility
+from blockray.host_driver.simulated import ModelTransport
+from blockray.host_driver.voxel import VoxelGrid, default_voxels
+from blockray.params import BoardParams
+from blockray.samples import SampleScheme
+
+GRANT_BATCH = 32
+
+
+class Counting(ModelTransport):
+    """ModelTransport that counts bytes and result reads while ``on``."""
+
+    def __init__(self, params):
+        super().__init__(params)
+        self.on = False
+        self.sent = self.received = self.reads = 0
+
+    def send(self, data):
+        if self.on:
+            self.sent += len(data)
+        super().send(data)
+
+    def recv(self, count, *, timeout=None):
+        if self.on:
+            self.received += count
+            self.reads += 1
+        return super().recv(count, timeout=timeout)
+
+
+def measure(scene_name, shooters, seed):
+    scene = builtin.load(scene_name)
+    samples = SampleScheme(8)
+    params = BoardParams(rows=2, cols=2, boards=1)
+    links = []
+    driver = BoardDriver(params, name="ulx3s-link",
+                         transport=lambda p, b: links.append(Counting(p)) or links[-1])
+    driver.prepare(scene, samples)
+    grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=driver.margin)
+    driver.load(grid)
+    cycles0 = driver.counters()["board_cycles"]
+    link = links[0]
+    link.on = True
+    vis = Visibility(scene, driver, grid, samples, rows=params.rows, cols=params.cols)
+    rng = np.random.default_rng(seed)
+    for i in rng.choice(scene.patches, shooters, replace=False):
+        blocks = vis._blocks_for(int(i), np.arange(scene.patches))
+        driver.run(blocks)
+    c = driver.counters()
+    proto = driver.protocol
+    from blockray.protocol import ResultKind
+    nb = proto.result_bytes(ResultKind.BLOCKED)
+    records = c["blocks"] + (link.received - c["blocks"] * nb) // proto.result_bytes(ResultKind.COUNTERS)
+    return {"scene": scene_name, "patches": scene.patches, "bits": driver.params.bits, "rays": c["rays"],
+            "blocks": c["blocks"], "board_cycles": c["board_cycles"] - cycles0,
+            "down": link.sent, "up": link.received, "records": records,
+            "down_wire": link.sent, "up_wire": link.received + records + -(-link.sent // GRANT_BATCH)}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="cornell")
+    ap.add_argument("--shooters", type=int, default=40)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--clock", type=float, default=60.0, help="board clock, MHz")
+    ap.add_argument("--baud", type=int, default=3_000_000)
+    args = ap.parse_args()
+    r = measure(args.scene, args.shooters, args.seed)
+    rays = r["rays"]
+    bps = args.baud / 10
+    down, up = r["down_wire"] / rays, r["up_wire"] / rays
+    link_rate = bps / max(down, up)
+    array_rate = rays / r["board_cycles"] * args.clock * 1e6
+    print(f"machine: {platform.machine()}, python {platform.python_version()}; {args.scene} ({r['patches']} patches), "
+          f"B = {r['bits']}, 2 x 2 x 1, seed {args.seed}, {args.shooters} shooter columns: {r['blocks']} blocks, "
+          f"{rays} rays, {r['board_cycles']} board cycles")
+    print(f"host -> board: {r['down']} command bytes = {r['down'] / rays:.2f} B/ray (no framing that way)")
+    print(f"board -> host: {r['up']} result bytes in {r['records']} records + headers + grants = "
+          f"{r['up_wire']} B = {up:.2f} B/ray")
+    print(f"link: {bps / 1e3:.0f} kB/s each way at {args.baud} baud -> {link_rate:,.0f} rays/s "
+          f"(bound by {'host -> board' if down >= up else 'board -> host'})")
+    print(f"array: {rays / r['board_cycles']:.3f} rays/cycle x {args.clock:g} MHz = {array_rate:,.0f} rays/s; "
+          f"the link is {array_rate / link_rate:.1f}x slower")
+    for name, rate in (("USB 1.1 full speed on the ULX3S's US2 port (~1 MB/s bulk)", 1e6),
+                       ("FT2232H synchronous FIFO (~40 MB/s)", 40e6), ("PCIe Gen2 x1 (~400 MB/s)", 400e6)):
+        r_link = rate / max(r["down_wire"], r["up_wire"] - r["records"]) * rays
+        print(f"{name}: link {r_link:,.0f} rays/s; the board {min(r_link, array_rate):,.0f} rays/s, "
+              f"{min(r_link, array_rate) / link_rate:.1f}x the UART ({'link' if r_link < array_rate else 'array'}-bound; "
+              f"the link could feed {r_link / array_rate:.2f} such arrays)")
+
+
+if __name__ == "__main__":
+    main()

