@@ -36,8 +36,8 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import patch_layout
-from .nextpnr import (DEVICES, PACKAGE, _NEXTPNR_BELS, _cells_resources, _critical_path, _machine, _run, _tail,
-                      _versions, dsp_estimate, nextpnr_command)
+from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail,
+                      _versions, dsp_estimate, nextpnr_command, run_nextpnr)
 from .yosys import yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "bram_estimate", "check_fit", "largest_fit", "pll_config",
@@ -260,24 +260,11 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp
         f"--{dev_key}", "--package", PACKAGE, "--speed", SPEED, "--json", f"{name}.json", "--lpf", f"{name}.lpf",
         "--textcfg", f"{name}.config", "--report", "report.json", "--timing-allow-fail",
         "--seed", str(seed), "--threads", str(threads), "--router", "router2", "-l", "nextpnr.log", "-q"]
-    start = time.perf_counter()
-    rc = _run(cmd, tmp, tmp / "nextpnr.out")
-    seconds["nextpnr"] = round(time.perf_counter() - start, 1)
-    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": "router2"}
-    if rc != 0 or not (tmp / "report.json").exists():
-        report["fits"] = False
-        report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
+    pnr = run_nextpnr(cmd, tmp, report, seconds, seed=seed, router="router2", speed=SPEED)
+    if pnr is None:
         return report
-    pnr = json.loads((tmp / "report.json").read_text())
-    fmax = pnr.get("fmax", {})
-    clock = min(fmax, key=lambda c: fmax[c]["achieved"]) if fmax else None
-    report["fmax_mhz"] = round(fmax[clock]["achieved"], 2) if clock else None
-    report["timing_met"] = bool(clock) and fmax[clock]["achieved"] >= pll.f_out_mhz
-    report["nextpnr"].update({
-        "clock": clock,
-        "placed": {k: pnr["utilization"][bel] for k, bel in _NEXTPNR_BELS.items() if bel in pnr["utilization"]},
-        "critical_path": _critical_path(pnr, clock) if clock else None,
-    })
+    achieved = [c["achieved"] for c in pnr.get("fmax", {}).values()]
+    report["timing_met"] = bool(achieved) and min(achieved) >= pll.f_out_mhz
 
     ecppack = Path(nextpnr_command()[0]).with_name("yowasp-ecppack")
     start = time.perf_counter()

@@ -329,14 +329,23 @@ def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, pl
 
     cmd = nextpnr_command() + nextpnr_args(f"{top}.json", device=device, speed=speed, freq=freq, seed=seed,
                                            threads=threads, router=router)
+    run_nextpnr(cmd, tmp, report, seconds, seed=seed, router=router, speed=speed)
+    return report
+
+
+def run_nextpnr(cmd, tmp, report, seconds, **meta):
+    """Run nextpnr ``cmd`` (writing ``report.json``) in ``tmp`` and record it in ``report``:
+    ``nextpnr`` (return code, ``meta``, the slowest clock, placed cells, critical path) and
+    ``fmax_mhz``; on failure ``fits`` False and the tool's last words. Returns nextpnr's own JSON
+    report, or None if it failed."""
     start = time.perf_counter()
     rc = _run(cmd, tmp, tmp / "nextpnr.out")
     seconds["nextpnr"] = round(time.perf_counter() - start, 1)
-    report["nextpnr"] = {"ran": True, "returncode": rc, "seed": seed, "router": router, "speed": speed}
+    report["nextpnr"] = {"ran": True, "returncode": rc, **meta}
     if rc != 0 or not (tmp / "report.json").exists():
         report["fits"] = False
         report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
-        return report
+        return None
     pnr = json.loads((tmp / "report.json").read_text())
     fmax = pnr.get("fmax", {})
     clock = min(fmax, key=lambda c: fmax[c]["achieved"]) if fmax else None
@@ -346,7 +355,7 @@ def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, pl
         "placed": {k: pnr["utilization"][bel] for k, bel in _NEXTPNR_BELS.items() if bel in pnr["utilization"]},
         "critical_path": _critical_path(pnr, clock) if clock else None,
     })
-    return report
+    return pnr
 
 
 def dsp_registers(netlist):
