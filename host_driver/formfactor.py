@@ -48,8 +48,9 @@ evaluated on the part of T in front of the receiver's tangent plane.
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
+from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
 from ..exact_float import plane_signs
 
 __all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights",
@@ -412,13 +413,15 @@ def _pair(Ti, Tj, target, stats, P, Q):
     return _contour(P, nP, Q, nQ)
 
 
-@njit(cache=True)
-def _pairs(shooters, receivers, target, stats):
+@njit(cache=True, parallel=True)
+def _pairs(shooters, receivers, target, methods):
+    """Every pair on the thread pool: pairs are independent, each with its own work arrays and
+    its own row of ``methods`` (M, len(METHODS)), so the result does not depend on the threads."""
     out = np.empty(len(shooters))
-    P = np.empty((4, 3))
-    Q = np.empty((4, 3))
-    for m in range(len(shooters)):
-        out[m] = _pair(shooters[m], receivers[m], target, stats, P, Q)
+    for m in prange(len(shooters)):
+        P = np.empty((4, 3))
+        Q = np.empty((4, 3))
+        out[m] = _pair(shooters[m], receivers[m], target, methods[m], P, Q)
     return out
 
 
@@ -433,8 +436,11 @@ def pair_factors(shooters, receivers, *, target=FAR_TARGET, stats=None):
     S = np.ascontiguousarray(np.asarray(shooters, dtype=np.float64).reshape(-1, 3, 3))
     R = np.ascontiguousarray(np.asarray(receivers, dtype=np.float64).reshape(-1, 3, 3))
     S, R = np.broadcast_arrays(S, R)
-    counts = np.zeros(len(METHODS), dtype=np.int64) if stats is None else stats
-    return _pairs(np.ascontiguousarray(S), np.ascontiguousarray(R), float(target), counts)
+    methods = np.zeros((len(S), len(METHODS)), dtype=np.int64)
+    out = _pairs(np.ascontiguousarray(S), np.ascontiguousarray(R), float(target), methods)
+    if stats is not None:
+        stats += methods.sum(axis=0)
+    return out
 
 
 def exchange_mask(scene, i):
