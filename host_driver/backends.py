@@ -104,7 +104,7 @@ def _model_link(p, b, *, vcd, host):
     return ModelTransport(p)
 
 
-register(Backend("golden", "the reference: the predicate evaluated exactly on the float scene", _golden, quantises=False))
+register(Backend("golden", "exact reference on the float scene", _golden, quantises=False))
 register(Backend("model", "bit-exact model of the hardware; default", _model))
 register(Backend("model-link", "the host driver and the board's byte link answered by the bit-exact model "
                  "(no RTL; link traffic)", _driven("model-link", _model_link)))
