@@ -18,6 +18,7 @@ import signal
 import tempfile
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, note, seed, settings, strategies as st
 
 from blockray.cli import main
@@ -112,6 +113,18 @@ def _finite_outputs(folder):
         values = [float(x) for x in row[2:]]
         assert all(math.isfinite(x) for x in values), row
         assert values[0] > 0, row                      # area
+
+
+@pytest.fixture(scope="module", autouse=True)
+def compiled_kernels(tmp_path_factory):
+    """Render the unmutated box once on each board, with no time bound: on a fresh machine this
+    compiles the numba kernels (tens of seconds under load), which the hang bound must not count."""
+    folder = tmp_path_factory.mktemp("fuzz-warm")
+    (folder / "box.obj").write_text(BOX)
+    (folder / "box.mtl").write_text(BOX_MTL)
+    for board in ("golden", "model"):
+        assert main(["render", str(folder / "box.obj"), "--board", board, "--voxels", "2", "--max-shots", "3",
+                     "--quiet", "--max-edge", "0.5"]) == 0
 
 
 def test_fuzz_print_seed():
