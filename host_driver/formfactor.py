@@ -25,17 +25,24 @@ The result is ``A_j F_ji``, symmetric in (i, j) up to rounding: reciprocity hold
 construction. :func:`unoccluded_factors` divides by the receiver's area.
 
 **Far pairs.** The edge-pair terms are of size L^2 ln D while their sum is of size L^4 / D^2, so
-the closed form loses about (D / L)^2 digits to cancellation. Far pairs use a cubature over the
-receiver of the exact point-to-triangle factor (below) instead, wherever a derived bound shows
-it within ``FAR_TARGET`` (relative): the point factor is analytic in the receiver point; its
-Taylor remainder of degree p over a ball of radius rho is at most ``M q^(p+1) / (1 - q)``
-(Cauchy, along each line through the centroid, q = rho / R) where M bounds the kernel on the
-complex ball of radius R = D / 4 around the receiver's centroid (D = distance to the shooter):
-``M <= 8.17 / D^2`` per unit shooter area. A rule exact to degree p with positive weights errs by
-at most twice that, so ``|error of F_ji| <= (2/pi) A_i 8.17 / D^2 q^(p+1) / (1 - q)``. The
-rules: centroid (degree 1), Radon's 7 points (degree 5), 8 x 8 collapsed Gauss (degree 14), the
-first that meets the bound. The bound is applied only where neither
-patch needs clipping (otherwise the integrand is not analytic).
+the closed form loses about (D / L)^2 digits to cancellation, and it costs about 15 us a pair.
+Far pairs use a cubature of the exact point-to-triangle factor (below) over the smaller of the
+two triangles instead (by reciprocity ``A_j F_ji = A_i F_ij``, either may be integrated),
+wherever a derived bound shows it within ``FAR_TARGET`` (relative): the point factor is analytic
+in the receiver point; its Taylor remainder of degree p over a ball of radius rho is at most
+``M q^(p+1) / (1 - q)`` (Cauchy, along each line through the centroid, q = rho / R) where M
+bounds the kernel on the complex ball of radius R = D / 4 around the receiver's centroid (D =
+distance to the shooter): ``M <= 8.17 / D^2`` per unit shooter area. A rule exact to degree p
+with positive weights errs by at most twice that, so
+``|error of F_ji| <= (2/pi) A_i 8.17 / D^2 q^(p+1) / (1 - q)``. The rules: centroid (degree 1),
+Radon's 7 points (degree 5), 8 x 8 collapsed Gauss (degree 14), the first that meets the bound.
+The bound is applied only where neither patch needs clipping (otherwise the integrand is not
+analytic). ``FAR_TARGET`` is 1e-6, a tenth of the 1e-5 that the factors are held to against
+pyviewfactor (issue 17); ``target=0`` selects the closed form for every pair (the reference).
+
+The pair is put in a canonical order (its triangles' coordinates) before either form is chosen,
+so ``(i, j)`` and ``(j, i)`` give the same bits: the render computes each unordered pair once
+(:class:`PairCache`).
 
 **The point factor.** From a differential receiver at p with unit normal n to a whole shooter
 triangle T (Lambert's contour integral; Baum, Rushmeier, Winget 1989)::
@@ -55,60 +62,84 @@ from ..exact_float import plane_signs
 
 __all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights",
            "centroid_in_front",
-           "unoccluded_factors", "form_factor_matrix", "FAR_TARGET", "METHODS"]
+           "unoccluded_factors", "PairCache", "form_factor_matrix", "FAR_TARGET", "METHODS"]
 
 #: relative error bound a far-pair cubature must meet to replace the closed form
-FAR_TARGET = 1e-9
+FAR_TARGET = 1e-6
 #: method codes in the statistics of :func:`pair_factors`
 METHODS = ("zero", "closed form", "centroid", "7-point", "64-point")
 
 
 # ---------------------------------------------------------------------------- Clausen, Im Li2
 
-def _clausen_coefficients(terms=40):
-    """|B_2n| / (2n (2n+1)!) for n = 1..terms (exact Bernoulli numbers, then rounded)."""
+def _clausen_series(terms=40):
+    """Taylor coefficients of Clausen's function on its two halves, from exact Bernoulli numbers:
+
+    - near 0: ``Cl2(t) = t (1 - ln t + sum_n g_n t^(2n))``, g_n = |B_2n| / (2n (2n+1)!);
+    - near pi: ``Cl2(pi - y) = y (ln 2 - sum_n h_n y^(2n))`` (the integral of
+      ``ln(2 cos(y/2))``, whose series is ln cos's), h_n = 2^(2n-1) (2^(2n) - 1) |B_2n| /
+      (n (2n)! 4^n (2n+1)).
+
+    On |t| <= pi/2 the first falls by 16 per term, on y <= pi/2 the second by 4: 13 and 26 terms
+    give Cl2 to within 2.5e-16 absolute (tests/test_formfactor.py, against mpmath)."""
     from fractions import Fraction
     B = [Fraction(1)]
     for m in range(1, 2 * terms + 1):
         B.append(-sum(math.comb(m + 1, k) * B[k] for k in range(m)) / (m + 1))
-    return np.array([float(abs(B[2 * n]) / (2 * n * math.factorial(2 * n + 1)))
-                     for n in range(1, terms + 1)])
+    g = [float(abs(B[2 * n]) / (2 * n * math.factorial(2 * n + 1))) for n in range(1, 14)]
+    h = [float(Fraction(2 ** (2 * n - 1) * (2 ** (2 * n) - 1)) * abs(B[2 * n])
+               / (n * math.factorial(2 * n) * 4 ** n * (2 * n + 1))) for n in range(1, 27)]
+    return np.array(g), np.array([math.log(2.0)] + [-c for c in h])
 
 
-_CL2 = _clausen_coefficients()
+_CL2_NEAR0, _CL2_NEARPI = _clausen_series()
+
+
+@njit(cache=True)
+def _horner(x, coefficients):
+    total = 0.0
+    for k in range(len(coefficients) - 1, -1, -1):
+        total = total * x + coefficients[k]
+    return total
 
 
 @njit(cache=True)
 def _cl2(theta):
-    """Clausen's Cl2(theta) = -int_0^theta ln|2 sin(x/2)| dx, to ~1e-16 absolute."""
+    """Clausen's Cl2(theta) = -int_0^theta ln|2 sin(x/2)| dx, to 2.5e-16 absolute."""
     t = theta - 2 * math.pi * math.floor(theta / (2 * math.pi) + 0.5)     # in [-pi, pi]
     if t == 0.0:
         return 0.0
     sign = 1.0
     if t < 0:
         sign, t = -1.0, -t
-    t2 = t * t
-    power = t * t2
-    total = t - t * math.log(t)
-    for c in _CL2:                    # |terms| fall at least as fast as 4^-n (t <= pi)
-        term = c * power
-        total += term
-        if term < 1e-18 * abs(total) + 1e-300:
-            break
-        power *= t2
-    return sign * total
+    if t <= 0.5 * math.pi:
+        u = t * t
+        return sign * t * (1.0 - math.log(t) + u * _horner(u, _CL2_NEAR0))
+    y = math.pi - t
+    return sign * y * _horner(y * y, _CL2_NEARPI)
 
 
 @njit(cache=True)
-def _im_li2(m, a):
-    """Im Li2(m e^{ia}) - Cl2(2a)/2 for m >= 0, 0 < a < pi (Lewin's identity in Clausen
-    functions). The Cl2(2a)/2 terms of the three dilogarithms in ``f`` add up to
+def _im_li2(m, a, sa, ca):
+    """Im Li2(m e^{ia}) - Cl2(2a)/2 for m >= 0, 0 < a < pi, sa = sin a, ca = cos a (Lewin's
+    identity in Clausen functions). The Cl2(2a)/2 terms of the three dilogarithms in ``f`` add up to
     ``d^2 Cl2(2a) / sin a``, the same at the four corners of an edge pair, so they cancel in its
     corner sum and are left out."""
     if m == 0.0:
         return -0.5 * _cl2(2 * a)
-    omega = math.atan2(m * math.sin(a), 1.0 - m * math.cos(a))
+    omega = math.atan2(m * sa, 1.0 - m * ca)
     return omega * math.log(m) + 0.5 * (_cl2(2 * omega) - _cl2(2 * omega + 2 * a))
+
+
+@njit(cache=True)
+def _im_li2_inverse_pair(m, s, c):
+    """``_im_li2(m, a) + _im_li2(1/m, a)`` for m > 0 with two Clausen values instead of four:
+    the angles omega of m and omega' of 1/m satisfy omega + omega' + a = pi (the triangle 0, 1,
+    m e^{ia}), so Cl2(2 omega' + 2a) = -Cl2(2 omega) and Cl2(2 omega + 2a) = -Cl2(2 omega').
+    s = sin a, c = cos a."""
+    omega = math.atan2(m * s, 1.0 - m * c)
+    omega_inv = math.atan2(s, m - c)
+    return (omega - omega_inv) * math.log(m) + _cl2(2 * omega) + _cl2(2 * omega_inv)
 
 
 # ---------------------------------------------------------------------------- edge pairs
@@ -141,7 +172,7 @@ def _f_skew(s, t, c, S, a, d):
         w = s + rs if s >= 0 else k2 / (rs - s)          # s + sqrt(s^2 + k2) without cancellation
         p = t + rt if t >= 0 else k2 / (rt - t)
         w2 = rs - s if s <= 0 else k2 / (rs + s)         # w - 2 s
-        val += 0.5 * d * d / S * (_im_li2(w / p, a) + _im_li2(p / w, a) - 2 * _im_li2(w2 / p, math.pi - a))
+        val += 0.5 * d * d / S * (_im_li2_inverse_pair(w / p, S, c) - 2 * _im_li2(w2 / p, math.pi - a, S, -c))
     return val
 
 
@@ -373,8 +404,58 @@ def _cubature(Ti, Tj, njx, njy, njz, rule, weights, poly):
 
 
 @njit(cache=True)
+def _centroid(T):
+    return (T[0, 0] + T[1, 0] + T[2, 0]) / 3, (T[0, 1] + T[1, 1] + T[2, 1]) / 3, (T[0, 2] + T[1, 2] + T[2, 2]) / 3
+
+
+@njit(cache=True)
+def _far(Tt, Tr, target, stats, P):
+    """``A_r F_rt`` by a cubature over the receiver Tr of the point factor to Tt, with the first
+    rule whose derived bound (module doc) is within ``target`` of the value; -1.0 if none is.
+    Neither triangle may need clipping."""
+    ntx, nty, ntz, At2 = _normal(Tt)
+    nrx, nry, nrz, Ar2 = _normal(Tr)
+    ctx, cty, ctz = _centroid(Tt)
+    crx, cry, crz = _centroid(Tr)
+    rho_t = _radius(Tt, ctx, cty, ctz)
+    rho_r = _radius(Tr, crx, cry, crz)
+    D = math.sqrt((crx - ctx) ** 2 + (cry - cty) ** 2 + (crz - ctz) ** 2) - rho_t   # <= dist(cr, Tt)
+    if D <= 8 * rho_r:
+        return -1.0
+    At = 0.5 * At2
+    Ar = 0.5 * Ar2
+    f1 = _lambert(crx, cry, crz, nrx, nry, nrz, Tt, P)
+    if f1 > 0 and _far_bound(At, D, rho_r, 1) <= target * f1:
+        stats[2] += 1
+        return Ar * f1
+    f7 = _cubature(Tt, Tr, nrx, nry, nrz, _RULE7, _RULE7_W, P)
+    if f7 > 0 and _far_bound(At, D, rho_r, 5) <= target * f7:
+        stats[3] += 1
+        return Ar * f7
+    f64 = _cubature(Tt, Tr, nrx, nry, nrz, _RULE64, _RULE64_W, P)
+    if f64 > 0 and _far_bound(At, D, rho_r, 14) <= target * f64:
+        stats[4] += 1
+        return Ar * f64
+    return -1.0
+
+
+@njit(cache=True)
+def _before(A, B):
+    """Lexicographic order of two triangles' coordinates (a canonical order of a pair)."""
+    for k in range(3):
+        for c in range(3):
+            if A[k, c] != B[k, c]:
+                return A[k, c] < B[k, c]
+    return False
+
+
+@njit(cache=True)
 def _pair(Ti, Tj, target, stats, P, Q):
-    """A_j F_ji for shooter Ti, receiver Tj; stats[method] += 1. P, Q: (4, 3) work arrays."""
+    """A_j F_ji (= A_i F_ij) for shooter Ti, receiver Tj; stats[method] += 1. P, Q: (4, 3) work
+    arrays. The pair is first put in a canonical order, so that (Ti, Tj) and (Tj, Ti) give the
+    same bits: reciprocity holds exactly and a pair's value can be reused for the reverse pair."""
+    if _before(Tj, Ti):
+        Ti, Tj = Tj, Ti
     nix, niy, niz, Ai2 = _normal(Ti)
     njx, njy, njz, Aj2 = _normal(Tj)
     if Ai2 == 0.0 or Aj2 == 0.0:
@@ -382,28 +463,15 @@ def _pair(Ti, Tj, target, stats, P, Q):
         return 0.0
     if (not _needs_clip(Tj, Ti[0, 0], Ti[0, 1], Ti[0, 2], nix, niy, niz)
             and not _needs_clip(Ti, Tj[0, 0], Tj[0, 1], Tj[0, 2], njx, njy, njz)):
-        cix, ciy, ciz = (Ti[0, 0] + Ti[1, 0] + Ti[2, 0]) / 3, (Ti[0, 1] + Ti[1, 1] + Ti[2, 1]) / 3, \
-            (Ti[0, 2] + Ti[1, 2] + Ti[2, 2]) / 3
-        cjx, cjy, cjz = (Tj[0, 0] + Tj[1, 0] + Tj[2, 0]) / 3, (Tj[0, 1] + Tj[1, 1] + Tj[2, 1]) / 3, \
-            (Tj[0, 2] + Tj[1, 2] + Tj[2, 2]) / 3
-        rho_i = _radius(Ti, cix, ciy, ciz)
-        rho_j = _radius(Tj, cjx, cjy, cjz)
-        D = math.sqrt((cjx - cix) ** 2 + (cjy - ciy) ** 2 + (cjz - ciz) ** 2) - rho_i   # <= dist(cj, Ti)
-        if D > 8 * rho_j:
-            Ai = 0.5 * Ai2
-            Aj = 0.5 * Aj2
-            f1 = _lambert(cjx, cjy, cjz, njx, njy, njz, Ti, P)
-            if f1 > 0 and _far_bound(Ai, D, rho_j, 1) <= target * f1:
-                stats[2] += 1
-                return Aj * f1
-            f7 = _cubature(Ti, Tj, njx, njy, njz, _RULE7, _RULE7_W, P)
-            if f7 > 0 and _far_bound(Ai, D, rho_j, 5) <= target * f7:
-                stats[3] += 1
-                return Aj * f7
-            f64 = _cubature(Ti, Tj, njx, njy, njz, _RULE64, _RULE64_W, P)
-            if f64 > 0 and _far_bound(Ai, D, rho_j, 14) <= target * f64:
-                stats[4] += 1
-                return Aj * f64
+        # integrate over the smaller triangle: the bound falls with its radius
+        cix, ciy, ciz = _centroid(Ti)
+        cjx, cjy, cjz = _centroid(Tj)
+        if _radius(Tj, cjx, cjy, cjz) <= _radius(Ti, cix, ciy, ciz):
+            value = _far(Ti, Tj, target, stats, P)
+        else:
+            value = _far(Tj, Ti, target, stats, P)
+        if value >= 0.0:
+            return value
     nP = _clip(Tj, Ti[0, 0], Ti[0, 1], Ti[0, 2], nix, niy, niz, P)     # receiver part in front of the shooter
     nQ = _clip(Ti, Tj[0, 0], Tj[0, 1], Tj[0, 2], njx, njy, njz, Q)     # shooter part in front of the receiver
     if nP < 3 or nQ < 3:
@@ -505,15 +573,47 @@ def sample_weights(scene, samples, i, receivers):
     return np.where(front, f.reshape(len(receivers), K), 0.0)
 
 
-def unoccluded_factors(scene, i, *, stats=None):
+class PairCache:
+    """``A_j F_ji`` of a scene's pairs, each unordered pair computed once: the pair kernel gives
+    the same bits for (i, j) and (j, i), so the column of shooter j reuses what the column of
+    shooter i computed. Dense N x N float64 (NaN: not yet computed), so only for scenes of up to
+    ``max_patches`` patches (73 MB at the room's 3032); larger scenes compute every column."""
+
+    def __init__(self, scene, *, target=FAR_TARGET, max_patches=5000):
+        self.target = target
+        N = scene.patches
+        self.values = np.full((N, N), np.nan) if N <= max_patches else None
+        self.computed = 0           # pairs computed (the rest were reused)
+
+    def pairs(self, scene, i, j, stats=None):
+        """``A_j F_ji`` for shooter i and receivers j (array of indices)."""
+        V = scene.patch_vertices
+        if self.values is None:
+            self.computed += len(j)
+            return pair_factors(V[i][None], V[j], target=self.target, stats=stats)
+        row = self.values[i, j]
+        todo = np.isnan(row)
+        if todo.any():
+            row[todo] = pair_factors(V[i][None], V[j[todo]], target=self.target, stats=stats)
+            self.computed += int(todo.sum())
+            self.values[i, j] = row
+            self.values[j, i] = row
+        return row
+
+
+def unoccluded_factors(scene, i, *, stats=None, cache=None, target=FAR_TARGET):
     """(N,) exact patch-to-patch ``F_ji`` from every receiver j to shooter patch i; 0 outside
-    :func:`exchange_mask`."""
+    :func:`exchange_mask`. ``cache``, a :class:`PairCache`, reuses the pairs of earlier columns
+    (the same bits) and then sets the far-pair target itself."""
     mask = exchange_mask(scene, i)
     out = np.zeros(scene.patches)
     j = np.flatnonzero(mask)
     if len(j):
-        V = scene.patch_vertices
-        out[j] = pair_factors(V[i][None], V[j], stats=stats) / scene.areas[j]
+        if cache is not None:
+            out[j] = cache.pairs(scene, i, j, stats=stats) / scene.areas[j]
+        else:
+            out[j] = pair_factors(scene.patch_vertices[i][None], scene.patch_vertices[j], target=target,
+                                  stats=stats) / scene.areas[j]
     return out
 
 

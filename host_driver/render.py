@@ -130,13 +130,14 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                      traversal=traversal, packing=packing, phases=phases, stats=stats)
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
+    pair_cache = formfactor.PairCache(scene)      # each unordered pair's factor computed once
 
     def shoot(i):
         if cache is not None and i in cache:
             return cache[i].astype(np.float64)
         with phases.timed("formfactor"):
             # exact patch-to-patch factors; the exchange mask is applied inside
-            f_all = formfactor.unoccluded_factors(scene, i)
+            f_all = formfactor.unoccluded_factors(scene, i, cache=pair_cache)
             receivers = np.flatnonzero(f_all > 0)
             f = f_all[receivers]
         frac = visible_fraction(scene, vis, samples, i, receivers, phases)
