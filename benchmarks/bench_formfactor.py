@@ -52,7 +52,7 @@ def far_pair(rng, D):
 
 
 def forced(Ti, Tj):
-    """A_j F_ji by every method: closed form, centroid, 7-point, 64-point cubature."""
+    """A_j F_ji by every method: closed form, centroid, 7-, 25- and 64-point cubature."""
     nj = np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
     Aj = 0.5 * np.linalg.norm(nj)
     nj = nj / (2 * Aj)
@@ -61,6 +61,7 @@ def forced(Ti, Tj):
     out = {"closed form": ff.pair_factors(Ti[None], Tj[None], target=0.0)[0],
            "centroid": Aj * ff._lambert(c[0], c[1], c[2], nj[0], nj[1], nj[2], Ti, poly),
            "7-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE7, ff._RULE7_W, poly),
+           "25-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE25, ff._RULE25_W, poly),
            "64-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE64, ff._RULE64_W, poly)}
     stats = np.zeros(len(ff.METHODS), dtype=np.int64)
     out["default"] = ff.pair_factors(Ti[None], Tj[None], stats=stats)[0]
@@ -72,7 +73,7 @@ def table(args):
     from pyviewfactor.pvf_integrators import compute_viewfactor_sa30
     rng = np.random.default_rng(args.seed)
     print(f"seed={args.seed}, {args.pairs} pairs per kind")
-    methods = ["closed form", "centroid", "7-point", "64-point", "default", "pyviewfactor SA-30"]
+    methods = ["closed form", "centroid", "7-point", "25-point", "64-point", "default", "pyviewfactor SA-30"]
     print("| pairs | " + " | ".join(methods) + " | default picks |")
     print("|---|" + "---|" * (len(methods) + 1))
     for name, (kind, D) in KINDS.items():
