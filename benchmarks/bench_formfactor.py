@@ -3,12 +3,19 @@
     python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
     python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
+    python benchmarks/bench_formfactor.py speed cornell room   # CPU us per pair, against pyviewfactor
 
 ``table``: random triangle pairs of each kind (each wholly in front of the other, so the oracles'
 unclipped integrands apply), every method of host_driver/formfactor.py forced on each pair, and
 pyviewfactor's SA-30 kernel, against the double contour integral with the inner integral in closed
 form and the outer one by mpmath's adaptive quadrature at 30 digits. Prints a markdown table of
 the largest relative error per method and kind. Numbers go into docs/formfactors.md.
+
+``speed``: the pairs a render computes (every ``--step``-th shooter's exchange mask), on one
+thread: CPU microseconds per pair of the closed form alone (``target=0``, the reference) and of
+the default (far pairs by cubature), the pairs per method, and pyviewfactor's SA-30 kernel on the
+first ``--peer-pairs`` of them (the peer); and the share of the pairs a render computes once
+(each unordered pair, :class:`~blockray.host_driver.formfactor.PairCache`).
 
 ``energy``: closed scenes rendered with the golden board; absorbed power sum (1 - rho) H A with
 H = (B - E) / rho, against emitted power sum E A, per channel.
@@ -221,6 +228,37 @@ def row_sums(args):
               f"min {rows.min():+.2e}, max {rows.max():+.2e}", flush=True)
 
 
+def speed(args):
+    from blockray import threads
+    from blockray.host_driver.builtin import load_scene
+    for name in args.scenes:
+        scene = load_scene(name)
+        V = scene.patch_vertices
+        masks = [np.flatnonzero(ff.exchange_mask(scene, i)) for i in range(0, scene.patches, args.step)]
+        I = np.concatenate([np.full(len(j), i) for i, j in zip(range(0, scene.patches, args.step), masks)])
+        J = np.concatenate(masks)
+        S, R = V[I], V[J]
+        ff.pair_factors(S[:4], R[:4])                        # load the compiled kernels
+        row = {"scene": name, "pairs": len(I)}
+        with threads.using(1):
+            for label, target in (("closed_form", 0.0), ("default", ff.FAR_TARGET)):
+                used = np.zeros(len(ff.METHODS), dtype=np.int64)
+                c0 = time.process_time()
+                ff.pair_factors(S, R, target=target, stats=used)
+                row[f"{label}_cpu_us_per_pair"] = round((time.process_time() - c0) / len(I) * 1e6, 3)
+                row[f"{label}_methods"] = dict(zip(ff.METHODS, used.tolist()))
+        from pyviewfactor.pvf_integrators import compute_viewfactor_sa30
+        n = min(args.peer_pairs, len(I))
+        c0 = time.process_time()
+        for k in range(n):
+            compute_viewfactor_sa30(np.ascontiguousarray(R[k]), np.ascontiguousarray(S[k]), 4 * np.pi)
+        row["pyviewfactor_sa30_cpu_us_per_pair"] = round((time.process_time() - c0) / n * 1e6, 1)
+        M = np.array([ff.exchange_mask(scene, i) for i in range(scene.patches)])
+        row["render_pairs_ordered"] = int(M.sum())                           # every column in full
+        row["render_pairs_unordered"] = int(np.triu(M | M.T).sum())          # each pair once
+        print(row, flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -234,9 +272,13 @@ def main(argv=None):
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
+    sp = sub.add_parser("speed")
+    sp.add_argument("scenes", nargs="*", default=["cornell", "room"])
+    sp.add_argument("--step", type=int, default=8, help="every step-th shooter's pairs")
+    sp.add_argument("--peer-pairs", type=int, default=2000, help="pairs for pyviewfactor")
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy, "rows": row_sums}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums, "speed": speed}[args.what](args)
 
 
 if __name__ == "__main__":
