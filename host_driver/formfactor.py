@@ -62,7 +62,7 @@ from numba import njit, prange
 from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
 from ..exact_float import plane_signs
 
-__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights",
+__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights", "pair_sample_weights",
            "centroid_in_front",
            "unoccluded_factors", "PairCache", "form_factor_matrix", "FAR_TARGET", "METHODS"]
 
@@ -585,6 +585,23 @@ def sample_weights(scene, samples, i, receivers):
     f = _lambert_many(*_broadcast(pts.reshape(-1, 3), np.broadcast_to(scene.normals[i], (len(receivers) * K, 3)),
                                   np.repeat(scene.patch_vertices[receivers], K, axis=0)))
     return np.where(front, f.reshape(len(receivers), K), 0.0)
+
+
+def pair_sample_weights(scene, samples, shooters, receivers):
+    """:func:`sample_weights` of many (shooter, receiver) pairs in one call: row m equals
+    ``sample_weights(scene, samples, shooters[m], [receivers[m]])[0]`` bit for bit (the same
+    arithmetic, row by row). For the reverse rays of a shooter's straddling receivers."""
+    shooters = np.asarray(shooters, dtype=np.int64)
+    receivers = np.asarray(receivers, dtype=np.int64)
+    n, K = len(shooters), samples.count
+    if n == 0:
+        return np.zeros((0, K))
+    V = scene.patch_vertices
+    tri = np.repeat(V[receivers], K, axis=0)
+    front = (plane_signs(tri, np.repeat(V[shooters], K, axis=0), np.tile(samples.weights, (n, 1))) > 0).reshape(n, K)
+    pts = np.concatenate([samples.points(V[j][None])[0] for j in shooters])
+    f = _lambert_many(*_broadcast(pts, np.repeat(scene.normals[shooters], K, axis=0), tri))
+    return np.where(front, f.reshape(n, K), 0.0)
 
 
 class PairCache:

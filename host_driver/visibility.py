@@ -182,13 +182,12 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         direct = formfactor.centroid_in_front(scene, i, receivers)
         forward = receivers[direct]
         weights = formfactor.sample_weights(scene, samples, i, forward)
+        reverse = np.flatnonzero(~direct)
+        back = formfactor.pair_sample_weights(scene, samples, receivers[reverse], np.full(len(reverse), i))
     frac = np.empty(len(receivers))
     frac[direct] = vis.clear_fraction(i, forward, weights)
-    for m in np.flatnonzero(~direct):
-        j = receivers[m]
-        with phases.timed("formfactor"):
-            back = formfactor.sample_weights(scene, samples, j, [i])
-        frac[m] = vis.clear_fraction(j, np.array([i]), back)[0]
+    for m, w in zip(reverse, back):
+        frac[m] = vis.clear_fraction(receivers[m], np.array([i]), w[None])[0]
     return frac
 
 

@@ -534,3 +534,21 @@ def test_pair_cache_reuses_the_same_bits():
         assert (unoccluded_factors(scene, i, cache=cache) == unoccluded_factors(scene, i)).all()
     masks = sum(int(exchange_mask(scene, i).sum()) for i in set(order))
     assert cache.computed < masks         # the reverse pairs were reused, not recomputed
+
+
+def test_pair_sample_weights_equal_the_per_pair_ones():
+    """The reverse rays' weights of many pairs in one call, bit for bit the per-pair ones."""
+    from blockray.host_driver.formfactor import pair_sample_weights, sample_weights
+    from blockray.samples import SampleScheme
+    tris, _ = closed_box(2)
+    tris = np.concatenate([tris, rectangle([0.2, 0.2, 0.3], [0.5, 0, 0.1], [0, 0.4, 0.2], 1, 1)])
+    scene = make_scene(tris)
+    samples = SampleScheme(8)
+    seed = 1316
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    shooters, receivers = rng.integers(0, scene.patches, 60), rng.integers(0, scene.patches, 60)
+    many = pair_sample_weights(scene, samples, shooters, receivers)
+    one = np.array([sample_weights(scene, samples, i, [j])[0] for i, j in zip(shooters, receivers)])
+    assert (many == one).all() and (many > 0).any() and (many == 0).any()
+    assert pair_sample_weights(scene, samples, [], []).shape == (0, 8)
