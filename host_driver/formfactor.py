@@ -21,11 +21,12 @@ form. The constant -2 integrates to -2 L_p L_q, which cancels in the sum over a 
 nudging. Each polygon is first clipped to the half-space in front of the other's plane, so the
 integrand's cosines are the clipped ``max(cos, 0)`` ones; coplanar and back-facing pairs give 0.
 
-The result is ``A_j F_ji``, symmetric in (i, j) up to rounding: reciprocity holds by
-construction. :func:`unoccluded_factors` divides by the receiver's area.
+The result is ``A_j F_ji``, symmetric in (i, j): reciprocity holds by construction, and to the
+bit, since every pair is computed in a canonical order (below). :func:`unoccluded_factors`
+divides by the receiver's area.
 
 **Far pairs.** The edge-pair terms are of size L^2 ln D while their sum is of size L^4 / D^2, so
-the closed form loses about (D / L)^2 digits to cancellation, and it costs about 15 us a pair.
+the closed form loses about (D / L)^2 digits to cancellation, and it costs about 9 us a pair.
 Far pairs use a cubature of the exact point-to-triangle factor (below) over the smaller of the
 two triangles instead (by reciprocity ``A_j F_ji = A_i F_ij``, either may be integrated),
 wherever a derived bound shows it within ``FAR_TARGET`` (relative): the point factor is analytic
@@ -510,7 +511,7 @@ def _pairs(shooters, receivers, target, methods):
 def pair_factors(shooters, receivers, *, target=FAR_TARGET, stats=None):
     """``A_j F_ji`` for shooter triangles i (M,3,3) and receiver triangles j (M,3,3) -> (M,).
 
-    Symmetric in (i, j) (reciprocity) up to rounding and the far-pair bound. ``stats``, an int64
+    Symmetric in (i, j) bit for bit (the kernel puts each pair in a canonical order). ``stats``, an int64
     array of len(METHODS), counts the pairs per method. Geometry only: which side faces which
     is :func:`exchange_mask`'s business; a pair where one lies wholly behind the other's plane
     gets 0.
