@@ -580,18 +580,13 @@ def sample_weights(scene, samples, i, receivers):
     clear rays estimates the kernel-weighted visible fraction (a plain mean weighs a sample
     near j like one far from it)."""
     receivers = np.asarray(receivers, dtype=np.int64)
-    K = samples.count
-    front = samples_in_front(scene, samples, i, receivers)
-    pts = np.repeat(samples.points(scene.patch_vertices[i][None])[0][None], len(receivers), axis=0)
-    f = _lambert_many(*_broadcast(pts.reshape(-1, 3), np.broadcast_to(scene.normals[i], (len(receivers) * K, 3)),
-                                  np.repeat(scene.patch_vertices[receivers], K, axis=0)))
-    return np.where(front, f.reshape(len(receivers), K), 0.0)
+    return pair_sample_weights(scene, samples, np.full(len(receivers), i), receivers)
 
 
 def pair_sample_weights(scene, samples, shooters, receivers):
-    """:func:`sample_weights` of many (shooter, receiver) pairs in one call: row m equals
-    ``sample_weights(scene, samples, shooters[m], [receivers[m]])[0]`` bit for bit (the same
-    arithmetic, row by row). For the reverse rays of a shooter's straddling receivers."""
+    """:func:`sample_weights` of many (shooter, receiver) pairs in one call: row m is the weight row
+    of the pair (shooters[m], receivers[m]), the same arithmetic row by row, so the same bits however
+    the pairs are batched. For the reverse rays of a shooter's straddling receivers."""
     shooters = np.asarray(shooters, dtype=np.int64)
     receivers = np.asarray(receivers, dtype=np.int64)
     n, K = len(shooters), samples.count
@@ -600,7 +595,9 @@ def pair_sample_weights(scene, samples, shooters, receivers):
     V = scene.patch_vertices
     tri = np.repeat(V[receivers], K, axis=0)
     front = (plane_signs(tri, np.repeat(V[shooters], K, axis=0), np.tile(samples.weights, (n, 1))) > 0).reshape(n, K)
-    pts = np.concatenate([samples.points(V[j][None])[0] for j in shooters])
+    # each shooter's sample points as for one triangle (the same bits whatever the batch)
+    unique, which = np.unique(shooters, return_inverse=True)
+    pts = np.stack([samples.points(V[j][None])[0] for j in unique])[which].reshape(-1, 3)
     f = _lambert_many(*_broadcast(pts, np.repeat(scene.normals[shooters], K, axis=0), tri))
     return np.where(front, f.reshape(n, K), 0.0)
 

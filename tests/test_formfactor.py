@@ -551,4 +551,10 @@ def test_pair_sample_weights_equal_the_per_pair_ones():
     many = pair_sample_weights(scene, samples, shooters, receivers)
     one = np.array([sample_weights(scene, samples, i, [j])[0] for i, j in zip(shooters, receivers)])
     assert (many == one).all() and (many > 0).any() and (many == 0).any()
+    from blockray.host_driver.formfactor import samples_in_front
+    V = scene.patch_vertices
+    for i, j, row in zip(shooters[:10], receivers[:10], many[:10]):      # the definition, pair by pair
+        points = samples.points(V[i][None])[0]
+        lambert = triangle_to_points(V[j], points, np.broadcast_to(scene.normals[i], points.shape))
+        assert (row == np.where(samples_in_front(scene, samples, i, [j])[0], lambert, 0.0)).all()
     assert pair_sample_weights(scene, samples, [], []).shape == (0, 8)
