@@ -19,9 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..exact import blocked_block
-from ..filtered import FilterFormat, filtered_tests
+from ..filtered import default_format, filtered_tests
+from ..params import Widths
+from ..timing import BoardTiming
 
-__all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY"]
+__all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY",
+           "ArrayResolveModel", "FilteredBoardClock", "default_array_depth", "filtered_timing", "ISSUE_TO_HANDOFF"]
 
 #: cycles from a test's acceptance to the hand-off's input: units 4, filters 3, filtered cell 5
 DATAPATH_LATENCY = 12
@@ -69,7 +72,7 @@ class FilteredIntersectorModel:
 
     def __init__(self, bits, fmt=None, depth=None):
         self.bits = bits
-        self.fmt = fmt if fmt is not None else FilterFormat(min(bits + 1, 18), 18)
+        self.fmt = fmt if fmt is not None else default_format(bits)
         self.depth = depth if depth is not None else DATAPATH_LATENCY + EXACT_LATENCY + 4
 
     def answers(self, P, Q, V, n):
@@ -121,3 +124,113 @@ class FilteredIntersectorModel:
             sent += accept
             t += 1
         return Trace(accepted, delivered, out, decided, t)
+
+
+#: cycles from a record's (or marker's) issue to the filtered array's hand-off input: the
+#: board's memory (2) and the array's units, filters and cells (12)
+ISSUE_TO_HANDOFF = 2 + DATAPATH_LATENCY
+
+
+class ArrayResolveModel:
+    """:class:`blockray.rtl.filtered.ArrayResolve` cycle by cycle, for the timing: an item is
+    the number ``u`` of a record's undecided tests (0: none) or ``None`` for a board marker.
+
+    Per cycle, :meth:`cycle` takes the item at the hand-off's input (or nothing) and returns
+    the item delivered in that cycle (or nothing), mirroring the three ``SyncFIFOBuffered``
+    (pending, queue, answers), the server (one undecided test per cycle into the exact unit,
+    a record's tests back to back) and the 4-cycle exact ``Processor``.
+    """
+
+    _NOTHING = object()
+
+    def __init__(self, depth):
+        self.pending, self.queue, self.answers = (BufferedFifo(depth) for _ in range(3))
+        self.exact_unit = deque([None] * EXACT_LATENCY)      # the `last` flag of each test fed
+        self.started, self.remaining = False, 0
+
+    def cycle(self, entering=_NOTHING):
+        present = entering is not self._NOTHING
+        # the server: the queue head's tests, one per cycle
+        feeding = self.queue.r_rdy
+        last = False
+        if feeding:
+            current = self.remaining if self.started else self.queue.r_data
+            last = current == 1
+        # out: the pending head, a record with undecided tests with its answers
+        head = self.pending.r_data if self.pending.r_rdy else self._NOTHING
+        needs = head is not self._NOTHING and bool(head)
+        deliver = head is not self._NOTHING and (not needs or self.answers.r_rdy)
+        # the clock edge
+        leaving = self.exact_unit.popleft()
+        self.exact_unit.append(last if feeding else None)
+        self.pending.step(present, entering, deliver)
+        self.queue.step(present and bool(entering), entering, feeding and last)
+        self.answers.step(bool(leaving), True, deliver and needs)
+        if feeding:
+            self.started, self.remaining = not last, current - 1
+        return head if deliver else self._NOTHING
+
+    @property
+    def empty(self):
+        return not (self.pending.r_rdy or self.pending.inner)
+
+
+class FilteredBoardClock:
+    """The filtered board's issue slot against its array's credits, cycle by cycle, when the
+    host keeps the command stream full (back to back): every cycle is a board cycle, either a
+    step of the current command or a cycle lost waiting for a credit.
+
+    :meth:`step` is one step of a command: ``needs_credit`` for a VOXEL's issue cycles (also an
+    empty voxel's bubble) and the markers of END_BLOCK, READ_COUNTERS and IDENTIFY; ``item``
+    what it issues (``u``, the record's undecided tests; ``None``, a marker; or nothing). It
+    returns the cycles lost before the step. ``delivered_marks`` lists the cycles the markers
+    left the array.
+    """
+
+    def __init__(self, depth):
+        self.depth = depth
+        self.resolve = ArrayResolveModel(depth)
+        self.line = deque([ArrayResolveModel._NOTHING] * ISSUE_TO_HANDOFF)
+        self.inside = 0
+        self.cycle = 0
+        self.delivered_marks = []
+
+    def _tick(self, item):
+        left = self.resolve.cycle(self.line.popleft())
+        self.line.append(item)
+        issued = item is not ArrayResolveModel._NOTHING
+        if left is not ArrayResolveModel._NOTHING:
+            self.inside -= 1
+            if left is None:
+                self.delivered_marks.append(self.cycle)
+        self.inside += issued
+        self.cycle += 1
+
+    def step(self, needs_credit=False, item=ArrayResolveModel._NOTHING):
+        lost = 0
+        while needs_credit and self.inside >= self.depth:
+            self._tick(ArrayResolveModel._NOTHING)
+            lost += 1
+        self._tick(item)
+        return lost
+
+    def drain(self):
+        """Run (no board cycles) until every item has left the array."""
+        while self.inside:
+            self._tick(ArrayResolveModel._NOTHING)
+
+    record = staticmethod(lambda u: int(u))
+    marker = None
+
+
+def default_array_depth():
+    """The filtered board's array credits (:meth:`blockray.rtl.filtered.FilteredArray.default_depth`
+    with the board's memory latency): issue to delivery, 16 cycles, and 4."""
+    return ISSUE_TO_HANDOFF + 2 + 4
+
+
+def filtered_timing(bits):
+    """The filtered board's fixed latencies as a BoardTiming (processor_latency: array input to
+    the accumulators when no test waits, 15); its data-dependent cycles come on top."""
+    Widths(bits)
+    return BoardTiming(processor_latency=DATAPATH_LATENCY + 3)

@@ -37,7 +37,9 @@ from ..params import BoardParams
 from ..protocol import BoardProtocol, BoardResult, Op, ResultKind
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
+from ..filtered import check_cell, default_format, filtered_block
 from . import kernel
+from .filtered_model import FilteredBoardClock, default_array_depth, filtered_timing
 
 __all__ = ["ExecResult", "BoardModel", "ModelBoard", "QuantisationWarning", "result_word"]
 
@@ -54,6 +56,7 @@ class ExecResult:
     busy: int = 0                                     # cycles that issued a patch record
     counters: list = field(default_factory=list)     # one dict per READ_COUNTERS (cycles, busy, tests_issued, tests_useful)
     results: list = field(default_factory=list)      # every result in order, as BoardResult
+    marks: list = field(default_factory=list)        # filtered cell: cycle each result left the array
 
 
 def result_word(bits):
@@ -75,9 +78,15 @@ class BoardModel:
     tests is what the packed memory image holds.
     """
 
-    def __init__(self, params, timing=None):
+    def __init__(self, params, timing=None, *, cell="exact", filter_format=None, depth=None):
         self.params = params
-        self.timing = timing or BoardTiming.for_bits(params.bits)
+        self.cell = check_cell(cell)
+        if cell == "filtered":
+            self.filter_format = filter_format or default_format(params.bits)
+            self.depth = depth or default_array_depth()
+            self.timing = timing or filtered_timing(params.bits)
+        else:
+            self.timing = timing or BoardTiming.for_bits(params.bits)
         self.layout = patch_layout(params.bits)
         self.protocol = BoardProtocol(params)
         self.vertices = np.zeros((params.patch_depth, 3, 3), dtype=np.int64)
@@ -111,10 +120,13 @@ class BoardModel:
         p, t = self.params, self.timing
         R, S = p.rows, p.cols
         res = ExecResult()
+        clock = FilteredBoardClock(self.depth) if self.cell == "filtered" else None
         for cmd in commands:
             op = cmd.op
             res.starts.append(res.cycles)
             count = 0
+            if clock is not None:
+                res.cycles += self._filtered_steps(clock, cmd)
             if op is Op.WRITE_PATCH:
                 if not 0 <= cmd.address < p.patch_depth:
                     raise ParameterError(f"patch address {cmd.address} is outside patch memory (patch_depth {p.patch_depth})")
@@ -162,7 +174,37 @@ class BoardModel:
             elif op is Op.IDENTIFY:
                 res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity()))
             res.cycles += t.cost(op, count)
+        if clock is not None:
+            clock.drain()
+            res.marks = clock.delivered_marks
         return res
+
+    def _filtered_steps(self, clock, cmd):
+        """Run command ``cmd``'s steps on the filtered board's clock; return the cycles lost
+        waiting for the array's credits (before its steps: they precede a READ_COUNTERS'
+        snapshot)."""
+        op = cmd.op
+        if op is Op.VOXEL:
+            self._check_voxel(cmd.voxel)
+            start, count = int(self.start[cmd.voxel]), int(self.count[cmd.voxel])
+            if count == 0:
+                return clock.step(True)
+            undecided = self._undecided(start, count)
+            return sum(clock.step(True, int(u)) for u in undecided)
+        if op in (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY):
+            return clock.step(True, None)
+        return clock.step(False)
+
+    def _undecided(self, start, count):
+        """(count,) the undecided tests of each record of the loaded rows and columns (what the
+        filtered array sends to its exact unit)."""
+        rows, cols = np.flatnonzero(self.row_valid), np.flatnonzero(self.col_valid)
+        if not len(rows) or not len(cols):
+            return np.zeros(count, dtype=np.int64)
+        idx = np.arange(start, start + count)
+        decided, _ = filtered_block(self.shooters[cols], self.receivers[rows], self.vertices[idx],
+                                    self.normals[idx], self.filter_format)
+        return (~decided).sum(axis=(0, 1))
 
     def _evaluate(self):
         rows, cols = np.flatnonzero(self.row_valid), np.flatnonzero(self.col_valid)
