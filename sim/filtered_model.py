@@ -17,6 +17,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..exact import blocked_block
 from ..filtered import default_format, filtered_tests
@@ -24,7 +25,8 @@ from ..params import Widths
 from ..timing import BoardTiming
 
 __all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY",
-           "ArrayResolveModel", "FilteredBoardClock", "default_array_depth", "filtered_timing", "ISSUE_TO_HANDOFF"]
+           "board_clock", "STEP_PLAIN", "STEP_BUBBLE", "STEP_RECORD", "STEP_MARKER", "default_array_depth",
+           "filtered_timing", "ISSUE_TO_HANDOFF"]
 
 #: cycles from a test's acceptance to the hand-off's input: units 4, filters 3, filtered cell 5
 DATAPATH_LATENCY = 12
@@ -131,96 +133,99 @@ class FilteredIntersectorModel:
 ISSUE_TO_HANDOFF = 2 + DATAPATH_LATENCY
 
 
-class ArrayResolveModel:
-    """:class:`blockray.rtl.filtered.ArrayResolve` cycle by cycle, for the timing: an item is
-    the number ``u`` of a record's undecided tests (0: none) or ``None`` for a board marker.
+#: a board step for :func:`board_clock`: no credit needed (WRITE_*, BEGIN_BLOCK, LOAD_*), an
+#: empty voxel's bubble (a credit, nothing issued), a record (``undecided`` tests), a marker
+STEP_PLAIN, STEP_BUBBLE, STEP_RECORD, STEP_MARKER = 0, 1, 2, 3
+_NONE, _MARK = -2, -1          # in the issue line and the pending FIFO: nothing, a marker
 
-    Per cycle, :meth:`cycle` takes the item at the hand-off's input (or nothing) and returns
-    the item delivered in that cycle (or nothing), mirroring the three ``SyncFIFOBuffered``
-    (pending, queue, answers), the server (one undecided test per cycle into the exact unit,
-    a record's tests back to back) and the 4-cycle exact ``Processor``.
+
+@njit(cache=True, inline="always")
+def _fifo_step(buf, k, head, n, rdy, rdata, w_en, w_data, r_en):
+    """``SyncFIFOBuffered`` ``k`` (of depth buf.shape[1]: an inner FIFO of depth - 1 and an
+    output register ``rdy``/``rdata``) at the clock edge: :meth:`BufferedFifo.step`."""
+    depth = buf.shape[1]
+    do_write = w_en and n[k] != depth - 1
+    if n[k] > 0 and (not rdy[k] or r_en):
+        rdata[k], rdy[k] = buf[k, head[k]], True
+        head[k] = (head[k] + 1) % depth
+        n[k] -= 1
+    elif r_en:
+        rdy[k] = False
+    if do_write:
+        buf[k, (head[k] + n[k]) % depth] = w_data
+        n[k] += 1
+
+
+@njit(cache=True)
+def board_clock(kinds, undecided, depth):
+    """The filtered board's cycles when the host keeps the command stream full: every cycle is a
+    board cycle, a step of the current command or one lost waiting for the array's credits.
+
+    ``kinds`` (N,): the commands' steps in order (STEP_*), ``undecided`` (N,): a record's tests
+    the exact unit must decide. Mirrors, cycle by cycle, the board's credits (items issued and
+    not delivered < ``depth``), the 14 cycles from issue to the array's hand-off
+    (:data:`ISSUE_TO_HANDOFF`) and :class:`blockray.rtl.filtered.ArrayResolve`: its three
+    ``SyncFIFOBuffered`` (0 pending, 1 queue, 2 answers), the server (the queue head's
+    undecided tests one per cycle into the exact unit) and the exact Processor (EXACT_LATENCY).
+    Returns ``lost`` (N,): the cycles lost before each step, and ``marks``: the cycle (counted
+    from the first step) each marker left the array.
     """
-
-    _NOTHING = object()
-
-    def __init__(self, depth):
-        self.pending, self.queue, self.answers = (BufferedFifo(depth) for _ in range(3))
-        self.exact_unit = deque([None] * EXACT_LATENCY)      # the `last` flag of each test fed
-        self.started, self.remaining = False, 0
-
-    def cycle(self, entering=_NOTHING):
-        present = entering is not self._NOTHING
-        # the server: the queue head's tests, one per cycle
-        feeding = self.queue.r_rdy
+    n_steps = len(kinds)
+    lost = np.zeros(n_steps, np.int64)
+    marks = np.full(n_steps, -1, np.int64)
+    n_marks = 0
+    buf = np.zeros((3, depth), np.int64)
+    head, n = np.zeros(3, np.int64), np.zeros(3, np.int64)
+    rdy, rdata = np.zeros(3, np.bool_), np.zeros(3, np.int64)
+    line = np.full(ISSUE_TO_HANDOFF, _NONE, np.int64)          # issue -> hand-off input
+    exact = np.full(EXACT_LATENCY, -1, np.int64)                # `last` of each test fed, -1 none
+    pos = epos = 0
+    started, remaining = False, 0
+    inside = cycle = 0
+    i = 0
+    waiting = False                                             # the step waits for a credit
+    while i < n_steps or inside > 0:
+        item = _NONE
+        if i < n_steps:
+            kind = kinds[i]
+            if kind != STEP_PLAIN and inside >= depth:
+                lost[i] += 1
+                waiting = True
+            else:
+                waiting = False
+                if kind == STEP_RECORD:
+                    item = undecided[i]
+                elif kind == STEP_MARKER:
+                    item = _MARK
+        entering = line[pos]
+        line[pos] = item
+        pos = (pos + 1) % ISSUE_TO_HANDOFF
+        # the server and the pending head, from this cycle's registers
+        feeding = rdy[1]
         last = False
+        current = 0
         if feeding:
-            current = self.remaining if self.started else self.queue.r_data
+            current = remaining if started else rdata[1]
             last = current == 1
-        # out: the pending head, a record with undecided tests with its answers
-        head = self.pending.r_data if self.pending.r_rdy else self._NOTHING
-        needs = head is not self._NOTHING and bool(head)
-        deliver = head is not self._NOTHING and (not needs or self.answers.r_rdy)
+        needs = rdy[0] and rdata[0] > 0
+        deliver = rdy[0] and (not needs or rdy[2])
+        if deliver and rdata[0] == _MARK:
+            marks[n_marks] = cycle
+            n_marks += 1
         # the clock edge
-        leaving = self.exact_unit.popleft()
-        self.exact_unit.append(last if feeding else None)
-        self.pending.step(present, entering, deliver)
-        self.queue.step(present and bool(entering), entering, feeding and last)
-        self.answers.step(bool(leaving), True, deliver and needs)
+        leaving = exact[epos]
+        exact[epos] = (1 if last else 0) if feeding else -1
+        epos = (epos + 1) % EXACT_LATENCY
+        _fifo_step(buf, 0, head, n, rdy, rdata, entering != _NONE, entering, deliver)
+        _fifo_step(buf, 1, head, n, rdy, rdata, entering > 0, entering, feeding and last)
+        _fifo_step(buf, 2, head, n, rdy, rdata, leaving == 1, 1, deliver and needs)
         if feeding:
-            self.started, self.remaining = not last, current - 1
-        return head if deliver else self._NOTHING
-
-    @property
-    def empty(self):
-        return not (self.pending.r_rdy or self.pending.inner)
-
-
-class FilteredBoardClock:
-    """The filtered board's issue slot against its array's credits, cycle by cycle, when the
-    host keeps the command stream full (back to back): every cycle is a board cycle, either a
-    step of the current command or a cycle lost waiting for a credit.
-
-    :meth:`step` is one step of a command: ``needs_credit`` for a VOXEL's issue cycles (also an
-    empty voxel's bubble) and the markers of END_BLOCK, READ_COUNTERS and IDENTIFY; ``item``
-    what it issues (``u``, the record's undecided tests; ``None``, a marker; or nothing). It
-    returns the cycles lost before the step. ``delivered_marks`` lists the cycles the markers
-    left the array.
-    """
-
-    def __init__(self, depth):
-        self.depth = depth
-        self.resolve = ArrayResolveModel(depth)
-        self.line = deque([ArrayResolveModel._NOTHING] * ISSUE_TO_HANDOFF)
-        self.inside = 0
-        self.cycle = 0
-        self.delivered_marks = []
-
-    def _tick(self, item):
-        left = self.resolve.cycle(self.line.popleft())
-        self.line.append(item)
-        issued = item is not ArrayResolveModel._NOTHING
-        if left is not ArrayResolveModel._NOTHING:
-            self.inside -= 1
-            if left is None:
-                self.delivered_marks.append(self.cycle)
-        self.inside += issued
-        self.cycle += 1
-
-    def step(self, needs_credit=False, item=ArrayResolveModel._NOTHING):
-        lost = 0
-        while needs_credit and self.inside >= self.depth:
-            self._tick(ArrayResolveModel._NOTHING)
-            lost += 1
-        self._tick(item)
-        return lost
-
-    def drain(self):
-        """Run (no board cycles) until every item has left the array."""
-        while self.inside:
-            self._tick(ArrayResolveModel._NOTHING)
-
-    record = staticmethod(lambda u: int(u))
-    marker = None
+            started, remaining = not last, current - 1
+        inside += (item != _NONE) - deliver
+        cycle += 1
+        if not waiting:
+            i += 1
+    return lost, marks[:n_marks]
 
 
 def default_array_depth():

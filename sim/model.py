@@ -39,7 +39,7 @@ from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
 from ..filtered import check_cell, default_format, filtered_block
 from . import kernel
-from .filtered_model import FilteredBoardClock, default_array_depth, filtered_timing
+from .filtered_model import STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth, filtered_timing
 
 __all__ = ["ExecResult", "BoardModel", "ModelBoard", "QuantisationWarning", "result_word"]
 
@@ -120,13 +120,15 @@ class BoardModel:
         p, t = self.params, self.timing
         R, S = p.rows, p.cols
         res = ExecResult()
-        clock = FilteredBoardClock(self.depth) if self.cell == "filtered" else None
+        filtered = self.cell == "filtered"
+        kinds, undecided, ends = [], [], []          # the filtered board's steps; each command's last
         for cmd in commands:
             op = cmd.op
             res.starts.append(res.cycles)
             count = 0
-            if clock is not None:
-                res.cycles += self._filtered_steps(clock, cmd)
+            if filtered:
+                self._filtered_steps(cmd, kinds, undecided)
+                ends.append(len(kinds))
             if op is Op.WRITE_PATCH:
                 if not 0 <= cmd.address < p.patch_depth:
                     raise ParameterError(f"patch address {cmd.address} is outside patch memory (patch_depth {p.patch_depth})")
@@ -174,26 +176,41 @@ class BoardModel:
             elif op is Op.IDENTIFY:
                 res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity()))
             res.cycles += t.cost(op, count)
-        if clock is not None:
-            clock.drain()
-            res.marks = clock.delivered_marks
+        if filtered:
+            self._add_lost_cycles(res, commands, kinds, undecided, ends)
         return res
 
-    def _filtered_steps(self, clock, cmd):
-        """Run command ``cmd``'s steps on the filtered board's clock; return the cycles lost
-        waiting for the array's credits (before its steps: they precede a READ_COUNTERS'
-        snapshot)."""
+    def _filtered_steps(self, cmd, kinds, undecided):
+        """Append command ``cmd``'s steps on the filtered board (:func:`board_clock`)."""
         op = cmd.op
         if op is Op.VOXEL:
             self._check_voxel(cmd.voxel)
             start, count = int(self.start[cmd.voxel]), int(self.count[cmd.voxel])
-            if count == 0:
-                return clock.step(True)
-            undecided = self._undecided(start, count)
-            return sum(clock.step(True, int(u)) for u in undecided)
-        if op in (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY):
-            return clock.step(True, None)
-        return clock.step(False)
+            u = self._undecided(start, count)
+            kinds += [STEP_RECORD] * count if count else [STEP_BUBBLE]
+            undecided += list(u) if count else [0]
+        elif op in (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY):
+            kinds.append(STEP_MARKER)
+            undecided.append(0)
+        else:
+            kinds.append(STEP_PLAIN)
+            undecided.append(0)
+
+    def _add_lost_cycles(self, res, commands, kinds, undecided, ends):
+        """The cycles lost waiting for the filtered array's credits: in the total, in each
+        command's start and in each READ_COUNTERS snapshot (its own wait included: it precedes
+        the snapshot)."""
+        lost, res.marks = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
+                                      self.depth)
+        before = np.concatenate([[0], np.cumsum(lost)])
+        snapshots = iter(res.counters)
+        begin = 0
+        for i, (cmd, end) in enumerate(zip(commands, ends)):
+            res.starts[i] += int(before[begin])
+            if cmd.op is Op.READ_COUNTERS:
+                next(snapshots)["cycles"] += int(before[begin + 1])
+            begin = end
+        res.cycles += int(before[-1])
 
     def _undecided(self, start, count):
         """(count,) the undecided tests of each record of the loaded rows and columns (what the
