@@ -34,7 +34,7 @@ from ..errors import ParameterError
 from ..fixedpoint import DEFAULT_MAX_ERROR
 from ..memory import BoardMemories, QuantisationWarning, check_partition, quantise, ranges
 from ..params import BoardParams
-from ..protocol import BoardProtocol, BoardResult, Op, ResultKind
+from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKind
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
 from ..filtered import check_cell, default_format, filtered_block
@@ -244,9 +244,13 @@ class ModelBoard(CountingBoard):
 
     name = "model"
 
-    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal"):
+    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal",
+                 cell="exact", filter_format=None, depth=None):
         self.params = params or BoardParams()
         self.bits = bits
+        self.cell = check_cell(cell)
+        self._filter_format = filter_format
+        self.depth = depth or default_array_depth()
         self.partition = check_partition(partition)
         self.max_error = max_error
         self._timing = timing
@@ -263,7 +267,11 @@ class ModelBoard(CountingBoard):
         self.quantised = q
         self.samples = samples
         self.params = self.params.with_(bits=q.bits)
-        self.timing = self._timing or BoardTiming.for_bits(q.bits)
+        if self.cell == "filtered":
+            self.filter_format = self._filter_format or default_format(q.bits)
+            self.timing = self._timing or filtered_timing(q.bits)
+        else:
+            self.timing = self._timing or BoardTiming.for_bits(q.bits)
         self.memories = None
         self._reset_counters()
 
@@ -297,13 +305,35 @@ class ModelBoard(CountingBoard):
             q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
             batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, batch.ray_off)
-        # cycles and counters depend on the records streamed only, never on the tests' results
-        self._add_batch(self.timing.blocks_cycles(Rb, Sb, streamed).sum(axis=0))
+        cycles = self.timing.blocks_cycles(Rb, Sb, streamed)
+        if self.cell == "filtered":
+            self._add_filtered_batch(batch, cycles)
+        else:
+            # cycles and counters depend on the records streamed only, never on the tests' results
+            self._add_batch(cycles.sum(axis=0))
         self._issued_b += p.processors * records.sum(axis=0)
         self._useful_b += ((Rb * Sb)[:, None] * records).sum(axis=0)
         self._blocks += len(batch)
         self._rays += int((Rb * Sb).sum())
         return BlockBits(bits, Rb, Sb)
+
+    def _add_filtered_batch(self, batch, cycles):
+        """The filtered board's cycles of a batch: each board's command stream on its clock
+        (:func:`~blockray.sim.filtered_model.board_clock`: cycles lost waiting for the array's
+        credits, when its last result leaves the array), from every record's undecided tests."""
+        q, f = self.quantised, self.filter_format
+        loads = -(-(batch.rows + batch.cols) // POINTS_PER_LOAD)
+        step_off = np.vstack([np.zeros((1, cycles.shape[1]), np.int64), np.cumsum(cycles, axis=0)])
+        kinds, undecided = kernel.filtered_steps(
+            q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
+            batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
+            self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off)
+        total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
+        for b, steps in enumerate(step_off[-1]):
+            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth)
+            total[b] += lost.sum()
+            finish[b] = marks[-1] + 1 if len(marks) else 0
+        self._add_batch(total, finish=finish)
 
     # -- the model of each board ----------------------------------------------------------------------
 
@@ -311,6 +341,7 @@ class ModelBoard(CountingBoard):
         """A :class:`BoardModel` whose memories hold board ``board``'s partition (bulk-loaded)."""
         m = self.memories[board]
         q = self.quantised
-        bm = BoardModel(self.params, self.timing)
+        bm = BoardModel(self.params, self.timing, cell=self.cell, filter_format=getattr(self, "filter_format", None),
+                        depth=self.depth)
         bm.load_memory(q.vertices[m["patch"]], q.normals[m["patch"]], m["start"], m["count"])
         return bm

@@ -24,7 +24,7 @@ from blockray.rtl.board import BoardTop
 from blockray.rtl.filtered import FilteredArray
 from blockray.sim.drive import amaranth_cycle
 from blockray.sim.filtered_model import default_array_depth, filtered_timing
-from blockray.sim.model import BoardModel
+from blockray.sim.model import BoardModel, ModelBoard
 
 from board_host import BatchRun, check_run
 from test_board_sim import make_batch
@@ -84,3 +84,41 @@ def test_filtered_board_latencies_and_parameters():
         BoardTop(params, cell="fast")
     with pytest.raises(ParameterError, match="cell"):
         BoardModel(params, cell="fast")
+
+
+@pytest.mark.parametrize("fmt", [FilterFormat(3, 3), FilterFormat(6, 8)])
+def test_model_board_equals_command_streams(fmt):
+    """ModelBoard(cell="filtered") gathers a batch at once (compiled: the undecided tests of every
+    record, each board's clock); it equals each board's command stream run through
+    BoardModel(cell="filtered"): bits, cycles per board and the batch's finish; its bits equal
+    the exact cell's."""
+    from blockray.samples import SampleScheme
+    from test_model import BoxGrid, random_blocks, random_scene
+
+    samples = SampleScheme(8)
+    scene = random_scene(5)
+    boards = {}
+    for cell in ("exact", "filtered"):
+        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3), partition="deal", cell=cell, filter_format=fmt)
+        board.prepare(scene, samples)
+        grid = BoxGrid(scene.patch_vertices, 3, margin=board.margin)
+        board.load(grid)
+        rng = np.random.default_rng(6)
+        blocks = random_blocks(rng, scene, samples, board.params, 12, len(grid.voxel_patches))
+        boards[cell] = (board, board.run(blocks))
+    board, bits = boards["filtered"]
+    np.testing.assert_array_equal(bits.flat, boards["exact"][1].flat)
+    c = board.counters()
+    stream = [cmd for b in blocks for cmd in board.memory.block_commands(b)]
+    finish = 0
+    for b in range(board.params.boards):
+        res = board.board_model(b).execute(stream)
+        assert res.cycles == c["board_cycles_per_board"][b]
+        assert res.tests_issued == c["tests_issued_per_board"][b]
+        finish = max(finish, res.marks[-1] + 1)
+    assert c["board_cycles"] == finish
+    lost = c["board_cycles"] - boards["exact"][0].counters()["board_cycles"]
+    print(f"{fmt}: board_cycles exact cell {boards['exact'][0].counters()['board_cycles']}, filtered "
+          f"{c['board_cycles']}")
+    if fmt == FilterFormat(3, 3):
+        assert lost > 0
