@@ -21,12 +21,10 @@ from numba import njit
 
 from ..exact import blocked_block
 from ..filtered import default_format, filtered_tests
-from ..params import Widths
-from ..timing import BoardTiming
 
 __all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY",
            "board_clock", "STEP_PLAIN", "STEP_BUBBLE", "STEP_RECORD", "STEP_MARKER", "default_array_depth",
-           "filtered_timing", "ISSUE_TO_HANDOFF"]
+           "ISSUE_TO_HANDOFF"]
 
 #: cycles from a test's acceptance to the hand-off's input: units 4, filters 3, filtered cell 5
 DATAPATH_LATENCY = 12
@@ -232,10 +230,3 @@ def default_array_depth():
     """The filtered board's array credits (:meth:`blockray.rtl.filtered.FilteredArray.default_depth`
     with the board's memory latency): issue to delivery, 16 cycles, and 4."""
     return ISSUE_TO_HANDOFF + 2 + 4
-
-
-def filtered_timing(bits):
-    """The filtered board's fixed latencies as a BoardTiming (processor_latency: array input to
-    the accumulators when no test waits, 15); its data-dependent cycles come on top."""
-    Widths(bits)
-    return BoardTiming(processor_latency=DATAPATH_LATENCY + 3)

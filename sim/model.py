@@ -39,7 +39,7 @@ from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
 from ..filtered import check_cell, default_format, filtered_block
 from . import kernel
-from .filtered_model import STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth, filtered_timing
+from .filtered_model import STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
 __all__ = ["ExecResult", "BoardModel", "ModelBoard", "QuantisationWarning", "result_word"]
 
@@ -84,7 +84,7 @@ class BoardModel:
         if cell == "filtered":
             self.filter_format = filter_format or default_format(params.bits)
             self.depth = depth or default_array_depth()
-            self.timing = timing or filtered_timing(params.bits)
+            self.timing = timing or BoardTiming.for_bits(params.bits, cell="filtered")
         else:
             self.timing = timing or BoardTiming.for_bits(params.bits)
         self.layout = patch_layout(params.bits)
@@ -269,7 +269,7 @@ class ModelBoard(CountingBoard):
         self.params = self.params.with_(bits=q.bits)
         if self.cell == "filtered":
             self.filter_format = self._filter_format or default_format(q.bits)
-            self.timing = self._timing or filtered_timing(q.bits)
+            self.timing = self._timing or BoardTiming.for_bits(q.bits, cell="filtered")
         else:
             self.timing = self._timing or BoardTiming.for_bits(q.bits)
         self.memories = None
