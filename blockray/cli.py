@@ -313,9 +313,8 @@ def _add_fabric_option(p):
 def _add_cell_option(p, render=False):
     p.add_argument("--cell", default="exact", metavar="exact|filtered",
                    help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
-                        "tests to an exact unit shared by the array; " +
-                        ("--board model, model-link, amaranth, verilator)" if render else
-                         "processor and cell units only, so far)"))
+                        "tests to an exact unit shared by the array" +
+                        ("; --board model, model-link, amaranth, verilator)" if render else ")"))
     p.add_argument("--filter-bits", default=None, metavar="D[:W]",
                    help="with --cell filtered: mantissa bits of P - V_k and of w_k (2 to 18; default "
                         "B+1:18, i.e. d exact); one number sets both")
