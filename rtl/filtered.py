@@ -365,10 +365,13 @@ class ArrayResolve(wiring.Component):
 
     In order because the queue, the server, the Processor and the answers are in order. Every
     FIFO has ``depth`` entries; the owner's credits keep at most ``depth`` items inside.
+    ``exact_unit``: a factory of the exact unit (default ``Processor(bits)``; the formal harness
+    gives a stand-in with its ports and latency).
     """
 
-    def __init__(self, bits, rows, cols, mark_shape, depth):
+    def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
         self._bits, self._rows, self._cols, self._depth = bits, rows, cols, depth
+        self._exact_unit = exact_unit or (lambda: Processor(bits))
         self._mark_shape = mark_shape
         self._terms = data.StructLayout({
             "shooters": data.ArrayLayout(shooter_terms_layout(bits), cols),
@@ -389,7 +392,7 @@ class ArrayResolve(wiring.Component):
         m.submodules.pending = pending = SyncFIFOBuffered(width=item_layout.size, depth=self._depth)
         m.submodules.queue = queue = SyncFIFOBuffered(width=queued.size, depth=self._depth)
         m.submodules.answers = answers = SyncFIFOBuffered(width=RS, depth=self._depth)
-        m.submodules.exact = exact = Processor(self._bits)
+        m.submodules.exact = exact = self._exact_unit()
 
         # in: every item to pending, a record with undecided tests to the queue
         entry = Signal(queued)
