@@ -306,8 +306,9 @@ def _add_unit_options(p):
 def _add_fabric_option(p):
     p.add_argument("--fabric-units", type=_unit_list, default=(), metavar="UNIT[,UNIT]",
                    help="with --target ecp5: the array-edge units whose products are LUT multipliers instead "
-                        "of DSPs (shooter: the column units, receiver: the row units), for arrays whose DSP "
-                        "rows are too full to route; default none")
+                        "of DSPs (shooter: the column units, receiver: the row units, cell: the cells, exact: "
+                        "the filtered array's shared exact unit), for arrays whose DSP rows are too full to "
+                        "route; default none")
 
 
 def _add_cell_option(p, render=False):

@@ -305,7 +305,7 @@ class FilteredIntersector(wiring.Component):
         m.submodules.cell = cell = FilteredProcessor(self._fmt)
         operands = data.StructLayout({"shooter": shooter_terms_layout(bits), "receiver": receiver_terms_layout(bits)})
         m.submodules.handoff = handoff = InOrderResolve(operands, self._depth)
-        m.submodules.exact = exact = Processor(bits)
+        m.submodules.exact = exact = Processor(bits, unit="exact")
 
         accept = self.i.valid & self.i.ready
         deliver = self.o.valid & self.o.ready
@@ -371,7 +371,7 @@ class ArrayResolve(wiring.Component):
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
         self._bits, self._rows, self._cols, self._depth = bits, rows, cols, depth
-        self._exact_unit = exact_unit or (lambda: Processor(bits))
+        self._exact_unit = exact_unit or (lambda: Processor(bits, unit="exact"))
         self._mark_shape = mark_shape
         self._terms = data.StructLayout({
             "shooters": data.ArrayLayout(shooter_terms_layout(bits), cols),
