@@ -1,4 +1,9 @@
-"""Cycle-exact model of the 1 x 1 filtered array (:class:`blockray.rtl.filtered.FilteredIntersector`).
+"""Cycle-exact models of the filtered arrays: the 1 x 1 array
+(:class:`blockray.rtl.filtered.FilteredIntersector`, :class:`FilteredIntersectorModel`) and the
+board's R x S array with its shared exact unit (:class:`blockray.rtl.filtered.ArrayResolve`
+behind the board's credits, :func:`board_clock`, compiled; used by
+:class:`blockray.sim.model.BoardModel` and :class:`~blockray.sim.model.ModelBoard` with
+``cell="filtered"``).
 
 The answers come from :mod:`blockray.filtered` (the filter, bit for bit) and
 :func:`blockray.exact.blocked_block` (the exact unit); the timing from a cycle-by-cycle mirror of
