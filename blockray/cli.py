@@ -162,6 +162,7 @@ def _render_parser(sub):
     p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
                    help="host cores the compiled kernels use (default: all); the result does not depend on it")
     _add_board_options(p)
+    _add_cell_option(p, render=True)
     _add_input_options(p)
     _add_link_options(p)
     out = p.add_argument_group("output")
@@ -266,7 +267,7 @@ def _cmd_render(args):
                     partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
                     threads=args.threads, scheduler=args.scheduler, workers=args.workers,
                     echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
-                    host=_host_timing(args))
+                    host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args))
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
@@ -305,14 +306,16 @@ def _add_unit_options(p):
 def _add_fabric_option(p):
     p.add_argument("--fabric-units", type=_unit_list, default=(), metavar="UNIT[,UNIT]",
                    help="with --target ecp5: the array-edge units whose products are LUT multipliers instead "
-                        "of DSPs (shooter: the column units, receiver: the row units), for arrays whose DSP "
-                        "rows are too full to route; default none")
+                        "of DSPs (shooter: the column units, receiver: the row units, cell: the cells, exact: "
+                        "the filtered array's shared exact unit), for arrays whose DSP rows are too full to "
+                        "route; default none")
 
 
-def _add_cell_option(p):
+def _add_cell_option(p, render=False):
     p.add_argument("--cell", default="exact", metavar="exact|filtered",
                    help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
-                        "tests to an exact unit; processor and cell units only, so far)")
+                        "tests to an exact unit shared by the array" +
+                        ("; --board model, model-link, amaranth, verilator)" if render else ")"))
     p.add_argument("--filter-bits", default=None, metavar="D[:W]",
                    help="with --cell filtered: mantissa bits of P - V_k and of w_k (2 to 18; default "
                         "B+1:18, i.e. d exact); one number sets both")
@@ -329,6 +332,14 @@ def _filter_format(text):
         raise ParameterError(f"--filter-bits must be D or D:W (integers), not {text!r}")
     bits = [int(p) for p in parts]
     return _naming_option(lambda: FilterFormat(bits[0], bits[-1]))
+
+
+def _render_filter_format(args):
+    from .errors import ParameterError
+    fmt = _filter_format(args.filter_bits)
+    if fmt is not None and args.cell != "filtered":
+        raise ParameterError("--filter-bits sets the filtered cell's format; it needs --cell filtered")
+    return fmt
 
 
 def _unit_list(text):

@@ -45,7 +45,24 @@ from .errors import ParameterError
 from .exact import edge_terms, plane_sides, vertex_terms
 
 __all__ = ["FilterFormat", "MAX_FILTER_BITS", "MIN_FILTER_BITS", "truncate", "shooter_filter_terms",
-           "receiver_filter_terms", "cell_certificates", "filter_decision", "filtered_block", "filtered_tests"]
+           "receiver_filter_terms", "cell_certificates", "filter_decision", "filtered_block", "filtered_tests",
+           "CELLS", "check_cell", "default_format"]
+
+#: a board's processor cell: the exact one, or the filtered cell with an exact unit shared by the array
+CELLS = ("exact", "filtered")
+
+
+def check_cell(cell):
+    """``cell`` if it names one of :data:`CELLS`, else a ParameterError naming ``cell``."""
+    if cell not in CELLS:
+        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
+    return cell
+
+
+def default_format(bits):
+    """The filtered cell's default format at B = ``bits``: d_k exact (B + 1 bits, at most 18)
+    and w_k at 18 bits, one MULT18X18D per product."""
+    return FilterFormat(min(bits + 1, 18), 18)
 
 #: mantissa widths: at most one signed MULT18X18D operand; at least a sign and one bit
 MIN_FILTER_BITS, MAX_FILTER_BITS = 2, 18

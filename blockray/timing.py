@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ParameterError
+from .filtered import check_cell
 from .params import Widths
 from .protocol import POINTS_PER_LOAD, Op
 
@@ -49,6 +50,9 @@ def load_commands_needed(receivers, shooters):
 MEMORY_LATENCY = 2      # patch-memory read + broadcast register
 UNIT_LATENCY = 4        # ShooterUnit / ReceiverUnit
 CELL_LATENCY = 4        # Processor (cell), including the OR into the accumulator
+#: the filtered array (rtl/filtered.py FilteredArray) when no test of a record waits for its exact
+#: unit: units 4, filters 3, filtered cell 5, the in-order hand-off's FIFO 2, the accumulator 1
+FILTERED_LATENCY = 15
 
 
 @dataclass(frozen=True)
@@ -71,7 +75,7 @@ class BoardTiming:
                 raise ParameterError(f"timing parameter {name} must be a non-negative integer, not {v!r}")
 
     @classmethod
-    def for_bits(cls, bits, *, memory_latency=MEMORY_LATENCY):
+    def for_bits(cls, bits, *, memory_latency=MEMORY_LATENCY, cell="exact"):
         """The latencies of the RTL (:class:`blockray.rtl.board.BoardTop`) for B coordinate bits.
 
         memory_latency 2: patch-memory read (1) + the broadcast register that fans the record out
@@ -80,8 +84,14 @@ class BoardTiming:
         partial products, partial sums, the joined sum with the decision and OR). Both are
         independent of B at B <= 20 (every multiplier is one pipeline stage); a test asserts them
         against the RTL's properties.
+
+        ``cell="filtered"``: the filtered array's least latency (:data:`FILTERED_LATENCY`); its
+        data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
+        array's credits run out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
         """
         Widths(bits)
+        if check_cell(cell) == "filtered":
+            return cls(processor_latency=FILTERED_LATENCY, memory_latency=memory_latency)
         return cls(processor_latency=UNIT_LATENCY + CELL_LATENCY, memory_latency=memory_latency)
 
     @property

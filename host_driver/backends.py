@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from ..errors import ParameterError
+from ..filtered import CELLS as _CELLS, check_cell
 
 __all__ = ["Backend", "BACKENDS", "register", "backend", "make_board"]
 
@@ -19,13 +20,15 @@ __all__ = ["Backend", "BACKENDS", "register", "backend", "make_board"]
 class Backend:
     """``name``; ``help`` (one phrase for ``--board``); ``factory``; ``quantises``: the board
     quantises the scene (``--bits``, ``--partition`` apply); ``waveform``: it can write ``--vcd``;
-    ``host_timing``: it takes random host idle / back-pressure (``--link-*``)."""
+    ``host_timing``: it takes random host idle / back-pressure (``--link-*``); ``cells``: the
+    processor cells it can be built with (``--cell``)."""
     name: str
     help: str
     factory: Callable
     quantises: bool = True
     waveform: bool = False
     host_timing: bool = False
+    cells: tuple = ("exact",)
 
 
 BACKENDS = {}
@@ -47,12 +50,20 @@ def backend(name):
                              parameter="board") from None
 
 
-def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host=None):
+def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host=None, cell="exact",
+               filter_format=None):
     """Build back-end ``name``. ``bits=None`` lets the board choose B for the scene; ``vcd`` (a
     path) a waveform of a simulated board (board b > 0 writes ``FILE.b``); ``host``: the host's
     timing on a simulated board's link: ``(idle, backpressure, seed)``, two
-    :class:`blockray.sim.drive.HostTiming` and a seed."""
+    :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor cell,
+    ``"exact"`` or ``"filtered"`` (``filter_format``: its :class:`~blockray.filtered.FilterFormat`,
+    default :func:`~blockray.filtered.default_format`); the back-ends that build the board's
+    model or RTL take both."""
     entry = backend(name)
+    if check_cell(cell) not in entry.cells:
+        able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
+        raise ParameterError(f"--cell {cell} needs a board built with that cell (--board {able}), not {name!r}",
+                             parameter="cell")
     if not entry.quantises and partition != "deal":
         raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene",
                              parameter="partition")
@@ -63,6 +74,9 @@ def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host
         able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
         raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
                              f"by cycle (--board {able}), not {name!r}")
+    if cell != "exact" or filter_format is not None:
+        return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host, cell=cell,
+                             filter_format=filter_format)
     return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host)
 
 
@@ -75,43 +89,43 @@ def _golden(params, *, bits, partition, vcd, host):
     return GoldenBoard()
 
 
-def _model(params, *, bits, partition, vcd, host):
+def _model(params, *, bits, partition, vcd, host, cell="exact", filter_format=None):
     from ..sim.model import ModelBoard
-    return ModelBoard(params, bits=bits, partition=partition)
+    return ModelBoard(params, bits=bits, partition=partition, cell=cell, filter_format=filter_format)
 
 
 def _driven(name, open_transport):
-    def factory(params, *, bits, partition, vcd, host):
+    def factory(params, *, bits, partition, vcd, host, **cell):
         from .driver import BoardDriver
-        return BoardDriver(params, bits=bits, partition=partition, name=name,
-                           transport=lambda p, b: open_transport(p, b, vcd=_wave(vcd, b), host=host))
+        return BoardDriver(params, bits=bits, partition=partition, name=name, cell=cell.get("cell", "exact"),
+                           transport=lambda p, b: open_transport(p, b, vcd=_wave(vcd, b), host=host, **cell))
     return factory
 
 
-def _amaranth(p, b, *, vcd, host):
+def _amaranth(p, b, *, vcd, host, **cell):
     from .simulated import AmaranthTransport
     idle, backpressure, seed = host or (None, None, 0)
-    return AmaranthTransport(p, vcd=vcd, idle=idle, backpressure=backpressure, seed=seed * 1000 + b)
+    return AmaranthTransport(p, vcd=vcd, idle=idle, backpressure=backpressure, seed=seed * 1000 + b, **cell)
 
 
-def _verilator(p, b, *, vcd, host):
+def _verilator(p, b, *, vcd, host, **cell):
     from .simulated import VerilatorTransport
-    return VerilatorTransport(p, vcd=vcd)
+    return VerilatorTransport(p, vcd=vcd, **cell)
 
 
-def _model_link(p, b, *, vcd, host):
+def _model_link(p, b, *, vcd, host, **cell):
     from .simulated import ModelTransport
-    return ModelTransport(p)
+    return ModelTransport(p, **cell)
 
 
 register(Backend("golden", "exact reference on the float scene", _golden, quantises=False))
-register(Backend("model", "bit-exact model of the hardware; default", _model))
+register(Backend("model", "bit-exact model of the hardware; default", _model, cells=_CELLS))
 register(Backend("model-link", "the host driver and the board's byte link answered by the bit-exact model "
-                 "(no RTL; link traffic)", _driven("model-link", _model_link)))
+                 "(no RTL; link traffic)", _driven("model-link", _model_link), cells=_CELLS))
 register(Backend("amaranth", "the board's RTL in the Amaranth simulator: small scenes, debugging",
-                 _driven("amaranth", _amaranth), waveform=True, host_timing=True))
+                 _driven("amaranth", _amaranth), waveform=True, host_timing=True, cells=_CELLS))
 register(Backend("verilator", "the board's Verilog under Verilator + cocotb; builds once per design, cached",
-                 _driven("verilator", _verilator), waveform=True))
+                 _driven("verilator", _verilator), waveform=True, cells=_CELLS))
 
 
 def _ulx3s_sim(p, b, *, vcd, host):

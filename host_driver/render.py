@@ -44,11 +44,12 @@ class RenderResult:
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
-           stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None, host=None):
+           stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None, host=None,
+           cell="exact", filter_format=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     ``board``: a name of the back-end registry (host_driver/backends.py) or a Board; ``vcd``,
-    ``host``: see :func:`~blockray.host_driver.backends.make_board`.
+    ``host``, ``cell``, ``filter_format``: see :func:`~blockray.host_driver.backends.make_board`.
 
     ``threads``: cores the compiled host kernels use (None: all, see
     :mod:`blockray.threads`); the result does not depend on it.
@@ -65,11 +66,13 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                        solver=solver, tolerance=tolerance, max_shots=max_shots, max_iterations=max_iterations,
                        traversal=traversal, packing=packing, partition=partition, sets=sets,
                        progress=progress, stats_fraction=stats_fraction, vcd=vcd,
-                       scheduler=scheduler, workers=workers, echo=echo, host=host)
+                       scheduler=scheduler, workers=workers, echo=echo, host=host, cell=cell,
+                       filter_format=filter_format)
 
 
 def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
-            traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo, host):
+            traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo, host,
+            cell, filter_format):
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     if not (np.isfinite(tolerance) and tolerance > 0):
@@ -90,6 +93,9 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         if host is not None:
             raise ParameterError("--link-idle / --link-backpressure / --link-bursts drive one simulated board; "
                                  "they cannot be used with --sets, --scheduler or --workers", parameter="sets")
+        if cell != "exact":
+            raise ParameterError("--cell filtered runs one set (not with --sets, --scheduler or --workers)",
+                                 parameter="cell")
         if scheduler is not None and workers is not None:
             raise ParameterError("--workers sizes the local cluster; a cluster joined with --scheduler has its own "
                                  "workers", parameter="workers")
@@ -99,7 +105,8 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
     phases = Phases()
     t_start, c_start = time.perf_counter(), time.process_time()
-    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition, host=host)
+    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition, host=host, cell=cell,
+                            filter_format=filter_format)
                  if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
 

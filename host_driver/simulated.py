@@ -46,7 +46,8 @@ class AmaranthTransport(_Buffered):
     command and result byte streams; ``seed`` seeds them. ``vcd``: write a waveform.
     ``max_cycles``: clock cycles without progress after which :meth:`recv` gives up."""
 
-    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, max_cycles=None):
+    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, max_cycles=None, cell="exact",
+                 filter_format=None):
         from amaranth.hdl import ClockDomain, Module
         from amaranth.sim import Simulator
         from ..rtl.core import BoardCore
@@ -54,7 +55,7 @@ class AmaranthTransport(_Buffered):
 
         super().__init__(vcd=vcd)
         self.params = params
-        self.core = core = BoardCore(params)
+        self.core = core = BoardCore(params, cell=cell, filter_format=filter_format)
         m = Module()
         m.domains.sync = self._cd = ClockDomain()
         m.submodules.core = core
@@ -133,7 +134,8 @@ class VerilatorTransport(_Buffered):
     pauses between them: stalls, not board cycles). ``vcd``: build with ``--trace`` and write a
     waveform (short runs only)."""
 
-    def __init__(self, params, *, vcd=None, depth=None, startup_timeout=600, build_args=None):
+    def __init__(self, params, *, vcd=None, depth=None, startup_timeout=600, build_args=None, cell="exact",
+                 filter_format=None):
         from ..sim.rtl_harness import BUILD_ARGS, DEFAULT_DEPTH, HarnessProcess, build_harness
 
         super().__init__(vcd=vcd)
@@ -141,7 +143,7 @@ class VerilatorTransport(_Buffered):
         self.depth = depth or DEFAULT_DEPTH
         t0 = time.perf_counter()
         self.build = build_harness(params, 1, depth=self.depth, trace=vcd is not None,
-                                   build_args=build_args or BUILD_ARGS)
+                                   build_args=build_args or BUILD_ARGS, cell=cell, filter_format=filter_format)
         self.build_seconds = time.perf_counter() - t0
         self.workdir = Path(tempfile.mkdtemp(prefix="blockray_rtl_"))
         t0 = time.perf_counter()
@@ -218,7 +220,9 @@ class ModelTransport(_Buffered):
     Counter snapshots are cumulative since the last reset, as the board's; ``stalls`` is 0 (the
     model has no host timing)."""
 
-    def __init__(self, params, *, vcd=None):
+    def __init__(self, params, *, vcd=None, cell="exact", filter_format=None):
+        import functools
+
         from ..protocol import BoardProtocol
         from ..sim.model import BoardModel
 
@@ -227,7 +231,7 @@ class ModelTransport(_Buffered):
         super().__init__()
         self.params = params
         self.protocol = BoardProtocol(params)
-        self._model = BoardModel
+        self._model = functools.partial(BoardModel, cell=cell, filter_format=filter_format)
         self._out = bytearray()
         self.reset()
 

@@ -50,7 +50,9 @@ from ..params import BoardParams
 from ..records import point_layout
 from ..protocol import POINTS_PER_LOAD, BoardProtocol, Op, ResultKind
 from ..timing import BoardTiming
+from ..filtered import check_cell, default_format
 from .array import ProcessorArray
+from .filtered import FilteredArray
 from .memctrl import MemoryController
 from .processor import ArrayTiming
 
@@ -82,10 +84,13 @@ class BoardTop(wiring.Component):
                   the other stream.
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=()):
+    def __init__(self, params, *, patch_init=(), table_init=(), cell="exact", filter_format=None, depth=None):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
+        self._cell = check_cell(cell)
+        self._filter_format = filter_format if filter_format is not None else default_format(params.bits)
+        self._depth = depth if depth is not None else FilteredArray.default_depth(MemoryController.latency)
         self._params = params
         self._protocol = BoardProtocol(params)
         self._patch_init, self._table_init = patch_init, table_init
@@ -105,13 +110,32 @@ class BoardTop(wiring.Component):
         return self._protocol
 
     @property
+    def cell(self):
+        """``"exact"`` or ``"filtered"``: the array's cell."""
+        return self._cell
+
+    @property
+    def filter_format(self):
+        """The filtered cell's :class:`~blockray.filtered.FilterFormat` (used when ``cell`` is
+        ``"filtered"``)."""
+        return self._filter_format
+
+    @property
+    def array_depth(self):
+        """The filtered array's credits: items (records and markers) issued and not delivered."""
+        return self._depth
+
+    @property
     def memory_latency(self):
         """Cycles from a record's issue to the array's input (memory read + broadcast register)."""
         return MemoryController.latency
 
     @property
     def processor_latency(self):
-        """Cycles from the array's input to the accumulators."""
+        """Cycles from the array's input to the accumulators (the filtered array's least: a
+        record with no undecided test, to its delivery and the accumulator's register)."""
+        if self._cell == "filtered":
+            return FilteredArray.latency + 3
         return self._array_timing.latency
 
     @property
@@ -130,6 +154,8 @@ class BoardTop(wiring.Component):
         """Results that may be in flight or queued at once (markers plus the result FIFO). One
         more than a result every cycle for drain_latency + 2 cycles needs, so a host that reads
         at once never stalls the board."""
+        if self._cell == "filtered":     # markers wait in the array: as many as its credits
+            return max(self.drain_latency, self._depth) + 3
         return self.drain_latency + 3
 
     @property
@@ -141,8 +167,17 @@ class BoardTop(wiring.Component):
         p, proto = self._params, self._protocol
         R, S = p.rows, p.cols
         m.submodules.memctrl = mc = MemoryController(p, patch_init=self._patch_init, table_init=self._table_init)
-        m.submodules.array = array = ProcessorArray(p.bits, R, S)
-        assert mc.latency == self.memory_latency and array.latency == self.processor_latency
+        marker_layout = data.StructLayout({
+            "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
+        })
+        filtered = self._cell == "filtered"
+        if filtered:
+            m.submodules.array = array = FilteredArray(p.bits, R, S, fmt=self._filter_format, depth=self._depth,
+                                                       mark_shape=marker_layout)
+        else:
+            m.submodules.array = array = ProcessorArray(p.bits, R, S)
+            assert array.latency == self.processor_latency
+        assert mc.latency == self.memory_latency
 
         # -- fetch: the head of the command stream goes to the free execute slot ---------------
         cur = Signal(proto.command_layout)
@@ -167,13 +202,10 @@ class BoardTop(wiring.Component):
         # block's last record through the pipeline as a marker (drain_latency registers), so the
         # next block streams while this one drains. Credits bound the results in flight plus
         # those queued, so a host that does not read results stalls the board, never loses one.
-        marker_layout = data.StructLayout({
-            "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
-        })
         queue_depth = self.result_queue_depth
         m.submodules.results = results = SyncFIFOBuffered(width=proto.result_layout.size, depth=queue_depth)
         m.submodules.snapshots = snapshots = SyncFIFO(width=proto.counters_layout.size,
-                                                      depth=self.drain_latency + 1)
+                                                      depth=queue_depth if filtered else self.drain_latency + 1)
         outstanding = Signal(range(queue_depth + 1))
         credit = outstanding < queue_depth
         marker = Signal(marker_layout)
@@ -189,8 +221,18 @@ class BoardTop(wiring.Component):
         # READ_COUNTERS wait (stall) for a result credit
         op = cur.op
         needs_result = (op == Op.END_BLOCK) | (op == Op.READ_COUNTERS) | (op == Op.IDENTIFY)
+        # the filtered array's credits: records and markers issued and not yet delivered (it
+        # delivers in order and late when tests wait for the exact unit); without a credit the
+        # issue slot and the markers wait: cycles lost, counted as board cycles
+        array_credit = Signal(init=1)
+        lost = Signal()
+        if filtered:
+            inside = Signal(range(self._depth + 1))
+            m.d.comb += [array_credit.eq(inside < self._depth), mc.enable.eq(array_credit),
+                         lost.eq(~array_credit & (~mc.free | (cur_valid & needs_result)))]
+            m.d.sync += inside.eq(inside + (mc.issue | (cur_step & needs_result)) - array.delivered)
         m.d.comb += [
-            cur_step.eq(cur_valid & (~needs_result | credit)),
+            cur_step.eq(cur_valid & (~needs_result | (credit & array_credit))),
             cur_done.eq(cur_step),
         ]
 
@@ -260,10 +302,17 @@ class BoardTop(wiring.Component):
             array.receivers.eq(receivers),
             array.shooters.eq(shooters),
         ]
+        if filtered:        # the masks and markers as seen by the records issued with them
+            m.d.comb += [
+                array.row_mask.eq(_delay(m, row_valid, self.memory_latency, "row_mask")),
+                array.col_mask.eq(_delay(m, col_valid, self.memory_latency, "col_mask")),
+                array.mark.eq(_delay(m, marker.valid, self.memory_latency, "mark")),
+                array.mark_data.eq(_delay(m, marker, self.memory_latency, "mark_data")),
+            ]
 
         # -- counters ----------------------------------------------------------------------------
         counters = Signal(proto.counters_layout)
-        work = cur_step | mc.step
+        work = cur_step | mc.step | lost
         useful = _popcount(row_valid) * _popcount(col_valid)
         m.d.sync += [
             counters.cycles.eq(counters.cycles + work),
@@ -289,7 +338,11 @@ class BoardTop(wiring.Component):
             snapshots.w_en.eq(marker.valid & marker.counters),
             snapshots.w_data.eq(counters),
         ]
-        done = _delay(m, marker, self.drain_latency, "marker")
+        if filtered:        # markers leave the array in order, after every record before them
+            done = Signal(marker_layout)
+            m.d.comb += [done.eq(array.mark_data_out), done.valid.eq(array.mark_out)]
+        else:
+            done = _delay(m, marker, self.drain_latency, "marker")
         mask = Cat(done.rows[r] & done.cols[s] for r in range(R) for s in range(S))
         result = Signal(proto.result_layout)
         with m.If(done.counters):

@@ -39,10 +39,11 @@ class BoardCore(wiring.Component):
     latencies are this core's).
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=()):
+    def __init__(self, params, *, patch_init=(), table_init=(), cell="exact", filter_format=None):
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
-        self.board = BoardTop(params, patch_init=patch_init, table_init=table_init)
+        self.board = BoardTop(params, patch_init=patch_init, table_init=table_init, cell=cell,
+                              filter_format=filter_format)
         super().__init__({
             "i_bytes": In(stream.Signature(8)),
             "o_bytes": Out(stream.Signature(8)),

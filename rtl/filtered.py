@@ -15,19 +15,20 @@ terms go through a queue to an exact :class:`~blockray.rtl.processor.Processor`,
 leave in input order, always equal to the exact predicate's.
 """
 
-from amaranth.hdl import Module, Mux, Shape, Signal, signed, unsigned
+from amaranth.hdl import Cat, Module, Mux, Shape, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 
-from ..filtered import FilterFormat
+from ..filtered import default_format
+from ..records import patch_layout, point_layout
 from .platform import product_platform
 from ..params import Widths
 from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _product,
                         query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
-           "InOrderResolve"]
+           "InOrderResolve", "ArrayResolve", "FilteredArray", "array_item_layout"]
 
 
 def filter_terms_layout(bits):
@@ -276,7 +277,7 @@ class FilteredIntersector(wiring.Component):
     def __init__(self, bits, fmt=None, depth=None):
         self._bits = _check_bits(bits)
         # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
-        self._fmt = fmt if fmt is not None else FilterFormat(min(bits + 1, 18), 18)
+        self._fmt = fmt if fmt is not None else default_format(bits)
         self._depth = depth if depth is not None else self.latency + Processor.latency + 4
         super().__init__({
             "i": In(stream.Signature(query_layout(bits))),
@@ -304,7 +305,7 @@ class FilteredIntersector(wiring.Component):
         m.submodules.cell = cell = FilteredProcessor(self._fmt)
         operands = data.StructLayout({"shooter": shooter_terms_layout(bits), "receiver": receiver_terms_layout(bits)})
         m.submodules.handoff = handoff = InOrderResolve(operands, self._depth)
-        m.submodules.exact = exact = Processor(bits)
+        m.submodules.exact = exact = Processor(bits, unit="exact")
 
         accept = self.i.valid & self.i.ready
         deliver = self.o.valid & self.o.ready
@@ -335,4 +336,241 @@ class FilteredIntersector(wiring.Component):
             handoff.resolved.payload.eq(exact.blocked), handoff.resolved.valid.eq(exact.result_valid),
         ]
         wiring.connect(m, handoff.o, wiring.flipped(self.o))
+        return m
+
+
+def array_item_layout(rows, cols, mark_shape):
+    """An item of the filtered array's in-order hand-off (:class:`ArrayResolve`): a record's
+    filter results (``blocked``: bit r * S + s, ``needs``: some test went to the exact unit,
+    ``first``) or a marker (``mark``, its opaque ``mark_data``)."""
+    return data.StructLayout({
+        "first": unsigned(1), "mark": unsigned(1), "needs": unsigned(1),
+        "blocked": unsigned(rows * cols), "mark_data": mark_shape,
+    })
+
+
+class ArrayResolve(wiring.Component):
+    """The filtered array's hand-off: every item (a broadcast record's R x S filter results, or
+    a board marker) leaves in input order, a record once its undecided tests have their exact
+    answers, which come from ONE exact :class:`~blockray.rtl.processor.Processor` shared by the
+    array.
+
+    ``i`` (valid only): an item and, for a record, ``undecided`` (bit r * S + s: the tests the
+    exact unit must decide) with the exact terms of every column and row. Every item enters the
+    *pending* FIFO; a record with undecided tests enters the *queue* with its terms. The
+    *server* takes the queue head's undecided tests one per cycle (lowest index first) into the
+    exact Processor; its answers are gathered per record, and a record's answer vector enters
+    the *answers* FIFO with its last test's answer. ``o`` (always taken) delivers the pending
+    head: a marker or a record without undecided tests at once, else with the answers head.
+
+    In order because the queue, the server, the Processor and the answers are in order. Every
+    FIFO has ``depth`` entries; the owner's credits keep at most ``depth`` items inside.
+    ``exact_unit``: a factory of the exact unit (default ``Processor(bits)``; the formal harness
+    gives a stand-in with its ports and latency).
+    """
+
+    def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
+        self._bits, self._rows, self._cols, self._depth = bits, rows, cols, depth
+        self._exact_unit = exact_unit or (lambda: Processor(bits, unit="exact"))
+        self._mark_shape = mark_shape
+        self._terms = data.StructLayout({
+            "shooters": data.ArrayLayout(shooter_terms_layout(bits), cols),
+            "receivers": data.ArrayLayout(receiver_terms_layout(bits), rows)})
+        item = array_item_layout(rows, cols, mark_shape)
+        super().__init__({
+            "i": In(stream.Signature(data.StructLayout({
+                "item": item, "undecided": unsigned(rows * cols), "terms": self._terms}), always_ready=True)),
+            "o": Out(stream.Signature(data.StructLayout({
+                "item": item, "blocked": unsigned(rows * cols)}), always_ready=True)),
+        })
+
+    def elaborate(self, platform):
+        m = Module()
+        R, S, RS = self._rows, self._cols, self._rows * self._cols
+        item_layout = array_item_layout(R, S, self._mark_shape)
+        queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
+        m.submodules.pending = pending = SyncFIFOBuffered(width=item_layout.size, depth=self._depth)
+        m.submodules.queue = queue = SyncFIFOBuffered(width=queued.size, depth=self._depth)
+        m.submodules.answers = answers = SyncFIFOBuffered(width=RS, depth=self._depth)
+        m.submodules.exact = exact = self._exact_unit()
+
+        # in: every item to pending, a record with undecided tests to the queue
+        entry = Signal(queued)
+        m.d.comb += [
+            pending.w_data.eq(self.i.payload.item), pending.w_en.eq(self.i.valid),
+            entry.undecided.eq(self.i.payload.undecided), entry.terms.eq(self.i.payload.terms),
+            queue.w_data.eq(entry), queue.w_en.eq(self.i.valid & (self.i.payload.undecided != 0)),
+        ]
+
+        # the server: the head's undecided tests, lowest index first, one per cycle
+        head = Signal(queued)
+        started = Signal()
+        remaining = Signal(RS)
+        current = Signal(RS)
+        onehot = Signal(RS)
+        last = Signal()
+        m.d.comb += [
+            head.eq(queue.r_data),
+            current.eq(Mux(started, remaining, head.undecided)),
+            onehot.eq(current & -current),
+            last.eq((current & ~onehot) == 0),
+            queue.r_en.eq(queue.r_rdy & last),
+        ]
+        with m.If(queue.r_rdy):
+            m.d.sync += [remaining.eq(current & ~onehot), started.eq(~last)]
+        shooter, receiver = Signal(shooter_terms_layout(self._bits)), Signal(receiver_terms_layout(self._bits))
+        m.d.comb += [
+            shooter.eq(sum_or(Mux(sum_or(onehot[r * S + s] for r in range(R)), head.terms.shooters[s].as_value(), 0)
+                              for s in range(S))),
+            receiver.eq(sum_or(Mux(sum_or(onehot[r * S + s] for s in range(S)), head.terms.receivers[r].as_value(), 0)
+                               for r in range(R))),
+            exact.shooter.eq(shooter), exact.receiver.eq(receiver),
+            exact.valid.eq(queue.r_rdy), exact.first.eq(1),
+        ]
+
+        # the answers: gathered per record, pushed with its last test's answer
+        which = _delay(m, onehot, Processor.latency, "which")
+        final = _delay(m, last, Processor.latency, "final")
+        gathered = Signal(RS)
+        vector = Signal(RS)
+        m.d.comb += [
+            vector.eq(gathered | Mux(exact.blocked, which, 0)),
+            answers.w_data.eq(vector), answers.w_en.eq(exact.result_valid & final),
+        ]
+        with m.If(exact.result_valid):
+            m.d.sync += gathered.eq(Mux(final, 0, vector))
+
+        # out: the pending head, in order
+        item = Signal(item_layout)
+        m.d.comb += [
+            item.eq(pending.r_data),
+            self.o.valid.eq(pending.r_rdy & (~item.needs | answers.r_rdy)),
+            self.o.payload.item.eq(item),
+            self.o.payload.blocked.eq(item.blocked | Mux(item.needs, answers.r_data, 0)),
+            pending.r_en.eq(self.o.valid),
+            answers.r_en.eq(self.o.valid & item.needs),
+        ]
+        return m
+
+
+class FilteredArray(wiring.Component):
+    """R x S filtered cells fed by one broadcast patch record per cycle, with one exact unit
+    shared by the array (:class:`ArrayResolve`): the ports of
+    :class:`~blockray.rtl.array.ProcessorArray` and a marker path.
+
+    Column ``s``: a ShooterUnit and its ShooterFilter; row ``r``: a ReceiverUnit and its
+    ReceiverFilter; cell (r, s): a :class:`FilteredProcessor`. A test of a loaded row and
+    column (``row_mask``, ``col_mask``, sampled with the record) that the filter leaves
+    undecided goes to the exact unit; the record's results reach the accumulators ``hit`` in
+    input order once its answers are in, so ``hit`` is always the exact predicate's OR (tests of
+    rows or columns not loaded are not resolved; the board masks them out).
+
+    ``mark`` (with ``mark_data``) puts a marker into the record stream instead of a record: it
+    leaves (``mark_out``, ``mark_data_out``) in order, when ``hit`` holds the OR of every record
+    before it. ``delivered``: an item (record or marker) left this cycle; the owner keeps at most
+    :attr:`depth` items inside (its credits) and never presents two in one cycle.
+    Latency from the input to the hand-off: :attr:`latency` = 12; to ``delivered`` at the
+    earliest :attr:`latency` + 2 (the pending FIFO's write and output register).
+    """
+
+    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
+
+    def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1)):
+        self._bits = _check_bits(bits)
+        self._rows, self._cols = rows, cols
+        self._fmt = fmt if fmt is not None else default_format(bits)
+        self._depth = depth if depth is not None else self.default_depth()
+        self._mark_shape = mark_shape
+        point = point_layout(bits)
+        super().__init__({
+            "patch": In(patch_layout(bits)),
+            "valid": In(1),
+            "first": In(1),
+            "receivers": In(data.ArrayLayout(point, rows)),
+            "shooters": In(data.ArrayLayout(point, cols)),
+            "row_mask": In(rows),
+            "col_mask": In(cols),
+            "mark": In(1),
+            "mark_data": In(mark_shape),
+            "hit": Out(unsigned(rows * cols)),
+            "delivered": Out(1),
+            "mark_out": Out(1),
+            "mark_data_out": Out(mark_shape),
+        })
+
+    @classmethod
+    def default_depth(cls, extra_latency=0):
+        """Items in flight for one record per cycle while every test is decided: the latency to
+        delivery (plus ``extra_latency`` in front of the array, the board's memory) and 4."""
+        return cls.latency + 2 + extra_latency + 4
+
+    @property
+    def depth(self):
+        return self._depth
+
+    @property
+    def fmt(self):
+        return self._fmt
+
+    def elaborate(self, platform):
+        m = Module()
+        B, R, S, fmt = self._bits, self._rows, self._cols, self._fmt
+        shooters, receivers = [], []
+        for s in range(S):
+            unit = m.submodules[f"shooter_{s}"] = ShooterUnit(B)
+            filt = m.submodules[f"shooter_filter_{s}"] = ShooterFilter(B, fmt)
+            m.d.comb += [unit.point.eq(self.shooters[s]), unit.patch.eq(self.patch), unit.valid.eq(self.valid),
+                         filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
+            shooters.append(filt)
+        for r in range(R):
+            unit = m.submodules[f"receiver_{r}"] = ReceiverUnit(B)
+            filt = m.submodules[f"receiver_filter_{r}"] = ReceiverFilter(B, fmt)
+            m.d.comb += [unit.point.eq(self.receivers[r]), unit.patch.eq(self.patch), unit.valid.eq(self.valid),
+                         filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
+            receivers.append(filt)
+
+        m.submodules.resolve = resolve = ArrayResolve(B, R, S, self._mark_shape, self._depth)
+        hand = resolve.i.payload
+        L = self.latency
+        valid = _delay(m, self.valid, L, "valid")
+        row_mask = _delay(m, self.row_mask, L, "row_mask")
+        col_mask = _delay(m, self.col_mask, L, "col_mask")
+        blocked, undecided = [], []
+        for r in range(R):
+            for s in range(S):
+                cell = m.submodules[f"cell_{r}_{s}"] = FilteredProcessor(fmt)
+                pp, pq = shooters[s].exact_out.pp, receivers[r].exact_out.pq
+                m.d.comb += [
+                    cell.shooter.eq(shooters[s].terms), cell.receiver.eq(receivers[r].terms),
+                    cell.valid.eq(shooters[s].terms_valid),
+                    cell.crossing.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
+                ]
+                blocked.append(cell.blocked)
+                undecided.append(~cell.decided & row_mask[r] & col_mask[s])
+        for s in range(S):
+            m.d.comb += hand.terms.shooters[s].eq(
+                _delay(m, shooters[s].exact_out, FilteredProcessor.latency, f"shooter_terms_{s}"))
+        for r in range(R):
+            m.d.comb += hand.terms.receivers[r].eq(
+                _delay(m, receivers[r].exact_out, FilteredProcessor.latency, f"receiver_terms_{r}"))
+        mark = _delay(m, self.mark, L, "mark")
+        m.d.comb += [
+            hand.undecided.eq(Mux(valid, Cat(*undecided), 0)),
+            hand.item.blocked.eq(Cat(*blocked)),
+            hand.item.needs.eq(valid & (Cat(*undecided) != 0)),
+            hand.item.first.eq(_delay(m, self.first, L, "first")),
+            hand.item.mark.eq(mark),
+            hand.item.mark_data.eq(_delay(m, self.mark_data, L, "mark_data")),
+            resolve.i.valid.eq(valid | mark),
+        ]
+
+        out = resolve.o.payload
+        record = resolve.o.valid & ~out.item.mark
+        with m.If(record):
+            m.d.sync += self.hit.eq(out.blocked | Mux(out.item.first, 0, self.hit))
+        m.d.comb += [
+            self.delivered.eq(resolve.o.valid),
+            self.mark_out.eq(resolve.o.valid & out.item.mark),
+            self.mark_data_out.eq(out.item.mark_data),
+        ]
         return m

@@ -56,6 +56,8 @@ class MemoryController(wiring.Component):
                      bubble). The board counts these as VOXEL cycles.
     ``free``         Out: the slot can take a voxel this cycle: it is empty or does its voxel's
                      last step (the same as ``voxels.ready``).
+    ``enable``       In (default 1): the slot may advance this cycle. A board with the filtered
+                     cell lowers it when its array has no credit (the broadcast stalls).
     """
 
     def __init__(self, params, *, patch_init=(), table_init=()):
@@ -81,6 +83,7 @@ class MemoryController(wiring.Component):
             "issue": Out(1),
             "step": Out(1),
             "free": Out(1),
+            "enable": In(1, init=1),
         })
         self._MustUse__silence = False
 
@@ -128,9 +131,9 @@ class MemoryController(wiring.Component):
         m.d.comb += [
             remaining.eq(Mux(first, table_r.data.count, left)),
             address.eq(Mux(first, table_r.data.start, next_address)),
-            self.step.eq(busy),
-            self.issue.eq(busy & (remaining != 0)),
-            self.free.eq(~busy | (remaining <= 1)),
+            self.step.eq(busy & self.enable),
+            self.issue.eq(busy & self.enable & (remaining != 0)),
+            self.free.eq(~busy | (self.enable & (remaining <= 1))),
             self.voxels.ready.eq(self.free),
         ]
         accept = self.voxels.valid & self.voxels.ready
@@ -140,7 +143,7 @@ class MemoryController(wiring.Component):
             patch_r.addr.eq(address),
             patch_r.en.eq(self.issue),
         ]
-        with m.If(busy):
+        with m.If(busy & self.enable):
             m.d.sync += [
                 first.eq(0),
                 next_address.eq(address + 1),

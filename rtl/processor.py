@@ -385,12 +385,17 @@ class Processor(wiring.Component):
 
     Inputs ``shooter`` (:func:`shooter_terms_layout`), ``receiver``
     (:func:`receiver_terms_layout`), ``valid``, ``first``.
+
+    ``unit``: the name its products answer to in ``platform.fabric_units`` (``"cell"``; the
+    filtered array's shared exact unit is ``"exact"``, so that its products can stay in DSPs
+    while the cells' go to LUTs).
     """
 
     latency = 4
 
-    def __init__(self, bits):
+    def __init__(self, bits, *, unit="cell"):
         self._bits = _check_bits(bits)
+        self._unit = unit
         super().__init__({
             "shooter": In(shooter_terms_layout(bits)),
             "receiver": In(receiver_terms_layout(bits)),
@@ -413,7 +418,7 @@ class Processor(wiring.Component):
         pp, pq = self.shooter.pp, self.receiver.pq
         m.d.sync += crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0)))
 
-        platform = product_platform(platform, "cell")
+        platform = product_platform(platform, self._unit)
         # stage 1: the operands (d_k)_c and the pieces of (w_k)_c registered; stage 2: their
         # partial products (each straight from a DSP into registers, :func:`_product`);
         # stage 3: per shift, their sum over the three axes

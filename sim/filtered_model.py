@@ -1,4 +1,9 @@
-"""Cycle-exact model of the 1 x 1 filtered array (:class:`blockray.rtl.filtered.FilteredIntersector`).
+"""Cycle-exact models of the filtered arrays: the 1 x 1 array
+(:class:`blockray.rtl.filtered.FilteredIntersector`, :class:`FilteredIntersectorModel`) and the
+board's R x S array with its shared exact unit (:class:`blockray.rtl.filtered.ArrayResolve`
+behind the board's credits, :func:`board_clock`, compiled; used by
+:class:`blockray.sim.model.BoardModel` and :class:`~blockray.sim.model.ModelBoard` with
+``cell="filtered"``).
 
 The answers come from :mod:`blockray.filtered` (the filter, bit for bit) and
 :func:`blockray.exact.blocked_block` (the exact unit); the timing from a cycle-by-cycle mirror of
@@ -17,11 +22,14 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..exact import blocked_block
-from ..filtered import FilterFormat, filtered_tests
+from ..filtered import default_format, filtered_tests
 
-__all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY"]
+__all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY",
+           "board_clock", "STEP_PLAIN", "STEP_BUBBLE", "STEP_RECORD", "STEP_MARKER", "default_array_depth",
+           "ISSUE_TO_HANDOFF"]
 
 #: cycles from a test's acceptance to the hand-off's input: units 4, filters 3, filtered cell 5
 DATAPATH_LATENCY = 12
@@ -69,7 +77,7 @@ class FilteredIntersectorModel:
 
     def __init__(self, bits, fmt=None, depth=None):
         self.bits = bits
-        self.fmt = fmt if fmt is not None else FilterFormat(min(bits + 1, 18), 18)
+        self.fmt = fmt if fmt is not None else default_format(bits)
         self.depth = depth if depth is not None else DATAPATH_LATENCY + EXACT_LATENCY + 4
 
     def answers(self, P, Q, V, n):
@@ -121,3 +129,109 @@ class FilteredIntersectorModel:
             sent += accept
             t += 1
         return Trace(accepted, delivered, out, decided, t)
+
+
+#: cycles from a record's (or marker's) issue to the filtered array's hand-off input: the
+#: board's memory (2) and the array's units, filters and cells (12)
+ISSUE_TO_HANDOFF = 2 + DATAPATH_LATENCY
+
+
+#: a board step for :func:`board_clock`: no credit needed (WRITE_*, BEGIN_BLOCK, LOAD_*), an
+#: empty voxel's bubble (a credit, nothing issued), a record (``undecided`` tests), a marker
+STEP_PLAIN, STEP_BUBBLE, STEP_RECORD, STEP_MARKER = 0, 1, 2, 3
+_NONE, _MARK = -2, -1          # in the issue line and the pending FIFO: nothing, a marker
+
+
+@njit(cache=True, inline="always")
+def _fifo_step(buf, k, head, n, rdy, rdata, w_en, w_data, r_en):
+    """``SyncFIFOBuffered`` ``k`` (of depth buf.shape[1]: an inner FIFO of depth - 1 and an
+    output register ``rdy``/``rdata``) at the clock edge: :meth:`BufferedFifo.step`."""
+    depth = buf.shape[1]
+    do_write = w_en and n[k] != depth - 1
+    if n[k] > 0 and (not rdy[k] or r_en):
+        rdata[k], rdy[k] = buf[k, head[k]], True
+        head[k] = (head[k] + 1) % depth
+        n[k] -= 1
+    elif r_en:
+        rdy[k] = False
+    if do_write:
+        buf[k, (head[k] + n[k]) % depth] = w_data
+        n[k] += 1
+
+
+@njit(cache=True)
+def board_clock(kinds, undecided, depth):
+    """The filtered board's cycles when the host keeps the command stream full: every cycle is a
+    board cycle, a step of the current command or one lost waiting for the array's credits.
+
+    ``kinds`` (N,): the commands' steps in order (STEP_*), ``undecided`` (N,): a record's tests
+    the exact unit must decide. Mirrors, cycle by cycle, the board's credits (items issued and
+    not delivered < ``depth``), the 14 cycles from issue to the array's hand-off
+    (:data:`ISSUE_TO_HANDOFF`) and :class:`blockray.rtl.filtered.ArrayResolve`: its three
+    ``SyncFIFOBuffered`` (0 pending, 1 queue, 2 answers), the server (the queue head's
+    undecided tests one per cycle into the exact unit) and the exact Processor (EXACT_LATENCY).
+    Returns ``lost`` (N,): the cycles lost before each step, and ``marks``: the cycle (counted
+    from the first step) each marker left the array.
+    """
+    n_steps = len(kinds)
+    lost = np.zeros(n_steps, np.int64)
+    marks = np.full(n_steps, -1, np.int64)
+    n_marks = 0
+    buf = np.zeros((3, depth), np.int64)
+    head, n = np.zeros(3, np.int64), np.zeros(3, np.int64)
+    rdy, rdata = np.zeros(3, np.bool_), np.zeros(3, np.int64)
+    line = np.full(ISSUE_TO_HANDOFF, _NONE, np.int64)          # issue -> hand-off input
+    exact = np.full(EXACT_LATENCY, -1, np.int64)                # `last` of each test fed, -1 none
+    pos = epos = 0
+    started, remaining = False, 0
+    inside = cycle = 0
+    i = 0
+    waiting = False                                             # the step waits for a credit
+    while i < n_steps or inside > 0:
+        item = _NONE
+        if i < n_steps:
+            kind = kinds[i]
+            if kind != STEP_PLAIN and inside >= depth:
+                lost[i] += 1
+                waiting = True
+            else:
+                waiting = False
+                if kind == STEP_RECORD:
+                    item = undecided[i]
+                elif kind == STEP_MARKER:
+                    item = _MARK
+        entering = line[pos]
+        line[pos] = item
+        pos = (pos + 1) % ISSUE_TO_HANDOFF
+        # the server and the pending head, from this cycle's registers
+        feeding = rdy[1]
+        last = False
+        current = 0
+        if feeding:
+            current = remaining if started else rdata[1]
+            last = current == 1
+        needs = rdy[0] and rdata[0] > 0
+        deliver = rdy[0] and (not needs or rdy[2])
+        if deliver and rdata[0] == _MARK:
+            marks[n_marks] = cycle
+            n_marks += 1
+        # the clock edge
+        leaving = exact[epos]
+        exact[epos] = (1 if last else 0) if feeding else -1
+        epos = (epos + 1) % EXACT_LATENCY
+        _fifo_step(buf, 0, head, n, rdy, rdata, entering != _NONE, entering, deliver)
+        _fifo_step(buf, 1, head, n, rdy, rdata, entering > 0, entering, feeding and last)
+        _fifo_step(buf, 2, head, n, rdy, rdata, leaving == 1, 1, deliver and needs)
+        if feeding:
+            started, remaining = not last, current - 1
+        inside += (item != _NONE) - deliver
+        cycle += 1
+        if not waiting:
+            i += 1
+    return lost, marks[:n_marks]
+
+
+def default_array_depth():
+    """The filtered board's array credits (:meth:`blockray.rtl.filtered.FilteredArray.default_depth`
+    with the board's memory latency): issue to delivery, 16 cycles, and 4."""
+    return ISSUE_TO_HANDOFF + 2 + 4

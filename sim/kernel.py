@@ -31,7 +31,7 @@ from numba import njit, prange
 
 from .. import threads as _threads  # noqa: F401  (chooses the threading layer)
 
-__all__ = ["any_blocked", "run_blocks"]
+__all__ = ["any_blocked", "run_blocks", "filtered_steps"]
 
 
 @njit(cache=True, inline="always")
@@ -183,3 +183,117 @@ def run_blocks(shooters, receivers, col_off, shooter_patch, shooter_sample, row_
     run(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
         vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed)
     return bits, records, streamed
+
+
+# -- the filtered cell's undecided tests (issue 16) ----------------------------------------------
+
+@njit(cache=True, inline="always")
+def _truncate3(x0, x1, x2, bits, out, row):
+    """:func:`blockray.filtered.truncate` of one vector: mantissas into ``out[row, 0:3]``;
+    returns [e > 0]."""
+    mag = max(~x0 if x0 < 0 else x0, ~x1 if x1 < 0 else x1, ~x2 if x2 < 0 else x2)
+    e = 0
+    while (mag >> (e + bits - 1)) != 0:
+        e += 1
+    out[row, 0], out[row, 1], out[row, 2] = x0 >> e, x1 >> e, x2 >> e
+    return e > 0
+
+
+@njit(cache=True)
+def _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw):
+    """Tests of the block (every receiver Q[r] and shooter P[s]) against record t that the
+    filter (:func:`blockray.filtered.filter_decision`) leaves undecided. Scratch: md (S*3, 3),
+    td (S*3,), mw (R*3, 3), tw (R*3,)."""
+    R, S = Q.shape[0], P.shape[0]
+    sp = np.empty(S, np.int64)
+    for s in range(S):
+        sp[s] = _sign((P[s, 0] - V[t, 0, 0]) * n[t, 0] + (P[s, 1] - V[t, 0, 1]) * n[t, 1]
+                      + (P[s, 2] - V[t, 0, 2]) * n[t, 2])
+        for k in range(3):
+            td[3 * s + k] = _truncate3(P[s, 0] - V[t, k, 0], P[s, 1] - V[t, k, 1], P[s, 2] - V[t, k, 2],
+                                       d_bits, md, 3 * s + k)
+    undecided = 0
+    for r in range(R):
+        sq = _sign((Q[r, 0] - V[t, 0, 0]) * n[t, 0] + (Q[r, 1] - V[t, 0, 1]) * n[t, 1]
+                   + (Q[r, 2] - V[t, 0, 2]) * n[t, 2])
+        if sq == 0:
+            continue
+        for k in range(3):
+            j = (k + 1) % 3
+            dx, dy, dz = Q[r, 0] - V[t, k, 0], Q[r, 1] - V[t, k, 1], Q[r, 2] - V[t, k, 2]
+            ex, ey, ez = V[t, j, 0] - V[t, k, 0], V[t, j, 1] - V[t, k, 1], V[t, j, 2] - V[t, k, 2]
+            tw[3 * r + k] = _truncate3(dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex, w_bits, mw, 3 * r + k)
+        for s in range(S):
+            if sp[s] * sq >= 0:
+                continue                                  # not crossing: decided
+            all_ge = all_le = True
+            any_gt = any_lt = False
+            for k in range(3):
+                a, b = td[3 * s + k], tw[3 * r + k]
+                dot = pd = nd = pw = nw = 0
+                for c in range(3):
+                    x, y = md[3 * s + k, c], mw[3 * r + k, c]
+                    dot += x * y
+                    pd += max(x, 0)
+                    nd += max(-x, 0)
+                    pw += y + b if y >= 0 else 0
+                    nw += max(-y, 0)
+                lo = (nd if b else 0) + (nw if a else 0)
+                hi = (pd if b else 0) + (pw if a else 0)
+                all_ge &= dot >= lo
+                any_gt |= dot > lo
+                all_le &= dot <= -hi
+                any_lt |= dot < -hi
+            if not (all_ge or all_le or (any_gt and any_lt)):
+                undecided += 1
+    return undecided
+
+
+@njit(cache=True)
+def _block_steps(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+                 vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided):
+    c0, c1, r0, r1 = col_off[b], col_off[b + 1], row_off[b], row_off[b + 1]
+    S, R = c1 - c0, r1 - r0
+    P = np.empty((S, 3), np.int64)
+    for s in range(S):
+        P[s] = shooters[shooter_patch[c0 + s], shooter_sample[c0 + s]]
+    Q = np.empty((R, 3), np.int64)
+    for r in range(R):
+        Q[r] = receivers[receiver_patch[r0 + r]]
+    md, td = np.empty((3 * S, 3), np.int64), np.empty(3 * S, np.bool_)
+    mw, tw = np.empty((3 * R, 3), np.int64), np.empty(3 * R, np.bool_)
+    for p in range(start.shape[0]):
+        i = step_off[b, p] + 1 + loads[b]                 # BEGIN_BLOCK and the loads: plain steps
+        for k in range(vox_off[b], vox_off[b + 1]):
+            x = voxels[k]
+            if count[p, x] == 0:
+                kinds[p, i] = 1                               # an empty voxel's bubble
+                i += 1
+            for t in range(start[p, x], start[p, x] + count[p, x]):
+                kinds[p, i] = 2
+                undecided[p, i] = _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw)
+                i += 1
+        kinds[p, i] = 3                                       # END_BLOCK's marker
+
+
+@njit(cache=True, parallel=True)
+def _steps_par(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+               vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided):
+    for b in prange(len(col_off) - 1):
+        _block_steps(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+                     vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided)
+
+
+def filtered_steps(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+                   vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off):
+    """The filtered board's steps of a batch on each board (the arguments of :func:`run_blocks`;
+    ``loads`` (B,) the LOAD_POINTS commands of each block, ``step_off`` (B + 1, P) where each
+    block's steps start): ``kinds`` (P, N) the steps (0 plain, 1 an empty voxel's bubble, 2 a
+    record, 3 END_BLOCK's marker: :data:`blockray.sim.filtered_model.STEP_PLAIN` ...) and
+    ``undecided`` (P, N) each record's tests the filter leaves undecided (every test of the
+    block's rows and columns is evaluated: no early exit, the hardware tests them all)."""
+    kinds = np.zeros((start.shape[0], int(step_off[-1].max())), np.int64)
+    undecided = np.zeros_like(kinds)
+    _steps_par(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+               vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided)
+    return kinds, undecided

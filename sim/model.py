@@ -34,10 +34,12 @@ from ..errors import ParameterError
 from ..fixedpoint import DEFAULT_MAX_ERROR
 from ..memory import BoardMemories, QuantisationWarning, check_partition, quantise, ranges
 from ..params import BoardParams
-from ..protocol import BoardProtocol, BoardResult, Op, ResultKind
+from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKind
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
+from ..filtered import check_cell, default_format, filtered_block
 from . import kernel
+from .filtered_model import STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
 __all__ = ["ExecResult", "BoardModel", "ModelBoard", "QuantisationWarning", "result_word"]
 
@@ -54,6 +56,7 @@ class ExecResult:
     busy: int = 0                                     # cycles that issued a patch record
     counters: list = field(default_factory=list)     # one dict per READ_COUNTERS (cycles, busy, tests_issued, tests_useful)
     results: list = field(default_factory=list)      # every result in order, as BoardResult
+    marks: list = field(default_factory=list)        # filtered cell: cycle each result left the array
 
 
 def result_word(bits):
@@ -75,9 +78,15 @@ class BoardModel:
     tests is what the packed memory image holds.
     """
 
-    def __init__(self, params, timing=None):
+    def __init__(self, params, timing=None, *, cell="exact", filter_format=None, depth=None):
         self.params = params
-        self.timing = timing or BoardTiming.for_bits(params.bits)
+        self.cell = check_cell(cell)
+        if cell == "filtered":
+            self.filter_format = filter_format or default_format(params.bits)
+            self.depth = depth or default_array_depth()
+            self.timing = timing or BoardTiming.for_bits(params.bits, cell="filtered")
+        else:
+            self.timing = timing or BoardTiming.for_bits(params.bits)
         self.layout = patch_layout(params.bits)
         self.protocol = BoardProtocol(params)
         self.vertices = np.zeros((params.patch_depth, 3, 3), dtype=np.int64)
@@ -111,10 +120,15 @@ class BoardModel:
         p, t = self.params, self.timing
         R, S = p.rows, p.cols
         res = ExecResult()
+        filtered = self.cell == "filtered"
+        kinds, undecided, ends = [], [], []          # the filtered board's steps; each command's last
         for cmd in commands:
             op = cmd.op
             res.starts.append(res.cycles)
             count = 0
+            if filtered:
+                self._filtered_steps(cmd, kinds, undecided)
+                ends.append(len(kinds))
             if op is Op.WRITE_PATCH:
                 if not 0 <= cmd.address < p.patch_depth:
                     raise ParameterError(f"patch address {cmd.address} is outside patch memory (patch_depth {p.patch_depth})")
@@ -162,7 +176,52 @@ class BoardModel:
             elif op is Op.IDENTIFY:
                 res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity()))
             res.cycles += t.cost(op, count)
+        if filtered:
+            self._add_lost_cycles(res, commands, kinds, undecided, ends)
         return res
+
+    def _filtered_steps(self, cmd, kinds, undecided):
+        """Append command ``cmd``'s steps on the filtered board (:func:`board_clock`)."""
+        op = cmd.op
+        if op is Op.VOXEL:
+            self._check_voxel(cmd.voxel)
+            start, count = int(self.start[cmd.voxel]), int(self.count[cmd.voxel])
+            u = self._undecided(start, count)
+            kinds += [STEP_RECORD] * count if count else [STEP_BUBBLE]
+            undecided += list(u) if count else [0]
+        elif op in (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY):
+            kinds.append(STEP_MARKER)
+            undecided.append(0)
+        else:
+            kinds.append(STEP_PLAIN)
+            undecided.append(0)
+
+    def _add_lost_cycles(self, res, commands, kinds, undecided, ends):
+        """The cycles lost waiting for the filtered array's credits: in the total, in each
+        command's start and in each READ_COUNTERS snapshot (its own wait included: it precedes
+        the snapshot)."""
+        lost, res.marks = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
+                                      self.depth)
+        before = np.concatenate([[0], np.cumsum(lost)])
+        snapshots = iter(res.counters)
+        begin = 0
+        for i, (cmd, end) in enumerate(zip(commands, ends)):
+            res.starts[i] += int(before[begin])
+            if cmd.op is Op.READ_COUNTERS:
+                next(snapshots)["cycles"] += int(before[begin + 1])
+            begin = end
+        res.cycles += int(before[-1])
+
+    def _undecided(self, start, count):
+        """(count,) the undecided tests of each record of the loaded rows and columns (what the
+        filtered array sends to its exact unit)."""
+        rows, cols = np.flatnonzero(self.row_valid), np.flatnonzero(self.col_valid)
+        if not len(rows) or not len(cols):
+            return np.zeros(count, dtype=np.int64)
+        idx = np.arange(start, start + count)
+        decided, _ = filtered_block(self.shooters[cols], self.receivers[rows], self.vertices[idx],
+                                    self.normals[idx], self.filter_format)
+        return (~decided).sum(axis=(0, 1))
 
     def _evaluate(self):
         rows, cols = np.flatnonzero(self.row_valid), np.flatnonzero(self.col_valid)
@@ -185,9 +244,13 @@ class ModelBoard(CountingBoard):
 
     name = "model"
 
-    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal"):
+    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal",
+                 cell="exact", filter_format=None, depth=None):
         self.params = params or BoardParams()
         self.bits = bits
+        self.cell = check_cell(cell)
+        self._filter_format = filter_format
+        self.depth = depth or default_array_depth()
         self.partition = check_partition(partition)
         self.max_error = max_error
         self._timing = timing
@@ -204,7 +267,11 @@ class ModelBoard(CountingBoard):
         self.quantised = q
         self.samples = samples
         self.params = self.params.with_(bits=q.bits)
-        self.timing = self._timing or BoardTiming.for_bits(q.bits)
+        if self.cell == "filtered":
+            self.filter_format = self._filter_format or default_format(q.bits)
+            self.timing = self._timing or BoardTiming.for_bits(q.bits, cell="filtered")
+        else:
+            self.timing = self._timing or BoardTiming.for_bits(q.bits)
         self.memories = None
         self._reset_counters()
 
@@ -238,13 +305,35 @@ class ModelBoard(CountingBoard):
             q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
             batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, batch.ray_off)
-        # cycles and counters depend on the records streamed only, never on the tests' results
-        self._add_batch(self.timing.blocks_cycles(Rb, Sb, streamed).sum(axis=0))
+        cycles = self.timing.blocks_cycles(Rb, Sb, streamed)
+        if self.cell == "filtered":
+            self._add_filtered_batch(batch, cycles)
+        else:
+            # cycles and counters depend on the records streamed only, never on the tests' results
+            self._add_batch(cycles.sum(axis=0))
         self._issued_b += p.processors * records.sum(axis=0)
         self._useful_b += ((Rb * Sb)[:, None] * records).sum(axis=0)
         self._blocks += len(batch)
         self._rays += int((Rb * Sb).sum())
         return BlockBits(bits, Rb, Sb)
+
+    def _add_filtered_batch(self, batch, cycles):
+        """The filtered board's cycles of a batch: each board's command stream on its clock
+        (:func:`~blockray.sim.filtered_model.board_clock`: cycles lost waiting for the array's
+        credits, when its last result leaves the array), from every record's undecided tests."""
+        q, f = self.quantised, self.filter_format
+        loads = -(-(batch.rows + batch.cols) // POINTS_PER_LOAD)
+        step_off = np.vstack([np.zeros((1, cycles.shape[1]), np.int64), np.cumsum(cycles, axis=0)])
+        kinds, undecided = kernel.filtered_steps(
+            q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
+            batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
+            self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off)
+        total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
+        for b, steps in enumerate(step_off[-1]):
+            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth)
+            total[b] += lost.sum()
+            finish[b] = marks[-1] + 1 if len(marks) else 0
+        self._add_batch(total, finish=finish)
 
     # -- the model of each board ----------------------------------------------------------------------
 
@@ -252,6 +341,7 @@ class ModelBoard(CountingBoard):
         """A :class:`BoardModel` whose memories hold board ``board``'s partition (bulk-loaded)."""
         m = self.memories[board]
         q = self.quantised
-        bm = BoardModel(self.params, self.timing)
+        bm = BoardModel(self.params, self.timing, cell=self.cell, filter_format=getattr(self, "filter_format", None),
+                        depth=self.depth)
         bm.load_memory(q.vertices[m["patch"]], q.normals[m["patch"]], m["start"], m["count"])
         return bm

@@ -190,16 +190,20 @@ def _runner_class():
     return _Verilator
 
 
-def build_harness(params, boards, *, depth=DEFAULT_DEPTH, trace=False, build_args=BUILD_ARGS, cache=None):
+def build_harness(params, boards, *, depth=DEFAULT_DEPTH, trace=False, build_args=BUILD_ARGS, cache=None,
+                  cell="exact", filter_format=None):
     """Generate the board's Verilog for ``params`` and the harness for ``boards`` boards, and build
     them with Verilator (cached by content under ``cache_dir()/verilator``, like
-    :func:`~blockray.sim.cocotb_support.build_verilator`). Returns a :class:`HarnessBuild`."""
+    :func:`~blockray.sim.cocotb_support.build_verilator`). ``cell``, ``filter_format``: the
+    board's cell (:class:`~blockray.rtl.board.BoardTop`). Returns a :class:`HarnessBuild`."""
     from ..rtl.core import BoardCore
 
     verilator_env()
-    board_text = verilog.convert(BoardCore(params), name=BOARD_MODULE, emit_src=False)
+    board_text = verilog.convert(BoardCore(params, cell=cell, filter_format=filter_format), name=BOARD_MODULE,
+                                 emit_src=False)
     harness_text = harness_source(boards=boards, depth=depth)
-    name = f"{HARNESS_TOP}_{params.rows}x{params.cols}_b{params.bits}_p{boards}"
+    name = f"{HARNESS_TOP}_{params.rows}x{params.cols}_b{params.bits}_p{boards}" + (
+        "" if cell == "exact" else f"_{cell}")
     files = {f"{BOARD_MODULE}.v": board_text, f"{HARNESS_TOP}.sv": harness_text, f"{HARNESS_TOP}.vlt": CONTROL_FILE}
 
     def build(staging, sources):

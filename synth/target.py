@@ -18,7 +18,8 @@ platform=target)`` reaches every ``elaborate`` and switches on device-specific p
     18 R S (+ 24 R without the row units, + 6 S without the column units) DSPs at B = 16: a part
     whose DSP rows are too full to route (the 1 x 5 array at 92 % of the LFE5U-85F's DSPs) trades
     DSPs for LUTs. Same latency and the same bits either way. ``"cell"`` does the same for the
-    processor cells' own products (exact or filtered cell).
+    processor cells' own products (exact or filtered cell), ``"exact"`` for the filtered array's
+    shared exact unit (so ``cell`` alone puts the cells on LUTs and keeps the exact unit in DSPs).
 
 The RTL reads the flags with ``getattr(platform, "mult18x18d", False)`` and
 :func:`product_platform`, so any other platform object (an Amaranth vendor platform, a test's
@@ -38,7 +39,9 @@ __all__ = ["TARGETS", "FABRIC_UNITS", "ECP5Target", "target_platform", "product_
 TARGETS = ("generic", "ecp5")
 
 #: the units whose products :class:`ECP5Target` can leave to the fabric (LUT multipliers)
-FABRIC_UNITS = ("shooter", "receiver", "cell")
+#: shooter / receiver: the column / row units; cell: the R x S cells; exact: the filtered
+#: array's shared exact unit
+FABRIC_UNITS = ("shooter", "receiver", "cell", "exact")
 
 #: behavioural Verilog model of the MULT18X18D configuration the RTL instantiates (Verilator)
 MULT18X18D_SIM = Path(__file__).with_name("ecp5_mult18x18d_sim.v")

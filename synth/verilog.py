@@ -13,8 +13,8 @@ Units (``UNITS``):
 
 ``cell`` (``CELLS``, ``--cell``): ``exact`` (default) builds the above; ``filtered`` builds the
 filtered cell of :mod:`blockray.rtl.filtered` (``processor``: :class:`FilteredIntersector`,
-``cell``: :class:`FilteredProcessor`, both with the default format, d_k exact and w_k at 18
-bits). The filtered array and board are not built yet.
+``cell``: :class:`FilteredProcessor`, ``array``: :class:`FilteredArray` with its shared exact
+unit, ``board``: ``BoardTop(cell="filtered")``; default format d_k exact and w_k at 18 bits).
 
     text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
     text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
@@ -27,6 +27,7 @@ except those of the ``fabric_units`` (left as ``*``, for LUT multipliers).
 from amaranth.back import verilog
 
 from ..errors import ParameterError
+from ..filtered import CELLS, check_cell as _check_cell_name, default_format
 from ..params import BoardParams
 from .target import target_platform
 
@@ -34,7 +35,6 @@ __all__ = ["UNITS", "CELLS", "check_cell", "MAX_MEMORY_BITS", "board_memory_bits
            "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
-CELLS = ("exact", "filtered")
 
 #: Largest board memory (patch memory + voxel table) that is built: 16 Mbit, 4.5 x the block RAM
 #: of the largest ECP5 (LFE5U-85F: 208 x 18 Kbit). Amaranth's conversion needs 130-155 bytes of
@@ -72,20 +72,20 @@ def check_cell(unit, cell, filter_format=None):
     the filtered cell), else ParameterError."""
     if filter_format is not None and cell != "filtered":
         raise ParameterError("a filter format needs the filtered cell (--cell filtered)", parameter="filter_bits")
-    if cell not in CELLS:
-        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
-    if cell == "filtered" and unit not in ("processor", "cell"):
-        raise ParameterError(f"the filtered cell exists as a processor and a cell only, not as {unit!r} "
-                             f"(the filtered array and board are not built yet)", parameter="cell")
-    return cell
+    return _check_cell_name(cell)
 
 
 def _filtered_unit(unit, params, fmt):
-    from ..filtered import FilterFormat
-    from ..rtl.filtered import FilteredIntersector, FilteredProcessor
+    from ..rtl.filtered import FilteredArray, FilteredIntersector, FilteredProcessor
     if unit == "processor":
         return FilteredIntersector(params.bits, fmt)
-    return FilteredProcessor(fmt if fmt is not None else FilterFormat(min(params.bits + 1, 18), 18))
+    if unit == "array":
+        return FilteredArray(params.bits, params.rows, params.cols, fmt=fmt)
+    if unit == "board":
+        from ..rtl.board import BoardTop
+        _check_memory(params)
+        return BoardTop(params, cell="filtered", filter_format=fmt)
+    return FilteredProcessor(fmt if fmt is not None else default_format(params.bits))
 
 
 def build_unit(unit, params=None, cell="exact", filter_format=None):

@@ -98,9 +98,10 @@ class BatchRun:
             self.log.receive(self.host, word, cycle)
 
 
-def expected_results(params, commands, timing=None):
-    """{original index: ("blocked", word) | ("counters", dict) | ("identity", dict)} from the model."""
-    res = BoardModel(params, timing).execute([c for _, c in commands])
+def expected_results(params, commands, timing=None, *, model=BoardModel):
+    """{original index: ("blocked", word) | ("counters", dict) | ("identity", dict)} from the model
+    (``model(params, timing)``: a :class:`BoardModel` by default)."""
+    res = model(params, timing).execute([c for _, c in commands])
     results = iter(res.results)
     out = {}
     for i, c in commands:
@@ -111,7 +112,7 @@ def expected_results(params, commands, timing=None):
     return out, res
 
 
-def check_run(params, commands, log):
+def check_run(params, commands, log, *, model=BoardModel):
     """Assert the run's results equal the model's: blocked words against the uninterrupted batch,
     counters against the model run on the stream the board actually executed since its last
     reset, every result exactly once and in order, and cycles + stalls within the window the host
@@ -125,7 +126,7 @@ def check_run(params, commands, log):
     streams = [list(enumerate(commands))]
     for answered in log.answered_at_reset:
         streams.append(replay_after_reset(commands, answered))
-    expect = [expected_results(params, s)[0] for s in streams]
+    expect = [expected_results(params, s, model=model)[0] for s in streams]
 
     full = expect[0]
     for i in producers:

@@ -30,33 +30,43 @@ from blockray.sim.drive import HostTiming
 from board_host import BatchRun
 
 
-class LinkDriver:
-    """Puts the host's next command byte and its result ``ready`` on the board's ports."""
+#: the streams' port names: BoardCore's bytes, or BoardTop's command and result records
+PORTS = {"bytes": ("i_bytes", "o_bytes"), "records": ("commands", "results")}
 
-    def __init__(self, dut, stream):
+
+class LinkDriver:
+    """Puts the host's next command byte (or record) and its result ``ready`` on the board's ports."""
+
+    def __init__(self, dut, stream, link="bytes"):
         self.dut, self.stream = dut, stream
+        i, o = PORTS[link]
+        self.i_valid, self.i_payload = getattr(dut, f"{i}__valid"), getattr(dut, f"{i}__payload")
+        self.o_ready = getattr(dut, f"{o}__ready")
 
     def drive(self):
         valid, payload, ready = self.stream.drive()
-        self.dut.i_bytes__valid.value = valid
-        self.dut.i_bytes__payload.value = payload
-        self.dut.o_bytes__ready.value = ready
+        self.i_valid.value = valid
+        self.i_payload.value = payload
+        self.o_ready.value = ready
 
     def idle(self):
-        self.dut.i_bytes__valid.value = 0
-        self.dut.o_bytes__ready.value = 0
+        self.i_valid.value = 0
+        self.o_ready.value = 0
 
 
 class LinkMonitor:
     """Samples the handshakes at the falling edge; reports them after the rising edge."""
 
-    def __init__(self, dut):
+    def __init__(self, dut, link="bytes"):
         self.dut = dut
+        i, o = PORTS[link]
+        self.i_ready = getattr(dut, f"{i}__ready")
+        self.o_valid, self.o_payload = getattr(dut, f"{o}__valid"), getattr(dut, f"{o}__payload")
 
     async def sample(self):
         await FallingEdge(self.dut.clk)
-        sampled = (int(self.dut.i_bytes__ready.value), int(self.dut.o_bytes__valid.value),
-                   int(self.dut.o_bytes__payload.value) if int(self.dut.o_bytes__valid.value) else 0)
+        valid = int(self.o_valid.value)
+        sampled = (int(self.i_ready.value), valid, int(self.o_payload.value) if valid else 0)
         await RisingEdge(self.dut.clk)
         return sampled
 
@@ -71,10 +81,11 @@ async def _reset(dut, driver, cycles=2):
 
 async def _run(dut, params, spec):
     burst = spec.get("bursts", 0.0)
-    run = BatchRun(params, spec["commands"], link="bytes", seed=spec["seed"], reset_at=spec.get("reset_at"),
+    link = spec.get("link", "bytes")
+    run = BatchRun(params, spec["commands"], link=link, seed=spec["seed"], reset_at=spec.get("reset_at"),
                    idle=HostTiming(spec["idle"], burst=burst), backpressure=HostTiming(spec["backpressure"], burst=burst),
                    max_cycles=spec.get("max_cycles", 10_000_000))
-    driver, monitor = LinkDriver(dut, run.stream), LinkMonitor(dut)
+    driver, monitor = LinkDriver(dut, run.stream, link), LinkMonitor(dut, link)
     await _reset(dut, driver)
     while not run.done:
         if run.reset_due():

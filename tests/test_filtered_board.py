@@ -1,0 +1,125 @@
+"""The board with the filtered cell (``BoardTop(cell="filtered")``) in the Amaranth simulator
+against the bit-exact model (``BoardModel(cell="filtered")``), zero tolerance.
+
+The filtered board's cycles depend on the data: the undecided tests of a record wait for the
+array's one exact unit, records leave the array in order, and when the array's credits run out
+the broadcast stalls (cycles lost, counted as board cycles). The model mirrors the hand-off
+cycle by cycle (:class:`blockray.sim.filtered_model.FilteredBoardClock`); here the counters the
+board reports (cycles included) must equal the model's, and the blocked words the exact
+board's, with narrow filters (3 x 3 bits: many undecided tests in one broadcast, the queue
+fills) and small credits. The host keeps the command stream full (the model's assumption).
+"""
+
+import functools
+
+import numpy as np
+import pytest
+from amaranth.hdl import ClockDomain, Fragment, Module
+from amaranth.sim import Simulator
+
+from blockray.errors import ParameterError
+from blockray.filtered import FilterFormat, default_format
+from blockray.params import BoardParams
+from blockray.rtl.board import BoardTop
+from blockray.rtl.filtered import FilteredArray
+from blockray.sim.drive import amaranth_cycle
+from blockray.sim.filtered_model import default_array_depth
+from blockray.timing import BoardTiming
+from blockray.sim.model import BoardModel, ModelBoard
+
+from board_host import BatchRun, check_run
+from test_board_sim import make_batch
+
+
+def run_filtered(params, commands, *, fmt, depth, seed):
+    dut = BoardTop(params, cell="filtered", filter_format=fmt, depth=depth)
+    top = Module()
+    top.domains.sync = ClockDomain()
+    top.submodules.board = dut
+    sim = Simulator(top)
+    sim.add_clock(1e-8)
+    run = BatchRun(params, commands, link="records", seed=seed, max_cycles=200_000)
+
+    async def testbench(ctx):
+        while not run.done:
+            run.reset_due()
+            run.after_cycle(await amaranth_cycle(ctx, run.stream, dut.commands, dut.results))
+
+    sim.add_testbench(testbench)
+    sim.run()
+    return run.log
+
+
+@pytest.mark.parametrize("seed,rows,cols,fmt,depth", [
+    (201, 2, 2, FilterFormat(3, 3), None),          # many undecided tests: the credits run out
+    (202, 2, 3, FilterFormat(3, 3), 6),             # small credits: the broadcast stalls often
+    (203, 3, 2, FilterFormat(4, 5), 9),
+    (204, 2, 2, None, None),                        # the default format: (almost) all decided
+])
+def test_filtered_board_equals_model(seed, rows, cols, fmt, depth):
+    print(f"seed={seed}")
+    params, cmds = make_batch(seed, rows=rows, cols=cols, bits=8)
+    fmt = fmt or default_format(8)
+    model = functools.partial(BoardModel, cell="filtered", filter_format=fmt, depth=depth)
+    log = run_filtered(params, cmds, fmt=fmt, depth=depth, seed=seed)
+    expect = check_run(params, cmds, log, model=lambda p, t: model(p, t))[0]
+    # the blocked words are the exact board's, whatever the filter left undecided
+    exact, filtered = BoardModel(params).execute(cmds), model(params).execute(cmds)
+    assert [r for r in filtered.results if r.kind.name == "BLOCKED"] == \
+        [r for r in exact.results if r.kind.name == "BLOCKED"]
+    lost = filtered.cycles - exact.cycles
+    print(f"board cycles: exact cell {exact.cycles}, filtered {filtered.cycles} ({lost} lost)")
+    if fmt == FilterFormat(3, 3):
+        assert lost > 0, "the test should make the array's credits run out"
+    assert any(kind == "counters" for kind, _ in expect.values())
+
+
+def test_filtered_board_latencies_and_parameters():
+    params = BoardParams(rows=2, cols=2, bits=8, patch_depth=4, voxel_depth=2)
+    board = BoardTop(params, cell="filtered")
+    Fragment.get(board, None)
+    assert board.timing == BoardTiming.for_bits(8, cell="filtered")
+    assert board.array_depth == default_array_depth() == FilteredArray.default_depth(board.memory_latency)
+    assert board.result_queue_depth >= board.array_depth + 3
+    with pytest.raises(ParameterError, match="cell"):
+        BoardTop(params, cell="fast")
+    with pytest.raises(ParameterError, match="cell"):
+        BoardModel(params, cell="fast")
+
+
+@pytest.mark.parametrize("fmt", [FilterFormat(3, 3), FilterFormat(6, 8)])
+def test_model_board_equals_command_streams(fmt):
+    """ModelBoard(cell="filtered") gathers a batch at once (compiled: the undecided tests of every
+    record, each board's clock); it equals each board's command stream run through
+    BoardModel(cell="filtered"): bits, cycles per board and the batch's finish; its bits equal
+    the exact cell's."""
+    from blockray.samples import SampleScheme
+    from test_model import BoxGrid, random_blocks, random_scene
+
+    samples = SampleScheme(8)
+    scene = random_scene(5)
+    boards = {}
+    for cell in ("exact", "filtered"):
+        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3), partition="deal", cell=cell, filter_format=fmt)
+        board.prepare(scene, samples)
+        grid = BoxGrid(scene.patch_vertices, 3, margin=board.margin)
+        board.load(grid)
+        rng = np.random.default_rng(6)
+        blocks = random_blocks(rng, scene, samples, board.params, 12, len(grid.voxel_patches))
+        boards[cell] = (board, board.run(blocks))
+    board, bits = boards["filtered"]
+    np.testing.assert_array_equal(bits.flat, boards["exact"][1].flat)
+    c = board.counters()
+    stream = [cmd for b in blocks for cmd in board.memory.block_commands(b)]
+    finish = 0
+    for b in range(board.params.boards):
+        res = board.board_model(b).execute(stream)
+        assert res.cycles == c["board_cycles_per_board"][b]
+        assert res.tests_issued == c["tests_issued_per_board"][b]
+        finish = max(finish, res.marks[-1] + 1)
+    assert c["board_cycles"] == finish
+    lost = c["board_cycles"] - boards["exact"][0].counters()["board_cycles"]
+    print(f"{fmt}: board_cycles exact cell {boards['exact'][0].counters()['board_cycles']}, filtered "
+          f"{c['board_cycles']}")
+    if fmt == FilterFormat(3, 3):
+        assert lost > 0

@@ -1,0 +1,90 @@
+"""Radiosity with the filtered cell (``--cell filtered``) equals the exact cell's bit for bit.
+
+The filtered array's blocked bits are the exact predicate's by construction (undecided tests go
+to its exact unit); only the cycles differ. The small room scene of tests/test_rtl_board.py
+(2 x 2 array, P = 2, B = 10) through the model board, the model behind the byte link, and the
+board's RTL under Verilator; cornell through ``--board model`` and ``--board verilator`` is
+``-m slow``.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from blockray.cli import main
+from blockray.filtered import FilterFormat
+from blockray.host_driver.render import render
+
+from test_rtl_board import BITS, PARAMS, scene  # noqa: F401  (the module-scoped scene fixture)
+
+
+def _render(scene, board, **cell):
+    return render(scene, board=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
+
+
+@pytest.fixture(scope="module")
+def exact(scene):
+    return _render(scene, "model")
+
+
+@pytest.mark.parametrize("fmt", [None, FilterFormat(3, 3)])
+def test_model_filtered_equals_exact(scene, exact, fmt):
+    got = _render(scene, "model", cell="filtered", filter_format=fmt)
+    assert np.array_equal(got.radiosity, exact.radiosity)
+    for key in ("tests_issued", "tests_useful", "blocks", "rays"):
+        assert got.report[key] == exact.report[key], key
+    print(f"{fmt}: board_cycles exact {exact.report['board_cycles']}, filtered {got.report['board_cycles']}")
+    # the filtered array's least latency is longer (the drain of each batch); a narrow filter
+    # sends many tests to the shared exact unit and the broadcast stalls
+    assert got.report["board_cycles"] > exact.report["board_cycles"]
+    if fmt is not None:
+        assert (np.array(got.report["board_cycles_per_board"]) > np.array(exact.report["board_cycles_per_board"])).all()
+
+
+def test_model_link_filtered_counts_the_model_boards_cycles(scene):
+    """The host driver over the byte link, answered by BoardModel(cell="filtered"): the same
+    bits and per-board cycles as ModelBoard(cell="filtered") (both: a full command stream)."""
+    fmt = FilterFormat(3, 3)
+    model = _render(scene, "model", cell="filtered", filter_format=fmt)
+    link = _render(scene, "model-link", cell="filtered", filter_format=fmt)
+    assert np.array_equal(link.radiosity, model.radiosity)
+    for key in ("board_cycles_per_board", "tests_issued_per_board", "load_cycles_per_board"):
+        assert link.report[key] == model.report[key], key
+
+
+def test_cell_errors_name_the_option(capsys):
+    assert main(["render", "cornell", "--board", "golden", "--cell", "filtered"]) == 2
+    assert "--cell" in capsys.readouterr().err
+    assert main(["render", "cornell", "--cell", "fast"]) == 2
+    assert "cell" in capsys.readouterr().err
+    assert main(["render", "cornell", "--filter-bits", "9"]) == 2
+    assert "--cell filtered" in capsys.readouterr().err
+
+
+@pytest.mark.cocotb
+def test_verilator_filtered_equals_exact(scene, exact):
+    """The filtered board's Verilog under Verilator (host driver, byte link): the exact cell's
+    radiosity bit for bit, the filter narrow enough (3 x 3 bits) that the shared exact unit and
+    the credits are exercised."""
+    got = _render(scene, "verilator", cell="filtered", filter_format=FilterFormat(3, 3))
+    assert np.array_equal(got.radiosity, exact.radiosity)
+    assert got.report["tests_issued"] == exact.report["tests_issued"]
+    print(f"board_cycles per board: verilator filtered {got.report['board_cycles_per_board']}, "
+          f"exact {exact.report['board_cycles_per_board']}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("board", ["model", "verilator"])
+def test_cornell_filtered_equals_exact(tmp_path, board):
+    """``blockray render cornell --board BOARD --cell filtered``: the per-patch radiosity of the
+    exact cell's model, byte for byte."""
+    out = {}
+    for cell, name in (("exact", "model"), ("filtered", board)):
+        csv, report = tmp_path / f"{cell}.csv", tmp_path / f"{cell}.json"
+        assert main(["render", "cornell", "--board", name, "--cell", cell, "--quiet", "--patches", str(csv),
+                     "--report", str(report)]) == 0
+        out[cell] = (csv.read_bytes(), json.loads(report.read_text()))
+    assert out["filtered"][0] == out["exact"][0]
+    print(f"board_cycles: exact {out['exact'][1]['board_cycles']}, filtered ({board}) "
+          f"{out['filtered'][1]['board_cycles']}")
