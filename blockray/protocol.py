@@ -347,10 +347,11 @@ class BoardProtocol:
 
     def encode(self, command):
         """One command in the wire format (bytes)."""
+        bits = self.arg_bits(command)       # checks the operands (an empty LOAD_POINTS too) first
         points = len(command.slots) if command.op is Op.LOAD_POINTS else POINTS_PER_LOAD
         header = int(command.op) | (points - 1) << 4 if command.op is Op.LOAD_POINTS else int(command.op)
         n = _nbytes(self.payload_bits(command.op, points))
-        return bytes([header]) + self.arg_bits(command).to_bytes(n, "little")
+        return bytes([header]) + bits.to_bytes(n, "little")
 
     def encode_all(self, commands):
         return b"".join(self.encode(c) for c in commands)
