@@ -35,27 +35,11 @@ from _run_header import print_run_header                                   # noq
 from blockray.host_driver import formfactor as ff                            # noqa: E402
 from blockray.host_driver.render import render                               # noqa: E402
 
-KINDS = {  # name: (generator kind for test_formfactor.random_pair, distance for "far" pairs)
+KINDS = {  # name: (generator kind for test_formfactor.random_pair, distance for test_formfactor.far_pair)
     "shared edge": ("edge", None), "shared vertex": ("vertex", None), "near (0.05 apart)": ("near", None),
     "general (~2 apart)": ("general", None), "D/L ~ 5": ("far", 5), "D/L ~ 20": ("far", 20),
     "D/L ~ 60": ("far", 60), "D/L ~ 200": ("far", 200),
 }
-
-
-def far_pair(rng, D):
-    """Two triangles of size ~1 whose centroids are D apart, facing each other, no clipping."""
-    while True:
-        Ti = rng.normal(size=(3, 3)) * 0.4
-        d = rng.normal(size=3)
-        d /= np.linalg.norm(d)
-        Tj = rng.normal(size=(3, 3)) * 0.4 + D * d
-        if np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]) @ d < 0:
-            Ti = Ti[::-1]
-        if np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0]) @ d > 0:
-            Tj = Tj[::-1]
-        ni, nj = np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]), np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
-        if ((Tj - Ti[0]) @ ni >= 0).all() and ((Ti - Tj[0]) @ nj >= 0).all():
-            return Ti, Tj
 
 
 def forced(Ti, Tj):
@@ -76,7 +60,7 @@ def forced(Ti, Tj):
 
 
 def table(args):
-    from test_formfactor import contour_oracle, random_pair
+    from test_formfactor import contour_oracle, far_pair, random_pair
     from pyviewfactor.pvf_integrators import compute_viewfactor_sa30
     rng = np.random.default_rng(args.seed)
     print(f"seed={args.seed}, {args.pairs} pairs per kind")

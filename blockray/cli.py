@@ -36,6 +36,26 @@ def _positive_int(text):
     return value
 
 
+#: the board configuration options: dest -> (metavar, what the option sets)
+_CONFIG_OPTIONS = {"rows": ("R", "array rows"), "cols": ("S", "array columns"), "bits": ("B", "coordinate bits"),
+                   "patch_depth": ("N", "patch memory words"), "voxel_depth": ("N", "voxel table entries")}
+
+
+def _add_config_options(g, type, **options):
+    """Board configuration options into group ``g``, each given as ``dest=(default, note)``; the
+    help says what the option sets, then the note (None: "default <default>")."""
+    for dest, (default, note) in options.items():
+        metavar, what = _CONFIG_OPTIONS[dest]
+        g.add_argument(f"--{dest.replace('_', '-')}", type=type, default=default, metavar=metavar,
+                       help=f"{what} ({note or f'default {default}'})")
+
+
+def _add_tool_options(g):
+    """The options of every run of the FPGA tools (Yosys, nextpnr)."""
+    g.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
+    g.add_argument("--workdir", metavar="DIR", help="keep the tools' files (Verilog, netlist) and logs here")
+
+
 def _add_board_options(p):
     from .host_driver.backends import BACKENDS, help_text
     g = p.add_argument_group("board")
@@ -180,10 +200,9 @@ def _add_link_options(p):
     g.add_argument("--port", default=None, metavar="DEV[,DEV...]",
                    help="serial port of each board (e.g. /dev/ttyUSB0; one per board, --boards of them)")
     g.add_argument("--baud", type=_positive_int, default=3_000_000, help="the bitstream's baud rate (default 3000000)")
-    g.add_argument("--patch-depth", type=_positive_int, default=None, metavar="N",
-                   help="the bitstream's patch memory words (default: what blockray bitstream chose for R, S, B)")
-    g.add_argument("--voxel-depth", type=_positive_int, default=None, metavar="N",
-                   help="the bitstream's voxel table entries (default: as blockray bitstream chose)")
+    _add_config_options(g, _positive_int,
+                        patch_depth=(None, "the bitstream's; default: what blockray bitstream chose for R, S, B"),
+                        voxel_depth=(None, "the bitstream's; default: as blockray bitstream chose"))
 
 
 def _ulx3s_params(args, params):
@@ -293,14 +312,10 @@ def _add_unit_options(p):
     from .params import BoardParams
     d = BoardParams()
     p.add_argument("unit", help=_UNIT_HELP)
-    g = p.add_argument_group("parameters")
-    g.add_argument("--rows", type=int, default=d.rows, metavar="R", help=f"array rows (receivers; default {d.rows})")
-    g.add_argument("--cols", type=int, default=d.cols, metavar="S", help=f"array columns (shooters; default {d.cols})")
-    g.add_argument("--bits", type=int, default=d.bits, metavar="B", help=f"coordinate bits (default {d.bits})")
-    g.add_argument("--patch-depth", type=int, default=d.patch_depth, metavar="N",
-                   help=f"patch memory words of the board (default {d.patch_depth})")
-    g.add_argument("--voxel-depth", type=int, default=d.voxel_depth, metavar="N",
-                   help=f"voxel table entries of the board (default {d.voxel_depth})")
+    # type int: BoardParams checks the values, naming the option (_unit_params)
+    _add_config_options(p.add_argument_group("parameters"), int,
+                        rows=(d.rows, f"receivers; default {d.rows}"), cols=(d.cols, f"shooters; default {d.cols}"),
+                        bits=(d.bits, None), patch_depth=(d.patch_depth, None), voxel_depth=(d.voxel_depth, None))
 
 
 def _add_fabric_option(p):
@@ -400,9 +415,8 @@ def _synth_parser(sub):
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
-    p.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
     p.add_argument("--router", default="router2", choices=["router1", "router2"], help="nextpnr router")
-    p.add_argument("--workdir", metavar="DIR", help="keep the Verilog, netlist and tool logs here")
+    _add_tool_options(p)
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_synth)
 
@@ -442,22 +456,17 @@ def _bitstream_parser(sub):
                                    "Options that cannot fit the part are refused before the tools run.")
     p.add_argument("--platform", default="ulx3s-85f", help="FPGA board (ulx3s-85f)")
     g = p.add_argument_group("board")
-    g.add_argument("--rows", type=_positive_int, default=2, metavar="R",
-                   help="array rows (default 2: the 2 x 2 array routes at -6, docs/synthesis.md)")
-    g.add_argument("--cols", type=_positive_int, default=2, metavar="S", help="array columns (default 2)")
-    g.add_argument("--bits", type=int, default=16, metavar="B", help="coordinate bits (default 16)")
-    g.add_argument("--patch-depth", type=_positive_int, default=None, metavar="N",
-                   help="patch memory words (default: the most the block RAMs hold)")
-    g.add_argument("--voxel-depth", type=_positive_int, default=None, metavar="N",
-                   help="voxel table entries (default: up to 32**3, as the block RAMs allow)")
+    _add_config_options(g, _positive_int,
+                        rows=(2, "default 2: the 2 x 2 array routes at -6, docs/synthesis.md"), cols=(2, None),
+                        bits=(16, None), patch_depth=(None, "default: the most the block RAMs hold"),
+                        voxel_depth=(None, "default: up to 32**3, as the block RAMs allow"))
     g.add_argument("--core", default="board", choices=["board", "echo"],
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
     t.add_argument("--freq", type=_positive_float, default=60.0, metavar="MHZ",
                    help="board clock from the PLL (default 60: 3 Mbaud x 20)")
-    t.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
-    t.add_argument("--workdir", metavar="DIR", help="keep the tools' files and logs here")
+    _add_tool_options(t)
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
     p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_bitstream)

@@ -91,6 +91,17 @@ def _point(p):
     return dict(zip("xyz", (int(c) for c in p)))
 
 
+#: an end point's index, by ``shooter``: (its name in errors, the BoardParams field bounding it)
+_END_POINT_INDEX = {False: ("receiver row", "rows"), True: ("shooter column", "cols")}
+
+
+def _end_point(proto, shooter, index, point):
+    """Check a receiver row / shooter column index against the array; the point's record value."""
+    what, param = _END_POINT_INDEX[bool(shooter)]
+    proto.check(index, getattr(proto.params, param), what, param)
+    return _point(point)
+
+
 @dataclass(frozen=True)
 class Command:
     """A board command. Subclasses set ``op`` and ``member`` (their ``arg`` union member, or
@@ -144,29 +155,34 @@ class BeginBlock(Command):
 
 
 @dataclass(frozen=True)
-class LoadReceiver(Command):
+class _LoadEndPoint(Command):
+    """LOAD_RECEIVER / LOAD_SHOOTER: one end point; ``index_field`` names its row / column field."""
+    shooter: ClassVar[bool]
+    index_field: ClassVar[str]
+
+    def arg(self, proto):
+        index = getattr(self, self.index_field)
+        return {self.index_field: index, "point": _end_point(proto, self.shooter, index, self.point)}
+
+
+@dataclass(frozen=True)
+class LoadReceiver(_LoadEndPoint):
     """Receiver end point of array row ``row`` := ``point`` (x, y, z); row valid."""
     row: int
     point: tuple
     op: ClassVar[Op] = Op.LOAD_RECEIVER
     member: ClassVar[str] = "load_receiver"
-
-    def arg(self, proto):
-        proto.check(self.row, proto.params.rows, "receiver row", "rows")
-        return {"row": self.row, "point": _point(self.point)}
+    shooter, index_field = False, "row"
 
 
 @dataclass(frozen=True)
-class LoadShooter(Command):
+class LoadShooter(_LoadEndPoint):
     """Shooter sample point of array column ``col`` := ``point`` (x, y, z); column valid."""
     col: int
     point: tuple
     op: ClassVar[Op] = Op.LOAD_SHOOTER
     member: ClassVar[str] = "load_shooter"
-
-    def arg(self, proto):
-        proto.check(self.col, proto.params.cols, "shooter column", "cols")
-        return {"col": self.col, "point": _point(self.point)}
+    shooter, index_field = True, "col"
 
 
 @dataclass(frozen=True)
@@ -179,14 +195,10 @@ class LoadPoints(Command):
     member: ClassVar[str] = "load_points"
 
     def arg(self, proto):
-        p = proto.params
         if not 1 <= len(self.slots) <= POINTS_PER_LOAD:
             raise ParameterError(f"LOAD_POINTS carries 1 to {POINTS_PER_LOAD} points, not {len(self.slots)}")
-        out = []
-        for shooter, where, point in self.slots:
-            proto.check(int(where), p.cols if shooter else p.rows,
-                        "shooter column" if shooter else "receiver row", "cols" if shooter else "rows")
-            out.append({"valid": 1, "shooter": int(bool(shooter)), "index": int(where), "point": _point(point)})
+        out = [{"valid": 1, "shooter": int(bool(shooter)), "index": int(where),
+                "point": _end_point(proto, shooter, int(where), point)} for shooter, where, point in self.slots]
         empty = {"valid": 0, "shooter": 0, "index": 0, "point": {"x": 0, "y": 0, "z": 0}}
         return out + [empty] * (POINTS_PER_LOAD - len(out))
 
@@ -335,10 +347,11 @@ class BoardProtocol:
 
     def encode(self, command):
         """One command in the wire format (bytes)."""
+        bits = self.arg_bits(command)       # checks the operands (an empty LOAD_POINTS too) first
         points = len(command.slots) if command.op is Op.LOAD_POINTS else POINTS_PER_LOAD
         header = int(command.op) | (points - 1) << 4 if command.op is Op.LOAD_POINTS else int(command.op)
         n = _nbytes(self.payload_bits(command.op, points))
-        return bytes([header]) + self.arg_bits(command).to_bytes(n, "little")
+        return bytes([header]) + bits.to_bytes(n, "little")
 
     def encode_all(self, commands):
         return b"".join(self.encode(c) for c in commands)

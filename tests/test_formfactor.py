@@ -366,6 +366,23 @@ def random_pair(rng, kind):
             return Ti, Tj
 
 
+def far_pair(rng, D, size=0.4):
+    """Shooter Ti, receiver Tj of size ~``size`` whose centroids are ~``D`` apart, facing each
+    other, each wholly in front of the other (the oracles integrate unclipped cosines)."""
+    while True:
+        Ti = rng.normal(size=(3, 3)) * size
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        Tj = rng.normal(size=(3, 3)) * size + D * d
+        if np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]) @ d < 0:
+            Ti = Ti[::-1]
+        if np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0]) @ d > 0:
+            Tj = Tj[::-1]
+        ni, nj = np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]), np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
+        if ((Tj - Ti[0]) @ ni >= 0).all() and ((Ti - Tj[0]) @ nj >= 0).all():
+            return Ti, Tj
+
+
 KINDS = ["general", "edge", "vertex", "near", "far"]
 
 
@@ -422,17 +439,7 @@ def test_far_pairs_against_the_contour_oracle():
     used = np.zeros(len(METHODS), dtype=np.int64)
     for D in (3, 8, 20, 200):
         for _ in range(5):
-            Ti = rng.normal(size=(3, 3)) * 0.3
-            d = rng.normal(size=3)
-            d /= np.linalg.norm(d)
-            Tj = rng.normal(size=(3, 3)) * 0.3 + D * d
-            if np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]) @ d < 0:
-                Ti = Ti[::-1]
-            if np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0]) @ d > 0:
-                Tj = Tj[::-1]
-            ni, nj = np.cross(Ti[1] - Ti[0], Ti[2] - Ti[0]), np.cross(Tj[1] - Tj[0], Tj[2] - Tj[0])
-            if ((Tj - Ti[0]) @ ni < 0).any() or ((Ti - Tj[0]) @ nj < 0).any():
-                continue                          # the oracle integrates unclipped cosines
+            Ti, Tj = far_pair(rng, D, size=0.3)
             got = pair_factors(Ti[None], Tj[None], stats=used)[0]
             oracle = contour_oracle(Tj, Ti, dps=30)
             assert got == pytest.approx(oracle, rel=1e-6)

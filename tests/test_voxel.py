@@ -22,6 +22,24 @@ def rng_for(name):
     return np.random.default_rng(seed)
 
 
+def unit_grid(v, margin=0.0):
+    """An empty grid of unit voxels [0, v]^3 (grid lines, corners and faces exact in floats)."""
+    return VoxelGrid(np.zeros((0, 3, 3)), v, lo=[0, 0, 0], hi=[v, v, v], margin=margin)
+
+
+#: the unit grids of the adversarial tests: sizes x margins
+UNIT_GRIDS = pytest.mark.parametrize("v, margin", [(v, m) for v in (1, 2, 7, 32) for m in (0.0, 0.25)])
+#: a grid box of odd, unequal sides off the origin (the random tests)
+ODD_LO, ODD_HI = np.array([-1.3, 2.1, 0.7]), np.array([2.9, 3.0, 5.2])
+
+
+def both_ways(check, grid, pairs):
+    """``check(grid, a, b)`` and ``check(grid, b, a)`` for each pair: a segment or block reversed."""
+    for a, b in pairs:
+        check(grid, a, b)
+        check(grid, b, a)
+
+
 # ---- independent references ---------------------------------------------------------------
 
 def boxes(grid, grow):
@@ -147,20 +165,15 @@ def check_dda(grid, p, q):
     return got
 
 
-@pytest.mark.parametrize("v", [1, 2, 7, 32])
-@pytest.mark.parametrize("margin", [0.0, 0.25])
+@UNIT_GRIDS
 def test_dda_adversarial(v, margin):
-    rng = rng_for(f"dda-adv-{v}-{margin}")
-    grid = VoxelGrid(np.zeros((0, 3, 3)), v, lo=[0, 0, 0], hi=[v, v, v], margin=margin)
-    for p, q in adversarial_rays(rng, v):
-        check_dda(grid, p, q)
-        check_dda(grid, q, p)
+    both_ways(check_dda, unit_grid(v, margin), adversarial_rays(rng_for(f"dda-adv-{v}-{margin}"), v))
 
 
 @pytest.mark.parametrize("v", [1, 2, 7, 32])
 def test_dda_random(v):
     rng = rng_for(f"dda-rand-{v}")
-    lo, hi = np.array([-1.3, 2.1, 0.7]), np.array([2.9, 3.0, 5.2])
+    lo, hi = ODD_LO, ODD_HI
     for margin in (0.0, 0.013):
         grid = VoxelGrid(np.zeros((0, 3, 3)), v, lo=lo, hi=hi, margin=margin)
         for _ in range(15):
@@ -172,7 +185,7 @@ def test_dda_random(v):
 
 def test_dda_known_path():
     """A hand-worked case: the segment (0.5,0.5) -> (3.5,1.5) crosses y = 1 exactly at x = 2."""
-    grid = VoxelGrid(np.zeros((0, 3, 3)), 4, lo=[0, 0, 0], hi=[4, 4, 4])
+    grid = unit_grid(4)
     ijk = grid.ijk_of(grid.ray_voxels([0.5, 0.5, 0.5], [3.5, 1.5, 0.5]))
     assert sorted(ijk.tolist()) == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [2, 0, 0], [2, 1, 0], [3, 1, 0]]
     assert ijk[0].tolist() == [0, 0, 0] and ijk[-1].tolist() == [3, 1, 0]
@@ -229,19 +242,14 @@ def check_block(grid, starts, ends):
     return got, need
 
 
-@pytest.mark.parametrize("v", [1, 2, 7, 32])
-@pytest.mark.parametrize("margin", [0.0, 0.25])
+@UNIT_GRIDS
 def test_block_covers_member_rays(v, margin):
-    rng = rng_for(f"block-{v}-{margin}")
-    grid = VoxelGrid(np.zeros((0, 3, 3)), v, lo=[0, 0, 0], hi=[v, v, v], margin=margin)
-    for starts, ends in bundles(rng, v):
-        check_block(grid, starts, ends)
-        check_block(grid, ends, starts)
+    both_ways(check_block, unit_grid(v, margin), bundles(rng_for(f"block-{v}-{margin}"), v))
 
 
 def test_block_random_grid():
     rng = rng_for("block-random-grid")
-    lo, hi = np.array([-1.3, 2.1, 0.7]), np.array([2.9, 3.0, 5.2])
+    lo, hi = ODD_LO, ODD_HI
     for v in (2, 7, 32):
         grid = VoxelGrid(np.zeros((0, 3, 3)), v, lo=lo, hi=hi, margin=0.004)
         for _ in range(6):
@@ -253,7 +261,7 @@ def test_block_random_grid():
 
 def test_block_of_one_axis_ray_is_its_dda():
     """A single ray along an axis through voxel centres: the block adds nothing."""
-    grid = VoxelGrid(np.zeros((0, 3, 3)), 7, lo=[0, 0, 0], hi=[7, 7, 7])
+    grid = unit_grid(7)
     got, need = check_block(grid, np.array([[0.5, 3.5, 2.5]]), np.array([[6.5, 3.5, 2.5]]))
     assert got == need and len(got) == 7
 
@@ -413,7 +421,7 @@ def test_traversal_stats_hand_worked():
 
 
 def test_traversal_stats_sampling_is_seeded():
-    grid = VoxelGrid(np.zeros((0, 3, 3)), 4, lo=[0, 0, 0], hi=[4, 4, 4])
+    grid = unit_grid(4)
     runs = []
     for _ in range(2):
         stats = TraversalStats(grid, sample_fraction=0.3, seed=5)
@@ -446,7 +454,7 @@ def test_block_voxels_many_matches_single_calls(monkeypatch):
     from blockray.host_driver import voxel
     rng = rng_for("block-many")
     for v, margin in ((1, 0.0), (2, 0.25), (7, 0.0), (32, 0.1)):
-        grid = VoxelGrid(np.zeros((0, 3, 3)), v, lo=[0, 0, 0], hi=[v, v, v], margin=margin)
+        grid = unit_grid(v, margin)
         blocks = bundles(rng, v) + [(e, s) for s, e in bundles(rng, v)] + [(np.zeros((0, 3)), np.ones((2, 3)))]
         single = [grid.block_voxels(s, e) for s, e in blocks]
         monkeypatch.setattr(voxel, "_SLAB_ROWS", 3 * v)
