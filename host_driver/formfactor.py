@@ -70,7 +70,11 @@ __all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_fa
 #: relative error bound a far-pair cubature must meet to replace the closed form
 FAR_TARGET = 1e-6
 #: method codes in the statistics of :func:`pair_factors`
-METHODS = ("zero", "closed form", "centroid", "7-point", "25-point", "64-point")
+METHODS = ("zero", "closed form", "centroid", "7-point", "25-point", "64-point", "subdivided")
+#: the closed form is recomputed by the subdivided cubature where this times the sum of the
+#: absolute values of its corner terms exceeds the target times its value (about 64 rounding
+#: units: the estimated relative error of the sum; docs/formfactors.md "Grazing pairs")
+CANCELLATION = 64 * 2.0 ** -53
 
 
 # ---------------------------------------------------------------------------- Clausen, Im Li2
@@ -195,7 +199,7 @@ def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
     La = math.sqrt(ux * ux + uy * uy + uz * uz)
     Lb = math.sqrt(vx * vx + vy * vy + vz * vz)
     if La == 0.0 or Lb == 0.0:
-        return 0.0
+        return 0.0, 0.0
     ux, uy, uz = ux / La, uy / La, uz / La
     vx, vy, vz = vx / Lb, vy / Lb, vz / Lb
     c = ux * vx + uy * vy + uz * vz
@@ -207,8 +211,8 @@ def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
         t1 = t0 + Lb * c
         px, py, pz = wx + t0 * ux, wy + t0 * uy, wz + t0 * uz
         d = math.sqrt(px * px + py * py + pz * pz)
-        return -(_f_parallel(La, t1, d) - _f_parallel(0.0, t1, d)
-                 - _f_parallel(La, t0, d) + _f_parallel(0.0, t0, d))
+        f1, f2, f3, f4 = _f_parallel(La, t1, d), _f_parallel(0.0, t1, d), _f_parallel(La, t0, d), _f_parallel(0.0, t0, d)
+        return -(f1 - f2 - f3 + f4), abs(f1) + abs(f2) + abs(f3) + abs(f4)
     if c > 1.0:
         c = 1.0
     elif c < -1.0:
@@ -223,23 +227,29 @@ def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
     d = abs(wx * cx + wy * cy + wz * cz) / S
     s0, s1 = -sc, La - sc
     t0, t1 = -tc, Lb - tc
-    return -c * (_f_skew(s1, t1, c, S, a, d) - _f_skew(s0, t1, c, S, a, d)
-                 - _f_skew(s1, t0, c, S, a, d) + _f_skew(s0, t0, c, S, a, d))
+    f1, f2, f3, f4 = (_f_skew(s1, t1, c, S, a, d), _f_skew(s0, t1, c, S, a, d),
+                      _f_skew(s1, t0, c, S, a, d), _f_skew(s0, t0, c, S, a, d))
+    return -c * (f1 - f2 - f3 + f4), abs(c) * (abs(f1) + abs(f2) + abs(f3) + abs(f4))
 
 
 @njit(cache=True)
 def _contour(P, nP, Q, nQ):
-    """A_P F_PQ (= A_Q F_QP) for convex planar polygons P (nP vertices) and Q, both clipped."""
+    """A_P F_PQ (= A_Q F_QP) for convex planar polygons P (nP vertices) and Q, both clipped, and
+    the sum of the absolute values of the corner terms it adds up (both / (4 pi)): their ratio
+    times the rounding unit estimates the digits lost to cancellation."""
     total = 0.0
+    size = 0.0
     for p in range(nP):
         p1 = p + 1 if p + 1 < nP else 0
         for q in range(nQ):
             q1 = q + 1 if q + 1 < nQ else 0
-            total += _edge_pair_s(P[p, 0], P[p, 1], P[p, 2],
+            term, mag = _edge_pair_s(P[p, 0], P[p, 1], P[p, 2],
                                   P[p1, 0] - P[p, 0], P[p1, 1] - P[p, 1], P[p1, 2] - P[p, 2],
                                   Q[q, 0], Q[q, 1], Q[q, 2],
                                   Q[q1, 0] - Q[q, 0], Q[q1, 1] - Q[q, 1], Q[q1, 2] - Q[q, 2])
-    return abs(total) / (4 * math.pi)
+            total += term
+            size += mag
+    return abs(total) / (4 * math.pi), size / (4 * math.pi)
 
 
 @njit(cache=True)
@@ -455,6 +465,108 @@ def _far(Tt, Tr, target, stats, P):
 
 
 @njit(cache=True)
+def _lambert_front(px, py, pz, nx, ny, nz, O, nO):
+    """F_{dA -> O} for a convex polygon O (nO vertices) already wholly in front of the receiver's
+    plane (so no clipping): Lambert's contour sum."""
+    total = 0.0
+    for e in range(nO):
+        e1 = e + 1 if e + 1 < nO else 0
+        ax, ay, az = O[e, 0] - px, O[e, 1] - py, O[e, 2] - pz
+        bx, by, bz = O[e1, 0] - px, O[e1, 1] - py, O[e1, 2] - pz
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if cn > 0.0:
+            total += math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
+    return abs(total) / (2 * math.pi)
+
+
+@njit(cache=True)
+def _grazing_bound(rho, D, degree):
+    """Relative error bound of a positive rule exact to ``degree`` on a triangle of radius rho whose
+    centroid is at least D from the other polygon (docs/formfactors.md "Grazing pairs"): the
+    cosines are left out, so it holds however grazing the pair is. Best of a few ball radii k D."""
+    best = np.inf
+    if D <= 0.0:
+        return best
+    for k in (0.25, 0.3, 1.0 / 3.0, 0.38):
+        q = rho / (k * D)
+        if q < 1.0:
+            c = 1.0 / (1.0 - 2.0 * k - k * k) ** 2
+            best = min(best, 2.0 * c * (1.0 + rho / D) ** 4 * q ** (degree - 1) / (1.0 - q))
+    return best
+
+
+@njit(cache=True)
+def _polygon_ball(O, nO):
+    """Vertex mean of a convex polygon and the largest distance from it to a vertex."""
+    cx = cy = cz = 0.0
+    for k in range(nO):
+        cx += O[k, 0]
+        cy += O[k, 1]
+        cz += O[k, 2]
+    cx, cy, cz = cx / nO, cy / nO, cz / nO
+    r = 0.0
+    for k in range(nO):
+        r = max(r, math.sqrt((O[k, 0] - cx) ** 2 + (O[k, 1] - cy) ** 2 + (O[k, 2] - cz) ** 2))
+    return cx, cy, cz, r
+
+
+@njit(cache=True)
+def _grazing(I, nI, nx, ny, nz, O, nO, target, stack):
+    """``A_I F_IO`` by cubature over polygon I (fanned into triangles, each split in 4 until the
+    cosine-free bound of :func:`_grazing_bound` is within ``target``) of the point factor to
+    polygon O; -1.0 if 4 levels of splitting do not suffice. I and O are each wholly in front of
+    the other's plane (clipped). ``stack``: (64, 3, 3) work array."""
+    nx, ny, nz, _ = _normal(I[:3])
+    ox, oy, oz, orho = _polygon_ball(O, nO)
+    depth = np.zeros(len(stack), dtype=np.int64)
+    top = 0
+    for k in range(1, nI - 1):
+        for c in range(3):
+            stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = I[0, c], I[k, c], I[k + 1, c]
+        top += 1
+    total = 0.0
+    while top > 0:
+        top -= 1
+        T = stack[top].copy()
+        level = depth[top]
+        cx, cy, cz = _centroid(T)
+        rho = _radius(T, cx, cy, cz)
+        D = math.sqrt((cx - ox) ** 2 + (cy - oy) ** 2 + (cz - oz) ** 2) - orho
+        if _grazing_bound(rho, D, 8) <= target:
+            rule, weights = _RULE25, _RULE25_W
+        elif _grazing_bound(rho, D, 14) <= target:
+            rule, weights = _RULE64, _RULE64_W
+        elif level < 4 and top + 4 <= len(stack):
+            for m in range(4):                       # midpoint split: children of half the radius
+                for c in range(3):
+                    a, b, e = T[0, c], T[1, c], T[2, c]
+                    ab, be, ea = 0.5 * (a + b), 0.5 * (b + e), 0.5 * (e + a)
+                    if m == 0:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = a, ab, ea
+                    elif m == 1:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ab, b, be
+                    elif m == 2:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ea, be, e
+                    else:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = be, ea, ab
+                depth[top] = level + 1
+                top += 1
+            continue
+        else:
+            return -1.0
+        _, _, _, A2 = _normal(T)
+        f = 0.0
+        for r in range(len(weights)):
+            x = rule[r, 0] * T[0, 0] + rule[r, 1] * T[1, 0] + rule[r, 2] * T[2, 0]
+            y = rule[r, 0] * T[0, 1] + rule[r, 1] * T[1, 1] + rule[r, 2] * T[2, 1]
+            z = rule[r, 0] * T[0, 2] + rule[r, 1] * T[1, 2] + rule[r, 2] * T[2, 2]
+            f += weights[r] * _lambert_front(x, y, z, nx, ny, nz, O, nO)
+        total += 0.5 * A2 * f
+    return total
+
+
+@njit(cache=True)
 def _before(A, B):
     """Lexicographic order of two triangles' coordinates (a canonical order of a pair)."""
     for k in range(3):
@@ -465,10 +577,11 @@ def _before(A, B):
 
 
 @njit(cache=True)
-def _pair(Ti, Tj, target, stats, P, Q):
+def _pair(Ti, Tj, target, stats, P, Q, stack):
     """A_j F_ji (= A_i F_ij) for shooter Ti, receiver Tj; stats[method] += 1. P, Q: (4, 3) work
     arrays. The pair is first put in a canonical order, so that (Ti, Tj) and (Tj, Ti) give the
-    same bits: reciprocity holds exactly and a pair's value can be reused for the reverse pair."""
+    same bits: reciprocity holds exactly and a pair's value can be reused for the reverse pair.
+    stack: (64, 3, 3) work array of the grazing-pair cubature."""
     if _before(Tj, Ti):
         Ti, Tj = Tj, Ti
     nix, niy, niz, Ai2 = _normal(Ti)
@@ -492,8 +605,21 @@ def _pair(Ti, Tj, target, stats, P, Q):
     if nP < 3 or nQ < 3:
         stats[0] += 1
         return 0.0
+    value, size = _contour(P, nP, Q, nQ)
+    if target > 0.0 and CANCELLATION * size > target * value:
+        # the closed form may have lost the target to cancellation (grazing far pairs):
+        # integrate the smaller polygon with the cosine-free bound instead
+        ax, ay, az, rP = _polygon_ball(P, nP)
+        bx, by, bz, rQ = _polygon_ball(Q, nQ)
+        if rP <= rQ:
+            g = _grazing(P, nP, njx, njy, njz, Q, nQ, target, stack)
+        else:
+            g = _grazing(Q, nQ, nix, niy, niz, P, nP, target, stack)
+        if g >= 0.0:
+            stats[6] += 1
+            return g
     stats[1] += 1
-    return _contour(P, nP, Q, nQ)
+    return value
 
 
 @njit(cache=True, parallel=True)
@@ -504,7 +630,8 @@ def _pairs(shooters, receivers, target, methods):
     for m in prange(len(shooters)):
         P = np.empty((4, 3))
         Q = np.empty((4, 3))
-        out[m] = _pair(shooters[m], receivers[m], target, methods[m], P, Q)
+        stack = np.empty((64, 3, 3))
+        out[m] = _pair(shooters[m], receivers[m], target, methods[m], P, Q, stack)
     return out
 
 

@@ -318,18 +318,19 @@ def _inner_oracle(p, b0, v, L, mp):
 
 def contour_oracle(Tj, Ti, dps=20):
     """A_j F_ji by the double contour integral: inner integral in closed form, outer by mpmath's
-    adaptive tanh-sinh quadrature (independent of the dilogarithm closed form)."""
+    adaptive tanh-sinh quadrature (independent of the dilogarithm closed form). Tj, Ti: convex
+    planar polygons (k, 3), each wholly in front of the other's plane."""
     import mpmath as mp
     mp.mp.dps = dps
     total = mp.mpf(0)
-    for p in range(3):
+    for p in range(len(Tj)):
         a0 = [mp.mpf(float(x)) for x in Tj[p]]
-        a1 = [mp.mpf(float(x)) for x in Tj[(p + 1) % 3]]
+        a1 = [mp.mpf(float(x)) for x in Tj[(p + 1) % len(Tj)]]
         La = mp.sqrt(sum((a1[i] - a0[i]) ** 2 for i in range(3)))
         u = [(a1[i] - a0[i]) / La for i in range(3)]
-        for q in range(3):
+        for q in range(len(Ti)):
             b0 = [mp.mpf(float(x)) for x in Ti[q]]
-            b1 = [mp.mpf(float(x)) for x in Ti[(q + 1) % 3]]
+            b1 = [mp.mpf(float(x)) for x in Ti[(q + 1) % len(Ti)]]
             Lb = mp.sqrt(sum((b1[i] - b0[i]) ** 2 for i in range(3)))
             v = [(b1[i] - b0[i]) / Lb for i in range(3)]
             uv = sum(u[i] * v[i] for i in range(3))
