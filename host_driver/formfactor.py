@@ -295,21 +295,30 @@ def _needs_clip(T, px, py, pz, nx, ny, nz):
 def _lambert(px, py, pz, nx, ny, nz, T, poly):
     """F_{dA -> T} from point p, unit normal n, to triangle T (3, 3); 0 on T's plane.
     ``poly`` is a (4, 3) work array."""
+    return _lambert_terms(px, py, pz, nx, ny, nz, T, poly)[0]
+
+
+@njit(cache=True)
+def _lambert_terms(px, py, pz, nx, ny, nz, T, poly):
+    """:func:`_lambert` and the sum of the absolute values of its terms (both / (2 pi)): their ratio
+    times the rounding unit estimates the digits lost where T is seen edge-on and nearly in the
+    receiver's plane (the terms are ~L / r, their sum ~L^2 cos_i cos_j / r^2)."""
     e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
     e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
     mx, my, mz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
     mm = math.sqrt(mx * mx + my * my + mz * mz)
     if mm == 0.0 or nx * nx + ny * ny + nz * nz == 0.0:
-        return 0.0
+        return 0.0, 0.0
     size = 0.0
     for k in range(3):
         size = max(size, abs(T[k, 0] - px), abs(T[k, 1] - py), abs(T[k, 2] - pz))
     if abs(_side(T, 0, px, py, pz, mx, my, mz)) / mm <= 1e-12 * size:
-        return 0.0
+        return 0.0, 0.0
     k = _clip(T, px, py, pz, nx, ny, nz, poly)
     if k < 2:
-        return 0.0
+        return 0.0, 0.0
     total = 0.0
+    mag = 0.0
     for e in range(k):
         e1 = e + 1 if e + 1 < k else 0
         ax, ay, az = poly[e, 0] - px, poly[e, 1] - py, poly[e, 2] - pz
@@ -317,8 +326,10 @@ def _lambert(px, py, pz, nx, ny, nz, T, poly):
         cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
         cn = math.sqrt(cx * cx + cy * cy + cz * cz)
         if cn > 0.0:
-            total += math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
-    return abs(total) / (2 * math.pi)
+            term = math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
+            total += term
+            mag += abs(term)
+    return abs(total) / (2 * math.pi), mag / (2 * math.pi)
 
 
 @njit(cache=True)
@@ -438,9 +449,9 @@ def _far(Tt, Tr, target, stats, P):
         return -1.0
     At = 0.5 * At2
     Ar = 0.5 * Ar2
-    f1 = _lambert(crx, cry, crz, nrx, nry, nrz, Tt, P)
-    if not f1 > 0:
-        return -1.0
+    f1, mag = _lambert_terms(crx, cry, crz, nrx, nry, nrz, Tt, P)
+    if not f1 > 0 or CANCELLATION * mag > target * f1:
+        return -1.0             # edge-on: the point factor itself loses the target to rounding
     if _far_bound(At, D, rho_r, 1) <= target * f1:
         stats[2] += 1
         return Ar * f1
@@ -465,22 +476,6 @@ def _far(Tt, Tr, target, stats, P):
 
 
 @njit(cache=True)
-def _lambert_front(px, py, pz, nx, ny, nz, O, nO):
-    """F_{dA -> O} for a convex polygon O (nO vertices) already wholly in front of the receiver's
-    plane (so no clipping): Lambert's contour sum."""
-    total = 0.0
-    for e in range(nO):
-        e1 = e + 1 if e + 1 < nO else 0
-        ax, ay, az = O[e, 0] - px, O[e, 1] - py, O[e, 2] - pz
-        bx, by, bz = O[e1, 0] - px, O[e1, 1] - py, O[e1, 2] - pz
-        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if cn > 0.0:
-            total += math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
-    return abs(total) / (2 * math.pi)
-
-
-@njit(cache=True)
 def _grazing_bound(rho, D, degree):
     """Relative error bound of a positive rule exact to ``degree`` on a triangle of radius rho whose
     centroid is at least D from the other polygon (docs/formfactors.md "Grazing pairs"): the
@@ -492,7 +487,7 @@ def _grazing_bound(rho, D, degree):
         q = rho / (k * D)
         if q < 1.0:
             c = 1.0 / (1.0 - 2.0 * k - k * k) ** 2
-            best = min(best, 2.0 * c * (1.0 + rho / D) ** 4 * q ** (degree - 1) / (1.0 - q))
+            best = min(best, 2.0 * c * (1.0 + rho / D) ** 4 * q ** degree / (1.0 - q))
     return best
 
 
@@ -512,20 +507,18 @@ def _polygon_ball(O, nO):
 
 
 @njit(cache=True)
-def _grazing(I, nI, nx, ny, nz, O, nO, target, stack):
-    """``A_I F_IO`` by cubature over polygon I (fanned into triangles, each split in 4 until the
-    cosine-free bound of :func:`_grazing_bound` is within ``target``) of the point factor to
-    polygon O; -1.0 if 4 levels of splitting do not suffice. I and O are each wholly in front of
-    the other's plane (clipped). ``stack``: (64, 3, 3) work array."""
-    nx, ny, nz, _ = _normal(I[:3])
-    ox, oy, oz, orho = _polygon_ball(O, nO)
-    depth = np.zeros(len(stack), dtype=np.int64)
+def _grazing_nodes(I, nI, ox, oy, oz, orho, target, X, W):
+    """Cubature nodes X (rows) and weights W (area included) over polygon I, fanned into triangles,
+    each split in 4 until :func:`_grazing_bound` against the other polygon's ball (centre o,
+    radius orho) is within ``target``; returns their number, -1 if X is too short for it."""
+    stack = np.empty((16, 3, 3))
+    depth = np.zeros(16, dtype=np.int64)
     top = 0
     for k in range(1, nI - 1):
         for c in range(3):
             stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = I[0, c], I[k, c], I[k + 1, c]
         top += 1
-    total = 0.0
+    n = 0
     while top > 0:
         top -= 1
         T = stack[top].copy()
@@ -533,11 +526,13 @@ def _grazing(I, nI, nx, ny, nz, O, nO, target, stack):
         cx, cy, cz = _centroid(T)
         rho = _radius(T, cx, cy, cz)
         D = math.sqrt((cx - ox) ** 2 + (cy - oy) ** 2 + (cz - oz) ** 2) - orho
-        if _grazing_bound(rho, D, 8) <= target:
+        if _grazing_bound(rho, D, 5) <= target:
+            rule, weights = _RULE7, _RULE7_W
+        elif _grazing_bound(rho, D, 8) <= target:
             rule, weights = _RULE25, _RULE25_W
         elif _grazing_bound(rho, D, 14) <= target:
             rule, weights = _RULE64, _RULE64_W
-        elif level < 4 and top + 4 <= len(stack):
+        elif level < 3 and top + 4 <= len(stack):
             for m in range(4):                       # midpoint split: children of half the radius
                 for c in range(3):
                     a, b, e = T[0, c], T[1, c], T[2, c]
@@ -554,16 +549,48 @@ def _grazing(I, nI, nx, ny, nz, O, nO, target, stack):
                 top += 1
             continue
         else:
-            return -1.0
+            return -1
+        if n + len(weights) > len(W):
+            return -1
         _, _, _, A2 = _normal(T)
-        f = 0.0
         for r in range(len(weights)):
-            x = rule[r, 0] * T[0, 0] + rule[r, 1] * T[1, 0] + rule[r, 2] * T[2, 0]
-            y = rule[r, 0] * T[0, 1] + rule[r, 1] * T[1, 1] + rule[r, 2] * T[2, 1]
-            z = rule[r, 0] * T[0, 2] + rule[r, 1] * T[1, 2] + rule[r, 2] * T[2, 2]
-            f += weights[r] * _lambert_front(x, y, z, nx, ny, nz, O, nO)
-        total += 0.5 * A2 * f
-    return total
+            for c in range(3):
+                X[n, c] = rule[r, 0] * T[0, c] + rule[r, 1] * T[1, c] + rule[r, 2] * T[2, c]
+            W[n] = 0.5 * A2 * weights[r]
+            n += 1
+    return n
+
+
+@njit(cache=True)
+def _grazing(P, nP, npx, npy, npz, Q, nQ, nqx, nqy, nqz, target):
+    """``A_P F_PQ`` by a product cubature over both polygons (each wholly in front of the other's
+    plane, unit normals np, nq) of ``h_P(x) h_Q(y) / (pi r^4)``, the heights above the other's plane
+    computed directly (so grazing cosines keep their digits), each side's rule within target / 2 by
+    the cosine-free bound; -1.0 where 3 levels of splitting do not suffice."""
+    px, py, pz, prho = _polygon_ball(P, nP)
+    qx, qy, qz, qrho = _polygon_ball(Q, nQ)
+    X = np.empty((4096, 3))
+    WX = np.empty(4096)
+    Y = np.empty((4096, 3))
+    WY = np.empty(4096)
+    nx = _grazing_nodes(P, nP, qx, qy, qz, qrho, 0.5 * target, X, WX)
+    if nx < 0:
+        return -1.0
+    ny = _grazing_nodes(Q, nQ, px, py, pz, prho, 0.5 * target, Y, WY)
+    if ny < 0:
+        return -1.0
+    for b in range(ny):      # W times the height of y above P's plane
+        WY[b] *= npx * (Y[b, 0] - P[0, 0]) + npy * (Y[b, 1] - P[0, 1]) + npz * (Y[b, 2] - P[0, 2])
+    total = 0.0
+    for a in range(nx):
+        hx = nqx * (X[a, 0] - Q[0, 0]) + nqy * (X[a, 1] - Q[0, 1]) + nqz * (X[a, 2] - Q[0, 2])
+        inner = 0.0
+        for b in range(ny):
+            dx, dy, dz = X[a, 0] - Y[b, 0], X[a, 1] - Y[b, 1], X[a, 2] - Y[b, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            inner += WY[b] / (r2 * r2)
+        total += WX[a] * hx * inner
+    return abs(total) / math.pi
 
 
 @njit(cache=True)
@@ -577,11 +604,10 @@ def _before(A, B):
 
 
 @njit(cache=True)
-def _pair(Ti, Tj, target, stats, P, Q, stack):
+def _pair(Ti, Tj, target, stats, P, Q):
     """A_j F_ji (= A_i F_ij) for shooter Ti, receiver Tj; stats[method] += 1. P, Q: (4, 3) work
     arrays. The pair is first put in a canonical order, so that (Ti, Tj) and (Tj, Ti) give the
-    same bits: reciprocity holds exactly and a pair's value can be reused for the reverse pair.
-    stack: (64, 3, 3) work array of the grazing-pair cubature."""
+    same bits: reciprocity holds exactly and a pair's value can be reused for the reverse pair."""
     if _before(Tj, Ti):
         Ti, Tj = Tj, Ti
     nix, niy, niz, Ai2 = _normal(Ti)
@@ -608,13 +634,8 @@ def _pair(Ti, Tj, target, stats, P, Q, stack):
     value, size = _contour(P, nP, Q, nQ)
     if target > 0.0 and CANCELLATION * size > target * value:
         # the closed form may have lost the target to cancellation (grazing far pairs):
-        # integrate the smaller polygon with the cosine-free bound instead
-        ax, ay, az, rP = _polygon_ball(P, nP)
-        bx, by, bz, rQ = _polygon_ball(Q, nQ)
-        if rP <= rQ:
-            g = _grazing(P, nP, njx, njy, njz, Q, nQ, target, stack)
-        else:
-            g = _grazing(Q, nQ, nix, niy, niz, P, nP, target, stack)
+        # a product cubature with the cosine-free bound instead
+        g = _grazing(P, nP, njx, njy, njz, Q, nQ, nix, niy, niz, target)
         if g >= 0.0:
             stats[6] += 1
             return g
@@ -630,8 +651,7 @@ def _pairs(shooters, receivers, target, methods):
     for m in prange(len(shooters)):
         P = np.empty((4, 3))
         Q = np.empty((4, 3))
-        stack = np.empty((64, 3, 3))
-        out[m] = _pair(shooters[m], receivers[m], target, methods[m], P, Q, stack)
+        out[m] = _pair(shooters[m], receivers[m], target, methods[m], P, Q)
     return out
 
 
