@@ -341,6 +341,8 @@ def trigger(args):
         P4, Q4 = np.zeros((4, 3)), np.zeros((4, 3))
         P4[:len(P)], Q4[:len(Q)] = P, Q
         value, size = ff._contour(P4, len(P), Q4, len(Q))
+        if value == 0.0:
+            continue
         estimate = 2.0 ** -53 * size / value
         if not 64 * estimate > ff.FAR_TARGET or estimate > 1e-3:     # not triggered; or coplanar to rounding
             continue

@@ -43,6 +43,17 @@ The bound is applied only where neither patch needs clipping (otherwise the inte
 analytic). ``FAR_TARGET`` is 1e-6, a tenth of the 1e-5 that the factors are held to against
 pyviewfactor (issue 17); ``target=0`` selects the closed form for every pair (the reference).
 
+**Grazing pairs.** Where the closed form's corner terms are large against their sum (``CANCELLATION``
+times their absolute sum above the target times the value: grazing pairs, whose cosines suppress
+the value but not the terms), the pair is recomputed by a cubature over the clipped polygons with
+a bound that leaves the cosines out: the point factor is ``h_Q(x) G(x)``, the height of x above
+the other's plane times ``G(x) = int_Q h_P(y) / (pi r^4) dy``, whose ratio of sup on a complex ball
+to inf on the patch does not depend on the positive weight h_P; a positive rule exact to degree p
+then errs relatively by at most ``2 C_k (1 + rho/D)^4 q^p / (1 - q)`` (docs/formfactors.md,
+"Grazing pairs", derives it). Where the point factor itself would lose digits (edge-on pairs)
+the cubature is a product rule over both polygons of ``h_P h_Q / (pi r^4)`` with the heights
+computed directly.
+
 The pair is put in a canonical order (its triangles' coordinates) before either form is chosen,
 so ``(i, j)`` and ``(j, i)`` give the same bits: the render computes each unordered pair once
 (:class:`PairCache`).
