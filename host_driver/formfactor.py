@@ -398,6 +398,7 @@ def _collapsed_gauss(n):
 
 _RULE25, _RULE25_W = _collapsed_gauss(5)
 _RULE64, _RULE64_W = _collapsed_gauss(8)
+_RULE144, _RULE144_W = _collapsed_gauss(12)     # degree 22: grazing pairs, cheaper than a split
 
 
 @njit(cache=True)
@@ -562,6 +563,8 @@ def _grazing_nodes(I, nI, ox, oy, oz, orho, target, X, W):
             rule, weights = _RULE25, _RULE25_W
         elif _grazing_bound(rho, D, 14) <= target:
             rule, weights = _RULE64, _RULE64_W
+        elif _grazing_bound(rho, D, 22) <= target:
+            rule, weights = _RULE144, _RULE144_W
         elif level < 3 and top + 4 <= len(stack):
             for m in range(4):                       # midpoint split: children of half the radius
                 for c in range(3):
