@@ -4,6 +4,12 @@
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
     python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
     python benchmarks/bench_formfactor.py speed cornell room   # CPU us per pair, against pyviewfactor
+    python benchmarks/bench_formfactor.py grazing    # cornell's grazing pairs: closed form and default vs mpmath
+    python benchmarks/bench_formfactor.py trigger    # the closed form's error against its cancellation estimate
+    python benchmarks/bench_formfactor.py versus     # against an earlier formfactor.py: speed, radiosity
+
+``versus`` needs the earlier module beside the new one (not committed), e.g.
+``git show 10cb08c:host_driver/formfactor.py > host_driver/_formfactor_before.py``.
 
 ``table``: random triangle pairs of each kind (each wholly in front of the other, so the oracles'
 unclipped integrands apply), every method of host_driver/formfactor.py forced on each pair, and
@@ -16,6 +22,12 @@ thread: CPU microseconds per pair of the closed form alone (``target=0``, the re
 the default (far pairs by cubature), the pairs per method, and pyviewfactor's SA-30 kernel on the
 first ``--peer-pairs`` of them (the peer); and the share of the pairs a render computes once
 (each unordered pair, :class:`~blockray.host_driver.formfactor.PairCache`).
+
+``grazing``: a seeded sample of cornell's grazing pairs (a centroid cosine below ``--cosine``,
+centroids over ``--distance`` apart; pairs coplanar to rounding, cosines below 1e-12, left out),
+unclipped and clipped, each against the mpmath oracle of the clipped polygons: the closed form
+alone (``target=0``; what the default gave these pairs before issue 17's grazing-pair cubature)
+and the default.
 
 ``energy``: closed scenes rendered with the golden board; absorbed power sum (1 - rho) H A with
 H = (B - E) / rho, against emitted power sum E A, per channel.
@@ -243,6 +255,126 @@ def speed(args):
         print(row, flush=True)
 
 
+def grazing(args):
+    from test_formfactor import clip_front, contour_oracle
+    from blockray.host_driver.builtin import load_scene
+    scene = load_scene("cornell")
+    V = scene.patch_vertices
+    I, J = [], []
+    for i in range(scene.patches):
+        j = np.flatnonzero(ff.exchange_mask(scene, i))
+        j = j[j > i]
+        I.append(np.full(len(j), i))
+        J.append(j)
+    I, J = np.concatenate(I), np.concatenate(J)
+    S, R = V[I], V[J]
+    ci, cj = S.mean(axis=1), R.mean(axis=1)
+    D = np.linalg.norm(cj - ci, axis=1)
+    d = (cj - ci) / D[:, None]
+    ni = np.cross(S[:, 1] - S[:, 0], S[:, 2] - S[:, 0])
+    nj = np.cross(R[:, 1] - R[:, 0], R[:, 2] - R[:, 0])
+    cos_i = np.einsum("mc,mc->m", ni / np.linalg.norm(ni, axis=1)[:, None], d)
+    cos_j = -np.einsum("mc,mc->m", nj / np.linalg.norm(nj, axis=1)[:, None], d)
+    unclipped = (np.einsum("mkc,mc->mk", R - S[:, :1], ni) >= 0).all(axis=1) & \
+        (np.einsum("mkc,mc->mk", S - R[:, :1], nj) >= 0).all(axis=1)
+    g = np.minimum(cos_i, cos_j)
+    chosen = (g < args.cosine) & (np.minimum(np.abs(cos_i), np.abs(cos_j)) > 1e-12) & (D > args.distance)
+    rng = np.random.default_rng(args.seed)
+    print(f"seed={args.seed}; {len(I)} unordered pairs, {chosen.sum()} grazing")
+    for label, m in (("unclipped", unclipped), ("clipped", ~unclipped)):
+        idx = np.flatnonzero(chosen & m)
+        pick = rng.choice(idx, size=min(args.pairs, len(idx)), replace=False)
+        closed = ff.pair_factors(S[pick], R[pick], target=0.0)
+        used = np.zeros(len(ff.METHODS), dtype=np.int64)
+        default = ff.pair_factors(S[pick], R[pick], stats=used)
+        err_c, err_d = [], []
+        for k, m_ in enumerate(pick):
+            P, Q = clip_front(R[m_], S[m_]), clip_front(S[m_], R[m_])
+            if len(P) < 3 or len(Q) < 3:
+                continue
+            oracle = contour_oracle(P, Q, dps=30)
+            err_c.append(abs(closed[k] / oracle - 1))
+            err_d.append(abs(default[k] / oracle - 1))
+            print(f"{label} ({I[m_]}, {J[m_]}): closed form {err_c[-1]:.1e}, default {err_d[-1]:.1e}", flush=True)
+        print(f"**{label}: {len(err_c)} of {len(idx)} pairs; closed form worst {max(err_c):.2e} median "
+              f"{np.median(err_c):.1e}; default worst {max(err_d):.2e} median {np.median(err_d):.1e}; "
+              f"default picks {dict(zip(ff.METHODS, used.tolist()))}", flush=True)
+
+
+def _every_step_pairs(scene, step):
+    rows = list(range(0, scene.patches, step))
+    masks = [np.flatnonzero(ff.exchange_mask(scene, i)) for i in rows]
+    I = np.concatenate([np.full(len(j), i) for i, j in zip(rows, masks)])
+    return I, np.concatenate(masks)
+
+
+def trigger(args):
+    """The closed form's actual error (mpmath) against its estimate u S / F on pairs that trigger
+    the recomputation (64 u S > FAR_TARGET F)."""
+    from test_formfactor import clip_front, contour_oracle
+    from blockray.host_driver.builtin import load_scene
+    V = load_scene("cornell").patch_vertices
+    I, J = _every_step_pairs(load_scene("cornell"), 8)
+    rng = np.random.default_rng(args.seed)
+    print(f"seed={args.seed}")
+    ratios = []
+    for k in rng.permutation(len(I)):
+        P, Q = clip_front(V[J[k]], V[I[k]]), clip_front(V[I[k]], V[J[k]])
+        if len(P) < 3 or len(Q) < 3:
+            continue
+        P4, Q4 = np.zeros((4, 3)), np.zeros((4, 3))
+        P4[:len(P)], Q4[:len(Q)] = P, Q
+        value, size = ff._contour(P4, len(P), Q4, len(Q))
+        if value == 0.0:
+            continue
+        estimate = 2.0 ** -53 * size / value
+        if not 64 * estimate > ff.FAR_TARGET or estimate > 1e-3:     # not triggered; or coplanar to rounding
+            continue
+        error = abs(value / contour_oracle(P, Q, dps=30) - 1)
+        ratios.append(error / estimate)
+        print(f"({I[k]}, {J[k]}): u S / F {estimate:.1e}, closed form's error {error:.1e}, ratio {ratios[-1]:.2f}", flush=True)
+        if len(ratios) == args.pairs:
+            break
+    print(f"**ratio of error to estimate over {len(ratios)} pairs: min {min(ratios):.2f}, median {np.median(ratios):.2f}, max {max(ratios):.2f}")
+
+
+def versus(args):
+    """Speed and cornell's unoccluded radiosity, the earlier module against this one."""
+    from blockray import threads
+    from blockray.host_driver import _formfactor_before as old
+    from blockray.host_driver.builtin import load_scene
+    scene = load_scene("cornell")
+    V, N = scene.patch_vertices, scene.patches
+    I, J = _every_step_pairs(scene, 8)
+    S, R = V[I], V[J]
+    print(f"speed: {len(I)} pairs of every 8th cornell shooter, one thread")
+    for m in (old, ff):
+        m.pair_factors(S[:4], R[:4])
+    with threads.using(1):
+        for _ in range(2):
+            for name, m in (("before", old), ("now", ff)):
+                for label, target in (("closed form", 0.0), ("default", m.FAR_TARGET)):
+                    used = np.zeros(len(m.METHODS), dtype=np.int64)
+                    c0 = time.process_time()
+                    m.pair_factors(S, R, target=target, stats=used)
+                    print(f"{name} {label}: {(time.process_time() - c0) / len(I) * 1e6:.2f} us/pair",
+                          dict(zip(m.METHODS, used.tolist())), flush=True)
+    # unoccluded radiosity: the visibility multiplies both alike
+    M = np.array([ff.exchange_mask(scene, i) for i in range(N)])
+    I, J = np.nonzero(np.triu(M | M.T, 1))
+    B = {}
+    for name, m in (("before", old), ("now", ff)):
+        AF = np.zeros((N, N))
+        AF[I, J] = AF[J, I] = m.pair_factors(V[I], V[J])
+        F = np.where(M.T, AF / scene.areas[:, None], 0.0)            # F[j, i]: receiver j, shooter i
+        B[name] = np.stack([np.linalg.solve(np.eye(N) - scene.reflectance[:, c][:, None] * F, scene.emission[:, c])
+                            for c in range(3)], axis=1)
+    lit = B["before"] > 1e-12 * B["before"].max()
+    rel = np.abs(B["now"][lit] / B["before"][lit] - 1)
+    print(f"**cornell unoccluded radiosity, {len(I)} unordered pairs: relative change of B max {rel.max():.2e}, "
+          f"RMS {np.sqrt(np.mean(rel ** 2)):.2e}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -260,9 +392,19 @@ def main(argv=None):
     sp.add_argument("scenes", nargs="*", default=["cornell", "room"])
     sp.add_argument("--step", type=int, default=8, help="every step-th shooter's pairs")
     sp.add_argument("--peer-pairs", type=int, default=2000, help="pairs for pyviewfactor")
+    gr = sub.add_parser("grazing")
+    gr.add_argument("--pairs", type=int, default=40, help="pairs per kind (unclipped, clipped)")
+    gr.add_argument("--seed", type=int, default=2017)
+    gr.add_argument("--cosine", type=float, default=1e-3)
+    gr.add_argument("--distance", type=float, default=300.0)
+    tr = sub.add_parser("trigger")
+    tr.add_argument("--pairs", type=int, default=30)
+    tr.add_argument("--seed", type=int, default=3)
+    sub.add_parser("versus")
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy, "rows": row_sums, "speed": speed}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
+     "versus": versus}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -43,6 +43,17 @@ The bound is applied only where neither patch needs clipping (otherwise the inte
 analytic). ``FAR_TARGET`` is 1e-6, a tenth of the 1e-5 that the factors are held to against
 pyviewfactor (issue 17); ``target=0`` selects the closed form for every pair (the reference).
 
+**Grazing pairs.** Where the closed form's corner terms are large against their sum (``CANCELLATION``
+times their absolute sum above the target times the value: grazing pairs, whose cosines suppress
+the value but not the terms), the pair is recomputed by a cubature over the clipped polygons with
+a bound that leaves the cosines out: the point factor is ``h_Q(x) G(x)``, the height of x above
+the other's plane times ``G(x) = int_Q h_P(y) / (pi r^4) dy``, whose ratio of sup on a complex ball
+to inf on the patch does not depend on the positive weight h_P; a positive rule exact to degree p
+then errs relatively by at most ``2 C_k (1 + rho/D)^4 q^p / (1 - q)`` (docs/formfactors.md,
+"Grazing pairs", derives it). Where the point factor itself would lose digits (edge-on pairs)
+the cubature is a product rule over both polygons of ``h_P h_Q / (pi r^4)`` with the heights
+computed directly.
+
 The pair is put in a canonical order (its triangles' coordinates) before either form is chosen,
 so ``(i, j)`` and ``(j, i)`` give the same bits: the render computes each unordered pair once
 (:class:`PairCache`).
@@ -70,7 +81,11 @@ __all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_fa
 #: relative error bound a far-pair cubature must meet to replace the closed form
 FAR_TARGET = 1e-6
 #: method codes in the statistics of :func:`pair_factors`
-METHODS = ("zero", "closed form", "centroid", "7-point", "25-point", "64-point")
+METHODS = ("zero", "closed form", "centroid", "7-point", "25-point", "64-point", "subdivided")
+#: the closed form is recomputed by the subdivided cubature where this times the sum of the
+#: absolute values of its corner terms exceeds the target times its value (about 64 rounding
+#: units: the estimated relative error of the sum; docs/formfactors.md "Grazing pairs")
+CANCELLATION = 64 * 2.0 ** -53
 
 
 # ---------------------------------------------------------------------------- Clausen, Im Li2
@@ -195,7 +210,7 @@ def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
     La = math.sqrt(ux * ux + uy * uy + uz * uz)
     Lb = math.sqrt(vx * vx + vy * vy + vz * vz)
     if La == 0.0 or Lb == 0.0:
-        return 0.0
+        return 0.0, 0.0
     ux, uy, uz = ux / La, uy / La, uz / La
     vx, vy, vz = vx / Lb, vy / Lb, vz / Lb
     c = ux * vx + uy * vy + uz * vz
@@ -207,8 +222,8 @@ def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
         t1 = t0 + Lb * c
         px, py, pz = wx + t0 * ux, wy + t0 * uy, wz + t0 * uz
         d = math.sqrt(px * px + py * py + pz * pz)
-        return -(_f_parallel(La, t1, d) - _f_parallel(0.0, t1, d)
-                 - _f_parallel(La, t0, d) + _f_parallel(0.0, t0, d))
+        f1, f2, f3, f4 = _f_parallel(La, t1, d), _f_parallel(0.0, t1, d), _f_parallel(La, t0, d), _f_parallel(0.0, t0, d)
+        return -(f1 - f2 - f3 + f4), abs(f1) + abs(f2) + abs(f3) + abs(f4)
     if c > 1.0:
         c = 1.0
     elif c < -1.0:
@@ -223,23 +238,29 @@ def _edge_pair_s(a0x, a0y, a0z, ux, uy, uz, b0x, b0y, b0z, vx, vy, vz):
     d = abs(wx * cx + wy * cy + wz * cz) / S
     s0, s1 = -sc, La - sc
     t0, t1 = -tc, Lb - tc
-    return -c * (_f_skew(s1, t1, c, S, a, d) - _f_skew(s0, t1, c, S, a, d)
-                 - _f_skew(s1, t0, c, S, a, d) + _f_skew(s0, t0, c, S, a, d))
+    f1, f2, f3, f4 = (_f_skew(s1, t1, c, S, a, d), _f_skew(s0, t1, c, S, a, d),
+                      _f_skew(s1, t0, c, S, a, d), _f_skew(s0, t0, c, S, a, d))
+    return -c * (f1 - f2 - f3 + f4), abs(c) * (abs(f1) + abs(f2) + abs(f3) + abs(f4))
 
 
 @njit(cache=True)
 def _contour(P, nP, Q, nQ):
-    """A_P F_PQ (= A_Q F_QP) for convex planar polygons P (nP vertices) and Q, both clipped."""
+    """A_P F_PQ (= A_Q F_QP) for convex planar polygons P (nP vertices) and Q, both clipped, and
+    the sum of the absolute values of the corner terms it adds up (both / (4 pi)): their ratio
+    times the rounding unit estimates the digits lost to cancellation."""
     total = 0.0
+    size = 0.0
     for p in range(nP):
         p1 = p + 1 if p + 1 < nP else 0
         for q in range(nQ):
             q1 = q + 1 if q + 1 < nQ else 0
-            total += _edge_pair_s(P[p, 0], P[p, 1], P[p, 2],
+            term, mag = _edge_pair_s(P[p, 0], P[p, 1], P[p, 2],
                                   P[p1, 0] - P[p, 0], P[p1, 1] - P[p, 1], P[p1, 2] - P[p, 2],
                                   Q[q, 0], Q[q, 1], Q[q, 2],
                                   Q[q1, 0] - Q[q, 0], Q[q1, 1] - Q[q, 1], Q[q1, 2] - Q[q, 2])
-    return abs(total) / (4 * math.pi)
+            total += term
+            size += mag
+    return abs(total) / (4 * math.pi), size / (4 * math.pi)
 
 
 @njit(cache=True)
@@ -285,21 +306,30 @@ def _needs_clip(T, px, py, pz, nx, ny, nz):
 def _lambert(px, py, pz, nx, ny, nz, T, poly):
     """F_{dA -> T} from point p, unit normal n, to triangle T (3, 3); 0 on T's plane.
     ``poly`` is a (4, 3) work array."""
+    return _lambert_terms(px, py, pz, nx, ny, nz, T, poly)[0]
+
+
+@njit(cache=True)
+def _lambert_terms(px, py, pz, nx, ny, nz, T, poly):
+    """:func:`_lambert` and the sum of the absolute values of its terms (both / (2 pi)): their ratio
+    times the rounding unit estimates the digits lost where T is seen edge-on and nearly in the
+    receiver's plane (the terms are ~L / r, their sum ~L^2 cos_i cos_j / r^2)."""
     e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
     e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
     mx, my, mz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
     mm = math.sqrt(mx * mx + my * my + mz * mz)
     if mm == 0.0 or nx * nx + ny * ny + nz * nz == 0.0:
-        return 0.0
+        return 0.0, 0.0
     size = 0.0
     for k in range(3):
         size = max(size, abs(T[k, 0] - px), abs(T[k, 1] - py), abs(T[k, 2] - pz))
     if abs(_side(T, 0, px, py, pz, mx, my, mz)) / mm <= 1e-12 * size:
-        return 0.0
+        return 0.0, 0.0
     k = _clip(T, px, py, pz, nx, ny, nz, poly)
     if k < 2:
-        return 0.0
+        return 0.0, 0.0
     total = 0.0
+    mag = 0.0
     for e in range(k):
         e1 = e + 1 if e + 1 < k else 0
         ax, ay, az = poly[e, 0] - px, poly[e, 1] - py, poly[e, 2] - pz
@@ -307,8 +337,10 @@ def _lambert(px, py, pz, nx, ny, nz, T, poly):
         cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
         cn = math.sqrt(cx * cx + cy * cy + cz * cz)
         if cn > 0.0:
-            total += math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
-    return abs(total) / (2 * math.pi)
+            term = math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
+            total += term
+            mag += abs(term)
+    return abs(total) / (2 * math.pi), mag / (2 * math.pi)
 
 
 @njit(cache=True)
@@ -366,6 +398,7 @@ def _collapsed_gauss(n):
 
 _RULE25, _RULE25_W = _collapsed_gauss(5)
 _RULE64, _RULE64_W = _collapsed_gauss(8)
+_RULE144, _RULE144_W = _collapsed_gauss(12)     # degree 22: grazing pairs, cheaper than a split
 
 
 @njit(cache=True)
@@ -428,9 +461,9 @@ def _far(Tt, Tr, target, stats, P):
         return -1.0
     At = 0.5 * At2
     Ar = 0.5 * Ar2
-    f1 = _lambert(crx, cry, crz, nrx, nry, nrz, Tt, P)
-    if not f1 > 0:
-        return -1.0
+    f1, mag = _lambert_terms(crx, cry, crz, nrx, nry, nrz, Tt, P)
+    if not f1 > 0 or CANCELLATION * mag > target * f1:
+        return -1.0             # edge-on: the point factor itself loses the target to rounding
     if _far_bound(At, D, rho_r, 1) <= target * f1:
         stats[2] += 1
         return Ar * f1
@@ -452,6 +485,159 @@ def _far(Tt, Tr, target, stats, P):
             stats[5] += 1
             return Ar * f
     return -1.0
+
+
+@njit(cache=True)
+def _lambert_front(px, py, pz, nx, ny, nz, O, nO):
+    """:func:`_lambert_terms` for a convex polygon O (nO vertices) already wholly in front of the
+    receiver's plane (no clipping): the factor and the sum of its terms' absolute values."""
+    total = 0.0
+    mag = 0.0
+    for e in range(nO):
+        e1 = e + 1 if e + 1 < nO else 0
+        ax, ay, az = O[e, 0] - px, O[e, 1] - py, O[e, 2] - pz
+        bx, by, bz = O[e1, 0] - px, O[e1, 1] - py, O[e1, 2] - pz
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if cn > 0.0:
+            term = math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
+            total += term
+            mag += abs(term)
+    return abs(total) / (2 * math.pi), mag / (2 * math.pi)
+
+
+@njit(cache=True)
+def _grazing_bound(rho, D, degree):
+    """Relative error bound of a positive rule exact to ``degree`` on a triangle of radius rho whose
+    centroid is at least D from the other polygon (docs/formfactors.md "Grazing pairs"): the
+    cosines are left out, so it holds however grazing the pair is. Best of a few ball radii k D."""
+    best = np.inf
+    if D <= 0.0:
+        return best
+    for k in (0.25, 0.3, 1.0 / 3.0, 0.38):
+        q = rho / (k * D)
+        if q < 1.0:
+            c = 1.0 / (1.0 - 2.0 * k - k * k) ** 2
+            best = min(best, 2.0 * c * (1.0 + rho / D) ** 4 * q ** degree / (1.0 - q))
+    return best
+
+
+@njit(cache=True)
+def _polygon_ball(O, nO):
+    """Vertex mean of a convex polygon and the largest distance from it to a vertex."""
+    cx = cy = cz = 0.0
+    for k in range(nO):
+        cx += O[k, 0]
+        cy += O[k, 1]
+        cz += O[k, 2]
+    cx, cy, cz = cx / nO, cy / nO, cz / nO
+    r = 0.0
+    for k in range(nO):
+        r = max(r, math.sqrt((O[k, 0] - cx) ** 2 + (O[k, 1] - cy) ** 2 + (O[k, 2] - cz) ** 2))
+    return cx, cy, cz, r
+
+
+@njit(cache=True)
+def _grazing_nodes(I, nI, ox, oy, oz, orho, target, X, W):
+    """Cubature nodes X (rows) and weights W (area included) over polygon I, fanned into triangles,
+    each split in 4 until :func:`_grazing_bound` against the other polygon's ball (centre o,
+    radius orho) is within ``target``; returns their number, -1 if X is too short for it."""
+    stack = np.empty((16, 3, 3))
+    depth = np.zeros(16, dtype=np.int64)
+    top = 0
+    for k in range(1, nI - 1):
+        for c in range(3):
+            stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = I[0, c], I[k, c], I[k + 1, c]
+        top += 1
+    n = 0
+    while top > 0:
+        top -= 1
+        T = stack[top].copy()
+        level = depth[top]
+        cx, cy, cz = _centroid(T)
+        rho = _radius(T, cx, cy, cz)
+        D = math.sqrt((cx - ox) ** 2 + (cy - oy) ** 2 + (cz - oz) ** 2) - orho
+        if _grazing_bound(rho, D, 5) <= target:
+            rule, weights = _RULE7, _RULE7_W
+        elif _grazing_bound(rho, D, 8) <= target:
+            rule, weights = _RULE25, _RULE25_W
+        elif _grazing_bound(rho, D, 14) <= target:
+            rule, weights = _RULE64, _RULE64_W
+        elif _grazing_bound(rho, D, 22) <= target:
+            rule, weights = _RULE144, _RULE144_W
+        elif level < 3 and top + 4 <= len(stack):
+            for m in range(4):                       # midpoint split: children of half the radius
+                for c in range(3):
+                    a, b, e = T[0, c], T[1, c], T[2, c]
+                    ab, be, ea = 0.5 * (a + b), 0.5 * (b + e), 0.5 * (e + a)
+                    if m == 0:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = a, ab, ea
+                    elif m == 1:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ab, b, be
+                    elif m == 2:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ea, be, e
+                    else:
+                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = be, ea, ab
+                depth[top] = level + 1
+                top += 1
+            continue
+        else:
+            return -1
+        if n + len(weights) > len(W):
+            return -1
+        _, _, _, A2 = _normal(T)
+        for r in range(len(weights)):
+            for c in range(3):
+                X[n, c] = rule[r, 0] * T[0, c] + rule[r, 1] * T[1, c] + rule[r, 2] * T[2, c]
+            W[n] = 0.5 * A2 * weights[r]
+            n += 1
+    return n
+
+
+@njit(cache=True)
+def _grazing(P, nP, npx, npy, npz, Q, nQ, nqx, nqy, nqz, target):
+    """``A_P F_PQ`` by a product cubature over both polygons (each wholly in front of the other's
+    plane, unit normals np, nq) of ``h_P(x) h_Q(y) / (pi r^4)``, the heights above the other's plane
+    computed directly (so grazing cosines keep their digits), each side's rule within target / 2 by
+    the cosine-free bound; -1.0 where 3 levels of splitting do not suffice."""
+    px, py, pz, prho = _polygon_ball(P, nP)
+    qx, qy, qz, qrho = _polygon_ball(Q, nQ)
+    X = np.empty((4096, 3))
+    WX = np.empty(4096)
+    # cheaper where the point factor keeps its digits (not edge-on): the cubature over the smaller
+    # polygon of the exact point factor to the other, the bound within the whole target
+    if prho > qrho:
+        P, nP, npx, npy, npz, px, py, pz, Q, nQ, nqx, nqy, nqz, qx, qy, qz, qrho = \
+            Q, nQ, nqx, nqy, nqz, qx, qy, qz, P, nP, npx, npy, npz, px, py, pz, prho
+    f, mag = _lambert_front(px, py, pz, npx, npy, npz, Q, nQ)
+    if f > 0.0 and CANCELLATION * mag <= 0.1 * target * f:
+        nx = _grazing_nodes(P, nP, qx, qy, qz, qrho, target, X, WX)
+        if nx >= 0:
+            total = 0.0
+            for a in range(nx):
+                total += WX[a] * _lambert_front(X[a, 0], X[a, 1], X[a, 2], npx, npy, npz, Q, nQ)[0]
+            return total
+    prho = _polygon_ball(P, nP)[3]
+    Y = np.empty((4096, 3))
+    WY = np.empty(4096)
+    nx = _grazing_nodes(P, nP, qx, qy, qz, qrho, 0.5 * target, X, WX)
+    if nx < 0:
+        return -1.0
+    ny = _grazing_nodes(Q, nQ, px, py, pz, prho, 0.5 * target, Y, WY)
+    if ny < 0:
+        return -1.0
+    for b in range(ny):      # W times the height of y above P's plane
+        WY[b] *= npx * (Y[b, 0] - P[0, 0]) + npy * (Y[b, 1] - P[0, 1]) + npz * (Y[b, 2] - P[0, 2])
+    total = 0.0
+    for a in range(nx):
+        hx = nqx * (X[a, 0] - Q[0, 0]) + nqy * (X[a, 1] - Q[0, 1]) + nqz * (X[a, 2] - Q[0, 2])
+        inner = 0.0
+        for b in range(ny):
+            dx, dy, dz = X[a, 0] - Y[b, 0], X[a, 1] - Y[b, 1], X[a, 2] - Y[b, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            inner += WY[b] / (r2 * r2)
+        total += WX[a] * hx * inner
+    return abs(total) / math.pi
 
 
 @njit(cache=True)
@@ -492,8 +678,16 @@ def _pair(Ti, Tj, target, stats, P, Q):
     if nP < 3 or nQ < 3:
         stats[0] += 1
         return 0.0
+    value, size = _contour(P, nP, Q, nQ)
+    if target > 0.0 and CANCELLATION * size > target * value:
+        # the closed form may have lost the target to cancellation (grazing far pairs):
+        # a product cubature with the cosine-free bound instead
+        g = _grazing(P, nP, njx, njy, njz, Q, nQ, nix, niy, niz, target)
+        if g >= 0.0:
+            stats[6] += 1
+            return g
     stats[1] += 1
-    return _contour(P, nP, Q, nQ)
+    return value
 
 
 @njit(cache=True, parallel=True)
