@@ -3,6 +3,8 @@
     python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
     python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
+    python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
+                                                     # raw and enforced energy balance side by side
 
 ``table``: random triangle pairs of each kind (each wholly in front of the other, so the oracles'
 unclipped integrands apply), every method of host_driver/formfactor.py forced on each pair, and
@@ -26,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from _run_header import print_run_header                                   # noqa: E402
 from blockray.host_driver import formfactor as ff                            # noqa: E402
+from blockray.host_driver.closure import absorbed_balance                    # noqa: E402
 from blockray.host_driver.render import render                               # noqa: E402
 
 KINDS = {  # name: (generator kind for test_formfactor.random_pair, distance for "far" pairs)
@@ -92,11 +95,6 @@ def table(args):
               + ", ".join(f"{k} {v}" for k, v in picks.items()) + " |", flush=True)
 
 
-def absorbed_balance(scene, B):
-    """Per channel: sum (1 - rho) H A / sum E A - 1, with H = (B - E) / rho."""
-    rho, E, A = scene.reflectance, scene.emission, scene.areas
-    H = np.divide(B - E, rho, out=np.zeros_like(B), where=rho > 0)
-    return ((1 - rho) * H * A[:, None]).sum(axis=0) / (E * A[:, None]).sum(axis=0) - 1
 
 
 def icosphere(levels, centre, radius):
@@ -185,6 +183,22 @@ def energy(args):
                   + ", ".join(f"{x:+.1e}" for x in bal) + f" | {time.perf_counter() - t:.0f} |", flush=True)
 
 
+def closure(args):
+    """Each closed scene rendered once with ``closure=args.mode``: the raw visible factors'
+    summation and reciprocity errors (host_driver/closure.py), the size of the correction, and the
+    energy balance solved with the raw and the corrected factors."""
+    import json
+    for name, scene in closed_scenes():
+        if args.only and args.only not in name:
+            continue
+        t = time.perf_counter()
+        res = render(scene, board=args.board, tolerance=args.tolerance, solver=args.solver, closure=args.mode)
+        c = res.report["closure"]
+        print(json.dumps({"scene": name, "patches": scene.patches, "board": args.board, "solver": args.solver,
+                          "residual": res.report["residual"], "seconds": round(time.perf_counter() - t, 1),
+                          **c}), flush=True)
+
+
 def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
@@ -230,12 +244,18 @@ def main(argv=None):
     e.add_argument("--boards", default="golden")
     e.add_argument("--tolerance", type=float, default=1e-6)
     e.add_argument("--only", default=None, help="only scenes whose name contains this")
+    c = sub.add_parser("closure")
+    c.add_argument("--board", default="golden")
+    c.add_argument("--mode", default="enforce", help="render's closure mode: symmetric or enforce")
+    c.add_argument("--solver", default="progressive")
+    c.add_argument("--tolerance", type=float, default=1e-6)
+    c.add_argument("--only", default=None, help="only scenes whose name contains this")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy, "rows": row_sums}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums, "closure": closure}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
-from bench_formfactor import absorbed_balance, closed_scenes          # noqa: E402
+from bench_formfactor import closed_scenes                              # noqa: E402
+from blockray.host_driver.closure import absorbed_balance                # noqa: E402
 from blockray.host_driver.formfactor import form_factor_matrix          # noqa: E402
 from blockray.host_driver.render import render                          # noqa: E402
 from blockray.host_driver.solver import jacobi                          # noqa: E402
