@@ -3,6 +3,7 @@
     python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
     python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
+    python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
                                                      # raw and enforced energy balance side by side
 
@@ -199,6 +200,45 @@ def closure(args):
                           **c}), flush=True)
 
 
+def boards(args):
+    """Golden board (exact predicate) against the model board's compiled kernel on the same
+    shooters' block rays: tests per second of each, one thread, alternating rounds (a shared
+    machine's load hits both alike), the ratio per round. Each board's first shooter compiles its
+    kernels and is not timed."""
+    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.render import make_board, Visibility
+    from blockray.host_driver.voxel import VoxelGrid, default_voxels
+    from blockray.params import BoardParams
+    from blockray.samples import SampleScheme
+    from blockray import threads
+    scene = load_scene(args.scene)
+    samples, p = SampleScheme(8), BoardParams()
+    rng = np.random.default_rng(args.seed)
+    shooters = rng.choice(scene.patches, args.shooters + 1, replace=False)
+    print(f"scene {scene.name}, {args.shooters} shooters (seed {args.seed}), {args.rounds} rounds, 1 thread")
+    with threads.using(1):
+        setups = {}
+        for name in ("golden", "model"):
+            board = make_board(name, p)
+            board.prepare(scene, samples)
+            grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=board.margin)
+            board.load(grid)
+            vis = Visibility(scene, board, grid, samples, rows=p.rows, cols=p.cols)
+            i = shooters[0]
+            vis.clear_fraction(i, np.flatnonzero(ff.exchange_mask(scene, i)))          # compile
+            setups[name] = (board, vis)
+        for r in range(args.rounds):
+            rate = {}
+            for name, (board, vis) in setups.items():
+                tests0, cpu0 = board.counters()["tests"], vis.phases.cpu.get("board", 0.0)
+                for i in shooters[1:]:
+                    vis.clear_fraction(i, np.flatnonzero(ff.exchange_mask(scene, i)))
+                tests, cpu = board.counters()["tests"] - tests0, vis.phases.cpu["board"] - cpu0
+                rate[name] = tests / cpu
+                print(f"round {r}: {name}: {tests} tests, {cpu:.2f} s CPU, {tests / cpu / 1e6:.2f} M tests/s", flush=True)
+            print(f"round {r}: golden / model tests/s = {rate['golden'] / rate['model']:.2f}", flush=True)
+
+
 def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
@@ -250,12 +290,17 @@ def main(argv=None):
     c.add_argument("--solver", default="progressive")
     c.add_argument("--tolerance", type=float, default=1e-6)
     c.add_argument("--only", default=None, help="only scenes whose name contains this")
+    b = sub.add_parser("boards")
+    b.add_argument("--scene", default="cornell")
+    b.add_argument("--shooters", type=int, default=20)
+    b.add_argument("--rounds", type=int, default=3)
+    b.add_argument("--seed", type=int, default=17)
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy, "rows": row_sums, "closure": closure}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums, "closure": closure, "boards": boards}[args.what](args)
 
 
 if __name__ == "__main__":

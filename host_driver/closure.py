@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ParameterError
 
-__all__ = ["MODES", "exchange_areas", "diagnose", "enforce", "absorbed_balance"]
+__all__ = ["MODES", "exchange_areas", "diagnose", "imbalance_terms", "enforce", "absorbed_balance"]
 
 MODES = ("off", "symmetric", "enforce")
 
@@ -85,6 +85,18 @@ def diagnose(scene, F):
             "reciprocity_l1": float(np.abs(S - S.T).sum() / total) if total else 0.0,
             "reciprocity_max": float(np.abs(S - S.T).max() / S.max()) if S.max() > 0 else 0.0,
             "gather_sum": {"mean": float(np.mean(gather)), "min": float(gather.min()), "max": float(gather.max())}}
+
+
+def imbalance_terms(scene, F, B):
+    """``(closure, reciprocity)``, each (3,): the two parts of ``sum_i B_i (sum_j S[i, j] - A_i)``
+    (absorbed minus emitted power of a converged B) over the emitted power, from the symmetric
+    part of S (the summation rule) and from its antisymmetric part (reciprocity)."""
+    A = np.asarray(scene.areas, dtype=np.float64)
+    S = exchange_areas(scene, F)
+    emitted = (scene.emission * A[:, None]).sum(axis=0)
+    closure = ((S + S.T) / 2).sum(axis=1) - A
+    recip = ((S - S.T) / 2).sum(axis=1)
+    return (closure[:, None] * B).sum(axis=0) / emitted, (recip[:, None] * B).sum(axis=0) / emitted
 
 
 def _scale(S, A, *, tol=1e-15, max_iterations=10000):

@@ -62,9 +62,12 @@ def test_enforced_factors_conserve_energy_raw_do_not():
     scene, _ = _box_scene()
     F = _noisy_factors(scene, np.random.default_rng(SEED + 1))
     out, _ = closure.enforce(scene, F)
-    raw = _balance(scene, jacobi(scene, F, tolerance=1e-13, max_iterations=5000).B)
+    B_raw = jacobi(scene, F, tolerance=1e-13, max_iterations=5000).B
+    raw = _balance(scene, B_raw)
     fixed = _balance(scene, jacobi(scene, out, tolerance=1e-13, max_iterations=5000).B)
-    print(f"raw {raw}, enforced {fixed}")
+    summation, reciprocity = closure.imbalance_terms(scene, F, B_raw)
+    print(f"raw {raw} = {summation} (summation rule) + {reciprocity} (reciprocity); enforced {fixed}")
+    assert np.allclose(summation + reciprocity, raw, atol=1e-11)
     assert np.abs(raw).min() > 1e-3                  # the deficit is real and measurable
     assert np.abs(fixed).max() < 1e-10
 
