@@ -3,6 +3,7 @@
     python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
     python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
+    python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
                                                      # raw and enforced energy balance side by side
@@ -239,6 +240,36 @@ def boards(args):
             print(f"round {r}: golden / model tests/s = {rate['golden'] / rate['model']:.2f}", flush=True)
 
 
+def _radiosity(path):
+    """(N, 3) radiosity of a ``--patches`` CSV (``blockray render ... --patches``) or a .npy."""
+    if path.endswith(".npy"):
+        return np.load(path)
+    return np.loadtxt(path, delimiter=",", skiprows=1, usecols=(6, 7, 8), ndmin=2)
+
+
+def change_stats(B, ref):
+    """RMS relative change of B against ref (all channels, and per channel), and per channel the
+    largest and 99th-percentile per-patch relative change over the patches lit in ref, the change
+    of the channel's total, and the patches dark in ref (lit in B)."""
+    def rms(x, y):
+        return float(np.sqrt(np.mean((x - y) ** 2)) / np.sqrt(np.mean(y ** 2)))
+    out = {"rms": rms(B, ref)}
+    for c, ch in enumerate("RGB"):
+        lit = ref[:, c] > 0
+        rel = np.abs(B[lit, c] - ref[lit, c]) / ref[lit, c]
+        out[ch] = {"rms": rms(B[:, c], ref[:, c]), "max": float(rel.max()), "p99": float(np.quantile(rel, 0.99)),
+                   "total": float(B[:, c].sum() / ref[:, c].sum() - 1),
+                   "dark_in_ref": int((~lit).sum()), "dark_in_ref_lit_now": int((~lit & (B[:, c] > 0)).sum())}
+    return out
+
+
+def change(args):
+    """Radiosity change between two renders of one scene (e.g. before and after a change, or the
+    model against golden), from their ``--patches`` CSVs."""
+    import json
+    print(json.dumps({"ref": args.ref, "new": args.new, **change_stats(_radiosity(args.new), _radiosity(args.ref))}))
+
+
 def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
@@ -295,12 +326,15 @@ def main(argv=None):
     b.add_argument("--shooters", type=int, default=20)
     b.add_argument("--rounds", type=int, default=3)
     b.add_argument("--seed", type=int, default=17)
+    ch = sub.add_parser("change")
+    ch.add_argument("ref", help="reference radiosity: --patches CSV or .npy")
+    ch.add_argument("new", help="radiosity compared with it")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy, "rows": row_sums, "closure": closure, "boards": boards}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums, "closure": closure, "boards": boards, "change": change}[args.what](args)
 
 
 if __name__ == "__main__":
