@@ -124,3 +124,10 @@ def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
 def test_closure_needs_one_host():
     with pytest.raises(ParameterError, match="--closure"):
         render(_box_with_block(), board="golden", solver="jacobi", sets=2, closure="enforce")
+
+
+def test_cli_refuses_enforcement_on_an_open_scene(tmp_path, capsys):
+    from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
+    path = write(tmp_path, BOX, BOX_MTL, name="box")                     # a box without its front and top
+    code, err = cli(capsys, ["render", path, "--board", "golden", "--quiet", "--closure", "enforce"])
+    assert_one_line_error(code, err, "--closure enforce", "not closed")
