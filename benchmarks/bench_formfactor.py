@@ -203,9 +203,11 @@ def closure(args):
 
 def boards(args):
     """Golden board (exact predicate) against the model board's compiled kernel on the same
-    shooters' block rays: tests per second of each, one thread, alternating rounds (a shared
-    machine's load hits both alike), the ratio per round. Each board's first shooter compiles its
-    kernels and is not timed."""
+    shooters' rays: rays and tests per CPU second of each board's ``run``, one thread,
+    alternating rounds (a shared machine's load hits both alike), the ratio per round. The boards
+    count tests differently (golden: rays x patches of the block's voxels; model: the hardware's
+    tests, records streamed x R x S), so rays/s is the like-for-like figure. Each board's first
+    shooter compiles its kernels and is not timed."""
     from blockray.host_driver.builtin import load_scene
     from blockray.host_driver.render import make_board, Visibility
     from blockray.host_driver.voxel import VoxelGrid, default_voxels
@@ -231,13 +233,16 @@ def boards(args):
         for r in range(args.rounds):
             rate = {}
             for name, (board, vis) in setups.items():
-                tests0, cpu0 = board.counters()["tests"], vis.phases.cpu.get("board", 0.0)
+                tests0, rays0, cpu0 = board.counters()["tests"], vis.rays, vis.phases.cpu.get("board", 0.0)
                 for i in shooters[1:]:
                     vis.clear_fraction(i, np.flatnonzero(ff.exchange_mask(scene, i)))
-                tests, cpu = board.counters()["tests"] - tests0, vis.phases.cpu["board"] - cpu0
-                rate[name] = tests / cpu
-                print(f"round {r}: {name}: {tests} tests, {cpu:.2f} s CPU, {tests / cpu / 1e6:.2f} M tests/s", flush=True)
-            print(f"round {r}: golden / model tests/s = {rate['golden'] / rate['model']:.2f}", flush=True)
+                tests, rays = board.counters()["tests"] - tests0, vis.rays - rays0
+                cpu = vis.phases.cpu["board"] - cpu0
+                rate[name] = (tests / cpu, rays / cpu)
+                print(f"round {r}: {name}: {rays} rays, {tests} tests, {cpu:.3f} s CPU: {rays / cpu / 1e6:.2f} M rays/s, "
+                      f"{tests / cpu / 1e6:.1f} M tests/s", flush=True)
+            print(f"round {r}: golden / model: rays/s {rate['golden'][1] / rate['model'][1]:.3f}, "
+                  f"tests/s {rate['golden'][0] / rate['model'][0]:.3f}", flush=True)
 
 
 def _radiosity(path):
