@@ -119,7 +119,9 @@ def enforce(scene, F, *, mode="enforce", max_correction=MAX_CORRECTION):
     size of the correction. ``mode="off"`` returns ``F`` unchanged (diagnostics still given).
 
     Raises :class:`ParameterError` (naming ``--closure``) if a patch's scale moves by more than
-    ``max_correction``, or if a patch exchanges with nothing (a closed scene has no such patch).
+    ``max_correction``, or if an emitting patch exchanges with nothing. Patches that exchange
+    with nothing and emit nothing (a box's face lying on the floor) keep their zero row
+    (``info["isolated_patches"]`` counts them).
     """
     if mode not in MODES:
         raise ParameterError(f"--closure must be one of {', '.join(MODES)}, not {mode!r}")
@@ -132,10 +134,14 @@ def enforce(scene, F, *, mode="enforce", max_correction=MAX_CORRECTION):
     S = (S + S.T) / 2
     info["symmetrised_max_change"] = float(np.abs(exchange_areas(scene, F) - S).max() / S.max()) if S.max() > 0 else 0.0
     if mode == "enforce":
-        dead = np.flatnonzero(S.sum(axis=1) <= 0)
-        if len(dead):
-            raise ParameterError(f"--closure enforce: patch {int(dead[0])} exchanges light with no other patch "
-                                 f"({len(dead)} such patches); the scene is not closed", parameter="closure")
+        # a patch that sees nothing (e.g. a box's bottom face on the floor) exchanges nothing and
+        # keeps d = 1; if it emits, its light has nowhere to go: the scene is not closed for it
+        isolated = S.sum(axis=1) <= 0
+        lost = np.flatnonzero(isolated & (np.asarray(scene.emission).sum(axis=1) > 0))
+        if len(lost):
+            raise ParameterError(f"--closure enforce: patch {int(lost[0])} emits but exchanges light with no other "
+                                 f"patch; the scene is not closed", parameter="closure")
+        info["isolated_patches"] = int(isolated.sum())
         d, iterations = _scale(S, A)
         correction = float(np.abs(d - 1).max())
         info.update(scale_max_change=correction, scale_iterations=iterations,

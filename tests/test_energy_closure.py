@@ -92,6 +92,25 @@ def test_open_scene_is_refused():
         closure.enforce(opened, form_factor_matrix(opened), mode="sinkhorn")
 
 
+def test_isolated_patch_keeps_its_zero_row_unless_it_emits():
+    """A triangle lying on the floor facing it (a box's bottom face) sees nothing: enforcement
+    leaves it alone; if it emitted, its light would have nowhere to go."""
+    box, face = _box_scene()
+    lying = np.array([[[0.2, 0.2, 0.0], [0.2, 0.4, 0.0], [0.4, 0.2, 0.0]]])        # normal -z
+    tris = np.concatenate([box.patch_vertices, lying])
+    E = np.concatenate([box.emission, [[0.0, 0.0, 0.0]]])
+    scene = make_scene(tris, reflectance=[0.5, 0.3, 0.7], emission=E)
+    F = _noisy_factors(scene, np.random.default_rng(SEED + 3))
+    assert (F[-1] == 0).all() and (F[:, -1] == 0).all()
+    out, info = closure.enforce(scene, F)
+    assert info["isolated_patches"] == 1 and (out[-1] == 0).all() and (out[:, -1] == 0).all()
+    assert np.abs(out[:-1].sum(axis=1) - 1).max() < 1e-13
+    E[-1] = 1.0
+    glowing = make_scene(tris, reflectance=0.5, emission=E)
+    with pytest.raises(ParameterError, match=f"patch {len(tris) - 1} emits but exchanges light with no other"):
+        closure.enforce(glowing, F)
+
+
 def _box_with_block():
     """A closed box of 48 triangles with a closed cube of 12 triangles floating inside."""
     box, face = closed_box(2)
