@@ -3,6 +3,7 @@
     python benchmarks/bench_formfactor.py table      # each method's error vs the mpmath contour oracle
     python benchmarks/bench_formfactor.py energy     # closed scenes: absorbed vs emitted power
     python benchmarks/bench_formfactor.py rows       # visible row sums per shooter vs sample count
+    python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
@@ -275,6 +276,38 @@ def change(args):
     print(json.dumps({"ref": args.ref, "new": args.new, **change_stats(_radiosity(args.new), _radiosity(args.ref))}))
 
 
+def end_points(args):
+    """Row sums of the icosphere scene's box shooters (every 6th triangle) with visibility from K
+    shooter samples to 1 (the centroid) or K (the same sample scheme) end points on each receiver,
+    exact predicate over every patch, uniform weights over the samples in front of the other
+    patch's plane: does sampling the receiver too remove the deficit?"""
+    from blockray.exact_float import blocked_rays
+    from blockray.samples import SampleScheme
+    scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))
+    K = args.samples
+    samples = SampleScheme(K)
+    W = np.asarray(samples.weights, dtype=np.int64)
+    V, A = scene.patch_vertices, scene.areas
+    res = {1: [], K: []}
+    for i in range(0, 192, 6):
+        f = ff.unoccluded_factors(scene, i)
+        rec = np.flatnonzero(f > 0)
+        front_i = ff.samples_in_front(scene, samples, i, rec).astype(float)     # (R, K)
+        vis = {1: np.zeros(len(rec)), K: np.zeros(len(rec))}
+        for r, j in enumerate(rec):
+            front_j = ff.samples_in_front(scene, samples, j, [i])[0].astype(float)
+            for M, Q_w, mask in ((1, np.ones((1, 3), dtype=np.int64), np.ones(1)), (K, W, front_j)):
+                clear = ~blocked_rays(np.repeat(V[i][None], K, axis=0), W, np.repeat(V[j][None], M, axis=0), Q_w, V)
+                w = mask[:, None] * front_i[r][None, :]
+                vis[M][r] = (clear * w).sum() / w.sum() if w.sum() > 0 else clear.mean()
+        for M in (1, K):
+            res[M].append((A[rec] * f[rec] * vis[M]).sum() / A[i] - 1)
+    for M in (1, K):
+        x = np.array(res[M])
+        print(f"K = {K} shooter samples, {M} end point(s) per receiver: {len(x)} box shooters, row sum - 1: "
+              f"mean {x.mean():+.2e}, min {x.min():+.2e}, max {x.max():+.2e}", flush=True)
+
+
 def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
@@ -334,12 +367,14 @@ def main(argv=None):
     ch = sub.add_parser("change")
     ch.add_argument("ref", help="reference radiosity: --patches CSV or .npy")
     ch.add_argument("new", help="radiosity compared with it")
+    en = sub.add_parser("ends")
+    en.add_argument("--samples", type=int, default=8)
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
     args = ap.parse_args(argv)
     print_run_header()
-    {"table": table, "energy": energy, "rows": row_sums, "closure": closure, "boards": boards, "change": change}[args.what](args)
+    {"table": table, "energy": energy, "rows": row_sums, "closure": closure, "boards": boards, "change": change, "ends": end_points}[args.what](args)
 
 
 if __name__ == "__main__":
