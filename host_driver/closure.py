@@ -62,7 +62,9 @@ def diagnose(scene, F):
 
     - ``shooter_sum``: ``sum_j S[i, j] / A_i - 1`` (what energy balance depends on):
       area-weighted mean, min, max over patches;
-    - ``closure``: the same of the symmetric part ``(S + S^T) / 2``;
+    - ``closure``: the same of the symmetric part ``(S + S^T) / 2``; ``closure_lowest``, the five
+      patches with the lowest such sums ``[patch, sum - 1]``, and ``closure_below_5pct``, how many
+      are more than 5% short;
     - ``reciprocity``: the antisymmetric part's share ``sum_j (S - S^T)[i, j] / 2 / A_i``
       (its weighted mean is 0 by construction): min, max; and ``reciprocity_l1``,
       ``sum |S - S^T| / sum (S + S^T)``, the fraction of exchanged power that is not reciprocal;
@@ -80,7 +82,10 @@ def diagnose(scene, F):
     def stats(x):
         return {"mean": float((A * x).sum() / A.sum()), "min": float(x.min()), "max": float(x.max())}
     total = float((S + S.T).sum())
+    worst = np.argsort(closure, kind="stable")[:5]
     return {"shooter_sum": stats(shooter), "closure": stats(closure),
+            "closure_lowest": [[int(i), float(closure[i])] for i in worst],
+            "closure_below_5pct": int((closure < -MAX_CORRECTION).sum()),
             "reciprocity": {"min": float(recip.min()), "max": float(recip.max())},
             "reciprocity_l1": float(np.abs(S - S.T).sum() / total) if total else 0.0,
             "reciprocity_max": float(np.abs(S - S.T).max() / S.max()) if S.max() > 0 else 0.0,
