@@ -152,7 +152,7 @@ def enforce(scene, F, *, mode="enforce", max_correction=MAX_CORRECTION):
         info.update(scale_max_change=correction, scale_iterations=iterations,
                     scale_mean_change=float((A * (d - 1)).sum() / A.sum()))
         if correction > max_correction:
-            raise ParameterError(f"--closure enforce: the summation rule needs a scale of {correction:.3g} on a patch "
+            raise ParameterError(f"--closure enforce: the summation rule needs a scale change |d - 1| of {correction:.3g} on a patch "
                                  f"(more than {max_correction:g}); the scene is not closed, or its visibility too "
                                  f"coarse to enforce", parameter="closure")
         S = d[:, None] * S * d[None, :]
