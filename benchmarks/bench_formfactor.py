@@ -7,6 +7,11 @@
     python benchmarks/bench_formfactor.py grazing    # cornell's grazing pairs: closed form and default vs mpmath
     python benchmarks/bench_formfactor.py trigger    # the closed form's error against its cancellation estimate
     python benchmarks/bench_formfactor.py versus     # against an earlier formfactor.py: speed, radiosity
+    python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
+    python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
+    python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
+    python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
+                                                     # raw and enforced energy balance side by side
 
 ``versus`` needs the earlier module beside the new one (not committed), e.g.
 ``git show 10cb08c:host_driver/formfactor.py > host_driver/_formfactor_before.py``.
@@ -45,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from _run_header import print_run_header                                   # noqa: E402
 from blockray.host_driver import formfactor as ff                            # noqa: E402
+from blockray.host_driver.closure import absorbed_balance                    # noqa: E402
 from blockray.host_driver.render import render                               # noqa: E402
 
 KINDS = {  # name: (generator kind for test_formfactor.random_pair, distance for test_formfactor.far_pair)
@@ -96,11 +102,6 @@ def table(args):
               + ", ".join(f"{k} {v}" for k, v in picks.items()) + " |", flush=True)
 
 
-def absorbed_balance(scene, B):
-    """Per channel: sum (1 - rho) H A / sum E A - 1, with H = (B - E) / rho."""
-    rho, E, A = scene.reflectance, scene.emission, scene.areas
-    H = np.divide(B - E, rho, out=np.zeros_like(B), where=rho > 0)
-    return ((1 - rho) * H * A[:, None]).sum(axis=0) / (E * A[:, None]).sum(axis=0) - 1
 
 
 def icosphere(levels, centre, radius):
@@ -187,6 +188,128 @@ def energy(args):
             bal = absorbed_balance(scene, res.radiosity)
             print(f"| {name} | {board} | {scene.patches} | {res.report['residual']:.1e} | "
                   + ", ".join(f"{x:+.1e}" for x in bal) + f" | {time.perf_counter() - t:.0f} |", flush=True)
+
+
+def closure(args):
+    """Each closed scene rendered once with ``closure=args.mode``: the raw visible factors'
+    summation and reciprocity errors (host_driver/closure.py), the size of the correction, and the
+    energy balance solved with the raw and the corrected factors."""
+    import json
+    for name, scene in closed_scenes():
+        if args.only and args.only not in name:
+            continue
+        t = time.perf_counter()
+        res = render(scene, board=args.board, tolerance=args.tolerance, solver=args.solver, closure=args.mode)
+        c = res.report["closure"]
+        print(json.dumps({"scene": name, "patches": scene.patches, "board": args.board, "solver": args.solver,
+                          "residual": res.report["residual"], "seconds": round(time.perf_counter() - t, 1),
+                          **c}), flush=True)
+
+
+def boards(args):
+    """Golden board (exact predicate) against the model board's compiled kernel on the same
+    shooters' rays: rays and tests per CPU second of each board's ``run``, one thread,
+    alternating rounds (a shared machine's load hits both alike), the ratio per round. The boards
+    count tests differently (golden: rays x patches of the block's voxels; model: the hardware's
+    tests, records streamed x R x S), so rays/s is the like-for-like figure. Each board's first
+    shooter compiles its kernels and is not timed."""
+    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.render import make_board, Visibility
+    from blockray.host_driver.voxel import VoxelGrid, default_voxels
+    from blockray.params import BoardParams
+    from blockray.samples import SampleScheme
+    from blockray import threads
+    scene = load_scene(args.scene)
+    samples, p = SampleScheme(8), BoardParams()
+    rng = np.random.default_rng(args.seed)
+    shooters = rng.choice(scene.patches, args.shooters + 1, replace=False)
+    print(f"scene {scene.name}, {args.shooters} shooters (seed {args.seed}), {args.rounds} rounds, 1 thread")
+    with threads.using(1):
+        setups = {}
+        for name in ("golden", "model"):
+            board = make_board(name, p)
+            board.prepare(scene, samples)
+            grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=board.margin)
+            board.load(grid)
+            vis = Visibility(scene, board, grid, samples, rows=p.rows, cols=p.cols)
+            i = shooters[0]
+            vis.clear_fraction(i, np.flatnonzero(ff.exchange_mask(scene, i)))          # compile
+            setups[name] = (board, vis)
+        for r in range(args.rounds):
+            rate = {}
+            for name, (board, vis) in setups.items():
+                tests0, rays0, cpu0 = board.counters()["tests"], vis.rays, vis.phases.cpu.get("board", 0.0)
+                for i in shooters[1:]:
+                    vis.clear_fraction(i, np.flatnonzero(ff.exchange_mask(scene, i)))
+                tests, rays = board.counters()["tests"] - tests0, vis.rays - rays0
+                cpu = vis.phases.cpu["board"] - cpu0
+                rate[name] = (tests / cpu, rays / cpu)
+                print(f"round {r}: {name}: {rays} rays, {tests} tests, {cpu:.3f} s CPU: {rays / cpu / 1e6:.2f} M rays/s, "
+                      f"{tests / cpu / 1e6:.1f} M tests/s", flush=True)
+            print(f"round {r}: golden / model: rays/s {rate['golden'][1] / rate['model'][1]:.3f}, "
+                  f"tests/s {rate['golden'][0] / rate['model'][0]:.3f}", flush=True)
+
+
+def _radiosity(path):
+    """(N, 3) radiosity of a ``--patches`` CSV (``blockray render ... --patches``) or a .npy."""
+    if path.endswith(".npy"):
+        return np.load(path)
+    return np.loadtxt(path, delimiter=",", skiprows=1, usecols=(6, 7, 8), ndmin=2)
+
+
+def change_stats(B, ref):
+    """RMS relative change of B against ref (all channels, and per channel), and per channel the
+    largest and 99th-percentile per-patch relative change over the patches lit in ref, the change
+    of the channel's total, and the patches dark in ref (lit in B)."""
+    def rms(x, y):
+        return float(np.sqrt(np.mean((x - y) ** 2)) / np.sqrt(np.mean(y ** 2)))
+    out = {"rms": rms(B, ref)}
+    for c, ch in enumerate("RGB"):
+        lit = ref[:, c] > 0
+        rel = np.abs(B[lit, c] - ref[lit, c]) / ref[lit, c]
+        out[ch] = {"rms": rms(B[:, c], ref[:, c]), "max": float(rel.max()), "p99": float(np.quantile(rel, 0.99)),
+                   "total": float(B[:, c].sum() / ref[:, c].sum() - 1),
+                   "dark_in_ref": int((~lit).sum()), "dark_in_ref_lit_now": int((~lit & (B[:, c] > 0)).sum())}
+    return out
+
+
+def change(args):
+    """Radiosity change between two renders of one scene (e.g. before and after a change, or the
+    model against golden), from their ``--patches`` CSVs."""
+    import json
+    print(json.dumps({"ref": args.ref, "new": args.new, **change_stats(_radiosity(args.new), _radiosity(args.ref))}))
+
+
+def end_points(args):
+    """Row sums of the icosphere scene's box shooters (every 6th triangle) with visibility from K
+    shooter samples to 1 (the centroid) or K (the same sample scheme) end points on each receiver,
+    exact predicate over every patch, uniform weights over the samples in front of the other
+    patch's plane: does sampling the receiver too remove the deficit?"""
+    from blockray.exact_float import blocked_rays
+    from blockray.samples import SampleScheme
+    scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))
+    K = args.samples
+    samples = SampleScheme(K)
+    W = np.asarray(samples.weights, dtype=np.int64)
+    V, A = scene.patch_vertices, scene.areas
+    res = {1: [], K: []}
+    for i in range(0, 192, 6):
+        f = ff.unoccluded_factors(scene, i)
+        rec = np.flatnonzero(f > 0)
+        front_i = ff.samples_in_front(scene, samples, i, rec).astype(float)     # (R, K)
+        vis = {1: np.zeros(len(rec)), K: np.zeros(len(rec))}
+        for r, j in enumerate(rec):
+            front_j = ff.samples_in_front(scene, samples, j, [i])[0].astype(float)
+            for M, Q_w, mask in ((1, np.ones((1, 3), dtype=np.int64), np.ones(1)), (K, W, front_j)):
+                clear = ~blocked_rays(np.repeat(V[i][None], K, axis=0), W, np.repeat(V[j][None], M, axis=0), Q_w, V)
+                w = mask[:, None] * front_i[r][None, :]
+                vis[M][r] = (clear * w).sum() / w.sum() if w.sum() > 0 else clear.mean()
+        for M in (1, K):
+            res[M].append((A[rec] * f[rec] * vis[M]).sum() / A[i] - 1)
+    for M in (1, K):
+        x = np.array(res[M])
+        print(f"K = {K} shooter samples, {M} end point(s) per receiver: {len(x)} box shooters, row sum - 1: "
+              f"mean {x.mean():+.2e}, min {x.min():+.2e}, max {x.max():+.2e}", flush=True)
 
 
 def row_sums(args):
@@ -385,6 +508,22 @@ def main(argv=None):
     e.add_argument("--boards", default="golden")
     e.add_argument("--tolerance", type=float, default=1e-6)
     e.add_argument("--only", default=None, help="only scenes whose name contains this")
+    c = sub.add_parser("closure")
+    c.add_argument("--board", default="golden")
+    c.add_argument("--mode", default="enforce", help="render's closure mode: symmetric or enforce")
+    c.add_argument("--solver", default="progressive")
+    c.add_argument("--tolerance", type=float, default=1e-6)
+    c.add_argument("--only", default=None, help="only scenes whose name contains this")
+    b = sub.add_parser("boards")
+    b.add_argument("--scene", default="cornell")
+    b.add_argument("--shooters", type=int, default=20)
+    b.add_argument("--rounds", type=int, default=3)
+    b.add_argument("--seed", type=int, default=17)
+    ch = sub.add_parser("change")
+    ch.add_argument("ref", help="reference radiosity: --patches CSV or .npy")
+    ch.add_argument("new", help="radiosity compared with it")
+    en = sub.add_parser("ends")
+    en.add_argument("--samples", type=int, default=8)
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
@@ -404,7 +543,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
-     "versus": versus}[args.what](args)
+     "versus": versus, "closure": closure, "boards": boards, "change": change, "ends": end_points}[args.what](args)
 
 
 if __name__ == "__main__":

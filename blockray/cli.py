@@ -168,6 +168,10 @@ def _render_parser(sub):
     p.add_argument("--tolerance", type=_positive_float, default=1e-3,
                    help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
     p.add_argument("--max-shots", type=_positive_int, default=None, help="progressive refinement: at most this many shots")
+    p.add_argument("--closure", default="off", choices=["off", "symmetric", "enforce"],
+                   help="closed scenes only: build every column first, then make the visible form factors "
+                        "reciprocal (symmetric) and also sum to 1 (enforce, symmetric scaling); the report's "
+                        "'closure' key gives the errors and the energy balance before and after")
     p.add_argument("--sets", type=_positive_int, default=1, metavar="K",
                    help="host + board sets working in parallel (the paper's section 6): each owns a region of "
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
@@ -286,7 +290,8 @@ def _cmd_render(args):
                     partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
                     threads=args.threads, scheduler=args.scheduler, workers=args.workers,
                     echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
-                    host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args))
+                    host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
+                    closure=args.closure)
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
@@ -301,6 +306,13 @@ def _cmd_render(args):
               f"{r['solver']} ({r['shots'] or r['iterations']} {'shots' if r['shots'] else 'iterations'}), "
               f"{r['rays']} rays, {r['tests']} tests, residual {r['residual']:.2e}, "
               f"{r['seconds']['total']:.1f} s", file=sys.stderr)
+        if "closure" in r:
+            c = r["closure"]
+            print(f"closure {c['mode']}: absorbed / emitted - 1 = "
+                  + ", ".join(f"{x:+.1e}" for x in c["absorbed_balance"]) + " (raw factors: "
+                  + ", ".join(f"{x:+.1e}" for x in c["absorbed_balance_raw"]) + ")"
+                  + (f", scale max |d - 1| = {c['scale_max_change']:.1e}" if "scale_max_change" in c else ""),
+                  file=sys.stderr)
     return 0
 
 

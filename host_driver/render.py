@@ -23,7 +23,7 @@ from ..samples import SampleScheme
 from ..errors import ParameterError
 from .backends import backend, make_board
 from .. import threads as host_threads
-from . import formfactor, solver as solvers
+from . import closure as closures, formfactor, solver as solvers
 from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from .visibility import PACKINGS, TRAVERSALS, Phases, Visibility, _morton, visible_fraction
 from .voxel import VoxelGrid, default_voxels, TraversalStats
@@ -45,7 +45,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
            stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None, host=None,
-           cell="exact", filter_format=None):
+           cell="exact", filter_format=None, closure="off"):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     ``board``: a name of the back-end registry (host_driver/backends.py) or a Board; ``vcd``,
@@ -59,6 +59,12 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     else a LocalCluster of ``workers`` processes (default one per core, at most ``sets``).
     ``echo(text)`` is told the cluster's dashboard address.
 
+    ``closure``: ``"symmetric"`` or ``"enforce"`` build every column first and make the visible
+    factors reciprocal (and, ``"enforce"``, closed: for closed scenes only), see
+    host_driver/closure.py; the report's ``closure`` key then gives the errors before and after,
+    the size of the correction, and the energy balance solved with the raw and the corrected
+    factors side by side.
+
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
     """
     with host_threads.using(threads):
@@ -67,20 +73,25 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                        traversal=traversal, packing=packing, partition=partition, sets=sets,
                        progress=progress, stats_fraction=stats_fraction, vcd=vcd,
                        scheduler=scheduler, workers=workers, echo=echo, host=host, cell=cell,
-                       filter_format=filter_format)
+                       filter_format=filter_format, closure=closure)
 
 
 def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
             traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo, host,
-            cell, filter_format):
+            cell, filter_format, closure):
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     if not (np.isfinite(tolerance) and tolerance > 0):
         raise ParameterError(f"--tolerance must be a positive number, not {tolerance!r}")
     if max_shots is not None and max_shots < 1:
         raise ParameterError(f"--max-shots must be at least 1, not {max_shots!r}")
+    if closure not in closures.MODES:
+        raise ParameterError(f"--closure must be one of {', '.join(closures.MODES)}, not {closure!r}")
     params = params or BoardParams()
     distributed = sets != 1 or scheduler is not None or workers is not None
+    if distributed and closure != "off":
+        raise ParameterError("--closure needs the whole form-factor matrix on one host; it cannot be used with "
+                             "--sets, --scheduler or --workers", parameter="closure")
     if distributed:
         if solver == "progressive":
             raise ParameterError("--sets: host + board sets solve by gathering; use --solver jacobi or "
@@ -154,21 +165,18 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
             cache[i] = out.astype(np.float32) if scene.patches > 4000 else out
         return out
 
-    bar = _progress(progress, solver, scene.patches if solver != "progressive" else max_shots)
+    bar = _progress(progress, solver, scene.patches if solver != "progressive" or closure != "off" else max_shots)
+    closure_info = None
     with phases.timed("solve"):
-        if solver == "progressive":
+        if closure != "off":
+            result, closure_info = _solve_closed(scene, shoot, closure, solver, bar, tolerance=tolerance,
+                                                 max_shots=max_shots, max_iterations=max_iterations)
+        elif solver == "progressive":
             result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance,
                                                     max_shots=max_shots, progress=bar)
         else:
-            F = np.zeros((scene.patches, scene.patches))
-            for i in range(scene.patches):
-                F[:, i] = shoot(i)
-                if bar is not None:
-                    bar.update(1)
-            if solver == "jacobi":
-                result = solvers.jacobi(scene, F, tolerance=tolerance, max_iterations=max_iterations)
-            else:
-                result = solvers.gauss_seidel(scene, F, tolerance=tolerance, max_iterations=max_iterations)
+            result = _solve_matrix(scene, _columns(scene, shoot, bar), solver, tolerance=tolerance,
+                                   max_shots=max_shots, max_iterations=max_iterations)
     if bar is not None:
         bar.close()
     inner = ("formfactor", "commands", "traverse", "board")
@@ -191,7 +199,47 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                      result=result, rays=vis.rays, blocks=vis.blocks, columns=vis.columns, counters=counters,
                      seconds=seconds, cpu_seconds=cpu_seconds, traversal_stats=stats.summary())
     report["exchange_bytes_per_sweep"] = 0
+    if closure_info is not None:
+        report["closure"] = closure_info
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
+
+
+def _solve_closed(scene, shoot, mode, solver, bar, **solve):
+    """Every column of visible factors, made reciprocal / closed (host_driver/closure.py), then
+    solved twice with ``solver``: with the corrected factors (the result) and with the raw ones,
+    so that the report shows both energy balances side by side."""
+    if 8 * scene.patches ** 2 > solvers.MAX_MATRIX_BYTES:
+        raise ParameterError(f"--closure {mode}: the form factors of {scene.patches} patches do not fit in "
+                             f"{solvers.MAX_MATRIX_BYTES / 2**30:g} GiB", parameter="closure")
+    F = _columns(scene, shoot, bar)
+    t0 = time.perf_counter()
+    corrected, info = closures.enforce(scene, F, mode=mode)
+    info["enforce_seconds"] = time.perf_counter() - t0
+    result = _solve_matrix(scene, corrected, solver, **solve)
+    raw = _solve_matrix(scene, F, solver, **solve)
+    info["absorbed_balance"] = closures.absorbed_balance(scene, result.B).tolist()
+    info["absorbed_balance_raw"] = closures.absorbed_balance(scene, raw.B).tolist()
+    info["residual_raw"] = float(raw.residual)
+    parts = closures.imbalance_terms(scene, F, raw.B)
+    info["raw_imbalance_from_closure"], info["raw_imbalance_from_reciprocity"] = (p.tolist() for p in parts)
+    return result, info
+
+
+def _columns(scene, shoot, bar):
+    """The dense visible factors ``F[j, i]``, one shooter's column at a time."""
+    F = np.zeros((scene.patches, scene.patches))
+    for i in range(scene.patches):
+        F[:, i] = shoot(i)
+        if bar is not None:
+            bar.update(1)
+    return F
+
+
+def _solve_matrix(scene, F, solver, *, tolerance, max_shots, max_iterations):
+    if solver == "progressive":
+        return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=tolerance, max_shots=max_shots)
+    gather = solvers.jacobi if solver == "jacobi" else solvers.gauss_seidel
+    return gather(scene, F, tolerance=tolerance, max_iterations=max_iterations)
 
 
 def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing, partition, solver,

@@ -1,0 +1,152 @@
+"""View-factor enforcement for closed scenes (host_driver/closure.py): reciprocity and the
+summation rule restored, the correction reported, and energy that adds up (issue 17).
+
+Every balance here is computed in the test from B, E, rho and A (``_balance``), not by the
+code under test.
+"""
+
+import numpy as np
+import pytest
+
+from test_formfactor import closed_box, make_scene
+from blockray.errors import ParameterError
+from blockray.host_driver import closure
+from blockray.host_driver.formfactor import form_factor_matrix
+from blockray.host_driver.render import render
+from blockray.host_driver.solver import jacobi
+
+SEED = 1717
+
+
+def _balance(scene, B):
+    """absorbed / emitted - 1 per channel: absorbed sum (1 - rho) H A with H = (B - E) / rho."""
+    rho, E, A = scene.reflectance, scene.emission, scene.areas
+    H = (B - E) / rho
+    return ((1 - rho) * H * A[:, None]).sum(axis=0) / (E * A[:, None]).sum(axis=0) - 1
+
+
+def _box_scene(n=2):
+    tris, face = closed_box(n)
+    E = np.zeros((len(tris), 3))
+    E[face == 1] = [1.0, 2.0, 0.5]
+    return make_scene(tris, reflectance=[0.5, 0.3, 0.7], emission=E), face
+
+
+def _noisy_factors(scene, rng):
+    """Exact factors times a visibility in [0.97, 1] drawn independently for each direction:
+    neither reciprocal nor closed, like a board's estimate."""
+    V = rng.uniform(0.97, 1.0, size=(scene.patches, scene.patches))
+    return form_factor_matrix(scene, visibility=V)
+
+
+def test_enforce_restores_reciprocity_and_row_sums():
+    print(f"seed={SEED}")
+    scene, _ = _box_scene()
+    F = _noisy_factors(scene, np.random.default_rng(SEED))
+    A = scene.areas
+    out, info = closure.enforce(scene, F)
+    AF = A[:, None] * out
+    assert np.abs(AF - AF.T).max() < 1e-15 * AF.max()                  # reciprocity to rounding
+    assert np.abs(out.sum(axis=1) - 1).max() < 1e-13                     # rows (receivers) sum to 1
+    assert np.abs(AF.sum(axis=0) / A - 1).max() < 1e-13                  # shooter sums too
+    assert ((out == 0) == (F == 0)).all()                                # blocked pairs stay blocked
+    # the correction is reported, and is of the size of the visibility's deficit (~1.5%)
+    assert 0.005 < info["scale_max_change"] < 0.05
+    raw = (A[:, None] * F).sum(axis=0) / A - 1
+    assert info["raw"]["shooter_sum"]["min"] == pytest.approx(raw.min(), rel=1e-12)
+    assert info["raw"]["shooter_sum"]["max"] == pytest.approx(raw.max(), rel=1e-12)
+    assert info["raw"]["reciprocity_l1"] > 1e-3
+
+
+def test_enforced_factors_conserve_energy_raw_do_not():
+    scene, _ = _box_scene()
+    F = _noisy_factors(scene, np.random.default_rng(SEED + 1))
+    out, _ = closure.enforce(scene, F)
+    B_raw = jacobi(scene, F, tolerance=1e-13, max_iterations=5000).B
+    raw = _balance(scene, B_raw)
+    fixed = _balance(scene, jacobi(scene, out, tolerance=1e-13, max_iterations=5000).B)
+    summation, reciprocity = closure.imbalance_terms(scene, F, B_raw)
+    print(f"raw {raw} = {summation} (summation rule) + {reciprocity} (reciprocity); enforced {fixed}")
+    assert np.allclose(summation + reciprocity, raw, atol=1e-11)
+    assert np.abs(raw).min() > 1e-3                  # the deficit is real and measurable
+    assert np.abs(fixed).max() < 1e-10
+
+
+def test_symmetric_mode_is_reciprocal_but_not_closed():
+    scene, _ = _box_scene()
+    F = _noisy_factors(scene, np.random.default_rng(SEED + 2))
+    out, info = closure.enforce(scene, F, mode="symmetric")
+    AF = scene.areas[:, None] * out
+    assert np.abs(AF - AF.T).max() < 1e-15 * AF.max()
+    assert np.abs(out.sum(axis=1) - 1).max() > 1e-3
+    assert "scale_max_change" not in info
+
+
+def test_open_scene_is_refused():
+    scene, face = _box_scene()
+    tris = scene.patch_vertices[face != 1]                               # no ceiling
+    opened = make_scene(tris, reflectance=0.5, emission=1.0)
+    with pytest.raises(ParameterError, match="--closure enforce.*not closed"):
+        closure.enforce(opened, form_factor_matrix(opened))
+    with pytest.raises(ParameterError, match="--closure must be one of"):
+        closure.enforce(opened, form_factor_matrix(opened), mode="sinkhorn")
+
+
+def test_isolated_patch_keeps_its_zero_row_unless_it_emits():
+    """A triangle lying on the floor facing it (a box's bottom face) sees nothing: enforcement
+    leaves it alone; if it emitted, its light would have nowhere to go."""
+    box, face = _box_scene()
+    lying = np.array([[[0.2, 0.2, 0.0], [0.2, 0.4, 0.0], [0.4, 0.2, 0.0]]])        # normal -z
+    tris = np.concatenate([box.patch_vertices, lying])
+    E = np.concatenate([box.emission, [[0.0, 0.0, 0.0]]])
+    scene = make_scene(tris, reflectance=[0.5, 0.3, 0.7], emission=E)
+    F = _noisy_factors(scene, np.random.default_rng(SEED + 3))
+    assert (F[-1] == 0).all() and (F[:, -1] == 0).all()
+    out, info = closure.enforce(scene, F)
+    assert info["isolated_patches"] == 1 and (out[-1] == 0).all() and (out[:, -1] == 0).all()
+    assert np.abs(out[:-1].sum(axis=1) - 1).max() < 1e-13
+    E[-1] = 1.0
+    glowing = make_scene(tris, reflectance=0.5, emission=E)
+    with pytest.raises(ParameterError, match=f"patch {len(tris) - 1} emits but exchanges light with no other"):
+        closure.enforce(glowing, F)
+
+
+def _box_with_block():
+    """A closed box of 48 triangles with a closed cube of 12 triangles floating inside."""
+    box, face = closed_box(2)
+    cube, _ = closed_box(1, size=0.3)
+    cube = cube[:, ::-1] + 0.35                                          # normals outward
+    tris = np.concatenate([box, cube])
+    E = np.zeros((len(tris), 3))
+    E[:len(box)][face == 1] = [1.0, 2.0, 0.5]
+    R = np.full((len(tris), 3), [0.5, 0.3, 0.7])
+    R[len(box):] = [0.8, 0.6, 0.2]
+    return make_scene(tris, reflectance=R, emission=E)
+
+
+def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
+    scene = _box_with_block()
+    res = render(scene, board="golden", tolerance=1e-10, closure="enforce")
+    c = res.report["closure"]
+    fixed = _balance(scene, res.radiosity)
+    print(f"enforced {fixed}; raw (reported) {c['absorbed_balance_raw']}; "
+          f"max |d - 1| {c['scale_max_change']:.2e}; raw shooter sums {c['raw']['shooter_sum']}")
+    assert np.abs(fixed).max() < 1e-8
+    assert c["mode"] == "enforce" and c["scale_max_change"] > 0
+    assert np.allclose(c["absorbed_balance"], fixed, atol=1e-12)
+    assert np.abs(c["absorbed_balance_raw"]).max() > 1e-6             # the board's raw estimate is not closed
+    off = render(scene, board="golden", tolerance=1e-10)
+    assert "closure" not in off.report
+    assert np.allclose(_balance(scene, off.radiosity), c["absorbed_balance_raw"], atol=1e-7)
+
+
+def test_closure_needs_one_host():
+    with pytest.raises(ParameterError, match="--closure"):
+        render(_box_with_block(), board="golden", solver="jacobi", sets=2, closure="enforce")
+
+
+def test_cli_refuses_enforcement_on_an_open_scene(tmp_path, capsys):
+    from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
+    path = write(tmp_path, BOX, BOX_MTL, name="box")                     # a box without its front and top
+    code, err = cli(capsys, ["render", path, "--board", "golden", "--quiet", "--closure", "enforce"])
+    assert_one_line_error(code, err, "--closure enforce", "not closed")
