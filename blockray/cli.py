@@ -197,7 +197,7 @@ def _capacity_hint(error, params):
     """A scene that does not fit the bitstream's memories: say what to change."""
     from .errors import CapacityError
     from .synth.bitstream import largest_fit
-    most = largest_fit(params.with_(voxel_depth=1)).patch_depth
+    most = largest_fit(params.with_(voxel_depth=1), routed=False).patch_depth
     return CapacityError(f"{error}; rebuild the bitstream with larger memories (blockray bitstream --patch-depth, "
                          f"--voxel-depth: the LFE5U-85F holds about {most} patch records at {params.rows} x "
                          f"{params.cols}, B = {params.bits}), spread the scene over more boards (--boards with "
@@ -443,8 +443,8 @@ def _bitstream_parser(sub):
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
-    t.add_argument("--freq", type=_positive_float, default=60.0, metavar="MHZ",
-                   help="board clock from the PLL (default 60: 3 Mbaud x 20)")
+    t.add_argument("--freq", type=_positive_float, default=45.0, metavar="MHZ",
+                   help="board clock from the PLL (default 45: 3 Mbaud x 15, met at -6 by the default board)")
     t.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
     t.add_argument("--workdir", metavar="DIR", help="keep the tools' files and logs here")
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
@@ -472,8 +472,12 @@ def _cmd_bitstream(args):
         print(f"blockray: error: the design does not fit the {report['device']} (see the report)", file=sys.stderr)
         return 1
     if not report["timing_met"]:
-        print(f"blockray: warning: Fmax {fmax:.1f} MHz is below the {report['clock']['pll_mhz']:g} MHz clock: "
-              f"lower --freq (a multiple of --baud)", file=sys.stderr)
+        closing = report["clock"].get("closing_mhz")
+        print(f"blockray: error: timing not met: Fmax {fmax:.1f} MHz at {report['speed_grade']} is below the "
+              f"{report['clock']['pll_mhz']:g} MHz clock; {args.out} may not work: rebuild with "
+              + (f"--freq {closing:g}" if closing else "a lower --freq (a multiple of --baud)")
+              + " or smaller memories", file=sys.stderr)
+        return 1
     return 0
 
 

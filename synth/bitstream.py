@@ -40,16 +40,21 @@ from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail,
                       _versions, dsp_estimate, nextpnr_command, run_nextpnr)
 from .yosys import yosys_command
 
-__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "bram_estimate", "check_fit", "largest_fit", "pll_config",
-           "build_bitstream"]
+__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "ROUTED_PATCH_DEPTH", "ROUTED_VOXEL_DEPTH", "bram_estimate",
+           "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
 
 #: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
 PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
 #: ``board``: the blockray board core (R x S array, memories); ``echo``: the link's test core
 CORES = ("board", "echo")
-#: the default board clock: 60 MHz is 3 Mbaud x 20 exactly, and the 2 x 2 board at B = 16 closes
-#: timing above it at -6 (docs/synthesis.md)
-DEFAULT_FREQ_MHZ = 60.0
+#: the default board clock: 45 MHz is 3 Mbaud x 15 exactly, ecppll makes it exactly from 25 MHz,
+#: and the 2 x 2 board at B = 16 with the default memories closes timing above it at -6
+#: (docs/ulx3s.md; the 60 MHz of the array alone is not met once the memories are placed)
+DEFAULT_FREQ_MHZ = 45.0
+#: the default memories at most (:func:`largest_fit`): the largest that routed and closed
+#: DEFAULT_FREQ_MHZ on the 2 x 2, B = 16 board (docs/ulx3s.md). The block RAMs hold more
+#: (8192 patch records, 32**3 voxels), but that board did not route (47 thousand wires overused)
+ROUTED_PATCH_DEPTH, ROUTED_VOXEL_DEPTH = 4096, 4096
 #: the largest baud-rate error the UART tolerates from the divisor's rounding
 MAX_BAUD_ERROR = 0.02
 OSCILLATOR_MHZ = 25.0
@@ -126,20 +131,24 @@ def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_M
     return {"dsps": dsps, "brams": brams, "divisor": divisor}
 
 
-def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None):
+def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None, routed=True):
     """``params`` with the memories not given (None) as large as the part's block RAMs allow
-    (powers of two; the voxel table first, up to 32**3 entries, then the patch memory)."""
+    (powers of two; the voxel table first, then the patch memory): with ``routed`` (the memories
+    ``blockray bitstream`` builds by default) at most :data:`ROUTED_VOXEL_DEPTH` and
+    :data:`ROUTED_PATCH_DEPTH`, the largest that routed and closed timing; without, up to 32**3
+    voxels and all the block RAMs."""
     dev = _device(platform)
+    voxel_cap, patch_cap = (ROUTED_VOXEL_DEPTH, ROUTED_PATCH_DEPTH) if routed else (1 << 15, 1 << 20)
 
     def fits(p):
         return sum(bram_estimate(p).values()) <= dev["brams"]
     if voxel_depth is None:
-        voxel_depth = 1 << 15
+        voxel_depth = voxel_cap
         while voxel_depth > 1 and not fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth or 1)):
             voxel_depth >>= 1
     if patch_depth is None:
         patch_depth = 1
-        while fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth * 2)) and patch_depth < 1 << 20:
+        while fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth * 2)) and patch_depth < patch_cap:
             patch_depth *= 2
     return params.with_(patch_depth=patch_depth, voxel_depth=voxel_depth)
 
@@ -162,6 +171,21 @@ def pll_config(freq_mhz, workdir):
     return PLLConfig(f_in_mhz=OSCILLATOR_MHZ, f_out_mhz=f_out, clki_div=param("CLKI_DIV"),
                      clkfb_div=param("CLKFB_DIV"), clkop_div=param("CLKOP_DIV"),
                      clkop_cphase=param("CLKOP_CPHASE"), clkop_fphase=param("CLKOP_FPHASE"))
+
+
+def closing_freq(fmax_mhz, baud, workdir):
+    """What to rebuild with when timing fails: the fastest board clock of at most ``fmax_mhz``
+    that is a whole multiple of ``baud`` (an exact UART divisor) and that ``ecppll`` makes
+    exactly from the 25 MHz oscillator; None if there is none from 10 MHz up."""
+    from ..rtl.uart import MIN_DIVISOR
+    Path(workdir).mkdir(parents=True, exist_ok=True)
+    k = int(fmax_mhz * 1e6 // baud)
+    while k >= MIN_DIVISOR and k * baud >= 10e6:
+        f = k * baud / 1e6
+        if abs(pll_config(f, workdir).f_out_mhz - f) < 1e-3:
+            return f
+        k -= 1
+    return None
 
 
 def _platform(name):
@@ -265,6 +289,8 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp
         return report
     achieved = [c["achieved"] for c in pnr.get("fmax", {}).values()]
     report["timing_met"] = bool(achieved) and min(achieved) >= pll.f_out_mhz
+    if achieved and not report["timing_met"]:
+        report["clock"]["closing_mhz"] = closing_freq(min(achieved), baud, tmp / "closing")
 
     ecppack = Path(nextpnr_command()[0]).with_name("yowasp-ecppack")
     start = time.perf_counter()
