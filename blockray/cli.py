@@ -469,7 +469,10 @@ def _cmd_bitstream(args):
           + f"; fits: {report['fits']}" + (f"; Fmax {fmax:.1f} MHz at {report['clock']['pll_mhz']:g} MHz" if fmax else "")
           + (f"; wrote {args.out}" if "bitstream" in report else ""), file=sys.stderr)
     if not report["fits"]:
-        print(f"blockray: error: the design does not fit the {report['device']} (see the report)", file=sys.stderr)
+        why = (f"the design does not fit the {report['device']}" if report.get("limits") else
+               f"nextpnr failed with status {report['nextpnr'].get('returncode')} (its last words are in the "
+               f"--report; --workdir keeps its log)")
+        print(f"blockray: error: {why}", file=sys.stderr)
         return 1
     if not report["timing_met"]:
         closing = report["clock"].get("closing_mhz")
