@@ -116,3 +116,17 @@ def test_board_bitstream_builds(tmp_path):
     report = json.loads(report_path.read_text())
     assert report["fits"] and report["timing_met"] and report["resources"]["dsps"] == report["estimate"]["dsps"]
     assert b"LFE5U-85F-6CABGA381" in out.read_bytes()[:64]
+
+
+@pytest.mark.parametrize("limits,nextpnr,message", [
+    (["dsps"], {"ran": False}, "the design does not fit the LFE5U-85F"),
+    ([], {"ran": True, "returncode": -15}, "nextpnr failed with status -15"),
+])
+def test_failed_build_says_why(limits, nextpnr, message, monkeypatch, tmp_path, capsys):
+    def built(params, **kw):
+        return {"device": "LFE5U-85F", "speed_grade": "-6", "core": "board", "params": {}, "resources": {"luts": 1},
+                "fits": False, "limits": limits, "nextpnr": nextpnr, "fmax_mhz": None, "timing_met": None,
+                "clock": {"pll_mhz": 45.0}}
+    monkeypatch.setattr(bitstream, "build_bitstream", built)
+    assert main(["bitstream", "--out", str(tmp_path / "x.bit")]) == 1
+    assert f"blockray: error: {message}" in capsys.readouterr().err
