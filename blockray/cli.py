@@ -197,7 +197,7 @@ def _capacity_hint(error, params):
     """A scene that does not fit the bitstream's memories: say what to change."""
     from .errors import CapacityError
     from .synth.bitstream import largest_fit
-    most = largest_fit(params.with_(voxel_depth=1), routed=False).patch_depth
+    most = largest_fit(params.with_(voxel_depth=1), capped=False).patch_depth
     return CapacityError(f"{error}; rebuild the bitstream with larger memories (blockray bitstream --patch-depth, "
                          f"--voxel-depth: the LFE5U-85F holds about {most} patch records at {params.rows} x "
                          f"{params.cols}, B = {params.bits}), spread the scene over more boards (--boards with "

@@ -40,7 +40,7 @@ from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail,
                       _versions, dsp_estimate, nextpnr_command, run_nextpnr)
 from .yosys import yosys_command
 
-__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "ROUTED_PATCH_DEPTH", "ROUTED_VOXEL_DEPTH", "bram_estimate",
+__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
            "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
 
 #: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
@@ -51,10 +51,11 @@ CORES = ("board", "echo")
 #: and the 2 x 2 board at B = 16 with the default memories closes timing above it at -6
 #: (docs/ulx3s.md; the 60 MHz of the array alone is not met once the memories are placed)
 DEFAULT_FREQ_MHZ = 45.0
-#: the default memories at most (:func:`largest_fit`): the largest that routed and closed
-#: DEFAULT_FREQ_MHZ on the 2 x 2, B = 16 board (docs/ulx3s.md). The block RAMs hold more
-#: (8192 patch records, 32**3 voxels), but that board did not route (47 thousand wires overused)
-ROUTED_PATCH_DEPTH, ROUTED_VOXEL_DEPTH = 4096, 4096
+#: the default memories at most (:func:`largest_fit`): on the 2 x 2, B = 16 board nextpnr places
+#: them within DEFAULT_FREQ_MHZ at -6 (49.5 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
+#: the most the block RAMs hold, 8192 and 32**3, 28.5 MHz and 47 thousand wires overused;
+#: docs/ulx3s.md). They hold cornell (2000 patch records in 125 voxels) on one board.
+DEFAULT_PATCH_DEPTH, DEFAULT_VOXEL_DEPTH = 2048, 512
 #: the largest baud-rate error the UART tolerates from the divisor's rounding
 MAX_BAUD_ERROR = 0.02
 OSCILLATOR_MHZ = 25.0
@@ -131,14 +132,14 @@ def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_M
     return {"dsps": dsps, "brams": brams, "divisor": divisor}
 
 
-def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None, routed=True):
+def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None, capped=True):
     """``params`` with the memories not given (None) as large as the part's block RAMs allow
-    (powers of two; the voxel table first, then the patch memory): with ``routed`` (the memories
-    ``blockray bitstream`` builds by default) at most :data:`ROUTED_VOXEL_DEPTH` and
-    :data:`ROUTED_PATCH_DEPTH`, the largest that routed and closed timing; without, up to 32**3
-    voxels and all the block RAMs."""
+    (powers of two; the voxel table first, then the patch memory): with ``capped`` (the memories
+    ``blockray bitstream`` builds by default, and the host expects) at most
+    :data:`DEFAULT_VOXEL_DEPTH` and :data:`DEFAULT_PATCH_DEPTH`, which meet the default clock;
+    without, up to 32**3 voxels and all the block RAMs."""
     dev = _device(platform)
-    voxel_cap, patch_cap = (ROUTED_VOXEL_DEPTH, ROUTED_PATCH_DEPTH) if routed else (1 << 15, 1 << 20)
+    voxel_cap, patch_cap = (DEFAULT_VOXEL_DEPTH, DEFAULT_PATCH_DEPTH) if capped else (1 << 15, 1 << 20)
 
     def fits(p):
         return sum(bram_estimate(p).values()) <= dev["brams"]

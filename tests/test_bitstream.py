@@ -44,7 +44,7 @@ def test_unwritable_output_refused(no_tools, tmp_path, capsys):
 
 
 def test_largest_fit_fills_the_block_rams():
-    p = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), routed=False)
+    p = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), capped=False)
     used = sum(bitstream.bram_estimate(p).values())
     assert used <= 208
     # twice the patch memory would not fit
@@ -52,12 +52,12 @@ def test_largest_fit_fills_the_block_rams():
     assert bitstream.divisor_for(60.0, 3_000_000) == 20
 
 
-def test_default_memories_are_the_routed_ones():
-    """The default bitstream's memories (what the host expects of it too) are the measured ones
-    that route, not all the block RAMs; a configuration whose records are wider gets less."""
+def test_default_memories_are_the_capped_ones():
+    """The default bitstream's memories (what the host expects of it too) are the ones that meet
+    the default clock, not all the block RAMs; given depths are kept."""
     p = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16))
-    assert (p.patch_depth, p.voxel_depth) == (bitstream.ROUTED_PATCH_DEPTH, bitstream.ROUTED_VOXEL_DEPTH)
-    assert bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), routed=False).patch_depth > p.patch_depth
+    assert (p.patch_depth, p.voxel_depth) == (bitstream.DEFAULT_PATCH_DEPTH, bitstream.DEFAULT_VOXEL_DEPTH)
+    assert bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), capped=False).patch_depth > p.patch_depth
     given = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), patch_depth=256, voxel_depth=64)
     assert (given.patch_depth, given.voxel_depth) == (256, 64)
 
