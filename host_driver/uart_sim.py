@@ -6,7 +6,7 @@ byte pipe is a localhost socket to a cocotb test (sim/uart_cocotb.py) that drive
 ``rx`` pin and decodes ``tx``: a virtual serial port. The simulation is
 :class:`blockray.rtl.link.SerialLink` around the core, as on the ULX3S (:mod:`blockray.rtl.ulx3s`
 adds only the PLL, the reset synchroniser and the pins), with a short bit time (``divisor``,
-4 clock cycles by default, where the board runs 20 at 3 Mbaud). Built once per design with
+4 clock cycles by default, where the board runs 15 at 3 Mbaud). Built once per design with
 :func:`blockray.sim.cocotb_support.build_verilator` (cached).
 
     link = UartSimTransport(EchoCore())      # or the board core

@@ -1,7 +1,7 @@
 """UART receiver and transmitter: 8 data bits, no parity, 1 stop bit (8N1), LSB first.
 
 ``divisor`` is the bit time in clock cycles (``round(f_clk / baud)``; at least 4): 3 Mbaud
-from a 48 MHz clock is 16. (amaranth-stdio's serial core would fit, but it is not on PyPI.)
+from the ULX3S's 45 MHz board clock is 15. (amaranth-stdio's serial core would fit, but it is not on PyPI.)
 
 :class:`UARTRx` samples each bit in its middle: it waits half a bit time after the start bit's
 falling edge, checks the line is still low, then samples every ``divisor`` cycles. A byte whose

@@ -1,6 +1,6 @@
 """A bitstream of a blockray board for the ULX3S-85F: Yosys, nextpnr-ecp5 (-6) and ecppack from YoWASP.
 
-    report = build_bitstream(params, out="board.bit", freq=60, baud=3_000_000)
+    report = build_bitstream(params, out="board.bit", freq=45, baud=3_000_000)
     report["fits"], report["fmax_mhz"], report["resources"]
 
 Flow:
@@ -48,8 +48,8 @@ PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
 #: ``board``: the blockray board core (R x S array, memories); ``echo``: the link's test core
 CORES = ("board", "echo")
 #: the default board clock: 45 MHz is 3 Mbaud x 15 exactly, ecppll makes it exactly from 25 MHz,
-#: and the 2 x 2 board at B = 16 with the default memories closes timing above it at -6
-#: (docs/ulx3s.md; the 60 MHz of the array alone is not met once the memories are placed)
+#: and the 2 x 2 board at B = 16 with the default memories places within it at -6 (docs/ulx3s.md;
+#: the array alone routes at 71 MHz, docs/synthesis.md, but with the memories it misses 60)
 DEFAULT_FREQ_MHZ = 45.0
 #: the default memories at most (:func:`largest_fit`): on the 2 x 2, B = 16 board nextpnr places
 #: them within DEFAULT_FREQ_MHZ at -6 (49.5 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
