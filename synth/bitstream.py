@@ -52,7 +52,7 @@ CORES = ("board", "echo")
 #: the array alone routes at 71 MHz, docs/synthesis.md, but with the memories it misses 60)
 DEFAULT_FREQ_MHZ = 45.0
 #: the default memories at most (:func:`largest_fit`): on the 2 x 2, B = 16 board nextpnr places
-#: them within DEFAULT_FREQ_MHZ at -6 (49.5 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
+#: them within DEFAULT_FREQ_MHZ at -6 (46.9 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
 #: the most the block RAMs hold, 8192 and 32**3, 28.5 MHz and 47 thousand wires overused;
 #: docs/ulx3s.md). They hold cornell (2000 patch records in 125 voxels) on one board.
 DEFAULT_PATCH_DEPTH, DEFAULT_VOXEL_DEPTH = 2048, 512
