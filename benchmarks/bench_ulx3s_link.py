@@ -1,7 +1,7 @@
 """The ULX3S's serial link against the array: bytes per ray each way, rays per second through a
 UART, and the array's own rate.
 
-    python benchmarks/bench_ulx3s_link.py [--scene cornell] [--shooters 40] [--seed 1] [--clock 60] [--baud 3000000]
+    python benchmarks/bench_ulx3s_link.py [--scene cornell] [--shooters 40] [--seed 1] [--clock 45] [--baud 3000000]
 
 A one-part 2 x 2 board (what fits the LFE5U-85F at B = 16, docs/synthesis.md): the renderer's
 block rays of ``--shooters`` random shooter columns go through the host driver over the bit-exact
@@ -25,6 +25,7 @@ from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
+from blockray.synth.bitstream import DEFAULT_FREQ_MHZ
 
 GRANT_BATCH = 32
 
@@ -83,7 +84,8 @@ def main():
     ap.add_argument("--scene", default="cornell")
     ap.add_argument("--shooters", type=int, default=40)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--clock", type=float, default=60.0, help="board clock, MHz")
+    ap.add_argument("--clock", type=float, default=DEFAULT_FREQ_MHZ,
+                    help=f"board clock, MHz (default {DEFAULT_FREQ_MHZ:g}: blockray bitstream's)")
     ap.add_argument("--baud", type=int, default=3_000_000)
     args = ap.parse_args()
     r = measure(args.scene, args.shooters, args.seed)

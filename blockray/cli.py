@@ -221,7 +221,7 @@ def _capacity_hint(error, params):
     """A scene that does not fit the bitstream's memories: say what to change."""
     from .errors import CapacityError
     from .synth.bitstream import largest_fit
-    most = largest_fit(params.with_(voxel_depth=1)).patch_depth
+    most = largest_fit(params.with_(voxel_depth=1), capped=False).patch_depth
     return CapacityError(f"{error}; rebuild the bitstream with larger memories (blockray bitstream --patch-depth, "
                          f"--voxel-depth: the LFE5U-85F holds about {most} patch records at {params.rows} x "
                          f"{params.cols}, B = {params.bits}), spread the scene over more boards (--boards with "
@@ -476,8 +476,8 @@ def _bitstream_parser(sub):
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
-    t.add_argument("--freq", type=_positive_float, default=60.0, metavar="MHZ",
-                   help="board clock from the PLL (default 60: 3 Mbaud x 20)")
+    t.add_argument("--freq", type=_positive_float, default=45.0, metavar="MHZ",
+                   help="board clock from the PLL (default 45: 3 Mbaud x 15)")
     _add_tool_options(t)
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
     p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
@@ -501,11 +501,18 @@ def _cmd_bitstream(args):
           + f"; fits: {report['fits']}" + (f"; Fmax {fmax:.1f} MHz at {report['clock']['pll_mhz']:g} MHz" if fmax else "")
           + (f"; wrote {args.out}" if "bitstream" in report else ""), file=sys.stderr)
     if not report["fits"]:
-        print(f"blockray: error: the design does not fit the {report['device']} (see the report)", file=sys.stderr)
+        why = (f"the design does not fit the {report['device']}" if report.get("limits") else
+               f"nextpnr failed with status {report['nextpnr'].get('returncode')} (its last words are in the "
+               f"--report; --workdir keeps its log)")
+        print(f"blockray: error: {why}", file=sys.stderr)
         return 1
     if not report["timing_met"]:
-        print(f"blockray: warning: Fmax {fmax:.1f} MHz is below the {report['clock']['pll_mhz']:g} MHz clock: "
-              f"lower --freq (a multiple of --baud)", file=sys.stderr)
+        closing = report["clock"].get("closing_mhz")
+        print(f"blockray: error: timing not met: Fmax {fmax:.1f} MHz at {report['speed_grade']} is below the "
+              f"{report['clock']['pll_mhz']:g} MHz clock; {args.out} may not work: rebuild with "
+              + (f"--freq {closing:g}" if closing else "a lower --freq (a multiple of --baud)")
+              + " or smaller memories", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -6,7 +6,7 @@ byte pipe is a localhost socket to a cocotb test (sim/uart_cocotb.py) that drive
 ``rx`` pin and decodes ``tx``: a virtual serial port. The simulation is
 :class:`blockray.rtl.link.SerialLink` around the core, as on the ULX3S (:mod:`blockray.rtl.ulx3s`
 adds only the PLL, the reset synchroniser and the pins), with a short bit time (``divisor``,
-4 clock cycles by default, where the board runs 20 at 3 Mbaud). Built once per design with
+4 clock cycles by default, where the board runs 15 at 3 Mbaud). Built once per design with
 :func:`blockray.sim.cocotb_support.build_verilator` (cached).
 
     link = UartSimTransport(EchoCore())      # or the board core
@@ -14,12 +14,8 @@ adds only the PLL, the reset synchroniser and the pins), with a short bit time (
     link.recv(3)
 """
 
-import json
 import socket
-import subprocess
-import sys
 import tempfile
-import time
 import weakref
 from pathlib import Path
 
@@ -33,18 +29,6 @@ SIM_DIVISOR = 4
 _MODULE_DIR = Path(__file__).resolve().parent.parent / "sim"
 
 
-def _stop(proc, sock):
-    try:
-        sock.close()
-    except OSError:
-        pass
-    if proc.poll() is None:
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-
-
 class UartSimTransport(CreditedLink):
     """``core`` (a component with ``i_bytes``/``o_bytes``) behind the UART link under Verilator.
     ``divisor``, ``fifo_depth``, ``result_depth``: :class:`~blockray.rtl.link.SerialLink`'s;
@@ -55,36 +39,23 @@ class UartSimTransport(CreditedLink):
     def __init__(self, core, *, divisor=SIM_DIVISOR, fifo_depth=2048, result_depth=512, name="blockray_uart_sim",
                  startup_timeout=600, timeout=120.0, answer_timeout=60.0):
         from ..rtl.link import SerialLink
-        from ..sim.cocotb_support import build_verilator
+        from ..sim.cocotb_support import build_verilator, start_cocotb, stop_cocotb
 
         super().__init__(timeout=timeout, answer_timeout=answer_timeout, break_seconds=0.05)
         top = SerialLink(core, divisor=divisor, fifo_depth=fifo_depth, result_depth=result_depth)
         self.build = build_verilator(top, name=name)
         self.workdir = Path(tempfile.mkdtemp(prefix="blockray_uart_"))
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        listener.bind(("127.0.0.1", 0))
-        listener.listen(1)
-        listener.settimeout(1.0)
-        config = {"build_dir": str(self.build.build_dir), "toplevel": self.build.toplevel,
-                  "test_dir": str(self.workdir), "module_dir": str(_MODULE_DIR),
-                  "port": listener.getsockname()[1], "divisor": divisor}
         self.log_path = self.workdir / "simulator.log"
         self._log = open(self.log_path, "w")
-        self._proc = subprocess.Popen([sys.executable, "-c", "from blockray.host_driver.uart_sim import _serve; _serve()",
-                                       json.dumps(config)], stdout=self._log, stderr=subprocess.STDOUT,
-                                      cwd=self.workdir)
-        t0 = time.monotonic()
-        self._sock = None
-        while self._sock is None:
-            try:
-                self._sock, _ = listener.accept()
-            except socket.timeout:
-                if self._proc.poll() is not None or time.monotonic() - t0 > startup_timeout:
-                    listener.close()
-                    self._log.close()
-                    raise TransportError(f"the UART simulation did not start; see {self.log_path}") from None
-        listener.close()
-        self._finalizer = weakref.finalize(self, _stop, self._proc, self._sock)
+        try:
+            self._proc, self._sock = start_cocotb(
+                self.build, "uart_cocotb", module_dir=_MODULE_DIR, workdir=self.workdir, log=self._log,
+                port_env="BLOCKRAY_UART_PORT", env={"BLOCKRAY_UART_DIVISOR": str(divisor)},
+                startup_timeout=startup_timeout, error=TransportError)
+        except BaseException:
+            self._log.close()
+            raise
+        self._finalizer = weakref.finalize(self, stop_cocotb, self._proc, self._sock)
         try:
             self.reset()
         except BaseException:
@@ -128,17 +99,3 @@ class UartSimTransport(CreditedLink):
         self._finalizer()
         self._sock = None
         self._log.close()
-
-
-def _serve():
-    """Child process: the cocotb test on the built simulation (returns when it ends)."""
-    from cocotb_tools.runner import get_runner
-    from ..sim.cocotb_support import verilator_env
-
-    config = json.loads(sys.argv[1])
-    verilator_env()
-    sys.path.insert(0, config["module_dir"])
-    get_runner("verilator").test(
-        hdl_toplevel=config["toplevel"], test_module="uart_cocotb", build_dir=config["build_dir"],
-        test_dir=config["test_dir"], hdl_toplevel_lang="verilog",
-        extra_env={"BLOCKRAY_UART_PORT": str(config["port"]), "BLOCKRAY_UART_DIVISOR": str(config["divisor"])})

@@ -1,7 +1,7 @@
 """UART receiver and transmitter: 8 data bits, no parity, 1 stop bit (8N1), LSB first.
 
 ``divisor`` is the bit time in clock cycles (``round(f_clk / baud)``; at least 4): 3 Mbaud
-from a 48 MHz clock is 16. (amaranth-stdio's serial core would fit, but it is not on PyPI.)
+from the ULX3S's 45 MHz board clock is 15. (amaranth-stdio's serial core would fit, but it is not on PyPI.)
 
 :class:`UARTRx` samples each bit in its middle: it waits half a bit time after the start bit's
 falling edge, checks the line is still low, then samples every ``divisor`` cycles. A byte whose
@@ -28,14 +28,30 @@ __all__ = ["UARTRx", "UARTTx", "MIN_DIVISOR"]
 MIN_DIVISOR = 4
 
 
-def _check_divisor(divisor):
-    divisor = operator.index(divisor)
-    if divisor < MIN_DIVISOR:
-        raise ValueError(f"UART divisor must be at least {MIN_DIVISOR} clock cycles per bit, not {divisor}")
-    return divisor
+class _BitTimed(wiring.Component):
+    """What the receiver and the transmitter share: the bit time ``divisor`` (clock cycles, at
+    least :data:`MIN_DIVISOR`) and a timer that counts it down."""
+
+    def __init__(self, divisor):
+        divisor = operator.index(divisor)
+        if divisor < MIN_DIVISOR:
+            raise ValueError(f"UART divisor must be at least {MIN_DIVISOR} clock cycles per bit, not {divisor}")
+        self._divisor = divisor
+        super().__init__()
+
+    @property
+    def divisor(self):
+        return self._divisor
+
+    def _timer(self, m):
+        """A down-counter in ``m`` that stops at zero; load ``n - 1`` into it to wait n cycles."""
+        timer = Signal(range(self._divisor))
+        with m.If(timer != 0):
+            m.d.sync += timer.eq(timer - 1)
+        return timer
 
 
-class UARTRx(wiring.Component):
+class UARTRx(_BitTimed):
     """8N1 receiver. Ports: ``rx`` (the pin, asynchronous: synchronised here), ``o_bytes``
     (received bytes; ``ready`` ignored), ``frame_error`` (one cycle per dropped byte), ``brk``
     (the line held low past a frame)."""
@@ -45,24 +61,14 @@ class UARTRx(wiring.Component):
     frame_error: Out(1)
     brk: Out(1)
 
-    def __init__(self, divisor):
-        self._divisor = _check_divisor(divisor)
-        super().__init__()
-
-    @property
-    def divisor(self):
-        return self._divisor
-
     def elaborate(self, platform):
         m = Module()
         line = Signal(init=1)
         m.submodules.sync_rx = FFSynchronizer(self.rx, line, init=1)
 
-        timer = Signal(range(self._divisor))
+        timer = self._timer(m)
         bits = Signal(range(9))
         shift = Signal(8)
-        with m.If(timer != 0):
-            m.d.sync += timer.eq(timer - 1)
 
         m.d.sync += [self.o_bytes.valid.eq(0), self.frame_error.eq(0)]
         with m.FSM():
@@ -100,32 +106,22 @@ class UARTRx(wiring.Component):
         return m
 
 
-class UARTTx(wiring.Component):
+class UARTTx(_BitTimed):
     """8N1 transmitter. Ports: ``i_bytes`` (bytes to send), ``tx`` (the pin, high when idle)."""
 
     i_bytes: In(stream.Signature(8))
     tx: Out(1, init=1)
 
-    def __init__(self, divisor):
-        self._divisor = _check_divisor(divisor)
-        super().__init__()
-
-    @property
-    def divisor(self):
-        return self._divisor
-
     def elaborate(self, platform):
         m = Module()
-        timer = Signal(range(self._divisor))
+        timer = self._timer(m)
         frame = Signal(9, init=0x1FF)         # stop, data[7:0]: shifted out LSB first
         left = Signal(range(10))              # bits of the frame still to send after this one
 
-        with m.If(timer != 0):
-            m.d.sync += timer.eq(timer - 1)
-        with m.Elif(left != 0):
+        with m.If((timer == 0) & (left != 0)):
             m.d.sync += [self.tx.eq(frame[0]), frame.eq(Cat(frame[1:], 1)), left.eq(left - 1),
                          timer.eq(self._divisor - 1)]
-        with m.Else():
+        with m.Elif(timer == 0):
             m.d.comb += self.i_bytes.ready.eq(1)
             with m.If(self.i_bytes.valid):     # the start bit at once: a byte every 10 bit times
                 m.d.sync += [self.tx.eq(0), frame.eq(Cat(self.i_bytes.payload, 1)), left.eq(9),

