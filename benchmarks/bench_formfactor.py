@@ -140,40 +140,55 @@ def closed_scenes():
     R[len(box):] = [0.8, 0.6, 0.2]
     yield (f"icosphere of {len(sphere)} triangles in a closed box ({len(tris)} triangles, lit ceiling)",
            make_scene(tris, reflectance=R, emission=E))
-    yield "cornell closed by a front wall", closed_cornell(load_scene("cornell"))
+    yield "cornell closed (a front wall fitted to the opening, no floor under the blocks)", closed_cornell()
 
 
-def closed_cornell(scene):
-    """cornell with its open side (the one facing the camera) closed by the bounding box's face,
-    subdivided; the face covers the opening (cornell's red wall is slanted, so it reaches past it
-    outside the box, where no light arrives)."""
-    from test_formfactor import rectangle
+def closed_cornell(scene=None, max_edge=None):
+    """cornell closed patch by patch: its open side gets a wall fitted to the opening (the red wall
+    is slanted, so the opening is a trapezoid, not the bounding box's face), and the floor leaves
+    out the blocks' footprints (the published floor runs under the blocks, where a patch sees
+    nothing). Triangulated with earcut, then subdivided like the built-in (``max_edge``, default
+    the built-in's). ``scene`` is ignored (kept for the callers that pass the loaded cornell)."""
+    import mapbox_earcut
+    from blockray.host_driver.builtin import CAMERAS, DEFAULT_MAX_EDGE, path
+    from blockray.host_driver.objload import load_obj, subdivide
     from blockray.host_driver.scene import Scene
-    lo, hi = scene.bbox
-    cam = np.asarray(scene.camera.position, dtype=float)
-    outside = np.maximum(lo - cam, cam - hi)              # how far the camera is beyond each face
-    axis = int(np.argmax(outside))
-    value = lo[axis] if cam[axis] < lo[axis] else hi[axis]
-    u, v = [a for a in range(3) if a != axis]
-    origin = lo.copy()
-    origin[axis] = value
-    du, dv = np.zeros(3), np.zeros(3)
-    du[u], dv[v] = hi[u] - lo[u], hi[v] - lo[v]
-    n = max(1, round(math.sqrt(scene.patches / 10)))
-    wall = rectangle(origin, du, dv, n, n)
-    inward = np.sign(scene.centroids.mean(axis=0)[axis] - value)
-    normal = np.cross(wall[0, 1] - wall[0, 0], wall[0, 2] - wall[0, 0])
-    if normal[axis] * inward < 0:
-        wall = wall[:, ::-1]
-    k = len(scene.vertices)
-    vertices = np.concatenate([scene.vertices, wall.reshape(-1, 3)])
-    triangles = np.concatenate([scene.triangles, k + np.arange(3 * len(wall)).reshape(-1, 3)])
-    m = len(wall)
-    return Scene(name=scene.name + "-closed", vertices=vertices, triangles=triangles,
-                 reflectance=np.concatenate([scene.reflectance, np.full((m, 3), 0.6)]),
-                 emission=np.concatenate([scene.emission, np.zeros((m, 3))]),
-                 group=np.concatenate([scene.group, np.full(m, len(scene.group_names))]),
-                 group_names=scene.group_names + ["front wall"], camera=scene.camera, source=scene.source)
+    raw = load_obj(path("cornell"), name="cornell")
+    V, T = raw.vertices, raw.triangles
+    names = list(raw.group_names)
+    floor = names.index("floor")
+    keep = raw.group != floor
+    on_floor = lambda g: np.unique(T[raw.group == names.index(g)].ravel())
+    bottom = [v[np.abs(V[v, 1]) == 0] for v in (on_floor("short_block"), on_floor("tall_block"))]
+    outline = np.unique(T[raw.group == floor].ravel())
+    rings = [_ring(V[outline])] + [_ring(V[b]) for b in bottom]
+    xz = np.concatenate(rings)[:, [0, 2]]
+    tri = mapbox_earcut.triangulate_float64(xz, np.cumsum([len(r) for r in rings]).astype(np.uint32))
+    floor_v = np.concatenate(rings)
+    tri = tri.reshape(-1, 3)
+    up = np.cross(floor_v[tri[:, 1]] - floor_v[tri[:, 0]], floor_v[tri[:, 2]] - floor_v[tri[:, 0]])[:, 1] > 0
+    tri[~up] = tri[~up][:, ::-1]                          # the floor faces into the box (+y)
+    front = np.array([[0, 0, 0], [V[:, 0][(V[:, 1] == 0) & (V[:, 2] == 0)].max(), 0, 0],
+                      [V[:, 0][(V[:, 1] == V[:, 1].max()) & (V[:, 2] == 0)].max(), V[:, 1].max(), 0],
+                      [0, V[:, 1].max(), 0]])
+    front_tri = np.array([[0, 1, 2], [0, 2, 3]])          # facing +z, into the box
+    k, m = len(V), len(floor_v)
+    vertices = np.concatenate([V, floor_v, front])
+    triangles = np.concatenate([T[keep], k + tri, k + m + front_tri])
+    white = raw.reflectance[raw.group == floor][0]
+    refl = np.concatenate([raw.reflectance[keep], np.repeat([white], len(tri) + 2, axis=0)])
+    emis = np.concatenate([raw.emission[keep], np.zeros((len(tri) + 2, 3))])
+    group = np.concatenate([raw.group[keep], np.full(len(tri), floor), np.full(2, len(names))])
+    closed = Scene(name="cornell-closed", vertices=vertices, triangles=triangles, reflectance=refl,
+                   emission=emis, group=group, group_names=names + ["front wall"],
+                   camera=CAMERAS["cornell"], source="builtin:cornell, closed")
+    return subdivide(closed, DEFAULT_MAX_EDGE["cornell"] if max_edge is None else max_edge)
+
+
+def _ring(points):
+    """The corners of a convex polygon on the floor, in order round its centre (x, z plane)."""
+    c = points.mean(axis=0)
+    return points[np.argsort(np.arctan2(points[:, 2] - c[2], points[:, 0] - c[0]))]
 
 
 def energy(args):
