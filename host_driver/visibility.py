@@ -5,6 +5,7 @@ clear fraction of each (shooter, receiver) pair, with the phases' times. Used by
 import time
 
 import numpy as np
+from numba import njit
 
 from ..errors import ParameterError
 from . import formfactor
@@ -171,24 +172,17 @@ class Visibility:
         batch, row_pair = self._pair_blocks(shooters, receivers)
         with self.phases.timed("board"):
             bits = self.board.run(batch)
-        # clear rays per pair, summed over every block (and sample chunk) it appears in
-        if isinstance(bits, BlockBits):
-            clear_rays = bits.clear_per_row()
-        else:
-            clear_rays = np.concatenate([(~np.asarray(b, dtype=bool)).sum(axis=1) for b in bits])
-        clear = np.bincount(row_pair, weights=clear_rays, minlength=n)
-        self.rays += batch.rays
-        self.blocks += len(batch)
-        plain = clear / self.samples.count
-        if weights is None:
-            return plain
-        # the clear bit of every (pair, sample) ray, then one weighted sum per pair in sample
-        # order: the same float result however the rays were grouped into blocks and batches
-        bit = np.zeros((n, self.samples.count))
-        row, sample = _ray_endpoints(batch)
         flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
             [np.asarray(b, dtype=bool).ravel() for b in bits])
-        bit[row_pair[row], sample] = ~flat
+        # the clear bit of every (pair, sample) ray, whatever block and batch it was cast in
+        bit = _clear_bits(batch.row_off, batch.col_off, batch.shooter_sample, row_pair, flat, n, self.samples.count)
+        self.rays += batch.rays
+        self.blocks += len(batch)
+        plain = bit.sum(axis=1) / self.samples.count
+        if weights is None:
+            return plain
+        # one weighted sum per pair in sample order: the same float result however the rays
+        # were grouped into blocks and batches
         w_clear = (bit * weights).sum(axis=1)
         total = weights.sum(axis=1)
         return np.where(total > 0, w_clear / np.where(total > 0, total, 1), plain)
@@ -220,11 +214,17 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
     return frac
 
 
-def _ray_endpoints(batch):
-    """(row, shooter sample) of every ray of ``batch``, in its flat ray order (block by block, each
-    (R_b, S_b) row-major); row indexes ``batch.receiver_patch``."""
-    rows, cols = batch.rows, batch.cols
-    block = np.repeat(np.arange(len(batch)), rows * cols)
-    within = np.arange(len(block)) - batch.ray_off[block]
-    r, s = within // cols[block], within % cols[block]
-    return batch.row_off[block] + r, batch.shooter_sample[batch.col_off[block] + s]
+@njit(cache=True)
+def _clear_bits(row_off, col_off, shooter_sample, row_pair, blocked, n, K):
+    """(n, K) float64: 1 where the ray of pair m from shooter sample k is clear. ``blocked`` in the
+    batch's flat ray order (block by block, each (R_b, S_b) row-major); row r is pair row_pair[r]."""
+    bit = np.zeros((n, K))
+    ray = 0
+    for b in range(len(row_off) - 1):
+        for r in range(row_off[b], row_off[b + 1]):
+            m = row_pair[r]
+            for c in range(col_off[b], col_off[b + 1]):
+                if not blocked[ray]:
+                    bit[m, shooter_sample[c]] = 1.0
+                ray += 1
+    return bit
