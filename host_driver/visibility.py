@@ -84,7 +84,7 @@ class Visibility:
         self.nonempty = grid.count > 0
         self.rays = 0
         self.blocks = 0
-        self.columns = 0     # shooters whose rays were cast
+        self.columns = 0     # columns cast: a shooter to its receivers, or a reverse receiver to its shooter
 
     def _ray_batch(self, shooters, receivers):
         """One block per ray (pairs in order, samples inner) with its 3D-DDA voxels; each block's
