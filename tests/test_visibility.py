@@ -71,7 +71,7 @@ def test_a_column_in_one_batch_equals_one_batch_per_column(cornell, packing):
     shooters = _straddled_shooters(scene, 3, seed)
     one, one_rec = _visibility(scene, samples, packing=packing)
     many, many_rec = _visibility(scene, samples, packing=packing)
-    reversed_pairs = blocked = 0
+    reversed_pairs = 0
     for i, receivers in shooters:
         frac = visible_fraction(scene, one, samples, i, receivers, one.phases)
         # the old way: i's own column, then one column (one batch) per reverse receiver
