@@ -130,12 +130,6 @@ class BlockBits:
     def __radd__(self, other):
         return list(other) + list(self)
 
-    def clear_per_row(self):
-        """(sum of R_b,) clear rays of every row of every block, in block order."""
-        rows = int(self.rows.sum())
-        row_of_ray = np.repeat(np.arange(rows), np.repeat(self.cols, self.rows))
-        return np.bincount(row_of_ray, weights=~self.flat, minlength=rows)
-
 
 class Board(ABC):
     """Answers visibility queries for block rays. See the module docstring for the life cycle."""

@@ -5,6 +5,7 @@ clear fraction of each (shooter, receiver) pair, with the phases' times. Used by
 import time
 
 import numpy as np
+from numba import njit
 
 from ..errors import ParameterError
 from . import formfactor
@@ -83,88 +84,105 @@ class Visibility:
         self.nonempty = grid.count > 0
         self.rays = 0
         self.blocks = 0
-        self.columns = 0     # shooters whose rays were cast
+        self.columns = 0     # columns cast: a shooter to its receivers, or a reverse receiver to its shooter
 
-    def _ray_batch(self, i, receivers):
-        """One block per ray (receivers in order, samples inner) with its 3D-DDA voxels."""
+    def _ray_batch(self, shooters, receivers):
+        """One block per ray (pairs in order, samples inner) with its 3D-DDA voxels; each block's
+        row is its pair."""
         K = self.samples.count
-        rec = np.repeat(receivers, K)
+        pair = np.repeat(np.arange(len(receivers)), K)
         ks = np.tile(np.arange(K), len(receivers))
         with self.phases.timed("traverse"):
-            vox, off = self.grid.rays_voxels(self.sample_points[i][ks], self.centroids[rec], nonempty_only=True)
-        one = np.arange(len(rec) + 1)
-        return BlockBatch(np.full(len(rec), i), ks, one, rec, one, vox, off)
+            vox, off = self.grid.rays_voxels(self.sample_points[shooters[pair], ks], self.centroids[receivers[pair]],
+                                             nonempty_only=True)
+        one = np.arange(len(pair) + 1)
+        return BlockBatch(shooters[pair], ks, one, receivers[pair], one, vox, off), pair
 
     def _blocks_for(self, i, receivers):
         """The block rays of shooter i to ``receivers``, packed and traversed, as a BlockBatch."""
+        receivers = np.asarray(receivers, dtype=np.int64)
+        return self._pair_blocks(np.full(len(receivers), i, dtype=np.int64), receivers)[0]
+
+    def _pair_blocks(self, shooters, receivers):
+        """The block rays of the pairs (shooters[m], receivers[m]), packed and traversed, as one
+        BlockBatch, and the pair of each of its rows.
+
+        A run of equal consecutive shooters is one column: its receivers are packed as those of
+        one shooter (:meth:`_blocks_for`), columns in order, so a column's blocks are the same
+        whatever else shares the batch."""
         if self.traversal == "ray":
-            return self._ray_batch(i, receivers)
+            return self._ray_batch(shooters, receivers)
         K = self.samples.count
         with self.phases.timed("commands"):
+            column = np.zeros(len(shooters), dtype=np.int64)
+            column[1:] = np.cumsum(shooters[1:] != shooters[:-1])
             if self.packing == "fill":
                 # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
                 # A block then spans neighbouring voxels; its bundle is a little wider.
-                rec = receivers[np.argsort(self.end_morton[receivers], kind="stable")]
-                first = np.zeros(len(rec), bool)
-                first[:1] = True
+                pair = np.lexsort((self.end_morton[receivers], column))
+                first = np.concatenate([[True], column[pair][1:] != column[pair][:-1]])
             else:
                 # The paper's block: the receivers whose end points share a voxel.
-                rec = receivers[np.argsort(self.end_voxel[receivers], kind="stable")]
-                key = self.end_voxel[rec]
-                first = np.concatenate([[True], key[1:] != key[:-1]])
+                pair = np.lexsort((self.end_voxel[receivers], column))
+                key = self.end_voxel[receivers[pair]]
+                first = np.concatenate([[True], (key[1:] != key[:-1]) | (column[pair][1:] != column[pair][:-1])])
             # runs of at most R receivers within each group, times chunks of at most S samples
             group_start = np.flatnonzero(first)
-            pos = np.arange(len(rec)) - group_start[np.cumsum(first) - 1]
+            pos = np.arange(len(pair)) - group_start[np.cumsum(first) - 1]
             run_start = np.flatnonzero(pos % self.rows == 0)
-            run_len = np.diff(np.append(run_start, len(rec)))
+            run_len = np.diff(np.append(run_start, len(pair)))
             chunk_start = np.arange(0, K, self.cols)
             chunk_len = np.minimum(self.cols, K - chunk_start)
             nr, nc = len(run_start), len(chunk_start)
             rows, cols = np.repeat(run_len, nc), np.tile(chunk_len, nr)
-            receiver_patch = rec[ranges(np.repeat(run_start, nc), rows)]
+            row_pair = pair[ranges(np.repeat(run_start, nc), rows)]
+            receiver_patch = receivers[row_pair]
             shooter_sample = ranges(np.tile(chunk_start, nr), cols)
+            shooter_patch = np.repeat(shooters[pair[run_start]], K)     # each run's K samples
             row_off = np.concatenate([[0], np.cumsum(rows)])
             col_off = np.concatenate([[0], np.cumsum(cols)])
-            starts, ends = self.sample_points[i][shooter_sample], self.centroids[receiver_patch]
+            starts, ends = self.sample_points[shooter_patch, shooter_sample], self.centroids[receiver_patch]
         with self.phases.timed("traverse"):
             vox, vox_off, visited, tests = self.grid.traverse_blocks(starts, col_off, ends, row_off,
                                                                      nonempty_only=True)
             if self.stats is not None:
                 self.stats.add_blocks(starts, col_off, ends, row_off, visited, tests)
-        return BlockBatch(np.full(len(shooter_sample), i), shooter_sample, col_off, receiver_patch, row_off,
-                          vox, vox_off)
+        return BlockBatch(shooter_patch, shooter_sample, col_off, receiver_patch, row_off, vox, vox_off), row_pair
 
     def clear_fraction(self, i, receivers, weights=None):
         """Fraction of the K rays from shooter i to each receiver that is not blocked; with
         ``weights`` (len(receivers), K), the weighted fraction (a receiver whose weights are all
         0 gets the plain one)."""
         receivers = np.asarray(receivers, dtype=np.int64)
-        self.columns += 1
-        if len(receivers) == 0:
+        return self.pair_clear_fraction(np.full(len(receivers), i, dtype=np.int64), receivers, weights,
+                                        columns=1)
+
+    def pair_clear_fraction(self, shooters, receivers, weights=None, *, columns=None):
+        """:meth:`clear_fraction` of the pairs (shooters[m], receivers[m]), all in one board batch
+        (a run of equal consecutive shooters is one column; ``columns`` counts them unless given).
+        Each pair's value is the one :meth:`clear_fraction` gives it alone, to the bit."""
+        shooters = np.asarray(shooters, dtype=np.int64)
+        receivers = np.asarray(receivers, dtype=np.int64)
+        n = len(receivers)
+        if columns is None:
+            columns = int(np.count_nonzero(shooters[1:] != shooters[:-1])) + 1 if n else 0
+        self.columns += columns
+        if n == 0:
             return np.zeros(0)
-        batch = self._blocks_for(i, receivers)
+        batch, row_pair = self._pair_blocks(shooters, receivers)
         with self.phases.timed("board"):
             bits = self.board.run(batch)
-        # clear rays per receiver, summed over every block (and sample chunk) it appears in
-        if isinstance(bits, BlockBits):
-            clear_rays = bits.clear_per_row()
-        else:
-            clear_rays = np.concatenate([(~np.asarray(b, dtype=bool)).sum(axis=1) for b in bits])
-        position = np.empty(self.scene.patches, dtype=np.int64)
-        position[receivers] = np.arange(len(receivers))
-        clear = np.bincount(position[batch.receiver_patch], weights=clear_rays, minlength=len(receivers))
-        self.rays += batch.rays
-        self.blocks += len(batch)
-        plain = clear / self.samples.count
-        if weights is None:
-            return plain
-        # the clear bit of every (receiver, sample) ray, then one weighted sum in sample order:
-        # the same float result however the rays were grouped into blocks
-        bit = np.zeros((len(receivers), self.samples.count))
-        receiver, sample = _ray_endpoints(batch)
         flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
             [np.asarray(b, dtype=bool).ravel() for b in bits])
-        bit[position[receiver], sample] = ~flat
+        # the clear bit of every (pair, sample) ray, whatever block and batch it was cast in
+        bit = _clear_bits(batch.row_off, batch.col_off, batch.shooter_sample, row_pair, flat, n, self.samples.count)
+        self.rays += batch.rays
+        self.blocks += len(batch)
+        plain = bit.sum(axis=1) / self.samples.count
+        if weights is None:
+            return plain
+        # one weighted sum per pair in sample order: the same float result however the rays
+        # were grouped into blocks and batches
         w_clear = (bit * weights).sum(axis=1)
         total = weights.sum(axis=1)
         return np.where(total > 0, w_clear / np.where(total > 0, total, 1), plain)
@@ -177,25 +195,36 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
     receiver's plane: the exact factor already leaves out that part of i, so counting those rays
     would clip it twice). A receiver straddling i's plane with its centroid behind it gets the
     reverse rays, from its samples in front of i's plane to i's centroid (visibility is symmetric).
+    All of them, i's own rays and the reverse rays, go to the board as one batch (i's column).
     """
+    receivers = np.asarray(receivers, dtype=np.int64)
     with phases.timed("formfactor"):
         direct = formfactor.centroid_in_front(scene, i, receivers)
         forward = receivers[direct]
-        weights = formfactor.sample_weights(scene, samples, i, forward)
-        reverse = np.flatnonzero(~direct)
-        back = formfactor.pair_sample_weights(scene, samples, receivers[reverse], np.full(len(reverse), i))
+        reverse = receivers[~direct]
+        # i's own rays first, then one column per reverse receiver, each in receiver order
+        shooters = np.concatenate([np.full(len(forward), i, dtype=np.int64), reverse])
+        targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
+        weights = formfactor.pair_sample_weights(scene, samples, shooters, targets)
     frac = np.empty(len(receivers))
-    frac[direct] = vis.clear_fraction(i, forward, weights)
-    for m, w in zip(reverse, back):
-        frac[m] = vis.clear_fraction(receivers[m], np.array([i]), w[None])[0]
+    # the column count as one call per column would give it: i's own (even if empty), one per reverse
+    f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse))
+    frac[direct] = f[:len(forward)]
+    frac[~direct] = f[len(forward):]
     return frac
 
 
-def _ray_endpoints(batch):
-    """(receiver patch, shooter sample) of every ray of ``batch``, in its flat ray order (block by
-    block, each (R_b, S_b) row-major)."""
-    rows, cols = batch.rows, batch.cols
-    block = np.repeat(np.arange(len(batch)), rows * cols)
-    within = np.arange(len(block)) - batch.ray_off[block]
-    r, s = within // cols[block], within % cols[block]
-    return batch.receiver_patch[batch.row_off[block] + r], batch.shooter_sample[batch.col_off[block] + s]
+@njit(cache=True)
+def _clear_bits(row_off, col_off, shooter_sample, row_pair, blocked, n, K):
+    """(n, K) float64: 1 where the ray of pair m from shooter sample k is clear. ``blocked`` in the
+    batch's flat ray order (block by block, each (R_b, S_b) row-major); row r is pair row_pair[r]."""
+    bit = np.zeros((n, K))
+    ray = 0
+    for b in range(len(row_off) - 1):
+        for r in range(row_off[b], row_off[b + 1]):
+            m = row_pair[r]
+            for c in range(col_off[b], col_off[b + 1]):
+                if not blocked[ray]:
+                    bit[m, shooter_sample[c]] = 1.0
+                ray += 1
+    return bit
