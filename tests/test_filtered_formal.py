@@ -26,6 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from amaranth.back import rtlil
 from amaranth.hdl import Assert, Assume, Cat, Cover, Module, Mux, ResetSignal, Signal
 from amaranth.lib import wiring
@@ -45,23 +46,29 @@ def _answer(operands):
 
 
 class HandoffHarness(wiring.Component):
-    """The environment and the properties around one ``InOrderResolve``."""
+    """The environment and the properties around one ``InOrderResolve``. ``invariants``: add the
+    assertions that make the properties inductive (the FIFO levels tied to the harness's
+    counters), for k-induction; ``fault``: a broken exact unit that ``"drop"``s or
+    ``"duplicate"``s an answer (the proof must fail); ``max_stall``: the consumer leaves a
+    result offered at most this many cycles in a row (default: any)."""
 
-    def __init__(self):
+    def __init__(self, depth=DEPTH, tag_bits=TAG_BITS, *, invariants=False, fault=None, max_stall=None):
+        self.depth, self.tag_bits, self.invariants, self.fault = depth, tag_bits, invariants, fault
+        self.max_stall = max_stall
         super().__init__({
             "i_valid": In(1), "i_decided": In(1), "i_blocked": In(1), "i_operands": In(OPERAND_BITS),
-            "o_ready": In(1), "target": In(TAG_BITS),
+            "o_ready": In(1), "target": In(tag_bits), "fault_now": In(1),
         })
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.dut = dut = InOrderResolve(OPERAND_BITS, DEPTH, tag_bits=TAG_BITS)
+        m.submodules.dut = dut = InOrderResolve(OPERAND_BITS, self.depth, tag_bits=self.tag_bits)
         m.d.comb += Assume(~ResetSignal("sync"))             # registers start at their init values
 
-        entered = Signal(TAG_BITS)
-        delivered = Signal(TAG_BITS)
-        inside = Signal(range(DEPTH + 1))
-        accept = self.i_valid & (inside < DEPTH)             # the owner's credits
+        entered = Signal(self.tag_bits)
+        delivered = Signal(self.tag_bits)
+        inside = Signal(range(self.depth + 1))
+        accept = self.i_valid & (inside < self.depth)             # the owner's credits
         deliver = dut.o.valid & dut.o.ready
         m.d.sync += [entered.eq(entered + accept), delivered.eq(delivered + deliver),
                      inside.eq(inside + accept - deliver)]
@@ -71,21 +78,34 @@ class HandoffHarness(wiring.Component):
             dut.o.ready.eq(self.o_ready),
         ]
 
+        if self.max_stall is not None:
+            stalled = Signal(range(self.max_stall + 1))
+            m.d.sync += stalled.eq(Mux(dut.o.valid & ~self.o_ready, stalled + 1, 0))
+            m.d.comb += Assume(stalled <= self.max_stall)
+
         # the exact unit: takes every operand offered, answers EXACT_LATENCY cycles later
         valid, answer = dut.resolve.valid, _answer(dut.resolve.payload)
+        if self.fault == "drop":            # loses one answer, once
+            dropped = Signal()
+            m.d.sync += dropped.eq(dropped | (valid & self.fault_now))
+            valid = valid & ~(self.fault_now & ~dropped)
+        stages = []
         for n in range(EXACT_LATENCY):
             v, a = Signal(name=f"exact_valid_{n}"), Signal(name=f"exact_answer_{n}")
             m.d.sync += [v.eq(valid), a.eq(answer)]
             valid, answer = v, a
+            stages.append(v)
+        if self.fault == "duplicate":       # gives an answer twice, once: a spurious one after it
+            valid = valid | (self.fault_now & stages[-1])
         m.d.comb += [dut.resolved.valid.eq(valid), dut.resolved.payload.eq(answer)]
 
         # in order, none lost or duplicated
         with m.If(deliver):
             m.d.comb += Assert(dut.o.payload.tag == delivered, "results out of order, lost or duplicated")
-        m.d.comb += Assert(entered - delivered == inside)
+        m.d.comb += Assert((entered - delivered)[:self.tag_bits] == inside)
 
         # one test chosen by the solver: its answer (target constant over the run)
-        target_prev, started = Signal(TAG_BITS), Signal()
+        target_prev, started = Signal(self.tag_bits), Signal()
         m.d.sync += [target_prev.eq(self.target), started.eq(1)]
         with m.If(started):
             m.d.comb += Assume(self.target == target_prev)
@@ -109,8 +129,26 @@ class HandoffHarness(wiring.Component):
             m.d.sync += waiting.eq(0)
         m.d.comb += Assert(waiting <= EXACT_LATENCY + 4, "deadlock: tests inside and nothing offered")
 
-        m.d.comb += [Cover(inside == DEPTH), Cover((inside == DEPTH) & deliver & ~dut.o.payload.blocked)]
+        if self.invariants:
+            self._invariants(m, dut, accept, deliver, inside, stages)
+        m.d.comb += [Cover(inside == self.depth), Cover((inside == self.depth) & deliver & ~dut.o.payload.blocked)]
         return m
+
+    def _invariants(self, m, dut, accept, deliver, inside, stages):
+        """Every undecided test inside is in exactly one place: the queue, the exact unit's
+        pipeline or the answers FIFO; every test inside is in the pending FIFO; no FIFO is
+        written full; and a pending undecided head without its answer has it on the way."""
+        undecided = Signal(range(self.depth + 1))
+        levels = dut.levels
+        in_flight = sum(stages)
+        m.d.sync += undecided.eq(undecided + (accept & ~self.i_decided) - (deliver & ~dut.head_decided))
+        m.d.comb += [
+            Assert(levels["pending"] == inside, "a test lost or duplicated in the pending FIFO"),
+            Assert(levels["queue"] + in_flight + levels["answers"] == undecided,
+                   "an undecided test lost or duplicated between the queue, the exact unit and the answers"),
+            Assert(undecided <= inside),
+            Assert(~dut.overflow, "a FIFO written while it cannot take it"),
+        ]
 
 
 def _tool(name):
@@ -159,6 +197,29 @@ def test_handoff_properties(tmp_path):
     for task in ("bmc", "cover"):
         status = (tmp_path / f"handoff_{task}" / "status").read_text().split()[0]
         assert status == "PASS", f"{task}: {status}"
+
+
+# unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
+# SyncFIFOBuffered refuses a second write one cycle after its first, while its level is 1)
+PROOF_DEPTH, PROOF_TAG_BITS, INDUCTION_DEPTH, MAX_STALL = 3, 3, 20, 1
+
+
+def test_handoff_proven_unbounded(tmp_path):
+    """Every reachable state (k-induction), not only BMC_DEPTH cycles: in order, none lost or
+    duplicated, the right answers, the stream rule, no FIFO written full, no deadlock."""
+    from blockray.synth.formal import prove
+    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, invariants=True, max_stall=MAX_STALL), name="handoff_proof",
+                   mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    assert result.passed, f"sby {result.status} after {result.seconds} s:\n{result.log[-3000:]}"
+
+
+@pytest.mark.parametrize("fault", ["drop", "duplicate"])
+def test_handoff_proof_fails_for_a_broken_exact_unit(tmp_path, fault):
+    """The proof can fail: an exact unit that loses an answer, or gives one twice, is caught."""
+    from blockray.synth.formal import prove
+    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, invariants=True, fault=fault),
+                   name=f"handoff_{fault}", mode="bmc", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    assert result.status == "FAIL", result.log[-2000:]
 
 
 # -- the filtered array's hand-off (ArrayResolve) ------------------------------------------------
