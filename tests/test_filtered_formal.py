@@ -52,9 +52,10 @@ class HandoffHarness(wiring.Component):
     ``"duplicate"``s an answer (the proof must fail); ``max_stall``: the consumer leaves a
     result offered at most this many cycles in a row (default: any)."""
 
-    def __init__(self, depth=DEPTH, tag_bits=TAG_BITS, *, invariants=False, fault=None, max_stall=None):
-        self.depth, self.tag_bits, self.invariants, self.fault = depth, tag_bits, invariants, fault
-        self.max_stall = max_stall
+    def __init__(self, depth=DEPTH, tag_bits=TAG_BITS, *, latency=EXACT_LATENCY, invariants=False, fault=None,
+                 max_stall=None):
+        self.depth, self.tag_bits, self.latency = depth, tag_bits, latency
+        self.invariants, self.fault, self.max_stall = invariants, fault, max_stall
         super().__init__({
             "i_valid": In(1), "i_decided": In(1), "i_blocked": In(1), "i_operands": In(OPERAND_BITS),
             "o_ready": In(1), "target": In(tag_bits), "fault_now": In(1),
@@ -79,7 +80,7 @@ class HandoffHarness(wiring.Component):
         ]
 
         if self.max_stall is not None:
-            stalled = Signal(range(self.max_stall + 1))
+            stalled = Signal(range(self.max_stall + 2))
             m.d.sync += stalled.eq(Mux(dut.o.valid & ~self.o_ready, stalled + 1, 0))
             m.d.comb += Assume(stalled <= self.max_stall)
 
@@ -90,7 +91,7 @@ class HandoffHarness(wiring.Component):
             m.d.sync += dropped.eq(dropped | (valid & self.fault_now))
             valid = valid & ~(self.fault_now & ~dropped)
         stages = []
-        for n in range(EXACT_LATENCY):
+        for n in range(self.latency):
             v, a = Signal(name=f"exact_valid_{n}"), Signal(name=f"exact_answer_{n}")
             m.d.sync += [v.eq(valid), a.eq(answer)]
             valid, answer = v, a
@@ -127,28 +128,40 @@ class HandoffHarness(wiring.Component):
             m.d.sync += waiting.eq(waiting + 1)
         with m.Else():
             m.d.sync += waiting.eq(0)
-        m.d.comb += Assert(waiting <= EXACT_LATENCY + 4, "deadlock: tests inside and nothing offered")
+        m.d.comb += Assert(waiting <= self.latency + 4, "deadlock: tests inside and nothing offered")
 
         if self.invariants:
-            self._invariants(m, dut, accept, deliver, inside, stages)
+            self._invariants(m, dut, accept, deliver, inside, delivered, stages)
         m.d.comb += [Cover(inside == self.depth), Cover((inside == self.depth) & deliver & ~dut.o.payload.blocked)]
         return m
 
-    def _invariants(self, m, dut, accept, deliver, inside, stages):
-        """Every undecided test inside is in exactly one place: the queue, the exact unit's
-        pipeline or the answers FIFO; every test inside is in the pending FIFO; no FIFO is
-        written full; and a pending undecided head without its answer has it on the way."""
-        undecided = Signal(range(self.depth + 1))
+    def _invariants(self, m, dut, accept, deliver, inside, delivered, stages):
+        """The harness's record of every test inside (tags modulo ``2 ** tag_bits``): decided or
+        not, and its right answer. The pending head is the oldest test, with its decided flag;
+        every undecided test inside is in exactly one place on the exact path (queue, exact
+        unit, answers FIFO); every test inside is in the pending FIFO; every result is the right
+        one; no FIFO is written when it cannot take it."""
+        tags = 2 ** self.tag_bits
+        decided_of, answer_of = Signal(tags), Signal(tags)
+        entered = dut.i.payload.tag
+        with m.If(accept):
+            m.d.sync += [decided_of.bit_select(entered, 1).eq(self.i_decided),
+                         answer_of.bit_select(entered, 1).eq(
+                             Mux(self.i_decided, self.i_blocked, _answer(self.i_operands)))]
+        undecided = Signal(range(tags + 1))
+        m.d.comb += undecided.eq(sum(Mux(((t - delivered)[:self.tag_bits] < inside) & ~decided_of[t], 1, 0)
+                                     for t in range(tags)))
         levels = dut.levels
-        in_flight = sum(stages)
-        m.d.sync += undecided.eq(undecided + (accept & ~self.i_decided) - (deliver & ~dut.head_decided))
         m.d.comb += [
             Assert(levels["pending"] == inside, "a test lost or duplicated in the pending FIFO"),
-            Assert(levels["queue"] + in_flight + levels["answers"] == undecided,
+            Assert(levels["queue"] + sum(stages) + levels["answers"] == undecided,
                    "an undecided test lost or duplicated between the queue, the exact unit and the answers"),
-            Assert(undecided <= inside),
             Assert(~dut.overflow, "a FIFO written while it cannot take it"),
         ]
+        with m.If(dut.head_valid):
+            m.d.comb += [Assert(dut.o.payload.tag == delivered), Assert(dut.head_decided == decided_of.bit_select(delivered, 1))]
+        with m.If(deliver):
+            m.d.comb += Assert(dut.o.payload.blocked == answer_of.bit_select(delivered, 1), "wrong answer")
 
 
 def _tool(name):
@@ -201,14 +214,14 @@ def test_handoff_properties(tmp_path):
 
 # unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
 # SyncFIFOBuffered refuses a second write one cycle after its first, while its level is 1)
-PROOF_DEPTH, PROOF_TAG_BITS, INDUCTION_DEPTH, MAX_STALL = 3, 3, 20, 1
+PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1, 20, 0
 
 
 def test_handoff_proven_unbounded(tmp_path):
     """Every reachable state (k-induction), not only BMC_DEPTH cycles: in order, none lost or
     duplicated, the right answers, the stream rule, no FIFO written full, no deadlock."""
     from blockray.synth.formal import prove
-    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, invariants=True, max_stall=MAX_STALL), name="handoff_proof",
+    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, max_stall=MAX_STALL), name="handoff_proof",
                    mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
     assert result.passed, f"sby {result.status} after {result.seconds} s:\n{result.log[-3000:]}"
 
@@ -217,8 +230,8 @@ def test_handoff_proven_unbounded(tmp_path):
 def test_handoff_proof_fails_for_a_broken_exact_unit(tmp_path, fault):
     """The proof can fail: an exact unit that loses an answer, or gives one twice, is caught."""
     from blockray.synth.formal import prove
-    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, invariants=True, fault=fault),
-                   name=f"handoff_{fault}", mode="bmc", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, fault=fault),
+                   name=f"handoff_{fault}", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
     assert result.status == "FAIL", result.log[-2000:]
 
 
