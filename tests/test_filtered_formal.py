@@ -96,8 +96,10 @@ class HandoffHarness(wiring.Component):
             m.d.sync += [v.eq(valid), a.eq(answer)]
             valid, answer = v, a
             stages.append(v)
-        if self.fault == "duplicate":       # gives an answer twice, once: a spurious one after it
-            valid = valid | (self.fault_now & stages[-1])
+        if self.fault == "duplicate":       # gives an answer twice: again the cycle after
+            again = Signal()
+            m.d.sync += again.eq(valid)
+            valid = valid | (self.fault_now & again)
         m.d.comb += [dut.resolved.valid.eq(valid), dut.resolved.payload.eq(answer)]
 
         # in order, none lost or duplicated
@@ -230,7 +232,8 @@ def test_handoff_proven_unbounded(tmp_path):
 def test_handoff_proof_fails_for_a_broken_exact_unit(tmp_path, fault):
     """The proof can fail: an exact unit that loses an answer, or gives one twice, is caught."""
     from blockray.synth.formal import prove
-    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, fault=fault),
+    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, fault=fault,
+                                  max_stall=MAX_STALL),
                    name=f"handoff_{fault}", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
     assert result.status == "FAIL", result.log[-2000:]
 
