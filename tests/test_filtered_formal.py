@@ -216,7 +216,7 @@ def test_handoff_properties(tmp_path):
 
 # unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
 # SyncFIFOBuffered refuses a second write one cycle after its first, while its level is 1)
-PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1, 20, 0
+PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1, 20, 2
 
 
 def test_handoff_proven_unbounded(tmp_path):
