@@ -80,6 +80,15 @@ def sum_or(values):
     return out
 
 
+
+def _check_depth(depth):
+    """The hand-off FIFOs' depth: at least 3, because the owner's credits assume every write is
+    taken, and a 2-deep SyncFIFOBuffered refuses a second write one cycle after its first (found by
+    the k-induction proof, tests/test_filtered_formal.py)."""
+    if not isinstance(depth, int) or depth < 3:
+        raise ValueError(f"hand-off depth must be an integer of at least 3, not {depth!r}")
+    return depth
+
 class _Filter(wiring.Component):
     """A unit's filter stage: exact terms in, filter terms (and the exact terms, delayed) out
     after :attr:`latency` cycles. Subclasses set ``exact_layout``, ``vectors`` and ``one``."""
@@ -219,7 +228,7 @@ class InOrderResolve(wiring.Component):
 
     def __init__(self, operand_shape, depth, tag_bits=TAG_BITS):
         self._operand_shape = operand_shape
-        self._depth = depth
+        self._depth = _check_depth(depth)
         self._tag_bits = tag_bits
         super().__init__({
             "i": In(stream.Signature(data.StructLayout({
@@ -288,7 +297,7 @@ class FilteredIntersector(wiring.Component):
         self._bits = _check_bits(bits)
         # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
         self._fmt = fmt if fmt is not None else default_format(bits)
-        self._depth = depth if depth is not None else self.latency + Processor.latency + 4
+        self._depth = _check_depth(depth if depth is not None else self.latency + Processor.latency + 4)
         super().__init__({
             "i": In(stream.Signature(query_layout(bits))),
             "o": Out(stream.Signature(result_layout())),
@@ -380,7 +389,7 @@ class ArrayResolve(wiring.Component):
     """
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
-        self._bits, self._rows, self._cols, self._depth = bits, rows, cols, depth
+        self._bits, self._rows, self._cols, self._depth = bits, rows, cols, _check_depth(depth)
         self._exact_unit = exact_unit or (lambda: Processor(bits, unit="exact"))
         self._mark_shape = mark_shape
         self._terms = data.StructLayout({
@@ -489,7 +498,7 @@ class FilteredArray(wiring.Component):
         self._bits = _check_bits(bits)
         self._rows, self._cols = rows, cols
         self._fmt = fmt if fmt is not None else default_format(bits)
-        self._depth = depth if depth is not None else self.default_depth()
+        self._depth = _check_depth(depth if depth is not None else self.default_depth())
         self._mark_shape = mark_shape
         point = point_layout(bits)
         super().__init__({

@@ -123,3 +123,12 @@ def test_model_board_equals_command_streams(fmt):
           f"{c['board_cycles']}")
     if fmt == FilterFormat(3, 3):
         assert lost > 0
+
+
+@pytest.mark.parametrize("depth", [0, 2, 2.5])
+def test_handoff_depth_below_three_is_refused(depth):
+    """A 2-deep hand-off FIFO would drop a test the credits let in (the k-induction proof found
+    it), so the array refuses such a depth when built, naming it."""
+    with pytest.raises(ValueError, match="depth"):
+        FilteredArray(8, 1, 2, depth=depth)
+    FilteredArray(8, 1, 2, depth=3)
