@@ -328,19 +328,7 @@ def _lambert_terms(px, py, pz, nx, ny, nz, T, poly):
     k = _clip(T, px, py, pz, nx, ny, nz, poly)
     if k < 2:
         return 0.0, 0.0
-    total = 0.0
-    mag = 0.0
-    for e in range(k):
-        e1 = e + 1 if e + 1 < k else 0
-        ax, ay, az = poly[e, 0] - px, poly[e, 1] - py, poly[e, 2] - pz
-        bx, by, bz = poly[e1, 0] - px, poly[e1, 1] - py, poly[e1, 2] - pz
-        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if cn > 0.0:
-            term = math.atan2(cn, ax * bx + ay * by + az * bz) * (cx * nx + cy * ny + cz * nz) / cn
-            total += term
-            mag += abs(term)
-    return abs(total) / (2 * math.pi), mag / (2 * math.pi)
+    return _lambert_front(px, py, pz, nx, ny, nz, poly, k)
 
 
 @njit(cache=True)

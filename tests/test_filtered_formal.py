@@ -208,9 +208,10 @@ handoff.il
 """
 
 
-def test_handoff_properties(tmp_path):
-    (tmp_path / "handoff.il").write_text(rtlil.convert(HandoffHarness(), name="top"))
-    (tmp_path / "handoff.sby").write_text(SBY)
+def _bmc_and_cover(tmp_path, harness, sby, timeout):
+    """Run ``sby`` (bmc and cover tasks) on ``harness``; both must PASS."""
+    (tmp_path / "handoff.il").write_text(rtlil.convert(harness, name="top"))
+    (tmp_path / "handoff.sby").write_text(sby)
     # sby runs `yosys`, `yosys-smtbmc`, `yosys-witness` and the solver `boolector` from PATH:
     # the YoWASP builds under those names
     bin_dir = tmp_path / "bin"
@@ -220,12 +221,16 @@ def test_handoff_properties(tmp_path):
         (bin_dir / name).chmod(0o755)
     env = dict(os.environ, PATH=f"{bin_dir}:{os.environ.get('PATH', '')}")
     result = subprocess.run([_tool("yowasp-sby"), "-f", "handoff.sby"], cwd=tmp_path, env=env,
-                            capture_output=True, text=True, timeout=600)
+                            capture_output=True, text=True, timeout=timeout)
     print(result.stdout[-3000:])
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
     for task in ("bmc", "cover"):
         status = (tmp_path / f"handoff_{task}" / "status").read_text().split()[0]
         assert status == "PASS", f"{task}: {status}"
+
+
+def test_handoff_properties(tmp_path):
+    _bmc_and_cover(tmp_path, HandoffHarness(), SBY, timeout=600)
 
 
 # unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
@@ -359,18 +364,5 @@ class ArrayHandoffHarness(wiring.Component):
 
 def test_array_handoff_properties(tmp_path):
     """ArrayResolve under every input sequence of ARRAY_BMC_DEPTH cycles (bounded), and covers."""
-    (tmp_path / "handoff.il").write_text(rtlil.convert(ArrayHandoffHarness(), name="top"))
-    (tmp_path / "handoff.sby").write_text(SBY.replace(f"depth {BMC_DEPTH}", f"depth {ARRAY_BMC_DEPTH}"))
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    for name in ("yosys", "yosys-smtbmc", "yosys-witness", "boolector"):
-        (bin_dir / name).write_text(f"#!/bin/sh\nexec {_tool('yowasp-' + name)} \"$@\"\n")
-        (bin_dir / name).chmod(0o755)
-    env = dict(os.environ, PATH=f"{bin_dir}:{os.environ.get('PATH', '')}")
-    result = subprocess.run([_tool("yowasp-sby"), "-f", "handoff.sby"], cwd=tmp_path, env=env,
-                            capture_output=True, text=True, timeout=1200)
-    print(result.stdout[-3000:])
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
-    for task in ("bmc", "cover"):
-        status = (tmp_path / f"handoff_{task}" / "status").read_text().split()[0]
-        assert status == "PASS", f"{task}: {status}"
+    _bmc_and_cover(tmp_path, ArrayHandoffHarness(),
+                   SBY.replace(f"depth {BMC_DEPTH}", f"depth {ARRAY_BMC_DEPTH}"), timeout=1200)
