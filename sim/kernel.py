@@ -115,18 +115,25 @@ def any_blocked(P, Q, V, n):
 
 
 @njit(cache=True)
+def _block_points(shooters, receivers, shooter_patch, shooter_sample, receiver_patch, c0, c1, r0, r1):
+    """A block's S shooter sample points P and R receiver end points Q (integer coordinates)."""
+    P = np.empty((c1 - c0, 3), np.int64)
+    for s in range(c1 - c0):
+        P[s] = shooters[shooter_patch[c0 + s], shooter_sample[c0 + s]]
+    Q = np.empty((r1 - r0, 3), np.int64)
+    for r in range(r1 - r0):
+        Q[r] = receivers[receiver_patch[r0 + r]]
+    return P, Q
+
+
+@njit(cache=True)
 def _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
                vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
     """Block b of :func:`run_blocks`: its bits, and per board its records and VOXEL cycles."""
     c0, c1 = col_off[b], col_off[b + 1]
     r0, r1 = row_off[b], row_off[b + 1]
     S, R = c1 - c0, r1 - r0
-    P = np.empty((S, 3), np.int64)
-    for s in range(S):
-        P[s] = shooters[shooter_patch[c0 + s], shooter_sample[c0 + s]]
-    Q = np.empty((R, 3), np.int64)
-    for r in range(R):
-        Q[r] = receivers[receiver_patch[r0 + r]]
+    P, Q = _block_points(shooters, receivers, shooter_patch, shooter_sample, receiver_patch, c0, c1, r0, r1)
     hit = np.zeros((R, S), np.uint8)
     row_left = np.full(R, S, np.int64)
     left = R * S
@@ -254,12 +261,7 @@ def _block_steps(b, shooters, receivers, col_off, shooter_patch, shooter_sample,
                  vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided):
     c0, c1, r0, r1 = col_off[b], col_off[b + 1], row_off[b], row_off[b + 1]
     S, R = c1 - c0, r1 - r0
-    P = np.empty((S, 3), np.int64)
-    for s in range(S):
-        P[s] = shooters[shooter_patch[c0 + s], shooter_sample[c0 + s]]
-    Q = np.empty((R, 3), np.int64)
-    for r in range(R):
-        Q[r] = receivers[receiver_patch[r0 + r]]
+    P, Q = _block_points(shooters, receivers, shooter_patch, shooter_sample, receiver_patch, c0, c1, r0, r1)
     md, td = np.empty((3 * S, 3), np.int64), np.empty(3 * S, np.bool_)
     mw, tw = np.empty((3 * R, 3), np.int64), np.empty(3 * R, np.bool_)
     for p in range(start.shape[0]):
