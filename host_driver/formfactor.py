@@ -616,16 +616,35 @@ def _grazing(P, nP, npx, npy, npz, Q, nQ, nqx, nqy, nqz, target):
         return -1.0
     for b in range(ny):      # W times the height of y above P's plane
         WY[b] *= npx * (Y[b, 0] - P[0, 0]) + npy * (Y[b, 1] - P[0, 1]) + npz * (Y[b, 2] - P[0, 2])
+    inner = _inner_sums(X, nx, Y, WY, ny)
     total = 0.0
     for a in range(nx):
         hx = nqx * (X[a, 0] - Q[0, 0]) + nqy * (X[a, 1] - Q[0, 1]) + nqz * (X[a, 2] - Q[0, 2])
-        inner = 0.0
-        for b in range(ny):
-            dx, dy, dz = X[a, 0] - Y[b, 0], X[a, 1] - Y[b, 1], X[a, 2] - Y[b, 2]
-            r2 = dx * dx + dy * dy + dz * dz
-            inner += WY[b] / (r2 * r2)
-        total += WX[a] * hx * inner
+        total += WX[a] * hx * inner[a]
+    if not math.isfinite(total):
+        return -1.0             # coincident nodes (touching polygons): keep the closed form
     return abs(total) / math.pi
+
+
+@njit(cache=True, error_model="numpy")
+def _inner_sums(X, nx, Y, WY, ny):
+    """(nx,): ``sum_b WY[b] / |X[a] - Y[b]|^4`` for every node a, each sum in the order b = 0, 1, ...
+    The b loop is outside so that the a loop, whose sums are independent, runs in SIMD lanes
+    (a sum over b cannot: float addition does not reassociate); each a's sum is the same
+    arithmetic, in the same order, as a loop over b for that a alone, so the same bits.
+    ``error_model="numpy"``: a division by 0 gives inf instead of raising, which is what lets
+    the compiler vectorise the division (3.5x faster); the caller rejects a sum that is not finite."""
+    x0 = np.ascontiguousarray(X[:nx, 0])
+    x1 = np.ascontiguousarray(X[:nx, 1])
+    x2 = np.ascontiguousarray(X[:nx, 2])
+    inner = np.zeros(nx)
+    for b in range(ny):
+        y0, y1, y2, w = Y[b, 0], Y[b, 1], Y[b, 2], WY[b]
+        for a in range(nx):
+            dx, dy, dz = x0[a] - y0, x1[a] - y1, x2[a] - y2
+            r2 = dx * dx + dy * dy + dz * dz
+            inner[a] += w / (r2 * r2)
+    return inner
 
 
 @njit(cache=True)
