@@ -72,9 +72,9 @@ import numpy as np
 from numba import njit, prange
 
 from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
-from ..exact_float import plane_signs
+from ..exact_float import _plane_sign, plane_signs
 
-__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights", "pair_sample_weights",
+__all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights", "pair_sample_weights", "weight_points",
            "centroid_in_front",
            "unoccluded_factors", "PairCache", "form_factor_matrix", "FAR_TARGET", "METHODS"]
 
@@ -332,14 +332,21 @@ def _lambert_terms(px, py, pz, nx, ny, nz, T, poly):
 
 
 @njit(cache=True)
+def _lambert_normal(points, m, normals, n, T, poly):
+    """:func:`_lambert` from points[m] with normals[n] made unit (0 for a zero normal)."""
+    nx, ny, nz = normals[n, 0], normals[n, 1], normals[n, 2]
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if norm == 0.0:
+        return 0.0
+    return _lambert(points[m, 0], points[m, 1], points[m, 2], nx / norm, ny / norm, nz / norm, T, poly)
+
+
+@njit(cache=True)
 def _lambert_many(points, normals, tris):
     out = np.empty(len(points))
     poly = np.empty((4, 3))
     for m in range(len(points)):
-        nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
-        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-        out[m] = 0.0 if norm == 0.0 else _lambert(points[m, 0], points[m, 1], points[m, 2],
-                                                  nx / norm, ny / norm, nz / norm, tris[m], poly)
+        out[m] = _lambert_normal(points, m, normals, m, tris[m], poly)
     return out
 
 
@@ -738,17 +745,29 @@ def exchange_mask(scene, i):
     - some vertex of j is strictly in front of i's plane (i emits from its front) and some vertex
       of i strictly in front of j's plane: exactly the pairs whose clipped factor is not 0.
     """
-    V = scene.patch_vertices
-    N = scene.patches
-    Vi = np.broadcast_to(V[i], (N, 3, 3))
-    j_in_front_of_i = np.zeros(N, dtype=bool)
-    i_in_front_of_j = np.zeros(N, dtype=bool)
+    eligible = (scene.reflectance > 0).any(axis=1) & (scene.areas > 0)
+    return _exchange_row(scene.patch_vertices, int(i), eligible)
+
+
+_UNITS = np.eye(3, dtype=np.int64)
+_ONES = np.ones(3, dtype=np.int64)
+
+
+@njit(cache=True)
+def _vertex_in_front(P, T):
+    """Some vertex of triangle P strictly in front of T's plane (exact signs)."""
     for k in range(3):
-        corner = np.broadcast_to(np.eye(3, dtype=np.int64)[k], (N, 3))
-        j_in_front_of_i |= plane_signs(Vi, V, corner) > 0
-        i_in_front_of_j |= plane_signs(V, Vi, corner) > 0
-    mask = j_in_front_of_i & i_in_front_of_j & (scene.reflectance > 0).any(axis=1) & (scene.areas > 0)
-    mask[i] = False
+        if _plane_sign(T, P, _UNITS[k]) > 0:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _exchange_row(V, i, eligible):
+    mask = np.zeros(len(V), dtype=np.bool_)
+    for j in range(len(V)):
+        if j != i and eligible[j] and _vertex_in_front(V[j], V[i]) and _vertex_in_front(V[i], V[j]):
+            mask[j] = True
     return mask
 
 
@@ -756,10 +775,15 @@ def centroid_in_front(scene, i, receivers):
     """bool (len(receivers),): receiver j's centroid (its ray end point) strictly in front of i's
     plane. Where it is not, rays from i to j's centroid say nothing about the light i sends to the
     part of j in front of it; the render casts the reverse rays instead."""
-    V = scene.patch_vertices
-    receivers = np.asarray(receivers, dtype=np.int64)
-    n = len(receivers)
-    return plane_signs(np.broadcast_to(V[i], (n, 3, 3)), V[receivers], np.ones((n, 3), dtype=np.int64)) > 0
+    return _centroids_in_front(scene.patch_vertices, int(i), np.asarray(receivers, dtype=np.int64))
+
+
+@njit(cache=True)
+def _centroids_in_front(V, i, receivers):
+    out = np.empty(len(receivers), dtype=np.bool_)
+    for m in range(len(receivers)):
+        out[m] = _plane_sign(V[i], V[receivers[m]], _ONES) > 0
+    return out
 
 
 def samples_in_front(scene, samples, i, receivers):
@@ -784,23 +808,50 @@ def sample_weights(scene, samples, i, receivers):
     return pair_sample_weights(scene, samples, np.full(len(receivers), i), receivers)
 
 
-def pair_sample_weights(scene, samples, shooters, receivers):
+def weight_points(scene, samples, patches=None):
+    """(len(patches), K, 3): the float sample points of each patch (default: all) as
+    :func:`pair_sample_weights` weighs them, each triangle's computed alone (so the same bits
+    whichever patches are asked for together)."""
+    V = scene.patch_vertices
+    patches = range(scene.patches) if patches is None else patches
+    points = [samples.points(V[j][None])[0] for j in patches]
+    return np.stack(points) if points else np.zeros((0, samples.count, 3))
+
+
+def pair_sample_weights(scene, samples, shooters, receivers, points=None):
     """:func:`sample_weights` of many (shooter, receiver) pairs in one call: row m is the weight row
     of the pair (shooters[m], receivers[m]), the same arithmetic row by row, so the same bits however
-    the pairs are batched. For the reverse rays of a shooter's straddling receivers."""
+    the pairs are batched. For the reverse rays of a shooter's straddling receivers. ``points``:
+    :func:`weight_points` of every patch, if the caller keeps them (else computed for these
+    shooters)."""
     shooters = np.asarray(shooters, dtype=np.int64)
     receivers = np.asarray(receivers, dtype=np.int64)
-    n, K = len(shooters), samples.count
-    if n == 0:
-        return np.zeros((0, K))
-    V = scene.patch_vertices
-    tri = np.repeat(V[receivers], K, axis=0)
-    front = (plane_signs(tri, np.repeat(V[shooters], K, axis=0), np.tile(samples.weights, (n, 1))) > 0).reshape(n, K)
-    # each shooter's sample points as for one triangle (the same bits whatever the batch)
-    unique, which = np.unique(shooters, return_inverse=True)
-    pts = np.stack([samples.points(V[j][None])[0] for j in unique])[which].reshape(-1, 3)
-    f = _lambert_many(*_broadcast(pts, np.repeat(scene.normals[shooters], K, axis=0), tri))
-    return np.where(front, f.reshape(n, K), 0.0)
+    if len(shooters) == 0:
+        return np.zeros((0, samples.count))
+    if points is None:
+        unique, which = np.unique(shooters, return_inverse=True)
+        points, shooters = weight_points(scene, samples, unique), which.reshape(-1).astype(np.int64)
+        normals = np.ascontiguousarray(scene.normals[unique], dtype=np.float64)
+        return _sample_weights(scene.patch_vertices, normals, points, samples.weights, shooters,
+                               receivers, unique)
+    return _sample_weights(scene.patch_vertices, np.ascontiguousarray(scene.normals, dtype=np.float64), points,
+                           samples.weights, shooters, receivers, np.arange(scene.patches))
+
+
+@njit(cache=True)
+def _sample_weights(V, normals, points, weights, shooters, receivers, patch):
+    """Row m: for shooter ``patch[shooters[m]]`` (its points and normal at index shooters[m]) and
+    receiver receivers[m], the point factor of each sample strictly in front of the receiver's
+    plane, else 0."""
+    out = np.zeros((len(shooters), len(weights)))
+    poly = np.empty((4, 3))
+    for m in range(len(shooters)):
+        s, j = shooters[m], receivers[m]
+        i = patch[s]
+        for k in range(len(weights)):
+            if _plane_sign(V[j], V[i], weights[k]) > 0:
+                out[m, k] = _lambert_normal(points[s], k, normals, s, V[j], poly)
+    return out
 
 
 class PairCache:

@@ -75,6 +75,7 @@ class Visibility:
         self.phases = phases or Phases()
         self.stats = stats
         self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
+        self.weight_points = formfactor.weight_points(scene, samples)    # the same, as the ray weights take them
         self.centroids = scene.centroids
         self.end_voxel = grid.voxel_of(self.centroids)
         self.end_morton = _morton(grid.cell_of(self.centroids))
@@ -205,7 +206,7 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         # i's own rays first, then one column per reverse receiver, each in receiver order
         shooters = np.concatenate([np.full(len(forward), i, dtype=np.int64), reverse])
         targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
-        weights = formfactor.pair_sample_weights(scene, samples, shooters, targets)
+        weights = formfactor.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
     frac = np.empty(len(receivers))
     # the column count as one call per column would give it: i's own (even if empty), one per reverse
     f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse))
