@@ -71,7 +71,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
+from .. import threads as _threads  # (also chooses the threading layer before any kernel runs)
 from ..exact_float import _plane_sign, plane_signs
 
 __all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_factors", "samples_in_front", "sample_weights", "pair_sample_weights", "weight_points",
@@ -839,18 +839,35 @@ def pair_sample_weights(scene, samples, shooters, receivers, points=None):
 
 
 @njit(cache=True)
-def _sample_weights(V, normals, points, weights, shooters, receivers, patch):
-    """Row m: for shooter ``patch[shooters[m]]`` (its points and normal at index shooters[m]) and
-    receiver receivers[m], the point factor of each sample strictly in front of the receiver's
-    plane, else 0."""
-    out = np.zeros((len(shooters), len(weights)))
+def _weight_row(V, normals, points, weights, s, i, j, out, poly):
+    """out[:]: for shooter i (its points and normal at index s), receiver j, the point factor of
+    each sample strictly in front of j's plane, else 0."""
+    for k in range(len(weights)):
+        if _plane_sign(V[j], V[i], weights[k]) > 0:
+            out[k] = _lambert_normal(points[s], k, normals, s, V[j], poly)
+
+
+@njit(cache=True, parallel=True)
+def _weights_par(V, normals, points, weights, shooters, receivers, patch, out):
+    for m in prange(len(shooters)):
+        _weight_row(V, normals, points, weights, shooters[m], patch[shooters[m]], receivers[m], out[m],
+                    np.empty((4, 3)))
+
+
+@njit(cache=True)
+def _weights_ser(V, normals, points, weights, shooters, receivers, patch, out):
     poly = np.empty((4, 3))
     for m in range(len(shooters)):
-        s, j = shooters[m], receivers[m]
-        i = patch[s]
-        for k in range(len(weights)):
-            if _plane_sign(V[j], V[i], weights[k]) > 0:
-                out[m, k] = _lambert_normal(points[s], k, normals, s, V[j], poly)
+        _weight_row(V, normals, points, weights, shooters[m], patch[shooters[m]], receivers[m], out[m], poly)
+
+
+def _sample_weights(V, normals, points, weights, shooters, receivers, patch):
+    """Row m: the weight row of shooter ``patch[shooters[m]]`` (its points and normal at index
+    shooters[m]) and receiver receivers[m]; rows on the thread pool when there are enough rays
+    (each row its own, so the same bits on any number of threads)."""
+    out = np.zeros((len(shooters), len(weights)))
+    run = _weights_par if _threads.parallel(out.size) else _weights_ser
+    run(V, normals, points, weights, shooters, receivers, patch, out)
     return out
 
 
