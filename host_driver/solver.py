@@ -19,6 +19,7 @@ residual of a progressive state is ``rho F U``), so one ``--tolerance`` means th
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from blockray.errors import ParameterError
 
@@ -159,20 +160,37 @@ def progressive_refinement(scene, shoot, *, tolerance=1e-3, max_shots=None, prog
         if rows.shape != (len(chosen), N):
             raise ValueError(f"shoot returned rows of shape {rows.shape}, expected {(len(chosen), N)}")
         for i, F in zip(chosen, rows):
-            Ui = U[i].copy()
-            dB = rho * (F[:, None] * Ui[None, :])
-            dB[i] = 0.0
-            B += dB
-            U += dB
-            U[i] = 0.0
+            _shoot(B, U, rho, F, i, A, energy)
             result.shots += 1
-            energy = A * U.sum(axis=1)
             res = float(energy.sum()) / emitted
             result.history.append(res)
             _report(progress, result.shots, res)
     result.residual = res
     result.converged = res < tolerance
     return result
+
+
+@njit(cache=True)
+def _shoot(B, U, rho, F, i, A, energy):
+    """One shot of patch i with the visible factors F (N,), in place: ``dB_j = rho_j (F_j U_i)``
+    (0 for j = i) added to B and U, ``U_i = 0``, ``energy_j = A_j sum_rgb U_j``: the arithmetic of
+    the numpy expressions ``rho * (F[:, None] * U[i])``, ``B += dB``, ``A * U.sum(axis=1)``, element
+    by element in the same order, without their N x 3 temporaries (one shot per patch shot)."""
+    u0, u1, u2 = U[i, 0], U[i, 1], U[i, 2]
+    for j in range(len(F)):
+        if j == i:
+            d0 = d1 = d2 = 0.0
+        else:
+            d0, d1, d2 = rho[j, 0] * (F[j] * u0), rho[j, 1] * (F[j] * u1), rho[j, 2] * (F[j] * u2)
+        B[j, 0] += d0
+        B[j, 1] += d1
+        B[j, 2] += d2
+        U[j, 0] += d0
+        U[j, 1] += d1
+        U[j, 2] += d2
+    U[i, 0] = U[i, 1] = U[i, 2] = 0.0
+    for j in range(len(F)):
+        energy[j] = A[j] * (U[j, 0] + U[j, 1] + U[j, 2])
 
 
 def _check_matrix(scene, F):
