@@ -381,6 +381,7 @@ def speed(args):
                 ff.pair_factors(S, R, target=target, stats=used)
                 row[f"{label}_cpu_us_per_pair"] = round((time.process_time() - c0) / len(I) * 1e6, 3)
                 row[f"{label}_methods"] = dict(zip(ff.METHODS, used.tolist()))
+            row["default_cpu_us_per_pair_by_method"] = by_method(S, R)
         from pyviewfactor.pvf_integrators import compute_viewfactor_sa30
         n = min(args.peer_pairs, len(I))
         c0 = time.process_time()
@@ -391,6 +392,23 @@ def speed(args):
         row["render_pairs_ordered"] = int(M.sum())                           # every column in full
         row["render_pairs_unordered"] = int(np.triu(M | M.T).sum())          # each pair once
         print(row, flush=True)
+
+
+def by_method(S, R):
+    """CPU us per pair of the default pair kernel, the pairs grouped by the method that decided
+    each (one kernel call per group, on the calling threads)."""
+    methods = np.zeros((len(S), len(ff.METHODS)), dtype=np.int64)
+    ff._pairs(S, R, ff.FAR_TARGET, methods)
+    decided = methods.argmax(axis=1)
+    out = {}
+    for k, name in enumerate(ff.METHODS):
+        pick = np.flatnonzero(decided == k)
+        if len(pick):
+            Si, Ri = np.ascontiguousarray(S[pick]), np.ascontiguousarray(R[pick])
+            c0 = time.process_time()
+            ff._pairs(Si, Ri, ff.FAR_TARGET, np.zeros((len(pick), len(ff.METHODS)), dtype=np.int64))
+            out[name] = {"pairs": len(pick), "cpu_us_per_pair": round((time.process_time() - c0) / len(pick) * 1e6, 2)}
+    return out
 
 
 def grazing(args):
