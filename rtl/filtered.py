@@ -24,8 +24,8 @@ from ..filtered import default_format
 from ..records import patch_layout, point_layout
 from .platform import product_platform
 from ..params import Widths
-from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _product,
-                        query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _delay_through,
+                        _product, query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
            "InOrderResolve", "ArrayResolve", "FilteredArray", "array_item_layout"]
@@ -386,6 +386,13 @@ class ArrayResolve(wiring.Component):
     FIFO has ``depth`` entries; the owner's credits keep at most ``depth`` items inside.
     ``exact_unit``: a factory of the exact unit (default ``Processor(bits)``; the formal harness
     gives a stand-in with its ports and latency).
+
+    Named for the formal proof's invariants (tests/test_filtered_formal.py), made here so that
+    they exist before elaboration (no added logic): ``fifos`` (``pending``, ``queue``,
+    ``answers``), the queue ``head``, the server's state ``started`` (the head's first test is
+    out) and ``remaining`` (its tests still to serve, when started), ``gathered`` (the answers of
+    the record being gathered), and beside the exact unit the Processor.latency stages of
+    ``which`` (a test's bit in its record) and ``final`` (its record's last test).
     """
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
@@ -396,6 +403,15 @@ class ArrayResolve(wiring.Component):
             "shooters": data.ArrayLayout(shooter_terms_layout(bits), cols),
             "receivers": data.ArrayLayout(receiver_terms_layout(bits), rows)})
         item = array_item_layout(rows, cols, mark_shape)
+        RS = rows * cols
+        self._queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
+        self.fifos = {name: SyncFIFOBuffered(width=width, depth=self._depth)
+                      for name, width in (("pending", item.size), ("queue", self._queued.size), ("answers", RS))}
+        self.head = Signal(self._queued, name="head")
+        self.started, self.remaining = Signal(name="started"), Signal(RS, name="remaining")
+        self.gathered = Signal(RS, name="gathered")
+        self.which = [Signal(RS, name=f"which_{n + 1}") for n in range(Processor.latency)]
+        self.final = [Signal(name=f"final_{n + 1}") for n in range(Processor.latency)]
         super().__init__({
             "i": In(stream.Signature(data.StructLayout({
                 "item": item, "undecided": unsigned(rows * cols), "terms": self._terms}), always_ready=True)),
@@ -407,14 +423,13 @@ class ArrayResolve(wiring.Component):
         m = Module()
         R, S, RS = self._rows, self._cols, self._rows * self._cols
         item_layout = array_item_layout(R, S, self._mark_shape)
-        queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
-        m.submodules.pending = pending = SyncFIFOBuffered(width=item_layout.size, depth=self._depth)
-        m.submodules.queue = queue = SyncFIFOBuffered(width=queued.size, depth=self._depth)
-        m.submodules.answers = answers = SyncFIFOBuffered(width=RS, depth=self._depth)
+        m.submodules.pending = pending = self.fifos["pending"]
+        m.submodules.queue = queue = self.fifos["queue"]
+        m.submodules.answers = answers = self.fifos["answers"]
         m.submodules.exact = exact = self._exact_unit()
 
         # in: every item to pending, a record with undecided tests to the queue
-        entry = Signal(queued)
+        entry = Signal(self._queued)
         m.d.comb += [
             pending.w_data.eq(self.i.payload.item), pending.w_en.eq(self.i.valid),
             entry.undecided.eq(self.i.payload.undecided), entry.terms.eq(self.i.payload.terms),
@@ -422,9 +437,7 @@ class ArrayResolve(wiring.Component):
         ]
 
         # the server: the head's undecided tests, lowest index first, one per cycle
-        head = Signal(queued)
-        started = Signal()
-        remaining = Signal(RS)
+        head, started, remaining = self.head, self.started, self.remaining
         current = Signal(RS)
         onehot = Signal(RS)
         last = Signal()
@@ -448,9 +461,9 @@ class ArrayResolve(wiring.Component):
         ]
 
         # the answers: gathered per record, pushed with its last test's answer
-        which = _delay(m, onehot, Processor.latency, "which")
-        final = _delay(m, last, Processor.latency, "final")
-        gathered = Signal(RS)
+        which = _delay_through(m, onehot, self.which)
+        final = _delay_through(m, last, self.final)
+        gathered = self.gathered
         vector = Signal(RS)
         m.d.comb += [
             vector.eq(gathered | Mux(exact.blocked, which, 0)),

@@ -92,8 +92,13 @@ def result_layout():
 
 def _delay(m, value, cycles, name):
     """``value`` delayed by ``cycles`` registers (a side-band chain); returns the last stage."""
-    for n in range(cycles):
-        reg = Signal.like(value, name=f"{name}_{n + 1}")
+    return _delay_through(m, value, [Signal.like(value, name=f"{name}_{n + 1}") for n in range(cycles)])
+
+
+def _delay_through(m, value, stages):
+    """``value`` through the registers ``stages`` in turn (a chain made by its owner, which can
+    then name every stage); returns the last."""
+    for reg in stages:
         m.d.sync += reg.eq(value)
         value = reg
     return value
