@@ -21,7 +21,7 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 
 from ..filtered import default_format
-from ..records import patch_layout, point_layout
+from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths
 from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _delay_through,
@@ -280,7 +280,29 @@ class InOrderResolve(wiring.Component):
         return m
 
 
-class FilteredIntersector(wiring.Component):
+class _FilteredCells:
+    """What the filtered arrays (1 x 1 and R x S) share: the latency from their input to the
+    filtered cells' results, the filter format :attr:`fmt` and the hand-off's :attr:`depth`."""
+
+    #: cycles from the input to the filtered cells' results (units, filters, cells)
+    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
+
+    def _configure(self, bits, fmt, depth):
+        self._bits = _check_bits(bits)
+        # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
+        self._fmt = fmt if fmt is not None else default_format(bits)
+        self._depth = _check_depth(depth)
+
+    @property
+    def depth(self):
+        return self._depth
+
+    @property
+    def fmt(self):
+        return self._fmt
+
+
+class FilteredIntersector(_FilteredCells, wiring.Component):
     """The 1 x 1 filtered array with stream ports (the ports of
     :class:`~blockray.rtl.processor.Intersector`): exact units, their filters, the filtered cell,
     the hand-off (:class:`InOrderResolve`) and one exact :class:`Processor` for the undecided
@@ -294,25 +316,11 @@ class FilteredIntersector(wiring.Component):
     """
 
     def __init__(self, bits, fmt=None, depth=None):
-        self._bits = _check_bits(bits)
-        # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
-        self._fmt = fmt if fmt is not None else default_format(bits)
-        self._depth = _check_depth(depth if depth is not None else self.latency + Processor.latency + 4)
+        self._configure(bits, fmt, depth if depth is not None else self.latency + Processor.latency + 4)
         super().__init__({
             "i": In(stream.Signature(query_layout(bits))),
             "o": Out(stream.Signature(result_layout())),
         })
-
-    #: cycles from acceptance to the filtered cell's result (units, filters, cell)
-    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
-
-    @property
-    def depth(self):
-        return self._depth
-
-    @property
-    def fmt(self):
-        return self._fmt
 
     def elaborate(self, platform):
         m = Module()
@@ -485,7 +493,7 @@ class ArrayResolve(wiring.Component):
         return m
 
 
-class FilteredArray(wiring.Component):
+class FilteredArray(_FilteredCells, wiring.Component):
     """R x S filtered cells fed by one broadcast patch record per cycle, with one exact unit
     shared by the array (:class:`ArrayResolve`): the ports of
     :class:`~blockray.rtl.array.ProcessorArray` and a marker path.
@@ -505,21 +513,12 @@ class FilteredArray(wiring.Component):
     earliest :attr:`latency` + 2 (the pending FIFO's write and output register).
     """
 
-    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
-
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1)):
-        self._bits = _check_bits(bits)
+        self._configure(bits, fmt, depth if depth is not None else self.default_depth())
         self._rows, self._cols = rows, cols
-        self._fmt = fmt if fmt is not None else default_format(bits)
-        self._depth = _check_depth(depth if depth is not None else self.default_depth())
         self._mark_shape = mark_shape
-        point = point_layout(bits)
         super().__init__({
-            "patch": In(patch_layout(bits)),
-            "valid": In(1),
-            "first": In(1),
-            "receivers": In(data.ArrayLayout(point, rows)),
-            "shooters": In(data.ArrayLayout(point, cols)),
+            **broadcast_signature(bits, rows, cols).members,
             "row_mask": In(rows),
             "col_mask": In(cols),
             "mark": In(1),
@@ -535,14 +534,6 @@ class FilteredArray(wiring.Component):
         """Items in flight for one record per cycle while every test is decided: the latency to
         delivery (plus ``extra_latency`` in front of the array, the board's memory) and 4."""
         return cls.latency + 2 + extra_latency + 4
-
-    @property
-    def depth(self):
-        return self._depth
-
-    @property
-    def fmt(self):
-        return self._fmt
 
     def elaborate(self, platform):
         m = Module()

@@ -269,6 +269,8 @@ def test_handoff_properties(tmp_path):
 # unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
 # SyncFIFOBuffered refuses a second write one cycle after its first, while its level is 1)
 PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1, 20, 2
+# the FIFOs' memories as flip-flops: the proofs run 2.5 to 4 times faster than with SMT arrays
+MEMORIES_AS_FLOPS = ("memory_map", "opt -fast")
 
 
 def test_handoff_proven_unbounded(tmp_path):
@@ -278,7 +280,8 @@ def test_handoff_proven_unbounded(tmp_path):
     from blockray.synth.formal import prove
     harness = HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True,
                              max_stall=MAX_STALL)
-    result = prove(harness, name="handoff_proof", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
+    result = prove(harness, name="handoff_proof", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path,
+                   script=MEMORIES_AS_FLOPS)
     assert result.passed, f"sby {result.status} after {result.seconds} s:\n{result.log[-3000:]}"
 
 
@@ -288,7 +291,8 @@ def test_handoff_proof_fails_for_a_broken_exact_unit(tmp_path, fault):
     from blockray.synth.formal import prove
     result = prove(HandoffHarness(PROOF_DEPTH, PROOF_TAG_BITS, latency=PROOF_LATENCY, invariants=True, fault=fault,
                                   max_stall=MAX_STALL),
-                   name=f"handoff_{fault}", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path)
+                   name=f"handoff_{fault}", mode="prove", depth=INDUCTION_DEPTH, workdir=tmp_path,
+                   script=MEMORIES_AS_FLOPS)
     assert result.status == "FAIL", result.log[-2000:]
 
 
@@ -476,7 +480,6 @@ def test_array_handoff_properties(tmp_path):
 # record over two cycles; depth 3, 2-bit sequence numbers, B = 1: the terms only ride along)
 ARRAY_PROOF = dict(depth=3, tag_bits=2, bits=1)
 ARRAY_INDUCTION_DEPTH = 12
-MEMORIES_AS_FLOPS = ("memory_map", "opt -fast")    # 4 times faster than the SMT arrays
 
 
 def test_array_handoff_proven_unbounded(tmp_path):
