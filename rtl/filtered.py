@@ -25,7 +25,8 @@ from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths
 from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _delay,
-                        _delay_through, _product, query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
+                        _delay_through, _product, query_layout, receiver_terms_layout, result_layout,
+                        shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
            "InOrderResolve", "ArrayResolve", "FilteredArray", "array_item_layout"]
