@@ -5,7 +5,7 @@ check of every input sequence of ``BMC_DEPTH`` cycles (about 20 s), and covers.
 
 Unbounded for the 1 x 1 hand-off (:func:`test_handoff_proven_unbounded`): k-induction
 (``blockray.synth.formal.prove(mode="prove")``, depth 20, the FIFOs' memories mapped to
-flip-flops, about 50 s on the loaded 2-core machine) on a small configuration
+flip-flops, about 40 s on the loaded 2-core machine) on a small configuration
 (depth 3, 2-bit tags, exact latency 1, a consumer that leaves a result waiting at most 2 cycles
 in a row), with the invariants that make the properties inductive: the harness keeps, per tag,
 whether each test inside was decided and its right answer (a shadow of the tests inside, since
@@ -20,7 +20,7 @@ the answers FIFO on every delivery (checked by hand, docs/processor.md). At dept
 entry is full, its output register not yet loaded), so the hand-off needs depth >= 3.
 
 Unbounded for the array's ``ArrayResolve`` too (:func:`test_array_handoff_proven_unbounded`,
-k-induction at depth 12, about 25 s): :meth:`ArrayHandoffHarness._invariants` lists what makes it
+k-induction at depth 12, about 20 s): :meth:`ArrayHandoffHarness._invariants` lists what makes it
 inductive; it fails for a broken exact unit
 (:func:`test_array_handoff_proof_fails_for_a_broken_exact_unit`).
 
@@ -274,7 +274,8 @@ def test_handoff_properties(tmp_path):
 # unbounded: k-induction on a small configuration (depth 3, 3-bit tags; at depth 2 a
 # SyncFIFOBuffered refuses a second write one cycle after its first, while its level is 1)
 PROOF_DEPTH, PROOF_TAG_BITS, PROOF_LATENCY, INDUCTION_DEPTH, MAX_STALL = 3, 2, 1, 20, 2
-# the FIFOs' memories as flip-flops: the proofs run 2.5 to 4 times faster than with SMT arrays
+# the FIFOs' memories as flip-flops: the proofs run 2 to 2.75 times faster than with SMT arrays
+# (benchmarks/bench_formal.py, docs/processor.md)
 MEMORIES_AS_FLOPS = ("memory_map", "opt -fast")
 
 
