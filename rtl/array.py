@@ -16,23 +16,30 @@ cycle c is ORed into ``hit`` as seen in cycle c + latency. Throughput one record
 per cycle.
 """
 
-from amaranth.hdl import Cat, Module, Signal, unsigned
+from amaranth.hdl import Cat, Module, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
 from ..records import patch_layout, point_layout
-from .processor import ArrayTiming, Processor, ReceiverUnit, ShooterUnit
+from .processor import ArrayTiming, Processor, ReceiverUnit, ShooterUnit, _delay
 
-__all__ = ["ProcessorArray"]
+__all__ = ["ProcessorArray", "broadcast_signature"]
 
 
-def _delay(m, value, cycles, name):
-    for n in range(cycles):
-        reg = Signal.like(value, name=f"{name}_{n + 1}")
-        m.d.sync += reg.eq(value)
-        value = reg
-    return value
+def broadcast_signature(bits, rows, cols):
+    """The inputs of an R x S array fed one broadcast patch record per cycle
+    (:class:`ProcessorArray`, :class:`~blockray.rtl.filtered.FilteredArray`): ``patch``,
+    ``valid``, ``first``, the R ``receivers`` and the S ``shooters`` (see
+    :class:`ProcessorArray`). Each array adds its outputs to these members."""
+    point = point_layout(bits)
+    return wiring.Signature({
+        "patch": In(patch_layout(bits)),
+        "valid": In(1),
+        "first": In(1),
+        "receivers": In(data.ArrayLayout(point, rows)),
+        "shooters": In(data.ArrayLayout(point, cols)),
+    })
 
 
 class ProcessorArray(wiring.Component):
@@ -60,13 +67,8 @@ class ProcessorArray(wiring.Component):
                                      f"not {value!r}")
         self._timing = ArrayTiming(bits)       # validates bits
         self._bits, self._rows, self._cols = bits, rows, cols
-        point = point_layout(bits)
         super().__init__({
-            "patch": In(patch_layout(bits)),
-            "valid": In(1),
-            "first": In(1),
-            "receivers": In(data.ArrayLayout(point, rows)),
-            "shooters": In(data.ArrayLayout(point, cols)),
+            **broadcast_signature(bits, rows, cols).members,
             "hit": Out(unsigned(rows * cols)),
             "hit_valid": Out(1),
         })

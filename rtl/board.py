@@ -54,17 +54,9 @@ from ..filtered import check_cell, default_format
 from .array import ProcessorArray
 from .filtered import FilteredArray
 from .memctrl import MemoryController
-from .processor import ArrayTiming
+from .processor import ArrayTiming, _delay
 
 __all__ = ["BoardTop"]
-
-
-def _delay(m, value, cycles, name):
-    for n in range(cycles):
-        reg = Signal.like(value, name=f"{name}_{n + 1}")
-        m.d.sync += reg.eq(value)
-        value = reg
-    return value
 
 
 def _popcount(value):

@@ -21,11 +21,12 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 
 from ..filtered import default_format
-from ..records import patch_layout, point_layout
+from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths
-from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _delay, _product,
-                        query_layout, receiver_terms_layout, result_layout, shooter_terms_layout)
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _delay,
+                        _delay_through, _product, query_layout, receiver_terms_layout, result_layout,
+                        shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
            "InOrderResolve", "ArrayResolve", "FilteredArray", "array_item_layout"]
@@ -280,7 +281,29 @@ class InOrderResolve(wiring.Component):
         return m
 
 
-class FilteredIntersector(wiring.Component):
+class _FilteredCells:
+    """What the filtered arrays (1 x 1 and R x S) share: the latency from their input to the
+    filtered cells' results, the filter format :attr:`fmt` and the hand-off's :attr:`depth`."""
+
+    #: cycles from the input to the filtered cells' results (units, filters, cells)
+    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
+
+    def _configure(self, bits, fmt, depth):
+        self._bits = _check_bits(bits)
+        # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
+        self._fmt = fmt if fmt is not None else default_format(bits)
+        self._depth = _check_depth(depth)
+
+    @property
+    def depth(self):
+        return self._depth
+
+    @property
+    def fmt(self):
+        return self._fmt
+
+
+class FilteredIntersector(_FilteredCells, wiring.Component):
     """The 1 x 1 filtered array with stream ports (the ports of
     :class:`~blockray.rtl.processor.Intersector`): exact units, their filters, the filtered cell,
     the hand-off (:class:`InOrderResolve`) and one exact :class:`Processor` for the undecided
@@ -294,25 +317,11 @@ class FilteredIntersector(wiring.Component):
     """
 
     def __init__(self, bits, fmt=None, depth=None):
-        self._bits = _check_bits(bits)
-        # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
-        self._fmt = fmt if fmt is not None else default_format(bits)
-        self._depth = _check_depth(depth if depth is not None else self.latency + Processor.latency + 4)
+        self._configure(bits, fmt, depth if depth is not None else self.latency + Processor.latency + 4)
         super().__init__({
             "i": In(stream.Signature(query_layout(bits))),
             "o": Out(stream.Signature(result_layout())),
         })
-
-    #: cycles from acceptance to the filtered cell's result (units, filters, cell)
-    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
-
-    @property
-    def depth(self):
-        return self._depth
-
-    @property
-    def fmt(self):
-        return self._fmt
 
     def elaborate(self, platform):
         m = Module()
@@ -326,11 +335,7 @@ class FilteredIntersector(wiring.Component):
         m.submodules.handoff = handoff = InOrderResolve(operands, self._depth)
         m.submodules.exact = exact = Processor(bits, unit="exact")
 
-        accept = self.i.valid & self.i.ready
-        deliver = self.o.valid & self.o.ready
-        count = Signal(range(self._depth + 1))
-        m.d.comb += self.i.ready.eq(count < self._depth)
-        m.d.sync += count.eq(count + accept - deliver)
+        accept = _credits(m, self.i, self.o, self._depth)
 
         payload = self.i.payload
         pp, pq = sf.exact_out.pp, rf.exact_out.pq
@@ -386,6 +391,13 @@ class ArrayResolve(wiring.Component):
     FIFO has ``depth`` entries; the owner's credits keep at most ``depth`` items inside.
     ``exact_unit``: a factory of the exact unit (default ``Processor(bits)``; the formal harness
     gives a stand-in with its ports and latency).
+
+    Named for the formal proof's invariants (tests/test_filtered_formal.py), made here so that
+    they exist before elaboration (no added logic): ``fifos`` (``pending``, ``queue``,
+    ``answers``), the queue ``head``, the server's state ``started`` (the head's first test is
+    out) and ``remaining`` (its tests still to serve, when started), ``gathered`` (the answers of
+    the record being gathered), and beside the exact unit the Processor.latency stages of
+    ``which`` (a test's bit in its record) and ``final`` (its record's last test).
     """
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
@@ -396,6 +408,15 @@ class ArrayResolve(wiring.Component):
             "shooters": data.ArrayLayout(shooter_terms_layout(bits), cols),
             "receivers": data.ArrayLayout(receiver_terms_layout(bits), rows)})
         item = array_item_layout(rows, cols, mark_shape)
+        RS = rows * cols
+        self._queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
+        self.fifos = {name: SyncFIFOBuffered(width=width, depth=self._depth)
+                      for name, width in (("pending", item.size), ("queue", self._queued.size), ("answers", RS))}
+        self.head = Signal(self._queued, name="head")
+        self.started, self.remaining = Signal(name="started"), Signal(RS, name="remaining")
+        self.gathered = Signal(RS, name="gathered")
+        self.which = [Signal(RS, name=f"which_{n + 1}") for n in range(Processor.latency)]
+        self.final = [Signal(name=f"final_{n + 1}") for n in range(Processor.latency)]
         super().__init__({
             "i": In(stream.Signature(data.StructLayout({
                 "item": item, "undecided": unsigned(rows * cols), "terms": self._terms}), always_ready=True)),
@@ -407,14 +428,13 @@ class ArrayResolve(wiring.Component):
         m = Module()
         R, S, RS = self._rows, self._cols, self._rows * self._cols
         item_layout = array_item_layout(R, S, self._mark_shape)
-        queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
-        m.submodules.pending = pending = SyncFIFOBuffered(width=item_layout.size, depth=self._depth)
-        m.submodules.queue = queue = SyncFIFOBuffered(width=queued.size, depth=self._depth)
-        m.submodules.answers = answers = SyncFIFOBuffered(width=RS, depth=self._depth)
+        m.submodules.pending = pending = self.fifos["pending"]
+        m.submodules.queue = queue = self.fifos["queue"]
+        m.submodules.answers = answers = self.fifos["answers"]
         m.submodules.exact = exact = self._exact_unit()
 
         # in: every item to pending, a record with undecided tests to the queue
-        entry = Signal(queued)
+        entry = Signal(self._queued)
         m.d.comb += [
             pending.w_data.eq(self.i.payload.item), pending.w_en.eq(self.i.valid),
             entry.undecided.eq(self.i.payload.undecided), entry.terms.eq(self.i.payload.terms),
@@ -422,9 +442,7 @@ class ArrayResolve(wiring.Component):
         ]
 
         # the server: the head's undecided tests, lowest index first, one per cycle
-        head = Signal(queued)
-        started = Signal()
-        remaining = Signal(RS)
+        head, started, remaining = self.head, self.started, self.remaining
         current = Signal(RS)
         onehot = Signal(RS)
         last = Signal()
@@ -448,9 +466,9 @@ class ArrayResolve(wiring.Component):
         ]
 
         # the answers: gathered per record, pushed with its last test's answer
-        which = _delay(m, onehot, Processor.latency, "which")
-        final = _delay(m, last, Processor.latency, "final")
-        gathered = Signal(RS)
+        which = _delay_through(m, onehot, self.which)
+        final = _delay_through(m, last, self.final)
+        gathered = self.gathered
         vector = Signal(RS)
         m.d.comb += [
             vector.eq(gathered | Mux(exact.blocked, which, 0)),
@@ -472,7 +490,7 @@ class ArrayResolve(wiring.Component):
         return m
 
 
-class FilteredArray(wiring.Component):
+class FilteredArray(_FilteredCells, wiring.Component):
     """R x S filtered cells fed by one broadcast patch record per cycle, with one exact unit
     shared by the array (:class:`ArrayResolve`): the ports of
     :class:`~blockray.rtl.array.ProcessorArray` and a marker path.
@@ -492,21 +510,12 @@ class FilteredArray(wiring.Component):
     earliest :attr:`latency` + 2 (the pending FIFO's write and output register).
     """
 
-    latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
-
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1)):
-        self._bits = _check_bits(bits)
+        self._configure(bits, fmt, depth if depth is not None else self.default_depth())
         self._rows, self._cols = rows, cols
-        self._fmt = fmt if fmt is not None else default_format(bits)
-        self._depth = _check_depth(depth if depth is not None else self.default_depth())
         self._mark_shape = mark_shape
-        point = point_layout(bits)
         super().__init__({
-            "patch": In(patch_layout(bits)),
-            "valid": In(1),
-            "first": In(1),
-            "receivers": In(data.ArrayLayout(point, rows)),
-            "shooters": In(data.ArrayLayout(point, cols)),
+            **broadcast_signature(bits, rows, cols).members,
             "row_mask": In(rows),
             "col_mask": In(cols),
             "mark": In(1),
@@ -522,14 +531,6 @@ class FilteredArray(wiring.Component):
         """Items in flight for one record per cycle while every test is decided: the latency to
         delivery (plus ``extra_latency`` in front of the array, the board's memory) and 4."""
         return cls.latency + 2 + extra_latency + 4
-
-    @property
-    def depth(self):
-        return self._depth
-
-    @property
-    def fmt(self):
-        return self._fmt
 
     def elaborate(self, platform):
         m = Module()

@@ -92,8 +92,24 @@ def result_layout():
 
 def _delay(m, value, cycles, name):
     """``value`` delayed by ``cycles`` registers (a side-band chain); returns the last stage."""
-    for n in range(cycles):
-        reg = Signal.like(value, name=f"{name}_{n + 1}")
+    return _delay_through(m, value, [Signal.like(value, name=f"{name}_{n + 1}") for n in range(cycles)])
+
+
+def _credits(m, i, o, depth):
+    """Backpressure by credits for a pipeline between streams ``i`` and ``o`` that never stalls:
+    a registered count of items accepted but not delivered, ``i.ready = count < depth``.
+    Returns the accept strobe."""
+    accept = i.valid & i.ready
+    count = Signal(range(depth + 1), name="count")
+    m.d.comb += i.ready.eq(count < depth)
+    m.d.sync += count.eq(count + accept - (o.valid & o.ready))
+    return accept
+
+
+def _delay_through(m, value, stages):
+    """``value`` through the registers ``stages`` in turn (a chain made by its owner, which can
+    then name every stage); returns the last."""
+    for reg in stages:
         m.d.sync += reg.eq(value)
         value = reg
     return value
@@ -514,11 +530,7 @@ class Intersector(wiring.Component):
         m.submodules.processor = processor = Processor(self._bits)
         m.submodules.fifo = fifo = SyncFIFOBuffered(width=result_layout().size, depth=self.fifo_depth)
 
-        accept = self.i.valid & self.i.ready
-        deliver = self.o.valid & self.o.ready
-        count = Signal(range(self.fifo_depth + 1))
-        m.d.comb += self.i.ready.eq(count < self.fifo_depth)
-        m.d.sync += count.eq(count + accept - deliver)
+        accept = _credits(m, self.i, self.o, self.fifo_depth)
 
         payload = self.i.payload
         m.d.comb += [

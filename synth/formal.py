@@ -70,9 +70,10 @@ def sby_environment(shim_dir, solver="boolector"):
     return env
 
 
-def prove(spec, *, name="spec", mode="prove", depth=20, solver="boolector", workdir=None, timeout=600):
+def prove(spec, *, name="spec", mode="prove", depth=20, solver="boolector", workdir=None, timeout=600, script=()):
     """Run SymbiYosys on ``spec`` (``mode``: bmc, prove (k-induction) or cover; ``depth``: steps;
-    ``solver``: z3 or boolector).
+    ``solver``: z3 or boolector; ``script``: Yosys commands after ``prep``, e.g. ``("memory_map",
+    "opt -fast")``: memories as flip-flops, which the solver handles faster than SMT arrays).
     ``workdir`` keeps the files (default: a temporary directory). Returns a :class:`FormalResult`."""
     if solver not in SOLVERS:
         raise ValueError(f"formal solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
@@ -83,7 +84,7 @@ def prove(spec, *, name="spec", mode="prove", depth=20, solver="boolector", work
     text = rtlil.convert(spec, name=name, platform="formal", ports=ports)
     config = (f"[options]\nmode {mode}\ndepth {int(depth)}\n\n"
               f"[engines]\nsmtbmc {solver}\n\n"
-              f"[script]\nread_rtlil {name}.il\nprep -top {name}\n\n"
+              f"[script]\nread_rtlil {name}.il\nprep -top {name}\n" + "".join(f"{c}\n" for c in script) + "\n"
               f"[files]\n{name}.il\n")
     with tempfile.TemporaryDirectory(prefix="blockray-sby-") as tmp:
         root = Path(workdir) if workdir is not None else Path(tmp)
