@@ -1,4 +1,4 @@
-"""The hand-offs' unbounded proofs (tests/test_filtered_formal.py): the FIFOs' memories kept as
+"""The hand-offs' unbounded proofs (tests/test_filtered_formal.py; the harnesses: blockray.synth.handoff_harness): the FIFOs' memories kept as
 SMT arrays against mapped to flip-flops (``prove(..., script=("memory_map", "opt -fast"))``),
 side by side in one run.
 
@@ -10,14 +10,11 @@ For the 1 x 1 hand-off (``InOrderResolve``, induction depth 20) and the array's
 """
 
 import re
-import sys
-from pathlib import Path
 
 from _run_header import print_run_header
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-import test_filtered_formal as f                  # noqa: E402  (the harnesses the proofs use)
-from blockray.synth.formal import prove            # noqa: E402
+import blockray.synth.handoff_harness as f
+from blockray.synth.formal import prove
 
 PROOFS = {
     "InOrderResolve": (lambda: f.HandoffHarness(f.PROOF_DEPTH, f.PROOF_TAG_BITS, latency=f.PROOF_LATENCY,
