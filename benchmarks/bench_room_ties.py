@@ -114,6 +114,9 @@ def ties(args):
     scene = load_scene(args.scene)
     Fg, Fm = np.load(args.golden), np.load(args.model)
     J, I = np.nonzero(Fg != Fm)
+    if len(J) == 0:
+        print("the boards' F are identical: no ray differs")
+        return
     # the rays the render cast for F[j, i]: i's samples to j's centroid, or the reverse ones
     direct = np.array([formfactor.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)],
                       dtype=bool)
