@@ -39,6 +39,7 @@ class RenderResult:
     radiosity: np.ndarray
     solve: object
     report: dict = field(default_factory=dict)
+    factors: object = None        # (N, N) visible form factors F[j, i], when a gathering solver built them
 
 
 def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
@@ -166,7 +167,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         return out
 
     bar = _progress(progress, solver, scene.patches if solver != "progressive" or closure != "off" else max_shots)
-    closure_info = None
+    closure_info = factors = None
     with phases.timed("solve"):
         if closure != "off":
             result, closure_info = _solve_closed(scene, shoot, closure, solver, bar, tolerance=tolerance,
@@ -175,7 +176,8 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
             result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance,
                                                     max_shots=max_shots, progress=bar)
         else:
-            result = _solve_matrix(scene, _columns(scene, shoot, bar), solver, tolerance=tolerance,
+            factors = _columns(scene, shoot, bar)
+            result = _solve_matrix(scene, factors, solver, tolerance=tolerance,
                                    max_shots=max_shots, max_iterations=max_iterations)
     if bar is not None:
         bar.close()
@@ -201,7 +203,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     report["exchange_bytes_per_sweep"] = 0
     if closure_info is not None:
         report["closure"] = closure_info
-    return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
+    return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report, factors=factors)
 
 
 def _solve_closed(scene, shoot, mode, solver, bar, **solve):

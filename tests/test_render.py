@@ -202,6 +202,22 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
     assert 0 < counting.blocked < coarse.report["rays"]
 
 
+def test_gathering_render_returns_the_factors_progressive_refinement_shoots(tmp_path):
+    # benchmarks/bench_room_ties.py solves a board's F again (exactly, and by progressive
+    # refinement): the F a gathering render returns must be the one it solved with, column for
+    # column the one a progressive render shoots, so both solves reproduce the renders to the bit.
+    from blockray.host_driver import solver as solvers
+    scene = _occluded_room(tmp_path)
+    gathered = render(scene, board="model", voxels=4, solver="jacobi", tolerance=1e-8)
+    F = gathered.factors
+    assert F.shape == (scene.patches, scene.patches) and np.count_nonzero(F == 0) < F.size
+    assert np.array_equal(solvers.jacobi(scene, F, tolerance=1e-8).B, gathered.radiosity)
+    shot = render(scene, board="model", voxels=4, max_shots=12)
+    assert shot.factors is None
+    again = solvers.progressive_refinement(scene, lambda i: F[:, i], max_shots=12)
+    assert np.array_equal(again.B, shot.radiosity)
+
+
 def test_cli_board_parameter_errors_name_the_option(capsys):
     code, err = _run_cli(capsys, ["render", "cornell", "--rows", "200", "--quiet"])
     assert code == 2 and err.startswith("blockray: error: --rows:") and "Traceback" not in err

@@ -1,0 +1,174 @@
+"""Model vs golden on a full solve, split into its parts: where the solves stop, and which rays.
+
+    python benchmarks/bench_room_ties.py matrix golden F_golden.npy --patches golden.csv
+    python benchmarks/bench_room_ties.py matrix model F_model.npy --patches model.csv [--bits B]
+    python benchmarks/bench_room_ties.py matrix golden F_moved.npy --move 0.1,0.2,0.3
+    python benchmarks/bench_room_ties.py split F_golden.npy F_model.npy
+    python benchmarks/bench_room_ties.py ties F_golden.npy F_model.npy [--bits B]
+
+``matrix``: ``render(SCENE, board=BOARD, solver="jacobi", tolerance=1e-9)`` (the same as
+``blockray render SCENE --board BOARD --solver jacobi --tolerance 1e-9``), saving the visible
+form factors F[j, i] it gathered with (.npy) and the per-patch radiosity (``--patches``).
+``--move dx,dy,dz`` renders the scene translated by that vector: the same scene with its float
+coordinates rounded afresh.
+
+``split``: from each board's F, the exact solution (``numpy.linalg.solve`` per channel) and
+progressive refinement to 1e-3 (the render's default: the same shots, to the bit, as
+``blockray render SCENE --board BOARD``), then the RMS of each against the other
+(bench_formfactor.py ``change``'s measures): the solver stop of each board, and model vs golden
+converged and at 1e-3.
+
+``ties``: every (shooter, receiver) pair whose F differs between the boards is cast again, ray
+by ray, on both boards and on the golden board with the scene's vertices jittered by +-1e-7
+(``--seeds`` seeds). A ray whose golden answer flips under that jitter is a *tie*: on the float
+scene it passes within 1e-7 of an occluder's edge or starts on its plane (a sample point on a
+contact line). Then the model's bits are put back on the tie rays only, and on the other rays
+only, and each F is solved exactly against golden's: the RMS each part carries.
+"""
+
+import argparse
+import dataclasses
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _run_header import print_run_header          # noqa: E402
+from bench_formfactor import change_stats          # noqa: E402
+
+from blockray.params import BoardParams             # noqa: E402
+from blockray.samples import SampleScheme           # noqa: E402
+from blockray.host_driver import formfactor, solver as solvers      # noqa: E402
+from blockray.host_driver.backends import make_board               # noqa: E402
+from blockray.host_driver.board import BlockBits    # noqa: E402
+from blockray.host_driver.builtin import load_scene                # noqa: E402
+from blockray.host_driver.output import write_patches_csv          # noqa: E402
+from blockray.host_driver.render import render      # noqa: E402
+from blockray.host_driver.visibility import Visibility, _clear_bits  # noqa: E402
+from blockray.host_driver.voxel import VoxelGrid, default_voxels     # noqa: E402
+
+SAMPLES = SampleScheme(8)
+
+
+def _fmt(name, stats):
+    return (f"{name}: RMS {stats['rms']:.3e} (R {stats['R']['rms']:.3e}, G {stats['G']['rms']:.3e}, "
+            f"B {stats['B']['rms']:.3e}); max per patch {max(stats[c]['max'] for c in 'RGB'):.1%}, "
+            f"p99 {max(stats[c]['p99'] for c in 'RGB'):.2%}")
+
+
+def exact_solution(scene, F):
+    """B = (I - rho F)^-1 E, per channel."""
+    I = np.eye(len(F))
+    return np.stack([np.linalg.solve(I - scene.reflectance[:, c:c + 1] * F, scene.emission[:, c])
+                     for c in range(3)], axis=1)
+
+
+def matrix(args):
+    scene = load_scene(args.scene)
+    if args.move:
+        scene = dataclasses.replace(scene, vertices=scene.vertices + np.array([float(x) for x in args.move.split(",")]))
+    r = render(scene, board=args.board, bits=args.bits, solver="jacobi", tolerance=1e-9)
+    np.save(args.out, r.factors)
+    if args.patches:
+        write_patches_csv(args.patches, scene, r.radiosity)
+    print(f"{args.board}: {r.report['iterations']} sweeps, residual {r.report['residual']:.2e}, "
+          f"{r.report['rays']} rays, {r.report['seconds']['total']:.0f} s")
+
+
+def split(args):
+    scene = load_scene(args.scene)
+    exact, stop = {}, {}
+    for name, path in (("golden", args.golden), ("model", args.model)):
+        F = np.load(path)
+        exact[name] = exact_solution(scene, F)
+        p = solvers.progressive_refinement(scene, lambda i, F=F: F[:, i], tolerance=1e-3)
+        stop[name] = p.B
+        print(f"{name}: progressive to 1e-3: {p.shots} shots; exact solution's residual "
+              f"{solvers.residual(scene, F, exact[name]):.1e}")
+        print(_fmt(f"  {name} at 1e-3 vs {name} converged (solver stop)", change_stats(p.B, exact[name])))
+    print(_fmt("model vs golden, converged", change_stats(exact["model"], exact["golden"])))
+    print(_fmt("model vs golden, both at 1e-3", change_stats(stop["model"], stop["golden"])))
+
+
+def _visibility(scene, board, bits=None):
+    params = BoardParams()
+    b = make_board(board, params, bits=bits)
+    b.prepare(scene, SAMPLES)
+    grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=b.margin)
+    b.load(grid)
+    return Visibility(scene, b, grid, SAMPLES, rows=params.rows, cols=params.cols)
+
+
+def ray_bits(vis, shooters, targets):
+    """(n, K) 1.0 where the ray from sample k of shooters[m] to the centroid of targets[m] is clear."""
+    batch, row_pair = vis._pair_blocks(shooters, targets)
+    bits = vis.board.run(batch)
+    flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
+        [np.asarray(b, dtype=bool).ravel() for b in bits])
+    return _clear_bits(batch.row_off, batch.col_off, batch.shooter_sample, row_pair, flat, len(targets),
+                       SAMPLES.count)
+
+
+def ties(args):
+    scene = load_scene(args.scene)
+    Fg, Fm = np.load(args.golden), np.load(args.model)
+    J, I = np.nonzero(Fg != Fm)
+    if len(J) == 0:
+        print("the boards' F are identical: no ray differs")
+        return
+    # the rays the render cast for F[j, i]: i's samples to j's centroid, or the reverse ones
+    direct = np.array([formfactor.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)],
+                      dtype=bool)
+    S, T = np.where(direct, I, J), np.where(direct, J, I)
+    W = formfactor.pair_sample_weights(scene, SAMPLES, S, T)
+
+    def fraction(bits):
+        total = W.sum(axis=1)
+        return np.where(total > 0, (bits * W).sum(axis=1) / np.where(total > 0, total, 1), bits.mean(axis=1))
+    bg = ray_bits(_visibility(scene, "golden"), S, T)
+    bm = ray_bits(_visibility(scene, "model", args.bits), S, T)
+    unoccluded = np.where(fraction(bg) > 0, Fg[J, I] / np.maximum(fraction(bg), 1e-300),
+                          Fm[J, I] / np.maximum(fraction(bm), 1e-300))
+    assert np.allclose(unoccluded * fraction(bm), Fm[J, I], rtol=1e-12, atol=0), "F_model is not this board's"
+    tie = np.zeros(bg.shape, dtype=bool)
+    for seed in range(1, args.seeds + 1):
+        rng = np.random.default_rng(seed)
+        jittered = dataclasses.replace(scene, vertices=scene.vertices + rng.uniform(-1e-7, 1e-7, scene.vertices.shape))
+        tie |= ray_bits(_visibility(jittered, "golden"), S, T) != bg
+    differ = bg != bm
+    print(f"{len(J)} entries of F differ ({len(np.unique(I))} shooters); {differ.sum()} of their "
+          f"{differ.size} rays differ, {(differ & tie).sum()} of them ties "
+          f"(golden flips under a 1e-7 jitter, {args.seeds} seeds): golden blocked / model clear "
+          f"{(differ & tie & (bg == 0)).sum()}, the other way {(differ & tie & (bg == 1)).sum()}")
+    Bg = exact_solution(scene, Fg)
+    for name, bits in (("model's bits on the tie rays only", np.where(tie, bm, bg)),
+                       ("model's bits on the other rays only", np.where(tie, bg, bm))):
+        F = Fg.copy()
+        F[J, I] = unoccluded * fraction(bits)
+        print(_fmt(f"{name} vs golden, converged", change_stats(exact_solution(scene, F), Bg)))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="room")
+    sub = ap.add_subparsers(dest="what", required=True)
+    m = sub.add_parser("matrix")
+    m.add_argument("board")
+    m.add_argument("out", help="F as .npy")
+    m.add_argument("--bits", type=int, default=None)
+    m.add_argument("--patches", default=None)
+    m.add_argument("--move", default=None, help="dx,dy,dz: translate the scene first")
+    for name in ("split", "ties"):
+        p = sub.add_parser(name)
+        p.add_argument("golden", help="golden board's F (.npy, from matrix)")
+        p.add_argument("model", help="model board's F (.npy, from matrix)")
+    sub.choices["ties"].add_argument("--bits", type=int, default=None, help="the model's B (as in matrix)")
+    sub.choices["ties"].add_argument("--seeds", type=int, default=3)
+    args = ap.parse_args(argv)
+    print_run_header()
+    {"matrix": matrix, "split": split, "ties": ties}[args.what](args)
+
+
+if __name__ == "__main__":
+    main()
