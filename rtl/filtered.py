@@ -532,22 +532,22 @@ class FilteredArray(_FilteredCells, wiring.Component):
         delivery (plus ``extra_latency`` in front of the array, the board's memory) and 4."""
         return cls.latency + 2 + extra_latency + 4
 
+    def _edge_unit(self, m, name, unit_cls, filter_cls, point):
+        """An array-edge unit (shooter or receiver) for ``point`` and its filter, named
+        ``name`` and ``name``'s filter; returns the filter, whose terms the cells take."""
+        unit = m.submodules[name] = unit_cls(self._bits)
+        kind, index = name.rsplit("_", 1)
+        filt = m.submodules[f"{kind}_filter_{index}"] = filter_cls(self._bits, self._fmt)
+        m.d.comb += [unit.point.eq(point), unit.patch.eq(self.patch), unit.valid.eq(self.valid),
+                     filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
+        return filt
+
     def elaborate(self, platform):
         m = Module()
         B, R, S, fmt = self._bits, self._rows, self._cols, self._fmt
-        shooters, receivers = [], []
-        for s in range(S):
-            unit = m.submodules[f"shooter_{s}"] = ShooterUnit(B)
-            filt = m.submodules[f"shooter_filter_{s}"] = ShooterFilter(B, fmt)
-            m.d.comb += [unit.point.eq(self.shooters[s]), unit.patch.eq(self.patch), unit.valid.eq(self.valid),
-                         filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
-            shooters.append(filt)
-        for r in range(R):
-            unit = m.submodules[f"receiver_{r}"] = ReceiverUnit(B)
-            filt = m.submodules[f"receiver_filter_{r}"] = ReceiverFilter(B, fmt)
-            m.d.comb += [unit.point.eq(self.receivers[r]), unit.patch.eq(self.patch), unit.valid.eq(self.valid),
-                         filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
-            receivers.append(filt)
+        shooters = [self._edge_unit(m, f"shooter_{s}", ShooterUnit, ShooterFilter, self.shooters[s]) for s in range(S)]
+        receivers = [self._edge_unit(m, f"receiver_{r}", ReceiverUnit, ReceiverFilter, self.receivers[r])
+                     for r in range(R)]
 
         m.submodules.resolve = resolve = ArrayResolve(B, R, S, self._mark_shape, self._depth)
         hand = resolve.i.payload
