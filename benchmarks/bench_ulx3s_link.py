@@ -2,8 +2,9 @@
 UART, and the array's own rate.
 
     python benchmarks/bench_ulx3s_link.py [--scene cornell] [--shooters 40] [--seed 1] [--clock 45] [--baud 3000000]
+                                          [--rows 1 --cols 2]
 
-A one-part 2 x 2 board (what fits the LFE5U-85F at B = 16, docs/synthesis.md): the renderer's
+A one-part board, by default the array ``blockray bitstream`` builds (1 x 2 at B = 16, docs/ulx3s.md): the renderer's
 block rays of ``--shooters`` random shooter columns go through the host driver over the bit-exact
 model behind the link (:class:`~blockray.host_driver.simulated.ModelTransport`, counted here at
 the transport: every byte the driver sends and receives, identify and load excluded). The link's
@@ -25,7 +26,7 @@ from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.synth.bitstream import DEFAULT_FREQ_MHZ
+from blockray.synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS
 
 GRANT_BATCH = 32
 
@@ -50,10 +51,10 @@ class Counting(ModelTransport):
         return super().recv(count, timeout=timeout)
 
 
-def measure(scene_name, shooters, seed):
+def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS):
     scene = builtin.load(scene_name)
     samples = SampleScheme(8)
-    params = BoardParams(rows=2, cols=2, boards=1)
+    params = BoardParams(rows=rows, cols=cols, boards=1)
     links = []
     driver = BoardDriver(params, name="ulx3s-link",
                          transport=lambda p, b: links.append(Counting(p)) or links[-1])
@@ -87,15 +88,17 @@ def main():
     ap.add_argument("--clock", type=float, default=DEFAULT_FREQ_MHZ,
                     help=f"board clock, MHz (default {DEFAULT_FREQ_MHZ:g}: blockray bitstream's)")
     ap.add_argument("--baud", type=int, default=3_000_000)
+    ap.add_argument("--rows", type=int, default=DEFAULT_ROWS, help=f"array rows (default {DEFAULT_ROWS}: the bitstream's)")
+    ap.add_argument("--cols", type=int, default=DEFAULT_COLS, help=f"array columns (default {DEFAULT_COLS})")
     args = ap.parse_args()
-    r = measure(args.scene, args.shooters, args.seed)
+    r = measure(args.scene, args.shooters, args.seed, args.rows, args.cols)
     rays = r["rays"]
     bps = args.baud / 10
     down, up = r["down_wire"] / rays, r["up_wire"] / rays
     link_rate = bps / max(down, up)
     array_rate = rays / r["board_cycles"] * args.clock * 1e6
     print(f"machine: {platform.machine()}, python {platform.python_version()}; {args.scene} ({r['patches']} patches), "
-          f"B = {r['bits']}, 2 x 2 x 1, seed {args.seed}, {args.shooters} shooter columns: {r['blocks']} blocks, "
+          f"B = {r['bits']}, {args.rows} x {args.cols} x 1, seed {args.seed}, {args.shooters} shooter columns: {r['blocks']} blocks, "
           f"{rays} rays, {r['board_cycles']} board cycles")
     print(f"host -> board: {r['down']} command bytes = {r['down'] / rays:.2f} B/ray (no framing that way)")
     print(f"board -> host: {r['up']} result bytes in {r['records']} records + headers + grants = "

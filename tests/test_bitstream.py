@@ -102,6 +102,7 @@ def test_echo_bitstream_builds(tmp_path):
     report = json.loads(report_path.read_text())
     assert report["fits"] and report["timing_met"] and report["fmax_mhz"] >= bitstream.DEFAULT_FREQ_MHZ
     assert report["speed_grade"] == "-6" and report["uart"]["divisor"] == 15
+    assert report["nextpnr"]["router"] == bitstream.ROUTER == "router1"          # routes the boards (docs/ulx3s.md)
     assert report["resources"]["brams"] >= 2 and report["bitstream"]["bytes"] == len(data)
 
 
