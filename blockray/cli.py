@@ -467,12 +467,11 @@ def _bitstream_parser(sub):
                                    "grade -6): PLL from the 25 MHz oscillator, reset synchroniser, UART link on "
                                    "the FT231X, the board core; Yosys, nextpnr-ecp5 and ecppack from YoWASP. "
                                    "Options that cannot fit the part are refused before the tools run.")
-    from .synth.bitstream import DEFAULT_COLS, DEFAULT_ROWS
     p.add_argument("--platform", default="ulx3s-85f", help="FPGA board (ulx3s-85f)")
     g = p.add_argument_group("board")
     _add_config_options(g, _positive_int,
-                        rows=(DEFAULT_ROWS, f"default {DEFAULT_ROWS} x {DEFAULT_COLS}: the board that routes at -6, "
-                                            "docs/ulx3s.md"), cols=(DEFAULT_COLS, None),
+                        rows=(None, "default: the array that routes at -6 (DEFAULT_ROWS x DEFAULT_COLS of "
+                                    "synth/bitstream.py, docs/ulx3s.md)"), cols=(None, "default: see --rows"),
                         bits=(16, None), patch_depth=(None, "default: the most the block RAMs hold"),
                         voxel_depth=(None, "default: up to 32**3, as the block RAMs allow"))
     g.add_argument("--core", default="board", choices=["board", "echo"],
@@ -488,9 +487,9 @@ def _bitstream_parser(sub):
 
 
 def _cmd_bitstream(args):
-    from .synth.bitstream import build_bitstream, largest_fit
+    from .synth.bitstream import DEFAULT_COLS, DEFAULT_ROWS, build_bitstream, largest_fit
     from .synth.nextpnr import write_report
-    params = _board_params(rows=args.rows, cols=args.cols, bits=args.bits)
+    params = _board_params(rows=args.rows or DEFAULT_ROWS, cols=args.cols or DEFAULT_COLS, bits=args.bits)
     params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(

@@ -89,6 +89,24 @@ def test_timing_not_met_is_an_error(monkeypatch, tmp_path, capsys):
     assert "timing not met: Fmax 38.2 MHz at -6 is below the 45 MHz clock" in err and "--freq 30" in err
 
 
+def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
+    """No --rows/--cols: the array docs/ulx3s.md routed at -6 (1 x 2), with router1 and the capped memories."""
+    seen = {}
+
+    def built(params, **kw):
+        seen.update(params=params, **kw)
+        return {"device": "LFE5U-85F", "speed_grade": "-6", "core": "board", "params": {}, "resources": {"luts": 1},
+                "fits": True, "fmax_mhz": 63.3, "timing_met": True, "clock": {"pll_mhz": 45.0}, "bitstream": {}}
+    monkeypatch.setattr(bitstream, "build_bitstream", built)
+    assert main(["bitstream", "--out", str(tmp_path / "x.bit")]) == 0
+    p = seen["params"]
+    assert (p.rows, p.cols) == (bitstream.DEFAULT_ROWS, bitstream.DEFAULT_COLS) == (1, 2)
+    assert (p.patch_depth, p.voxel_depth) == (bitstream.DEFAULT_PATCH_DEPTH, bitstream.DEFAULT_VOXEL_DEPTH)
+    assert seen["router"] == "router1" and seen["freq"] == bitstream.DEFAULT_FREQ_MHZ
+    assert main(["bitstream", "--rows", "2", "--cols", "2", "--router", "router2", "--out", str(tmp_path / "y.bit")]) == 0
+    assert (seen["params"].rows, seen["params"].cols, seen["router"]) == (2, 2, "router2")
+
+
 @pytest.mark.synth
 def test_echo_bitstream_builds(tmp_path):
     """The link's test core on the ULX3S-85F: Yosys, nextpnr-ecp5 -6, ecppack; the file is an
