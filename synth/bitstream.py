@@ -50,7 +50,7 @@ PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
 CORES = ("board", "echo")
 #: the default array: the 1 x 2 board with the default memories routes at -6 with router1 in
 #: 9 minutes (63.3 MHz); the 2 x 2 board (the largest array the DSPs allow with its units) had not
-#: routed after 2 hours of router2 or 1.5 hours of router1 (docs/ulx3s.md)
+#: routed after 2 hours of router2 or 50 minutes of router1 (docs/ulx3s.md)
 DEFAULT_ROWS, DEFAULT_COLS = 1, 2
 #: the default board clock: 45 MHz is 3 Mbaud x 15 exactly, ecppll makes it exactly from 25 MHz,
 #: and the default board routes within it at -6 with margin (docs/ulx3s.md)
