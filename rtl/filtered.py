@@ -24,8 +24,8 @@ from ..filtered import default_format
 from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths
-from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _delay,
-                        _delay_through, _product, query_layout, receiver_terms_layout, result_layout,
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _crossing, _delay,
+                        _delay_memory, _delay_through, _product, query_layout, receiver_terms_layout, result_layout,
                         shooter_terms_layout)
 
 __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredProcessor", "FilteredIntersector",
@@ -92,7 +92,8 @@ def _check_depth(depth):
 
 class _Filter(wiring.Component):
     """A unit's filter stage: exact terms in, filter terms (and the exact terms, delayed) out
-    after :attr:`latency` cycles. Subclasses set ``exact_layout``, ``vectors`` and ``one``."""
+    after :attr:`latency` cycles, with the exact plane term (``plane``: pP or pQ) beside them for
+    the cells' crossing test. Subclasses set ``exact_layout``, ``vectors``, ``plane`` and ``one``."""
 
     latency = 3
 
@@ -103,7 +104,7 @@ class _Filter(wiring.Component):
             "exact": In(self.exact_layout(bits)),
             "valid": In(1),
             "terms": Out(filter_terms_layout(self.mantissa_bits)),
-            "exact_out": Out(self.exact_layout(bits)),
+            "plane_out": Out(signed(Widths(bits).orient)),
             "terms_valid": Out(1),
         })
 
@@ -116,7 +117,7 @@ class _Filter(wiring.Component):
                 m.d.comb += self.terms.m[k][c].eq(mant[c])
             m.d.comb += [self.terms.pos[k].eq(pos), self.terms.neg[k].eq(neg), self.terms.truncated[k].eq(trunc)]
         m.d.comb += [
-            self.exact_out.eq(_delay(m, self.exact, self.latency, "exact")),
+            self.plane_out.eq(_delay(m, getattr(self.exact, self.plane), self.latency, self.plane)),
             self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid")),
         ]
         return m
@@ -125,7 +126,7 @@ class _Filter(wiring.Component):
 class ShooterFilter(_Filter):
     """Column unit's filter: d^_k, Pd_k, Nd_k, [a_k > 0] from the exact d_k (latency 3)."""
     exact_layout = staticmethod(shooter_terms_layout)
-    vectors, one = "d", False
+    vectors, plane, one = "d", "pp", False
 
     @property
     def mantissa_bits(self):
@@ -135,7 +136,7 @@ class ShooterFilter(_Filter):
 class ReceiverFilter(_Filter):
     """Row unit's filter: w^_k, Pw_k, Nw_k, [b_k > 0] from the exact w_k (latency 3)."""
     exact_layout = staticmethod(receiver_terms_layout)
-    vectors, one = "w", True
+    vectors, plane, one = "w", "pq", True
 
     @property
     def mantissa_bits(self):
@@ -338,22 +339,21 @@ class FilteredIntersector(_FilteredCells, wiring.Component):
         accept = _credits(m, self.i, self.o, self._depth)
 
         payload = self.i.payload
-        pp, pq = sf.exact_out.pp, rf.exact_out.pq
         m.d.comb += [
             shooter.point.eq(payload.shooter), shooter.patch.eq(payload.patch), shooter.valid.eq(accept),
             receiver.point.eq(payload.receiver), receiver.patch.eq(payload.patch), receiver.valid.eq(accept),
             sf.exact.eq(shooter.terms), sf.valid.eq(shooter.terms_valid),
             rf.exact.eq(receiver.terms), rf.valid.eq(receiver.terms_valid),
             cell.shooter.eq(sf.terms), cell.receiver.eq(rf.terms), cell.valid.eq(sf.terms_valid),
-            cell.crossing.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
+            cell.crossing.eq(_crossing(sf.plane_out, rf.plane_out)),
         ]
         exact_terms = Signal(operands)
-        m.d.comb += [exact_terms.shooter.eq(sf.exact_out), exact_terms.receiver.eq(rf.exact_out)]
+        m.d.comb += [exact_terms.shooter.eq(shooter.terms), exact_terms.receiver.eq(receiver.terms)]
         hand = handoff.i.payload
         m.d.comb += [
             hand.tag.eq(_delay(m, payload.tag, self.latency, "tag")),
             hand.decided.eq(cell.decided), hand.blocked.eq(cell.blocked),
-            hand.operands.eq(_delay(m, exact_terms, FilteredProcessor.latency, "operands")),
+            hand.operands.eq(_delay_memory(m, exact_terms, _Filter.latency + FilteredProcessor.latency, "operands")),
             handoff.i.valid.eq(cell.result_valid),
             exact.shooter.eq(handoff.resolve.payload.shooter), exact.receiver.eq(handoff.resolve.payload.receiver),
             exact.valid.eq(handoff.resolve.valid), exact.first.eq(1),
@@ -559,20 +559,19 @@ class FilteredArray(_FilteredCells, wiring.Component):
         for r in range(R):
             for s in range(S):
                 cell = m.submodules[f"cell_{r}_{s}"] = FilteredProcessor(fmt)
-                pp, pq = shooters[s].exact_out.pp, receivers[r].exact_out.pq
                 m.d.comb += [
                     cell.shooter.eq(shooters[s].terms), cell.receiver.eq(receivers[r].terms),
                     cell.valid.eq(shooters[s].terms_valid),
-                    cell.crossing.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
+                    cell.crossing.eq(_crossing(shooters[s].plane_out, receivers[r].plane_out)),
                 ]
                 blocked.append(cell.blocked)
                 undecided.append(~cell.decided & row_mask[r] & col_mask[s])
-        for s in range(S):
-            m.d.comb += hand.terms.shooters[s].eq(
-                _delay(m, shooters[s].exact_out, FilteredProcessor.latency, f"shooter_terms_{s}"))
-        for r in range(R):
-            m.d.comb += hand.terms.receivers[r].eq(
-                _delay(m, receivers[r].exact_out, FilteredProcessor.latency, f"receiver_terms_{r}"))
+        # the exact terms wait for the cells' decisions in one memory, not in flip-flop chains
+        # (a 2 x 2 array's chains were half its flip-flops)
+        terms = Signal.like(hand.terms)
+        m.d.comb += [terms.shooters[s].eq(m.submodules[f"shooter_{s}"].terms) for s in range(S)]
+        m.d.comb += [terms.receivers[r].eq(m.submodules[f"receiver_{r}"].terms) for r in range(R)]
+        m.d.comb += hand.terms.eq(_delay_memory(m, terms, _Filter.latency + FilteredProcessor.latency, "terms"))
         mark = _delay(m, self.mark, L, "mark")
         m.d.comb += [
             hand.undecided.eq(Mux(valid, Cat(*undecided), 0)),

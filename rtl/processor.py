@@ -26,9 +26,10 @@ units named in ``platform.fabric_units`` (their products stay generic: LUT multi
 ``Intersector`` is the 1 x 1 array behind a stream interface, the unit tested against the model.
 """
 
-from amaranth.hdl import ClockSignal, Const, Instance, Module, ResetSignal, Signal, Value, signed, unsigned
+from amaranth.hdl import ClockSignal, Const, Instance, Module, Mux, ResetSignal, Signal, Value, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.fifo import SyncFIFOBuffered
+from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
@@ -93,6 +94,29 @@ def result_layout():
 def _delay(m, value, cycles, name):
     """``value`` delayed by ``cycles`` registers (a side-band chain); returns the last stage."""
     return _delay_through(m, value, [Signal.like(value, name=f"{name}_{n + 1}") for n in range(cycles)])
+
+
+def _delay_memory(m, value, cycles, name):
+    """``value`` delayed by ``cycles`` (at least 2) through a ``cycles``-deep memory: written
+    every cycle at a rotating address, read one address ahead with a registered read. The same
+    outputs as :func:`_delay` once ``cycles`` values have been written (before that, the memory's
+    zeros, as the chain's reset values); for wide delays, where a chain costs ``cycles`` flip-flops
+    per bit and a memory one (LUT RAM or block RAM, as the synthesis tool chooses)."""
+    if cycles < 2:
+        raise ValueError(f"a memory delay needs at least 2 cycles, not {cycles}")
+    memory = m.submodules[name] = Memory(shape=value.shape(), depth=cycles, init=[])
+    write, read = memory.write_port(), memory.read_port()
+    address = Signal(range(cycles), name=f"{name}_address")
+    ahead = Signal.like(address, name=f"{name}_ahead")
+    m.d.comb += [ahead.eq(Mux(address == cycles - 1, 0, address + 1)),
+                 write.addr.eq(address), write.data.eq(value), write.en.eq(1), read.addr.eq(ahead)]
+    m.d.sync += address.eq(ahead)
+    return read.data
+
+
+def _crossing(pp, pq):
+    """The segment crosses the patch's plane: pP and pQ of opposite, non-zero signs."""
+    return ((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))
 
 
 def _credits(m, i, o, depth):
@@ -432,7 +456,7 @@ class Processor(wiring.Component):
 
         crossing1 = Signal(name="crossing_1")
         pp, pq = self.shooter.pp, self.receiver.pq
-        m.d.sync += crossing1.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0)))
+        m.d.sync += crossing1.eq(_crossing(pp, pq))
 
         platform = product_platform(platform, self._unit)
         # stage 1: the operands (d_k)_c and the pieces of (w_k)_c registered; stage 2: their

@@ -16,7 +16,7 @@ from amaranth.sim import Simulator
 from blockray.filtered import FilterFormat, filtered_tests
 from blockray.records import pack_array, patch_columns, point_columns
 from blockray.rtl.filtered import FilteredIntersector, FilteredProcessor, ReceiverFilter, ShooterFilter
-from blockray.rtl.processor import ReceiverUnit, ShooterUnit
+from blockray.rtl.processor import ReceiverUnit, ShooterUnit, _crossing
 from blockray.records import patch_layout, point_layout
 
 from processor_vectors import hard_cases, random_tests
@@ -42,13 +42,12 @@ class FilterChain(wiring.Component):
         m.submodules.sf = sf = ShooterFilter(self.bits, self.fmt)
         m.submodules.rf = rf = ReceiverFilter(self.bits, self.fmt)
         m.submodules.cell = cell = FilteredProcessor(self.fmt)
-        pp, pq = sf.exact_out.pp, rf.exact_out.pq
         m.d.comb += [
             su.point.eq(self.shooter), su.patch.eq(self.patch), su.valid.eq(self.valid),
             ru.point.eq(self.receiver), ru.patch.eq(self.patch), ru.valid.eq(self.valid),
             sf.exact.eq(su.terms), sf.valid.eq(su.terms_valid), rf.exact.eq(ru.terms), rf.valid.eq(ru.terms_valid),
             cell.shooter.eq(sf.terms), cell.receiver.eq(rf.terms), cell.valid.eq(sf.terms_valid),
-            cell.crossing.eq(((pp > 0) & (pq < 0)) | ((pp < 0) & (pq > 0))),
+            cell.crossing.eq(_crossing(sf.plane_out, rf.plane_out)),
             self.decided.eq(cell.decided), self.blocked.eq(cell.blocked), self.result_valid.eq(cell.result_valid),
         ]
         return m

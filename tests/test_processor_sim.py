@@ -325,3 +325,42 @@ def test_no_combinational_ready_valid_paths():
     sim.add_testbench(tb)
     sim.run()
     assert any(seen_full) and not all(seen_full)       # the credit limit was reached and released
+
+
+@pytest.mark.parametrize("cycles", [2, 3, 8])
+def test_memory_delay_equals_register_chain(cycles):
+    """``_delay_memory`` (the filtered arrays' wide delays) gives ``_delay``'s outputs on every
+    cycle, from reset on, for random inputs, a struct of two fields among them."""
+    from amaranth.hdl import Module, Signal
+    from amaranth.lib import data
+    from blockray.rtl.processor import _delay, _delay_memory
+
+    seed = SEED + cycles
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    layout = data.StructLayout({"a": 13, "b": 7})
+    m = Module()
+    value = Signal(layout)
+    chain, memory = _delay(m, value, cycles, "chain"), _delay_memory(m, value, cycles, "memory")
+    sim = Simulator(m)
+    sim.add_clock(1e-6)
+    seen = []
+
+    async def bench(ctx):
+        for word in rng.integers(0, 1 << 20, size=5 * cycles + 7):
+            ctx.set(value.as_value(), int(word))
+            await ctx.tick()
+            seen.append((ctx.get(chain.as_value()), ctx.get(memory.as_value())))
+
+    sim.add_testbench(bench)
+    sim.run()
+    assert len(seen) == 5 * cycles + 7
+    assert all(c == w for c, w in seen), seen
+    assert any(c != 0 for c, _ in seen)
+
+
+def test_memory_delay_needs_two_cycles():
+    from amaranth.hdl import Module, Signal
+    from blockray.rtl.processor import _delay_memory
+    with pytest.raises(ValueError, match="at least 2 cycles"):
+        _delay_memory(Module(), Signal(4), 1, "d")
