@@ -96,15 +96,30 @@ def _delay(m, value, cycles, name):
     return _delay_through(m, value, [Signal.like(value, name=f"{name}_{n + 1}") for n in range(cycles)])
 
 
+#: Yosys's attribute for a memory to map to block RAM (EBR on ECP5), not LUT RAM: the filtered
+#: arrays' wide memories in LUT RAM crowd the slices (and their shared addresses the routing)
+BLOCK_RAM = {"ram_style": "block"}
+
+
+class BlockRAMFIFO(SyncFIFOBuffered):
+    """:class:`SyncFIFOBuffered` (the same ports and cycles) whose storage is marked for block RAM."""
+
+    def elaborate(self, platform):
+        m = super().elaborate(platform)
+        if self.depth > 1:
+            m.submodules.storage.attrs.update(BLOCK_RAM)
+        return m
+
+
 def _delay_memory(m, value, cycles, name):
     """``value`` delayed by ``cycles`` (at least 2) through a ``cycles``-deep memory: written
     every cycle at a rotating address, read one address ahead with a registered read. The same
     outputs as :func:`_delay` once ``cycles`` values have been written (before that, the memory's
     zeros, as the chain's reset values); for wide delays, where a chain costs ``cycles`` flip-flops
-    per bit and a memory one (LUT RAM or block RAM, as the synthesis tool chooses)."""
+    per bit and a memory one (block RAM: :data:`BLOCK_RAM`)."""
     if cycles < 2:
         raise ValueError(f"a memory delay needs at least 2 cycles, not {cycles}")
-    memory = m.submodules[name] = Memory(shape=value.shape(), depth=cycles, init=[])
+    memory = m.submodules[name] = Memory(shape=value.shape(), depth=cycles, init=[], attrs=BLOCK_RAM)
     write, read = memory.write_port(), memory.read_port()
     address = Signal(range(cycles), name=f"{name}_address")
     ahead = Signal.like(address, name=f"{name}_ahead")
