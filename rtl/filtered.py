@@ -24,7 +24,7 @@ from ..filtered import default_format
 from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths
-from .processor import (TAG_BITS, BlockRAMFIFO, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _crossing, _delay,
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _crossing, _delay,
                         _delay_memory, _delay_through, _product, query_layout, receiver_terms_layout, result_layout,
                         shooter_terms_layout)
 
@@ -257,7 +257,7 @@ class InOrderResolve(wiring.Component):
         op_width = Shape.cast(self._operand_shape).width
         layout = pending_layout(self._tag_bits)
         m.submodules.pending = pending = SyncFIFOBuffered(width=layout.size, depth=self._depth)
-        m.submodules.queue = queue = BlockRAMFIFO(width=op_width, depth=self._depth)
+        m.submodules.queue = queue = SyncFIFOBuffered(width=op_width, depth=self._depth)
         m.submodules.answers = answers = SyncFIFOBuffered(width=1, depth=self._depth)
         fifos = {"pending": pending, "queue": queue, "answers": answers}
         m.d.comb += [self.levels[n].eq(f.level) for n, f in fifos.items()]
@@ -410,9 +410,8 @@ class ArrayResolve(wiring.Component):
         item = array_item_layout(rows, cols, mark_shape)
         RS = rows * cols
         self._queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
-        self.fifos = {name: fifo(width=width, depth=self._depth) for name, width, fifo in (
-            ("pending", item.size, SyncFIFOBuffered), ("queue", self._queued.size, BlockRAMFIFO),
-            ("answers", RS, SyncFIFOBuffered))}
+        self.fifos = {name: SyncFIFOBuffered(width=width, depth=self._depth)
+                      for name, width in (("pending", item.size), ("queue", self._queued.size), ("answers", RS))}
         self.head = Signal(self._queued, name="head")
         self.started, self.remaining = Signal(name="started"), Signal(RS, name="remaining")
         self.gathered = Signal(RS, name="gathered")
