@@ -230,3 +230,18 @@ def test_harness_drives_every_input_and_folds_every_output():
     assert toggled == 0xFF
     parity = [bin(v).count("1") & 1 for v in seen]
     assert outs[3:] == parity[:-3]
+
+
+@pytest.mark.synth
+def test_filtered_array_terms_wait_in_block_ram():
+    """The filtered array's exact terms wait for the cells' decisions in block RAM
+    (``_delay_memory`` with ``BLOCK_RAM``), not in flip-flop chains: Yosys maps the delay to
+    DP16KD, and the array has fewer flip-flops than 8 per delayed bit would need."""
+    from blockray.params import BoardParams
+    from blockray.synth.nextpnr import synth_report
+    from blockray.rtl.processor import receiver_terms_layout, shooter_terms_layout
+    report = synth_report("array", BoardParams(rows=1, cols=2, bits=6), place=False, cell="filtered")
+    print(report["resources"])
+    delayed = 2 * shooter_terms_layout(6).size + receiver_terms_layout(6).size
+    assert report["resources"]["brams"] >= delayed // 36
+    assert report["resources"]["ffs"] < 7 * delayed + 2000
