@@ -91,8 +91,8 @@ def _check_depth(depth):
     return depth
 
 class _Filter(wiring.Component):
-    """A unit's filter stage: exact terms in, filter terms (and the exact terms, delayed) out
-    after :attr:`latency` cycles, with the exact plane term (``plane``: pP or pQ) beside them for
+    """A unit's filter stage: exact terms in, filter terms out after :attr:`latency` cycles,
+    with the exact plane term (``plane``: pP or pQ) beside them for
     the cells' crossing test. Subclasses set ``exact_layout``, ``vectors``, ``plane`` and ``one``."""
 
     latency = 3
@@ -569,8 +569,8 @@ class FilteredArray(_FilteredCells, wiring.Component):
         # the exact terms wait for the cells' decisions in one memory, not in flip-flop chains
         # (a 2 x 2 array's chains were half its flip-flops)
         terms = Signal.like(hand.terms)
-        m.d.comb += [terms.shooters[s].eq(m.submodules[f"shooter_{s}"].terms) for s in range(S)]
-        m.d.comb += [terms.receivers[r].eq(m.submodules[f"receiver_{r}"].terms) for r in range(R)]
+        m.d.comb += [terms.shooters[s].eq(shooters[s].exact) for s in range(S)]
+        m.d.comb += [terms.receivers[r].eq(receivers[r].exact) for r in range(R)]
         m.d.comb += hand.terms.eq(_delay_memory(m, terms, _Filter.latency + FilteredProcessor.latency, "terms"))
         mark = _delay(m, self.mark, L, "mark")
         m.d.comb += [

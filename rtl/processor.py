@@ -107,7 +107,8 @@ def _delay_memory(m, value, cycles, name):
     """``value`` delayed by ``cycles`` (at least 2) through a ``cycles``-deep memory: written
     every cycle at a rotating address, read one address ahead with a registered read. The same
     outputs as :func:`_delay` once ``cycles`` values have been written (before that, the memory's
-    zeros, as the chain's reset values); for wide delays, where a chain costs ``cycles`` flip-flops
+    zeros, as the chain's reset values; a reset does not clear the memory, so use it only for
+    values read with a valid beside them); for wide delays, where a chain costs ``cycles`` flip-flops
     per bit and a memory one (block RAM: :data:`BLOCK_RAM`)."""
     if cycles < 2:
         raise ValueError(f"a memory delay needs at least 2 cycles, not {cycles}")
