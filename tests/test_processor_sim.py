@@ -6,6 +6,8 @@ second); the 100 000-vector run is tests/test_processor_cocotb.py.
 
 import numpy as np
 import pytest
+from amaranth.hdl import Module, Signal
+from amaranth.lib import data
 from amaranth.sim import Simulator
 
 from blockray.errors import ParameterError
@@ -13,7 +15,7 @@ from blockray.exact import block_terms, blocked_block, blocked_reference, patch_
 from blockray.params import Widths
 from blockray.records import pack, pack_array, patch_columns, point_columns, unpack
 from blockray.rtl.processor import (
-    ArrayTiming, Intersector, Processor, ReceiverUnit, ShooterUnit, receiver_terms_layout,
+    ArrayTiming, Intersector, Processor, ReceiverUnit, ShooterUnit, _delay, _delay_memory, receiver_terms_layout,
     result_layout, shooter_terms_layout, query_layout,
 )
 
@@ -331,10 +333,6 @@ def test_no_combinational_ready_valid_paths():
 def test_memory_delay_equals_register_chain(cycles):
     """``_delay_memory`` (the filtered arrays' wide delays) gives ``_delay``'s outputs on every
     cycle, from reset on, for random inputs, a struct of two fields among them."""
-    from amaranth.hdl import Module, Signal
-    from amaranth.lib import data
-    from blockray.rtl.processor import _delay, _delay_memory
-
     seed = SEED + cycles
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)
@@ -360,7 +358,5 @@ def test_memory_delay_equals_register_chain(cycles):
 
 
 def test_memory_delay_needs_two_cycles():
-    from amaranth.hdl import Module, Signal
-    from blockray.rtl.processor import _delay_memory
     with pytest.raises(ValueError, match="at least 2 cycles"):
         _delay_memory(Module(), Signal(4), 1, "d")
