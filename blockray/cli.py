@@ -426,6 +426,9 @@ def _synth_parser(sub):
     p.add_argument("--speed", default=None, metavar="GRADE",
                    help="ECP5 speed grade for nextpnr: 6, 7 or 8 (8 fastest; default that of the part on the "
                         "ULX3S board, 6)")
+    p.add_argument("--also-speed", action="append", default=[], metavar="GRADE",
+                   help="save the placement and routing and time it again at its own grade and at this one "
+                        "(6, 7 or 8; may be given more than once): the report's same_routing")
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
@@ -451,13 +454,16 @@ def _cmd_synth(args):
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
         seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units,
-        cell=args.cell, filter_format=_filter_format(args.filter_bits)))
+        cell=args.cell, filter_format=_filter_format(args.filter_bits),
+        also_speeds=[_speed(g) for g in args.also_speed]))
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")
+    others = "".join(f", {o['fmax_mhz']} MHz at -{o['speed']}" for o in report.get("same_routing", []))
+    others = f" (the routing saved and timed again:{others[1:]})" if others else ""
     print(f"{args.unit} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
           + (f", fits {report.get('part')}: {report['fits']}" if report["fits"] is not None else "")
-          + (f", Fmax {fmax:.1f} MHz" if fmax else ""), file=sys.stderr)
+          + (f", Fmax {fmax:.1f} MHz" if fmax else "") + others, file=sys.stderr)
     return 0
 
 

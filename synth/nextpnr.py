@@ -33,9 +33,11 @@ TRELLIS_DPR16X4 (distributed RAM: two LUT slots of RAM, two of write logic), i.e
 TRELLIS_COMB slots nextpnr will use. The tool versions and run times go into the report.
 """
 
+import contextlib
 import json
 import os
 import platform
+import re
 import subprocess
 import time
 from importlib import metadata
@@ -53,7 +55,7 @@ from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
 __all__ = ["DEVICES", "SPEEDS", "PACKAGE", "nextpnr_command", "nextpnr_args", "check_speed", "dsp_estimate",
-           "dsp_registers", "synth_report", "write_report"]
+           "dsp_registers", "synth_report", "time_routed", "write_report"]
 
 PACKAGE = "CABGA381"
 
@@ -94,21 +96,52 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     return cells + receiver + shooter
 
 
-def check_speed(speed, device):
+def check_speed(speed, device, option="--speed"):
     """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``."""
     if speed is None:
         return DEVICES[device]["speed"]
     if isinstance(speed, bool) or speed not in SPEEDS:
-        raise ParameterError(f"--speed must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
+        raise ParameterError(f"{option} must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
                              f"grade), not {speed!r}")
     return int(speed)
 
 
-def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router):
-    """The nextpnr-ecp5 arguments (after the command) for a Yosys JSON ``netlist``."""
+def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router, write=None):
+    """The nextpnr-ecp5 arguments (after the command) for a Yosys JSON ``netlist``; ``write``: a
+    file to save the routed design in (for :func:`time_routed`)."""
     return [f"--{device}", "--speed", str(speed), "--package", PACKAGE, "--json", str(netlist),
             "--report", "report.json", "--timing-allow-fail", "--freq", str(freq), "--seed", str(seed),
-            "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"]
+            "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"] + (
+            ["--write", str(write)] if write else [])
+
+
+#: the routed design nextpnr saves when other grades are to be timed
+ROUTED = "routed.json"
+
+
+def time_routed(tmp, *, device, speed, freq):
+    """Static timing of the routed design saved in ``tmp`` (:data:`ROUTED`) at speed grade
+    ``speed``, with its placement and routing as they are: nextpnr ``--no-place`` restores both
+    from the file and its router finds 0 arcs to route, so only the delays change. Returns
+    ``{"speed", "fmax_mhz", "critical_path", "seconds", "rerouted_arcs"}`` (``fmax_mhz`` None on
+    failure, with ``error``)."""
+    tag = f"speed{speed}"
+    cmd = nextpnr_command() + [f"--{device}", "--speed", str(speed), "--package", PACKAGE, "--json", ROUTED,
+                               "--no-place", "--report", f"{tag}.report.json", "--timing-allow-fail",
+                               "--freq", str(freq), "-l", f"{tag}.log", "-q"]
+    start = time.perf_counter()
+    rc = _run(cmd, tmp, tmp / f"{tag}.out")
+    out = {"speed": speed, "part": f"{DEVICES[device]['part']}-{speed}",
+           "seconds": round(time.perf_counter() - start, 1), "fmax_mhz": None}
+    if rc != 0 or not (tmp / f"{tag}.report.json").exists():
+        out["error"] = (_tail(tmp / f"{tag}.out", 1500) or _tail(tmp / f"{tag}.log", 1500)).strip()
+        return out
+    pnr = json.loads((tmp / f"{tag}.report.json").read_text())
+    clock, out["fmax_mhz"] = _slowest(pnr)
+    out["critical_path"] = _critical_path(pnr, clock) if clock else None
+    routed = re.search(r"Routing (\d+) arcs", (tmp / f"{tag}.log").read_text(errors="replace"))
+    out["rerouted_arcs"] = int(routed.group(1)) if routed else None
+    return out
 
 
 def nextpnr_command():
@@ -184,7 +217,7 @@ def _critical_path(report, clock):
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
                  threads=2, workdir=None, place=True, router="router2", fabric_units=(), cell="exact",
-                 filter_format=None):
+                 filter_format=None, also_speeds=()):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
@@ -196,6 +229,12 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     the report's ``speed`` and ``part`` (e.g. ``LFE5U-85F-6``) say which grade was used.
     ``cell``: ``exact`` or ``filtered`` (:data:`~blockray.synth.verilog.CELLS`), the latter with
     ``filter_format`` (a :class:`~blockray.filtered.FilterFormat`; None: d exact, w 18 bits).
+    ``also_speeds``: other grades at which to time the same placement and routing
+    (:func:`time_routed`): the report's ``same_routing`` lists it timed again at its own grade
+    first, then at each of those. Compare within that list: nextpnr's timing of a restored design
+    can differ from its timing right after routing (on the B = 6 processor, 147.6 against 156.7
+    MHz at -6; docs/synthesis.md). A run of its own at another grade places and routes for that
+    grade's delays, and may do better.
     """
     if router not in ("router1", "router2"):
         raise ParameterError(f"--router must be router1 or router2, not {router!r}")
@@ -205,6 +244,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if device not in DEVICES:
         raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
     speed = check_speed(speed, device)
+    also_speeds = sorted({check_speed(g, device, "--also-speed") for g in also_speeds} - {speed})
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
@@ -227,14 +267,26 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     report.update({"device": dev["part"], "speed": speed, "part": f"{dev['part']}-{speed}",
                    "package": PACKAGE, "target_mhz": float(freq),
                    "fabric_units": [u for u in FABRIC_UNITS if u in ecp5.fabric_units]})
+    pnr = {"device": device, "speed": speed, "freq": freq, "seed": seed, "threads": threads, "router": router,
+           "write": ROUTED if also_speeds else None}
+    with _workdir(workdir) as tmp:
+        _ecp5(report, unit, params, dev, tmp, place, ecp5, (cell, filter_format), pnr)
+        if also_speeds and report["fmax_mhz"] is not None:
+            report["same_routing"] = [time_routed(tmp, device=device, speed=g, freq=freq)
+                                      for g in [speed] + also_speeds]
+    return report
+
+
+@contextlib.contextmanager
+def _workdir(workdir):
+    """``workdir`` as a Path, created if need be; a temporary directory when None."""
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
-            return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, Path(tmp), place, router,
-                         ecp5, (cell, filter_format))
+            yield Path(tmp)
+        return
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    return _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, workdir, place, router, ecp5,
-                 (cell, filter_format))
+    yield workdir
 
 
 #: synth_ecp5 with its LUT mapping step (``abc9``) replaced by classic ``abc -lut 4``: the
@@ -271,7 +323,8 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
     return cells, seconds, mapper
 
 
-def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, place, router, ecp5, cell):
+def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
+    """Yosys and, if it fits and ``place``, nextpnr with the options ``pnr`` (:func:`nextpnr_args`)."""
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
     component = build_unit(unit, params, *cell)
@@ -319,10 +372,18 @@ def _ecp5(report, unit, params, dev, device, speed, freq, seed, threads, tmp, pl
             f"{k} {total[k]} > {available[k]}" for k in limits)
         return report
 
-    cmd = nextpnr_command() + nextpnr_args(f"{top}.json", device=device, speed=speed, freq=freq, seed=seed,
-                                           threads=threads, router=router)
-    run_nextpnr(cmd, tmp, report, seconds, seed=seed, router=router, speed=speed)
+    cmd = nextpnr_command() + nextpnr_args(f"{top}.json", **pnr)
+    run_nextpnr(cmd, tmp, report, seconds, seed=pnr["seed"], router=pnr["router"], speed=pnr["speed"])
     return report
+
+
+def _slowest(pnr):
+    """(clock, achieved MHz) of the slowest clock in a nextpnr JSON report; (None, None) if none."""
+    fmax = pnr.get("fmax", {})
+    if not fmax:
+        return None, None
+    clock = min(fmax, key=lambda c: fmax[c]["achieved"])
+    return clock, round(fmax[clock]["achieved"], 2)
 
 
 def run_nextpnr(cmd, tmp, report, seconds, **meta):
@@ -339,9 +400,7 @@ def run_nextpnr(cmd, tmp, report, seconds, **meta):
         report["nextpnr"]["error"] = (_tail(tmp / "nextpnr.out", 1500) or _tail(tmp / "nextpnr.log", 1500)).strip()
         return None
     pnr = json.loads((tmp / "report.json").read_text())
-    fmax = pnr.get("fmax", {})
-    clock = min(fmax, key=lambda c: fmax[c]["achieved"]) if fmax else None
-    report["fmax_mhz"] = round(fmax[clock]["achieved"], 2) if clock else None
+    clock, report["fmax_mhz"] = _slowest(pnr)
     report["nextpnr"].update({
         "clock": clock,
         "placed": {k: pnr["utilization"][bel] for k, bel in _NEXTPNR_BELS.items() if bel in pnr["utilization"]},
