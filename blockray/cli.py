@@ -484,8 +484,9 @@ def _bitstream_parser(sub):
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
-    t.add_argument("--freq", type=_positive_float, default=45.0, metavar="MHZ",
-                   help="board clock from the PLL (default 45: 3 Mbaud x 15)")
+    t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
+                   help="board clock from the PLL (default: DEFAULT_FREQ_MHZ of synth/bitstream.py, 45 = "
+                        "3 Mbaud x 15)")
     _add_tool_options(t, "router1")
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
     p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
@@ -493,14 +494,14 @@ def _bitstream_parser(sub):
 
 
 def _cmd_bitstream(args):
-    from .synth.bitstream import DEFAULT_COLS, DEFAULT_ROWS, build_bitstream, largest_fit
+    from .synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS, build_bitstream, largest_fit
     from .synth.nextpnr import write_report
     params = _board_params(rows=args.rows or DEFAULT_ROWS, cols=args.cols or DEFAULT_COLS, bits=args.bits)
     params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(
-        params, out=args.out, platform=args.platform, core=args.core, freq=args.freq, baud=args.baud,
-        seed=args.seed, router=args.router, workdir=args.workdir))
+        params, out=args.out, platform=args.platform, core=args.core, freq=args.freq or DEFAULT_FREQ_MHZ,
+        baud=args.baud, seed=args.seed, router=args.router, workdir=args.workdir))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]

@@ -30,14 +30,13 @@ import json
 import re
 import shutil
 import subprocess
-import tempfile
 import time
 from pathlib import Path
 
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import patch_layout
-from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail,
+from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail, _workdir,
                       _versions, dsp_estimate, nextpnr_command, run_nextpnr)
 from .yosys import yosys_command
 
@@ -235,15 +234,13 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
             pass
     except OSError as e:
         raise ParameterError(f"{out}: cannot write there: {e.strerror}", parameter="out") from None
-    if workdir is None:
-        with tempfile.TemporaryDirectory(prefix="blockray-bit-") as tmp:
-            return _build(params, out, platform, core, freq, baud, seed, router, threads, Path(tmp), estimate)
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    return _build(params, out, platform, core, freq, baud, seed, router, threads, workdir, estimate)
+    with _workdir(workdir) as tmp:
+        return _build(params, out, platform, core, tmp, estimate, freq=freq, baud=baud,
+                      tools={"seed": seed, "router": router, "threads": threads})
 
 
-def _build(params, out, platform_name, core_name, freq, baud, seed, router, threads, tmp, estimate):
+def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, tools):
+    """The bitstream in ``tmp``; ``tools``: nextpnr's ``seed``, ``router`` and ``threads``."""
     from ..rtl.ulx3s import ULX3STop
 
     dev_key = PLATFORMS[platform_name][1]
@@ -292,8 +289,9 @@ def _build(params, out, platform_name, core_name, freq, baud, seed, router, thre
     cmd = nice + nextpnr_command() + [
         f"--{dev_key}", "--package", PACKAGE, "--speed", SPEED, "--json", f"{name}.json", "--lpf", f"{name}.lpf",
         "--textcfg", f"{name}.config", "--report", "report.json", "--timing-allow-fail",
-        "--seed", str(seed), "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"]
-    pnr = run_nextpnr(cmd, tmp, report, seconds, seed=seed, router=router, speed=SPEED)
+        "--seed", str(tools["seed"]), "--threads", str(tools["threads"]), "--router", tools["router"],
+        "-l", "nextpnr.log", "-q"]
+    pnr = run_nextpnr(cmd, tmp, report, seconds, seed=tools["seed"], router=tools["router"], speed=SPEED)
     if pnr is None:
         return report
     achieved = [c["achieved"] for c in pnr.get("fmax", {}).values()]
