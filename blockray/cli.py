@@ -459,7 +459,8 @@ def _cmd_synth(args):
     write_report(args.report, report)
     res = report["resources"]
     fmax = report.get("fmax_mhz")
-    others = "".join(f", {o['fmax_mhz']} MHz at -{o['speed']}" for o in report.get("same_routing", []))
+    others = "".join(f", {o['fmax_mhz']} MHz at -{o['speed']} (scaled {o['scaled_mhz']})"
+                     for o in report.get("same_routing", []))
     others = f" (the routing saved and timed again:{others[1:]})" if others else ""
     print(f"{args.unit} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
           + (f", fits {report.get('part')}: {report['fits']}" if report["fits"] is not None else "")

@@ -113,6 +113,7 @@ def test_routed_design_is_timed_at_another_grade(processor_report):
     assert own["rerouted_arcs"] == fast["rerouted_arcs"] == 0
     assert 0.8 * r["fmax_mhz"] < own["fmax_mhz"] <= r["fmax_mhz"] < fast["fmax_mhz"]
     assert fast["critical_path"]["delay_ns"] > 0
+    assert own["scaled_mhz"] == r["fmax_mhz"] < fast["scaled_mhz"]
 
 
 def test_nextpnr_gets_the_speed_grade():
