@@ -9,7 +9,9 @@
 Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``: the ECP5
 netlist, every product a registered MULT18X18D); the JSON reports go to ``--out`` (default
 ``synth-reports/``), a summary table to stdout. ``--seeds 1 2 3`` repeats every place and route
-with each nextpnr placement seed (Fmax varies with the seed by several per cent).
+with each nextpnr placement seed (Fmax varies with the seed by several per cent). ``--also-speed
+8`` times each routed design again at -8 as well (docs/synthesis.md, "The same routing at
+another grade").
 
 Array search: every R x S with R, S <= 8 whose DSP count (``dsp_estimate``, checked against
 Yosys in tests/test_synth.py) fits the part is ranked by processors (then squareness); Yosys runs
@@ -34,7 +36,8 @@ def _row(name, r):
     fmax = r.get("fmax_mhz")
     return (f"{name:28s} {r.get('part', '')} LUT {res['luts']:7d}  FF {res['ffs']:7d}  DSP {res['dsps']:5d}  BRAM {res['brams']:4d}  "
             f"fits {str(r['fits']):5s}  Fmax {fmax if fmax else '-':>7}  "
-            f"({', '.join(f'{k} {v}s' for k, v in r['seconds'].items())})")
+            + "".join(f"(-{o['speed']}: {o['scaled_mhz']} scaled) " for o in r.get("same_routing", [])[1:])
+            + f"({', '.join(f'{k} {v}s' for k, v in r['seconds'].items())})")
 
 
 def _grade(args):
@@ -54,7 +57,7 @@ def processors(out, args):
     for bits in (12, 14, 16):
         for seed in args.seeds:
             run(f"processor-B{bits}-seed{seed}{_grade(args)}", "processor", BoardParams(bits=bits), out,
-                device=args.device, speed=args.speed, freq=args.freq, seed=seed)
+                device=args.device, speed=args.speed, freq=args.freq, seed=seed, also_speeds=args.also_speed)
 
 
 def largest_array(out, args):
@@ -71,7 +74,7 @@ def largest_array(out, args):
         if r["fits"]:
             return [run(f"array-{rows}x{cols}-B{bits}{tag}-seed{seed}{_grade(args)}", "array", params, out,
                         device=args.device, speed=args.speed, freq=args.freq, seed=seed,
-                        fabric_units=args.fabric_units) for seed in args.seeds]
+                        fabric_units=args.fabric_units, also_speeds=args.also_speed) for seed in args.seeds]
     return None
 
 
@@ -87,6 +90,8 @@ def main(argv=None):
     p.add_argument("--freq", type=float, default=100.0)
     p.add_argument("--speed", type=int, default=None, choices=SPEEDS,
                    help="ECP5 speed grade for nextpnr (default the part's, -6)")
+    p.add_argument("--also-speed", type=int, action="append", default=[], choices=SPEEDS,
+                   help="also time each routed design at this grade (blockray synth --also-speed)")
     p.add_argument("--bits", type=int, default=BoardParams().bits, help="B of the array search")
     p.add_argument("--seeds", type=int, nargs="+", default=[1], help="nextpnr placement seeds (default 1)")
     p.add_argument("--fabric-units", type=lambda t: tuple(u for u in t.split(",") if u), default=(),
