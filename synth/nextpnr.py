@@ -24,6 +24,8 @@ Flow (``target="ecp5"``):
    the achieved Fmax, the placed utilisation and the critical path. Otherwise ``fits`` is false,
    ``limits`` names the resources over capacity, and nextpnr is not run. A nextpnr failure (e.g.
    routing congestion) is captured in the report (``fits`` false, ``nextpnr.error``).
+4. With ``also_speeds``, nextpnr saves the routed design, and :func:`time_routed` times it again
+   at its own grade and at each of those (``same_routing``).
 
 ``target="generic"`` runs Yosys ``synth`` only on the bare unit (:func:`blockray.synth.yosys.synth_stats`):
 gate-level cells, FFs and the ``$mul`` multipliers with their widths; no device, no Fmax.
@@ -244,7 +246,8 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if device not in DEVICES:
         raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
     speed = check_speed(speed, device)
-    also_speeds = sorted({check_speed(g, device, "--also-speed") for g in also_speeds} - {speed})
+    others = {check_speed(g, device, "--also-speed") for g in also_speeds} - {speed}
+    retime = [speed] + sorted(others) if also_speeds else []       # the routed grade first
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
@@ -268,12 +271,12 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
                    "package": PACKAGE, "target_mhz": float(freq),
                    "fabric_units": [u for u in FABRIC_UNITS if u in ecp5.fabric_units]})
     pnr = {"device": device, "speed": speed, "freq": freq, "seed": seed, "threads": threads, "router": router,
-           "write": ROUTED if also_speeds else None}
+           "write": ROUTED if retime else None}
     with _workdir(workdir) as tmp:
         _ecp5(report, unit, params, dev, tmp, place, ecp5, (cell, filter_format), pnr)
-        if also_speeds and report["fmax_mhz"] is not None:
-            report["same_routing"] = _scaled([time_routed(tmp, device=device, speed=g, freq=freq)
-                                              for g in [speed] + also_speeds], report["fmax_mhz"])
+        if retime and report["fmax_mhz"] is not None:
+            report["same_routing"] = _scaled([time_routed(tmp, device=device, speed=g, freq=freq) for g in retime],
+                                             report["fmax_mhz"])
     return report
 
 
