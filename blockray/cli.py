@@ -50,11 +50,11 @@ def _add_config_options(g, type, **options):
                        help=f"{what} ({note or f'default {default}'})")
 
 
-def _add_tool_options(g, router):
-    """The options of every run of the FPGA tools (Yosys, nextpnr); ``router``: nextpnr's default here."""
+def _add_tool_options(g):
+    """The options of every run of the FPGA tools (Yosys, nextpnr)."""
     g.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
-    g.add_argument("--router", default=router, choices=["router1", "router2"],
-                   help=f"nextpnr router (default {router})")
+    g.add_argument("--router", default=None, choices=["router1", "router2"],
+                   help="nextpnr router (default: ROUTER of synth/nextpnr.py, router1)")
     g.add_argument("--workdir", metavar="DIR", help="keep the tools' files (Verilog, netlist) and logs here")
 
 
@@ -432,7 +432,7 @@ def _synth_parser(sub):
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
-    _add_tool_options(p, "router2")
+    _add_tool_options(p)
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_synth)
 
@@ -445,7 +445,7 @@ def _speed(text):
 def _cmd_synth(args):
     from .extras import require
     from .paths import check_output_dir, check_output_file
-    from .synth.nextpnr import synth_report, write_report
+    from .synth.nextpnr import ROUTER, synth_report, write_report
     check_output_file(args.report, "--report")
     check_output_dir(args.workdir, "--workdir")
     yosys_only = args.no_pnr or args.target == "generic"
@@ -453,7 +453,8 @@ def _cmd_synth(args):
     params = _unit_params(args)
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
-        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router, fabric_units=args.fabric_units,
+        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or ROUTER,
+        fabric_units=args.fabric_units,
         cell=args.cell, filter_format=_filter_format(args.filter_bits),
         also_speeds=[_speed(g) for g in args.also_speed]))
     write_report(args.report, report)
@@ -488,7 +489,7 @@ def _bitstream_parser(sub):
     t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
                    help="board clock from the PLL (default: DEFAULT_FREQ_MHZ of synth/bitstream.py, 45 = "
                         "3 Mbaud x 15)")
-    _add_tool_options(t, "router1")
+    _add_tool_options(t)
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
     p.add_argument("--report", metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_bitstream)
@@ -496,13 +497,13 @@ def _bitstream_parser(sub):
 
 def _cmd_bitstream(args):
     from .synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS, build_bitstream, largest_fit
-    from .synth.nextpnr import write_report
+    from .synth.nextpnr import ROUTER, write_report
     params = _board_params(rows=args.rows or DEFAULT_ROWS, cols=args.cols or DEFAULT_COLS, bits=args.bits)
     params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(
         params, out=args.out, platform=args.platform, core=args.core, freq=args.freq or DEFAULT_FREQ_MHZ,
-        baud=args.baud, seed=args.seed, router=args.router, workdir=args.workdir))
+        baud=args.baud, seed=args.seed, router=args.router or ROUTER, workdir=args.workdir))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]

@@ -36,7 +36,7 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import patch_layout
-from .nextpnr import (DEVICES, PACKAGE, _cells_resources, _machine, _run, _tail, _workdir,
+from .nextpnr import (DEVICES, PACKAGE, ROUTER, _cells_resources, _machine, _run, _tail, _workdir,
                       _versions, dsp_estimate, nextpnr_command, run_nextpnr)
 from .yosys import yosys_command
 
@@ -63,10 +63,6 @@ DEFAULT_PATCH_DEPTH, DEFAULT_VOXEL_DEPTH = 2048, 512
 MAX_BAUD_ERROR = 0.02
 OSCILLATOR_MHZ = 25.0
 SPEED = "6"
-#: nextpnr's router for boards: router1 (nextpnr-ecp5's default) routed the 1 x 2 board with the
-#: default memories in 9 minutes where router2 diverged after iteration 30 (docs/ulx3s.md); the
-#: bare arrays of docs/synthesis.md route better with router2
-ROUTER = "router1"
 #: the link's FIFOs (command bytes the host may have in flight; result bytes queued)
 FIFO_DEPTH, RESULT_DEPTH = 2048, 512
 

@@ -56,7 +56,7 @@ from .verilog import build_unit, check_cell, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
-__all__ = ["DEVICES", "SPEEDS", "PACKAGE", "nextpnr_command", "nextpnr_args", "check_speed", "dsp_estimate",
+__all__ = ["DEVICES", "SPEEDS", "PACKAGE", "ROUTER", "nextpnr_command", "nextpnr_args", "check_speed", "dsp_estimate",
            "dsp_registers", "synth_report", "time_routed", "write_report"]
 
 PACKAGE = "CABGA381"
@@ -68,6 +68,12 @@ DEVICES = {
     "45k": {"part": "LFE5U-45F", "luts": 43848, "ffs": 43848, "dsps": 72, "brams": 108, "speed": 6},
     "85k": {"part": "LFE5U-85F", "luts": 83640, "ffs": 83640, "dsps": 156, "brams": 208, "speed": 6},
 }
+
+#: nextpnr's router for every unit and board: router1 (nextpnr-ecp5's own default). It routed the
+#: 1 x 2 board with its memories in 9 minutes where router2 diverged (docs/ulx3s.md), the exact 2 x 2
+#: array at 93.7 MHz where router2 gave 71.3 once and then did not converge, the filtered 1 x 2
+#: (router2 diverged) and the B = 16 processor at 120.4 MHz in 35 s (router2: 113.3; docs/synthesis.md)
+ROUTER = "router1"
 
 #: ECP5 speed grades nextpnr-ecp5 models (``--speed``; -8 is the fastest). Each part's default
 #: (``DEVICES[...]["speed"]``) is the grade on the ULX3S board, which carries the -6 parts
@@ -218,14 +224,13 @@ def _critical_path(report, clock):
 
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
-                 threads=2, workdir=None, place=True, router="router2", fabric_units=(), cell="exact",
+                 threads=2, workdir=None, place=True, router=ROUTER, fabric_units=(), cell="exact",
                  filter_format=None, also_speeds=()):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
     directory. ``place=False`` stops after Yosys (no Fmax). ``router``: nextpnr's router
-    (``router2`` by default: ``router1`` stalled for minutes at a few hundred overused wires on
-    the B = 16 processor, where the DSP outputs go straight into registers). ``fabric_units``:
+    (:data:`ROUTER` by default). ``fabric_units``:
     units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`). ``speed``:
     the part's speed grade for nextpnr (6, 7 or 8; None = the part's default, :data:`DEVICES`);
     the report's ``speed`` and ``part`` (e.g. ``LFE5U-85F-6``) say which grade was used.

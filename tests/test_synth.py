@@ -28,7 +28,7 @@ PRODUCTS = 33
 def processor_report(tmp_path_factory):
     processor_workdir = tmp_path_factory.mktemp("synth")
     path = processor_workdir / "p6.json"
-    # router1: 10 s here, where router2 (the default, needed at B = 16) takes about a minute
+    # router1 (the default, ROUTER) named explicitly: 10 s here, where router2 takes about a minute
     assert main(["synth", "processor", "--bits", str(BITS), "--router", "router1", "--also-speed", "8",
                  "--workdir", str(processor_workdir / "w"), "--report", str(path)]) == 0
     return json.loads(path.read_text())
