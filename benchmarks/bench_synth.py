@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from blockray.params import BoardParams
-from blockray.synth.nextpnr import DEVICES, SPEEDS, dsp_estimate, synth_report
+from blockray.synth.nextpnr import DEVICES, ROUTER, SPEEDS, dsp_estimate, synth_report
 
 
 def _row(name, r):
@@ -57,7 +57,8 @@ def processors(out, args):
     for bits in (12, 14, 16):
         for seed in args.seeds:
             run(f"processor-B{bits}-seed{seed}{_grade(args)}", "processor", BoardParams(bits=bits), out,
-                device=args.device, speed=args.speed, freq=args.freq, seed=seed, also_speeds=args.also_speed)
+                device=args.device, speed=args.speed, freq=args.freq, seed=seed, also_speeds=args.also_speed,
+                router=args.router)
 
 
 def largest_array(out, args):
@@ -74,7 +75,8 @@ def largest_array(out, args):
         if r["fits"]:
             return [run(f"array-{rows}x{cols}-B{bits}{tag}-seed{seed}{_grade(args)}", "array", params, out,
                         device=args.device, speed=args.speed, freq=args.freq, seed=seed,
-                        fabric_units=args.fabric_units, also_speeds=args.also_speed) for seed in args.seeds]
+                        fabric_units=args.fabric_units, also_speeds=args.also_speed, router=args.router)
+                    for seed in args.seeds]
     return None
 
 
@@ -90,6 +92,8 @@ def main(argv=None):
     p.add_argument("--freq", type=float, default=100.0)
     p.add_argument("--speed", type=int, default=None, choices=SPEEDS,
                    help="ECP5 speed grade for nextpnr (default the part's, -6)")
+    p.add_argument("--router", default=ROUTER, choices=["router1", "router2"],
+                   help=f"nextpnr router (default {ROUTER}; router2 routes the 1 x 5 with LUT shooter units)")
     p.add_argument("--also-speed", type=int, action="append", default=[], choices=SPEEDS,
                    help="also time each routed design at this grade (blockray synth --also-speed)")
     p.add_argument("--bits", type=int, default=BoardParams().bits, help="B of the array search")
