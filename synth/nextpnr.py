@@ -131,7 +131,7 @@ def time_routed(tmp, *, device, speed, freq):
     """Static timing of the routed design saved in ``tmp`` (:data:`ROUTED`) at speed grade
     ``speed``, with its placement and routing as they are: nextpnr ``--no-place`` restores both
     from the file and its router finds 0 arcs to route, so only the delays change. Returns
-    ``{"speed", "fmax_mhz", "critical_path", "seconds", "rerouted_arcs"}`` (``fmax_mhz`` None on
+    ``{"speed", "part", "fmax_mhz", "critical_path", "seconds", "rerouted_arcs"}`` (``fmax_mhz`` None on
     failure, with ``error``)."""
     tag = f"speed{speed}"
     cmd = nextpnr_command() + [f"--{device}", "--speed", str(speed), "--package", PACKAGE, "--json", ROUTED,
