@@ -107,6 +107,36 @@ def test_samples_lie_exactly_on_their_patch(count):
     assert len({tuple(w) for w in scheme.weights}) == count
 
 
+@pytest.mark.parametrize("count", [1, 4, 8, 9, 16, 36, 37, 64])
+def test_samples_keep_off_the_grid_a_scene_is_drawn_on(count):
+    """Issue 17's tie rays: sample points in ninths sat on the contact lines of a scene drawn on a
+    decimal grid (room: 0.45 m panels, shelves at 1.40 m). No sample point of a triangle cut from an
+    axis-parallel rectangle with integer corners lies on an integer plane across the rectangle,
+    for any side lengths not a multiple of p (docs: blockray/samples.py)."""
+    seed = 3100 + count
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    scheme = SampleScheme(count)
+    p, D, W = scheme.prime, scheme.denominator, scheme.weights
+    assert p >= 7 and all(p % d for d in range(2, p)) and D == 3 * p
+    assert (W % p != 0).all() and (W.sum(axis=1) == D).all()
+    assert (scheme.centroid_weights * 3 == D).all()
+    checked = 0
+    for _ in range(300):
+        x0, y0 = rng.integers(-1000, 1000, 2)
+        L, H = rng.integers(1, 600, 2)
+        if L % p == 0 or H % p == 0:
+            continue
+        corners = np.array([(x0, y0), (x0 + L, y0), (x0 + L, y0 + H), (x0, y0 + H)])
+        for tri in ((0, 1, 2), (0, 2, 3), (1, 2, 3), (1, 3, 0)):
+            for turn in range(3):                   # every vertex order the scene could give
+                V = corners[np.roll(tri, turn)]
+                num = W @ V                         # D x each sample point, exact integers
+                assert (num % D != 0).all(), (V.tolist(), W.tolist())
+                checked += 1
+    assert checked > 2000
+
+
 def test_sample_scheme_validated():
     with pytest.raises(ParameterError, match="samples"):
         SampleScheme(0)

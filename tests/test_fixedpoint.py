@@ -31,7 +31,7 @@ def random_scene(seed, n=40, scale=7.3):
 @pytest.mark.parametrize("bits", [6, 10, 16, 20])
 @pytest.mark.parametrize("count", [1, 4, 8, 9])
 def test_grid_points_exact_and_on_plane(bits, count):
-    s = SampleScheme(count)     # D <= 9 fits every B here; too few bits: test_bits_too_small_for_denominator
+    s = SampleScheme(count)     # D = 21 fits every B here; too few bits: test_bits_too_small_for_denominator
     q = quantise(random_scene(bits * 100 + count), s, bits)
     assert q.D == s.denominator
     assert (q.vertices % q.D == 0).all()

@@ -218,7 +218,7 @@ def test_coplanar_overlapping_triangles():
     A = [[0, 0, 300], [600, 0, 300], [0, 600, 300]]
     B = [[100, 100, 300], [700, 100, 300], [100, 700, 300]]
     # sample points of A (on the shared plane) never blocked by A or B
-    D = 9
+    D = SampleScheme(8).denominator
     VA = np.array(A) * D
     VB = np.array(B) * D
     pts = SampleScheme(8).points_int(VA[None])[0]

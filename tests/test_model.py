@@ -271,7 +271,7 @@ def test_execute_rejects_bad_addresses():
         bm.execute([WritePatch(4, 0)])
 
 
-@pytest.mark.parametrize("bits", [8, 10, 14])
+@pytest.mark.parametrize("bits", [10, 12, 14])     # B = 10: 48 lattice steps of D = 21
 def test_margin_keeps_host_voxel_traversal_conservative(bits):
     """With the host's VoxelGrid grown by board.margin, the blocks' voxels hold every patch that
     blocks a quantised ray: the answer equals testing all patches (coarse B: large displacement)."""
@@ -321,7 +321,7 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
 
 
 def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
-    # A sliver far thinner than the grid step at B = 6 flattens; the user is told, not left guessing.
+    # A sliver far thinner than the grid step at B = 10 flattens; the user is told, not left guessing.
     from blockray.host_driver.objload import load_obj
     from blockray.samples import SampleScheme
     from blockray.sim.model import ModelBoard, QuantisationWarning
@@ -330,7 +330,7 @@ def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
     (tmp_path / "s.obj").write_text("\n".join(obj) + "\n")
     scene = load_obj(tmp_path / "s.obj", max_edge=10.0)     # ~400 patches: the sliver is under 1%
     assert scene.patches > 100
-    board = ModelBoard(bits=8)
+    board = ModelBoard(bits=10)
     with pytest.warns(QuantisationWarning, match=r"1 patches degenerate"):
         board.prepare(scene, SampleScheme(4))
     assert len(board.quantised.degenerate) == 1

@@ -244,3 +244,17 @@ def test_cli_board_choices_come_from_the_registry(capsys, monkeypatch):
     assert code == 2 and "--link-bursts need a board simulated cycle by cycle (--board amaranth)" in err
     code, err = _run_cli(capsys, ["render", "cornell", "--board", "amaranth", "--link-idle", "1.5", "--quiet"])
     assert code == 2 and err.startswith("blockray: error: --link-*: host timing rate must be in [0, 1)")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["cornell", "room"])
+def test_model_within_1e_4_of_golden(scene):
+    """Issue 17: the fixed-point model's radiosity is within 1e-4 RMS of the golden board's, per
+    channel, on the built-in scenes at their default B (room: 10 min of golden board)."""
+    from blockray.host_driver import builtin
+    scene = builtin.load(scene)
+    golden = render(scene, board="golden").radiosity
+    model = render(scene, board="model").radiosity
+    rms = np.sqrt(((model - golden) ** 2).mean(axis=0) / (golden ** 2).mean(axis=0))
+    print(f"{scene}: model vs golden RMS relative per channel {rms}")
+    assert (rms < 1e-4).all()
