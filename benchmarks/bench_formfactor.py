@@ -292,7 +292,15 @@ def change(args):
     """Radiosity change between two renders of one scene (e.g. before and after a change, or the
     model against golden), from their ``--patches`` CSVs."""
     import json
-    print(json.dumps({"ref": args.ref, "new": args.new, **change_stats(_radiosity(args.new), _radiosity(args.ref))}))
+    ref, new = _radiosity(args.ref), _radiosity(args.new)
+    print(json.dumps({"ref": args.ref, "new": args.new, **change_stats(new, ref)}))
+    if args.worst:
+        groups = np.loadtxt(args.ref, delimiter=",", skiprows=1, usecols=1, dtype=str, ndmin=1)
+        rel = np.abs(new - ref).max(axis=1) / np.maximum(ref.max(axis=1), 1e-300)
+        median = np.median(ref, axis=0)
+        print(f"patches with the largest relative change (radiosity median {median.round(3).tolist()}):")
+        for i in np.argsort(-rel)[:args.worst]:
+            print(f"  {i} {groups[i]}: {ref[i].round(6).tolist()} -> {new[i].round(6).tolist()} ({rel[i]:.1%})")
 
 
 def end_points(args):
@@ -553,6 +561,7 @@ def main(argv=None):
     b.add_argument("--rounds", type=int, default=3)
     b.add_argument("--seed", type=int, default=17)
     ch = sub.add_parser("change")
+    ch.add_argument("--worst", type=int, default=0, metavar="N", help="also list the N patches that change most")
     ch.add_argument("ref", help="reference radiosity: --patches CSV or .npy")
     ch.add_argument("new", help="radiosity compared with it")
     en = sub.add_parser("ends")

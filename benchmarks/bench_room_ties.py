@@ -5,6 +5,7 @@
     python benchmarks/bench_room_ties.py matrix golden F_moved.npy --move 0.1,0.2,0.3
     python benchmarks/bench_room_ties.py split F_golden.npy F_model.npy
     python benchmarks/bench_room_ties.py ties F_golden.npy F_model.npy [--bits B]
+    python benchmarks/bench_room_ties.py near 361,1494 [--bits B]
 
 ``matrix``: ``render(SCENE, board=BOARD, solver="jacobi", tolerance=1e-9)`` (the same as
 ``blockray render SCENE --board BOARD --solver jacobi --tolerance 1e-9``), saving the visible
@@ -24,6 +25,10 @@ by ray, on both boards and on the golden board with the scene's vertices jittere
 scene it passes within 1e-7 of an occluder's edge or starts on its plane (a sample point on a
 contact line). Then the model's bits are put back on the tie rays only, and on the other rays
 only, and each F is solved exactly against golden's: the RMS each part carries.
+
+``near``: every ray of the pairs into the given receivers on both boards (no F needed); of the
+rays that differ, how many flip on golden under jitters of 1e-7 .. 1e-3 (scene units): ties flip
+at 1e-7, near misses only at the scale of the model's quantisation.
 """
 
 import argparse
@@ -110,6 +115,51 @@ def ray_bits(vis, shooters, targets):
                        SAMPLES.count)
 
 
+def flips(scene, shooters, targets, bits, amplitude, seeds):
+    """(n, K) bool: rays whose golden answer ``bits`` flips with the scene's vertices jittered by
+    +-``amplitude`` (uniform, seeds 1 .. ``seeds``), in any of those seeds."""
+    out = np.zeros(bits.shape, dtype=bool)
+    for seed in range(1, seeds + 1):
+        rng = np.random.default_rng(seed)
+        jittered = dataclasses.replace(scene, vertices=scene.vertices + rng.uniform(-amplitude, amplitude,
+                                                                                     scene.vertices.shape))
+        out |= ray_bits(_visibility(jittered, "golden"), shooters, targets) != bits
+    return out
+
+
+def _pairs_into(scene, receivers):
+    """The rays the render casts for every pair that exchanges light with ``receivers``: (shooter,
+    receiver, the patch whose samples start the rays, the patch whose centroid ends them)."""
+    I, J = [], []
+    for i in range(scene.patches):
+        mask = formfactor.exchange_mask(scene, i)
+        for j in receivers:
+            if mask[j]:
+                I.append(i)
+                J.append(j)
+    I, J = np.array(I, dtype=np.int64), np.array(J, dtype=np.int64)
+    direct = np.array([formfactor.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)], dtype=bool)
+    return I, J, np.where(direct, I, J), np.where(direct, J, I)
+
+
+def near(args):
+    """Every ray into ``receivers`` on both boards; of the rays that differ, how many golden flips
+    under vertex jitters of growing size: ties flip at 1e-7, near misses at the quantisation's scale."""
+    scene = load_scene(args.scene)
+    receivers = [int(r) for r in args.receivers.split(",")]
+    I, J, S, T = _pairs_into(scene, receivers)
+    bg = ray_bits(_visibility(scene, "golden"), S, T)
+    bm = ray_bits(_visibility(scene, "model", args.bits), S, T)
+    differ = bg != bm
+    counts = [int((differ & flips(scene, S, T, bg, a, args.seeds)).sum()) for a in (1e-7, 1e-6, 1e-5, 1e-4, 1e-3)]
+    print(f"receivers {receivers}, model B = {args.bits or 'default'}: {len(I)} pairs, {differ.sum()} of "
+          f"{differ.size} rays differ; of them flipping on golden under 1e-7 / 1e-6 / 1e-5 / 1e-4 / 1e-3 m "
+          f"jitter ({args.seeds} seeds): {' / '.join(map(str, counts))}")
+    for m in np.flatnonzero(differ.any(axis=1)):
+        print(f"  {scene.group_names[scene.group[I[m]]]} {I[m]} -> {J[m]}: golden clear {bg[m].astype(int)}, "
+              f"model clear {bm[m].astype(int)}")
+
+
 def ties(args):
     scene = load_scene(args.scene)
     Fg, Fm = np.load(args.golden), np.load(args.model)
@@ -131,11 +181,7 @@ def ties(args):
     unoccluded = np.where(fraction(bg) > 0, Fg[J, I] / np.maximum(fraction(bg), 1e-300),
                           Fm[J, I] / np.maximum(fraction(bm), 1e-300))
     assert np.allclose(unoccluded * fraction(bm), Fm[J, I], rtol=1e-12, atol=0), "F_model is not this board's"
-    tie = np.zeros(bg.shape, dtype=bool)
-    for seed in range(1, args.seeds + 1):
-        rng = np.random.default_rng(seed)
-        jittered = dataclasses.replace(scene, vertices=scene.vertices + rng.uniform(-1e-7, 1e-7, scene.vertices.shape))
-        tie |= ray_bits(_visibility(jittered, "golden"), S, T) != bg
+    tie = flips(scene, S, T, bg, 1e-7, args.seeds)
     differ = bg != bm
     print(f"{len(J)} entries of F differ ({len(np.unique(I))} shooters); {differ.sum()} of their "
           f"{differ.size} rays differ, {(differ & tie).sum()} of them ties "
@@ -165,9 +211,13 @@ def main(argv=None):
         p.add_argument("model", help="model board's F (.npy, from matrix)")
     sub.choices["ties"].add_argument("--bits", type=int, default=None, help="the model's B (as in matrix)")
     sub.choices["ties"].add_argument("--seeds", type=int, default=3)
+    n = sub.add_parser("near")
+    n.add_argument("receivers", help="patch numbers, comma-separated")
+    n.add_argument("--bits", type=int, default=None, help="the model's B (default: the scene's)")
+    n.add_argument("--seeds", type=int, default=4)
     args = ap.parse_args(argv)
     print_run_header()
-    {"matrix": matrix, "split": split, "ties": ties}[args.what](args)
+    {"matrix": matrix, "split": split, "ties": ties, "near": near}[args.what](args)
 
 
 if __name__ == "__main__":
