@@ -3,6 +3,7 @@
     python benchmarks/bench_room_ties.py matrix golden F_golden.npy --patches golden.csv
     python benchmarks/bench_room_ties.py matrix model F_model.npy --patches model.csv [--bits B]
     python benchmarks/bench_room_ties.py matrix golden F_moved.npy --move 0.1,0.2,0.3
+    python benchmarks/bench_room_ties.py moved golden golden_moved.csv --move 0.1,0.2,0.3
     python benchmarks/bench_room_ties.py split F_golden.npy F_model.npy
     python benchmarks/bench_room_ties.py ties F_golden.npy F_model.npy [--bits B]
     python benchmarks/bench_room_ties.py near 361,1494 [--bits B]
@@ -11,7 +12,7 @@
 ``blockray render SCENE --board BOARD --solver jacobi --tolerance 1e-9``), saving the visible
 form factors F[j, i] it gathered with (.npy) and the per-patch radiosity (``--patches``).
 ``--move dx,dy,dz`` renders the scene translated by that vector: the same scene with its float
-coordinates rounded afresh.
+coordinates rounded afresh. ``moved``: only the default render of the translated scene (no F).
 
 ``split``: from each board's F, the exact solution (``numpy.linalg.solve`` per channel) and
 progressive refinement to 1e-3 (the render's default: the same shots, to the bit, as
@@ -69,10 +70,22 @@ def exact_solution(scene, F):
                      for c in range(3)], axis=1)
 
 
+def _moved(scene, move):
+    """``scene`` translated by ``move`` ("dx,dy,dz"): its float coordinates rounded afresh."""
+    if not move:
+        return scene
+    return dataclasses.replace(scene, vertices=scene.vertices + np.array([float(x) for x in move.split(",")]))
+
+
+def moved(args):
+    """``blockray render SCENE --board BOARD --patches CSV`` (progressive refinement to 1e-3) on the
+    scene translated by ``--move``."""
+    scene = _moved(load_scene(args.scene), args.move)
+    write_patches_csv(args.patches, scene, render(scene, board=args.board, bits=args.bits).radiosity)
+
+
 def matrix(args):
-    scene = load_scene(args.scene)
-    if args.move:
-        scene = dataclasses.replace(scene, vertices=scene.vertices + np.array([float(x) for x in args.move.split(",")]))
+    scene = _moved(load_scene(args.scene), args.move)
     r = render(scene, board=args.board, bits=args.bits, solver="jacobi", tolerance=1e-9)
     np.save(args.out, r.factors)
     if args.patches:
@@ -205,6 +218,11 @@ def main(argv=None):
     m.add_argument("--bits", type=int, default=None)
     m.add_argument("--patches", default=None)
     m.add_argument("--move", default=None, help="dx,dy,dz: translate the scene first")
+    mv = sub.add_parser("moved")
+    mv.add_argument("board")
+    mv.add_argument("patches", help="--patches CSV of the moved scene's render")
+    mv.add_argument("--move", required=True, help="dx,dy,dz")
+    mv.add_argument("--bits", type=int, default=None)
     for name in ("split", "ties"):
         p = sub.add_parser(name)
         p.add_argument("golden", help="golden board's F (.npy, from matrix)")
@@ -217,7 +235,7 @@ def main(argv=None):
     n.add_argument("--seeds", type=int, default=4)
     args = ap.parse_args(argv)
     print_run_header()
-    {"matrix": matrix, "split": split, "ties": ties, "near": near}[args.what](args)
+    {"matrix": matrix, "moved": moved, "split": split, "ties": ties, "near": near}[args.what](args)
 
 
 if __name__ == "__main__":
