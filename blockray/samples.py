@@ -4,18 +4,18 @@ the grid a scene was designed on.
 A triangle is cut into n x n congruent cells (n = ceil(sqrt(K))). Each cell holds one sample point
 with barycentric weights (w0, w1, w2) / D, integer w summing to D = 3p: the point of that
 1/D lattice strictly inside the cell nearest the cell's centroid among those with **no weight a
-multiple of p** (of equally near ones, the one keeping the pattern's mean on the centroids' mean). p is the smallest prime of at least 7 above n for which every cell has such a
-point (7 for K <= 36, 11 above).
+multiple of p** (of equally near ones, the one keeping the pattern's mean on the centroids'
+mean). p is the smallest prime of at least 7 above n for which every cell has such a point (7 for
+K <= 36, 11 above).
 
 Why p. Sample points on a scene's own design lattice sit exactly on its contact lines (a shelf
 meeting a panel at the height of a sample row): whether such a ray is blocked is then decided by
 the float scene's rounding on the golden board and by each vertex's own rounding on the fixed-point
 model, and the two disagree (docs/formfactors.md, "Tie rays"). Scenes are drawn on decimal grids
 (whole m, cm or mm) and their patch edges are whole fractions of such lengths, so cell centroids
-in thirds or ninths (D = 3n) land on those grids.
-Along an axis-parallel edge of length L units a sample point lies w L / D units from the vertex;
-with p dividing neither w nor L that is never a whole unit, so no sample point of such a patch lies
-on a grid plane of the scene. D = 3p keeps the receiver end point, the centroid (weights p, p, p),
+in thirds or ninths (D = 3n) land on those grids. Along an axis-parallel edge of length L units a
+sample point lies w L / D units from the vertex; with p dividing neither w nor L that is never a
+whole unit, so no sample point of such a patch lies on a grid plane of the scene. D = 3p keeps the receiver end point, the centroid (weights p, p, p),
 exact.
 
 When the vertex grid is scaled by D (vertex coordinates are multiples of D), every sample point
@@ -46,13 +46,15 @@ def _primes_from(start):
 
 
 def _cells(n):
-    """The n x n cells as corner triples in (i, j) units of one cell: i steps from V0 towards V1,
-    j of them from V1's side towards V2 (weights w1 = i - j, w2 = j), row by row."""
+    """The n x n cells, row by row, as corner triples (i, j) in cell units: the point
+    V0 + i (V1 - V0) / n + j (V2 - V1) / n, weights (n - i, i - j, j) / n."""
     for row in range(n):
         for col in range(2 * row + 1):            # alternating upward / downward cells
             a, down = divmod(col, 2)
-            third = (row + 1, a + 1) if not down else (row, a + 1)
-            yield (row, a), (row + 1, a) if not down else third, (row + 1, a + 1) if down else third
+            if down:
+                yield (row, a), (row, a + 1), (row + 1, a + 1)
+            else:
+                yield (row, a), (row + 1, a), (row + 1, a + 1)
 
 
 def _inside(point, corners):
