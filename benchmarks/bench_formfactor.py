@@ -295,7 +295,8 @@ def change(args):
     ref, new = _radiosity(args.ref), _radiosity(args.new)
     print(json.dumps({"ref": args.ref, "new": args.new, **change_stats(new, ref)}))
     if args.worst:
-        groups = np.loadtxt(args.ref, delimiter=",", skiprows=1, usecols=1, dtype=str, ndmin=1)
+        groups = (np.loadtxt(args.ref, delimiter=",", skiprows=1, usecols=1, dtype=str, ndmin=1)
+                  if not args.ref.endswith(".npy") else np.full(len(ref), "patch"))
         rel = np.abs(new - ref).max(axis=1) / np.maximum(ref.max(axis=1), 1e-300)
         median = np.median(ref, axis=0)
         print(f"patches with the largest relative change (radiosity median {median.round(3).tolist()}):")

@@ -134,7 +134,7 @@ def test_forced_bits_validated(bad):
 
 def test_bits_too_small_for_denominator():
     with pytest.raises(ParameterError, match="--bits"):
-        quantise(random_scene(0), SampleScheme(64), 4)     # D = 24 > 15
+        quantise(random_scene(0), SampleScheme(64), 4)     # D = 33 > 15
 
 
 def test_forced_bits_refused_when_scene_degenerates_badly():
