@@ -151,8 +151,14 @@ def _pairs_into(scene, receivers):
                 I.append(i)
                 J.append(j)
     I, J = np.array(I, dtype=np.int64), np.array(J, dtype=np.int64)
+    return (I, J, *_ray_ends(scene, I, J))
+
+
+def _ray_ends(scene, I, J):
+    """For pairs (I[m] shooter, J[m] receiver), the patches whose samples start the render's rays
+    and whose centroid ends them: i's samples to j's centroid, or the reverse rays."""
     direct = np.array([formfactor.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)], dtype=bool)
-    return I, J, np.where(direct, I, J), np.where(direct, J, I)
+    return np.where(direct, I, J), np.where(direct, J, I)
 
 
 def near(args):
@@ -180,10 +186,7 @@ def ties(args):
     if len(J) == 0:
         print("the boards' F are identical: no ray differs")
         return
-    # the rays the render cast for F[j, i]: i's samples to j's centroid, or the reverse ones
-    direct = np.array([formfactor.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)],
-                      dtype=bool)
-    S, T = np.where(direct, I, J), np.where(direct, J, I)
+    S, T = _ray_ends(scene, I, J)
     W = formfactor.pair_sample_weights(scene, SAMPLES, S, T)
 
     def fraction(bits):
