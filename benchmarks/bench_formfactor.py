@@ -489,7 +489,7 @@ def trigger(args):
             continue
         P4, Q4 = np.zeros((4, 3)), np.zeros((4, 3))
         P4[:len(P)], Q4[:len(Q)] = P, Q
-        value, size = ff._contour(P4, len(P), Q4, len(Q))
+        value, size, _, _ = ff._contour(P4, len(P), Q4, len(Q), ff.EDGE_TARGET)
         if value == 0.0:
             continue
         estimate = 2.0 ** -53 * size / value

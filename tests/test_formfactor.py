@@ -327,11 +327,15 @@ def contour_oracle(Tj, Ti, dps=20):
         a0 = [mp.mpf(float(x)) for x in Tj[p]]
         a1 = [mp.mpf(float(x)) for x in Tj[(p + 1) % len(Tj)]]
         La = mp.sqrt(sum((a1[i] - a0[i]) ** 2 for i in range(3)))
+        if La == 0:                   # a repeated vertex (clipping at a vertex): no edge
+            continue
         u = [(a1[i] - a0[i]) / La for i in range(3)]
         for q in range(len(Ti)):
             b0 = [mp.mpf(float(x)) for x in Ti[q]]
             b1 = [mp.mpf(float(x)) for x in Ti[(q + 1) % len(Ti)]]
             Lb = mp.sqrt(sum((b1[i] - b0[i]) ** 2 for i in range(3)))
+            if Lb == 0:
+                continue
             v = [(b1[i] - b0[i]) / Lb for i in range(3)]
             uv = sum(u[i] * v[i] for i in range(3))
             if uv == 0:
@@ -447,8 +451,8 @@ def test_reciprocity_and_closed_box_row_sums():
 
 def test_far_pairs_against_the_contour_oracle():
     """Far pairs use a cubature only where its derived bound allows; whichever method is picked,
-    the factor matches the mpmath contour integral to 1e-6 (the cubature to ~1e-12; the closed
-    form loses ~(D/L)^2 digits and errs by up to ~1e-7 at D / L ~ 20, docs/formfactors.md)."""
+    the factor matches the mpmath contour integral to 1e-9 (the closed form loses ~(D/L)^2 digits,
+    so where its cancellation estimate exceeds FAR_TARGET the cubatures take over)."""
     seed = 31
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)
@@ -458,9 +462,10 @@ def test_far_pairs_against_the_contour_oracle():
             Ti, Tj = far_pair(rng, D, size=0.3)
             got = pair_factors(Ti[None], Tj[None], stats=used)[0]
             oracle = contour_oracle(Tj, Ti, dps=30)
-            assert got == pytest.approx(oracle, rel=1e-6)
+            assert got == pytest.approx(oracle, rel=1e-9)
     print(dict(zip(METHODS, used.tolist())))
-    assert used[2:].sum() > 0 and used[1] > 0
+    # both families: the far cubatures, and the contour sum or the cubatures it falls back to
+    assert used[2:6].sum() > 0 and used[[1, 6, 7, 8]].sum() > 0
 
 
 def test_exchange_mask_rules():
@@ -674,4 +679,6 @@ def test_cornell_worst_grazing_pairs_against_the_oracle():
     V = load_scene("cornell").patch_vertices
     pairs = [(V[i], V[j], clip_front(V[j], V[i]), clip_front(V[i], V[j])) for i, j in CORNELL_GRAZING]
     worst_closed, _ = _check_grazing(pairs, "cornell")
-    assert worst_closed > 1e-4
+    # hard for the contour sum alone: its edge pairs are held to their derived bounds (a nearly
+    # parallel one is integrated numerically), but the sum of the pairs still cancels to 1e-5
+    assert worst_closed > 1e-5
