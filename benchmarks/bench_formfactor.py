@@ -6,7 +6,7 @@
     python benchmarks/bench_formfactor.py speed cornell room   # CPU us per pair, against pyviewfactor
     python benchmarks/bench_formfactor.py grazing    # cornell's grazing pairs: closed form and default vs mpmath
     python benchmarks/bench_formfactor.py trigger    # the closed form's error against its cancellation estimate
-    python benchmarks/bench_formfactor.py versus     # against an earlier formfactor.py: speed, radiosity
+    python benchmarks/bench_formfactor.py versus cornell room   # against an earlier formfactor.py: speed, radiosity
     python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
@@ -504,15 +504,20 @@ def trigger(args):
 
 
 def versus(args):
-    """Speed and cornell's unoccluded radiosity, the earlier module against this one."""
+    """Speed and the unoccluded radiosity of each scene, the earlier module against this one."""
+    for name in args.scenes:
+        _versus(name)
+
+
+def _versus(name):
     from blockray import threads
     from blockray.host_driver import _formfactor_before as old
     from blockray.host_driver.builtin import load_scene
-    scene = load_scene("cornell")
+    scene = load_scene(name)
     V, N = scene.patch_vertices, scene.patches
     I, J = _every_step_pairs(scene, 8)
     S, R = V[I], V[J]
-    print(f"speed: {len(I)} pairs of every 8th cornell shooter, one thread")
+    print(f"speed: {len(I)} pairs of every 8th {name} shooter, one thread")
     for m in (old, ff):
         m.pair_factors(S[:4], R[:4])
     with threads.using(1):
@@ -536,7 +541,7 @@ def versus(args):
                             for c in range(3)], axis=1)
     lit = B["before"] > 1e-12 * B["before"].max()
     rel = np.abs(B["now"][lit] / B["before"][lit] - 1)
-    print(f"**cornell unoccluded radiosity, {len(I)} unordered pairs: relative change of B max {rel.max():.2e}, "
+    print(f"**{name} unoccluded radiosity, {len(I)} unordered pairs: relative change of B max {rel.max():.2e}, "
           f"RMS {np.sqrt(np.mean(rel ** 2)):.2e}")
 
 
@@ -582,7 +587,8 @@ def main(argv=None):
     tr = sub.add_parser("trigger")
     tr.add_argument("--pairs", type=int, default=30)
     tr.add_argument("--seed", type=int, default=3)
-    sub.add_parser("versus")
+    vs = sub.add_parser("versus")
+    vs.add_argument("scenes", nargs="*", default=["cornell"])
     args = ap.parse_args(argv)
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
