@@ -550,6 +550,10 @@ def main(argv=None):
     except BlockrayError as e:
         print(f"blockray: error: {e}", file=sys.stderr)
         return 2
+    except MemoryError:                 # e.g. under a memory ulimit (ulimit -v)
+        print("blockray: error: out of memory; raise the memory limit (ulimit -v) or make the scene or design "
+              "smaller", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("blockray: interrupted", file=sys.stderr)
         return 130

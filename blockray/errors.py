@@ -39,5 +39,20 @@ class ParameterError(BlockrayError):
         super().__init__(message)
 
 
+class SolveError(BlockrayError):
+    """A solve went wrong: a form factor that is not a finite number >= 0, a shooter whose factors
+    deliver more light than it has, or a radiosity or residual that diverges. The message names
+    the patch; ``patch`` holds it (None if no one patch is at fault)."""
+
+    def __init__(self, message, *, patch=None):
+        self.patch = patch
+        super().__init__(message)
+
+
+class ResourceError(BlockrayError):
+    """The machine refuses a resource a run needs (memory under a ulimit); the message names the
+    tool and the resource."""
+
+
 class CapacityError(BlockrayError):
     """A scene does not fit the chosen widths or memories."""

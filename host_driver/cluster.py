@@ -170,13 +170,17 @@ def cast_set(k, scene, grid, owner, job):
         for i in range(scene.patches):
             with phases.timed("formfactor"):
                 f = receivers.factors(i)
+                solvers.check_factors(i, f, "exact factor")     # a NaN would pass "f > 0" as 0
                 take = np.flatnonzero(f > 0)
             F[take, i] = f[take] * visible_fraction(scene, vis, job.samples, i, own[take], phases)
         counters = board.counters()
     finally:
         if hasattr(board, "close"):
             board.close()                    # an RTL board stops its simulator
+    A = scene.areas[own]
     summary = {"set": k, "worker": get_worker().address, "patches": len(own), "rays": vis.rays,
+               # this set's share of every shooter's row sum and gain (solver.RowSums.of_totals)
+               "power": A @ F, "gain": F.T @ (scene.reflectance[own] * A[:, None]),
                "blocks": vis.blocks, "columns": vis.columns, "counters": counters,
                "stats": stats.counts(), "phases": phases.seconds, "seconds": time.perf_counter() - t0,
                "cpu_seconds": time.process_time() - cpu0}
@@ -208,6 +212,8 @@ def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max
     owner_f = client.scatter(owner, broadcast=True)
     rows = [client.submit(cast_set, k, scene_f, grid_f, owner_f, job, pure=False) for k in range(sets)]
     summaries = _summaries(client, rows, progress)
+    row_sums = solvers.RowSums.of_totals(scene, sum(s["power"] for s in summaries),
+                                         sum(s["gain"] for s in summaries), refuse_gain=True)
     t2 = time.perf_counter()
     sweeps = _Sweeps(client, rows, owner)
     bar = _bar(progress, max_iterations, solver, "sweep")
@@ -216,6 +222,7 @@ def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max
                     max_iterations=max_iterations, progress=bar)
     if bar is not None:
         bar.close()
+    result.row_sums = row_sums
     info = {"workers": client.scheduler_info()["workers"], "exchanged_bytes": sweeps.bytes,
             "exchanges": sweeps.count, "assign_seconds": t1 - t0, "cast_seconds": t2 - t1,
             "solve_seconds": time.perf_counter() - t2}

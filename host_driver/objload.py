@@ -34,7 +34,10 @@ Untrusted files (downloaded models, a service rendering uploads) are read under
 - An error message quotes at most the offending token, cut to :data:`TOKEN_CHARS` characters and
   with control characters escaped, never a whole line of a file.
 - Text is UTF-8 (a byte-order mark is skipped); lines end at line feeds; a trailing backslash joins
-  the next line (also on the last line); fields are separated by ASCII blanks.
+  the next line (also on the last line); fields are separated by ASCII blanks. Bytes that are not
+  UTF-8 are kept as they are (``surrogateescape``): material names match byte for byte, so an OBJ
+  and an MTL naming a material with different invalid bytes do not match (they used to both read
+  as U+FFFD); group names show each such byte as U+FFFD.
 - Numbers are the OBJ format's: ``[+-]digits[.digits][(e|E)[+-]digits]`` in ASCII digits (no
   ``inf``, ``nan``, ``1_0`` or other scripts' digits); indices are ASCII integers.
 - A vertex coordinate beyond :data:`~blockray.host_driver.scene.COORDINATE_LIMIT` in magnitude,
@@ -151,7 +154,17 @@ def _read_text(path, limits, error_path=None, error_line=None, what="file"):
     if len(data) > limits.max_file_bytes:
         raise SceneError(f"{what} is larger than {limits.max_file_bytes / 2**20:.3g} MiB "
                          f"(raise the limit with --max-file-mb)", **where)
-    return data.decode("utf-8-sig", errors="replace")
+    return data.decode("utf-8-sig", errors="surrogateescape")
+
+
+def _shown(text):
+    """``text`` with the bytes that were not UTF-8 (kept by :func:`_read_text`) as U+FFFD."""
+    return text.encode("utf-8", errors="surrogateescape").decode("utf-8", errors="replace")
+
+
+def _not_utf8(name):
+    """A hint for a message about ``name`` if it holds bytes that are not UTF-8."""
+    return " (not valid UTF-8; material names are compared byte for byte)" if _shown(name) != name else ""
 
 
 def _read_lines(path, limits, error_path=None, error_line=None, what="file"):
@@ -328,7 +341,7 @@ def load_obj(path, *, max_edge=None, name=None, limits=None):
     def group_id(gname):
         if gname not in group_ids:
             group_ids[gname] = len(group_names)
-            group_names.append(gname)
+            group_names.append(_shown(gname))
         return group_ids[gname]
 
     def resolve(token, count, lineno, kind):
@@ -416,7 +429,7 @@ def load_obj(path, *, max_edge=None, name=None, limits=None):
 
     for mname, lineno in usemtl_lines.items():
         if mname not in materials:
-            raise SceneError(f"unknown material {_token(mname)}", path=path, line=lineno)
+            raise SceneError(f"unknown material {_token(mname)}{_not_utf8(mname)}", path=path, line=lineno)
 
     if not faces:
         raise SceneError("the scene has no triangles", path=path)

@@ -1,11 +1,14 @@
-"""Writers for --patches (CSV) and --report (JSON)."""
+"""Writers for --patches (CSV) and --report (JSON). Neither writes a non-finite number: the
+render stops a diverging solve first (host_driver/solver.py), and these refuse one before
+opening the file, so no half-written output is left."""
 
 import csv
 import json
+import math
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, SolveError, printable
 
 __all__ = ["write_patches_csv", "write_report_json"]
 
@@ -21,6 +24,11 @@ def _open(path, option):
 
 def write_patches_csv(path, scene, radiosity):
     """One row per patch: ``patch,group,area,cx,cy,cz,B_r,B_g,B_b``."""
+    bad = np.flatnonzero(~np.isfinite(radiosity).all(axis=1))
+    if len(bad):
+        i = int(bad[0])
+        raise SolveError(f"--patches {printable(path, 200)}: patch {i}'s radiosity is {np.asarray(radiosity[i]).tolist()}; "
+                         f"not written", patch=i)
     with _open(path, "--patches") as f:
         w = csv.writer(f)
         w.writerow(PATCH_COLUMNS)
@@ -45,7 +53,23 @@ def _plain(x):
     return x
 
 
+def _non_finite(x, key="report"):
+    """The key path of the first non-finite number in the plain value ``x``, or None."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return key
+    items = x.items() if isinstance(x, dict) else enumerate(x) if isinstance(x, list) else ()
+    for k, v in items:
+        found = _non_finite(v, f"{key}[{k!r}]")
+        if found:
+            return found
+    return None
+
+
 def write_report_json(path, report):
+    plain = _plain(report)
+    bad = _non_finite(plain)
+    if bad:
+        raise SolveError(f"--report {printable(path, 200)}: {bad} is not a finite number; not written")
     with _open(path, "--report") as f:
-        json.dump(_plain(report), f, indent=2, sort_keys=False)
+        json.dump(plain, f, indent=2, sort_keys=False, allow_nan=False)
         f.write("\n")

@@ -157,6 +157,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         with phases.timed("formfactor"):
             # exact patch-to-patch factors; the exchange mask is applied inside
             f_all = formfactor.unoccluded_factors(scene, i, cache=pair_cache)
+            solvers.check_factors(i, f_all, "exact factor")    # a NaN would pass "f > 0" as 0
             receivers = np.flatnonzero(f_all > 0)
             f = f_all[receivers]
         frac = visible_fraction(scene, vis, samples, i, receivers, phases)
@@ -173,12 +174,14 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
             result, closure_info = _solve_closed(scene, shoot, closure, solver, bar, tolerance=tolerance,
                                                  max_shots=max_shots, max_iterations=max_iterations)
         elif solver == "progressive":
-            result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance,
-                                                    max_shots=max_shots, progress=bar)
+            result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance, max_shots=max_shots,
+                                                    progress=bar, refuse_gain=True)
         else:
-            factors = _columns(scene, shoot, bar)
+            factors, sums = _columns(scene, shoot, bar)
             result = _solve_matrix(scene, factors, solver, tolerance=tolerance,
                                    max_shots=max_shots, max_iterations=max_iterations)
+            result.row_sums = sums
+    solvers.check_finite(scene, result)         # nothing non-finite is written
     if bar is not None:
         bar.close()
     inner = ("formfactor", "commands", "traverse", "board")
@@ -213,12 +216,13 @@ def _solve_closed(scene, shoot, mode, solver, bar, **solve):
     if 8 * scene.patches ** 2 > solvers.MAX_MATRIX_BYTES:
         raise ParameterError(f"--closure {mode}: the form factors of {scene.patches} patches do not fit in "
                              f"{solvers.MAX_MATRIX_BYTES / 2**30:g} GiB", parameter="closure")
-    F = _columns(scene, shoot, bar)
+    F, sums = _columns(scene, shoot, bar)
     t0 = time.perf_counter()
     corrected, info = closures.enforce(scene, F, mode=mode)
     info["enforce_seconds"] = time.perf_counter() - t0
     result = _solve_matrix(scene, corrected, solver, **solve)
     raw = _solve_matrix(scene, F, solver, **solve)
+    result.row_sums = sums                      # of the raw factors: the report's visible_row_sum
     info["absorbed_balance"] = closures.absorbed_balance(scene, result.B).tolist()
     info["absorbed_balance_raw"] = closures.absorbed_balance(scene, raw.B).tolist()
     info["residual_raw"] = float(raw.residual)
@@ -228,18 +232,22 @@ def _solve_closed(scene, shoot, mode, solver, bar, **solve):
 
 
 def _columns(scene, shoot, bar):
-    """The dense visible factors ``F[j, i]``, one shooter's column at a time."""
+    """``(F, row_sums)``: the dense visible factors ``F[j, i]``, one shooter's column at a time,
+    each checked as it comes (:class:`~blockray.host_driver.solver.RowSums`)."""
     F = np.zeros((scene.patches, scene.patches))
+    sums = solvers.RowSums(refuse_gain=True)
     for i in range(scene.patches):
         F[:, i] = shoot(i)
+        sums.check(scene, i, F[:, i])
         if bar is not None:
             bar.update(1)
-    return F
+    return F, sums
 
 
 def _solve_matrix(scene, F, solver, *, tolerance, max_shots, max_iterations):
     if solver == "progressive":
-        return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=tolerance, max_shots=max_shots)
+        return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=tolerance, max_shots=max_shots,
+                                              refuse_gain=True)
     gather = solvers.jacobi if solver == "jacobi" else solvers.gauss_seidel
     return gather(scene, F, tolerance=tolerance, max_iterations=max_iterations)
 
@@ -270,6 +278,8 @@ def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, trav
         "tests": int(counters.get("tests", 0)),
         "tests_per_ray": float(counters.get("tests", 0)) / max(1, rays),
         "residual": float(result.residual),
+        "visible_row_sum": result.row_sums.summary() if result.row_sums is not None else None,
+        "absorbed_balance": _absorbed_balance(scene, result.B),
         "seconds": seconds,
         "cpu_seconds": cpu_seconds,
         "host_seconds_per_ray": sum(seconds.get(p, 0.0) for p in ("commands", "traverse", "board")) / max(1, rays),
@@ -279,6 +289,14 @@ def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, trav
     for key, value in counters.items():
         report.setdefault(key, value)
     return report
+
+
+def _absorbed_balance(scene, B):
+    """absorbed / emitted power - 1 per channel (closure.absorbed_balance); None for a channel
+    that nothing emits. Of a progressive state, the light still unshot counts as not absorbed."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        balance = closures.absorbed_balance(scene, B)
+    return [float(b) if np.isfinite(b) else None for b in balance]
 
 
 def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, sets, solver, tolerance,
@@ -295,6 +313,7 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
         owner, result, summaries, info = solve_sets(client, scene, grid, sets, _morton(grid.cell_of(scene.centroids)),
                                                     job, solver=solver, tolerance=tolerance,
                                                     max_iterations=max_iterations, progress=progress)
+    solvers.check_finite(scene, result)
     phases.add("cluster", -(info["assign_seconds"] + info["cast_seconds"] + info["solve_seconds"]))
     phases.add("assign", info["assign_seconds"])
     phases.add("cast", info["cast_seconds"])

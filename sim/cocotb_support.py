@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
-from amaranth.back import verilog
+from .. import hdl
 
 from blockray.extras import MissingExtra, require
 
@@ -144,7 +144,7 @@ def build_verilator(component, *, name, build_args=DEFAULT_BUILD_ARGS, cache=Non
     from cocotb_tools.runner import get_runner
 
     verilator_env()
-    text = verilog.convert(component, name=name, emit_src=False)
+    text = hdl.convert(component, name=name, emit_src=False)
 
     def build(staging, sources):
         get_runner("verilator").build(sources=sources, hdl_toplevel=name, build_dir=staging,

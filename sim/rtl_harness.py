@@ -36,7 +36,7 @@ import weakref
 from dataclasses import dataclass
 from pathlib import Path
 
-from amaranth.back import verilog
+from .. import hdl
 
 from ..errors import BlockrayError
 from .cocotb_support import cached_build, start_cocotb, stop_cocotb, verilator_env
@@ -196,7 +196,7 @@ def build_harness(params, boards, *, depth=DEFAULT_DEPTH, trace=False, build_arg
     from ..rtl.core import BoardCore
 
     verilator_env()
-    board_text = verilog.convert(BoardCore(params, cell=cell, filter_format=filter_format), name=BOARD_MODULE,
+    board_text = hdl.convert(BoardCore(params, cell=cell, filter_format=filter_format), name=BOARD_MODULE,
                                  emit_src=False)
     harness_text = harness_source(boards=boards, depth=depth)
     name = f"{HARNESS_TOP}_{params.rows}x{params.cols}_b{params.bits}_p{boards}" + (

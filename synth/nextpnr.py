@@ -46,7 +46,7 @@ from importlib import metadata
 from pathlib import Path
 import tempfile
 
-from amaranth.back import verilog
+from .. import hdl
 
 from ..errors import ParameterError
 from ..params import BoardParams
@@ -347,7 +347,7 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
     name = f"blockray_{unit}"
     component = build_unit(unit, params, *cell)
     lut_multipliers = bool(ecp5.fabric_units)
-    unit_cells, t_unit, mapper = _yosys_ecp5(verilog.convert(component, name=name, emit_src=False,
+    unit_cells, t_unit, mapper = _yosys_ecp5(hdl.convert(component, name=name, emit_src=False,
                                                              platform=ecp5),
                                      name, tmp, "unit", netlist=False, lut_multipliers=lut_multipliers)
     seconds = {"yosys_unit": t_unit}
@@ -376,7 +376,7 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
     top = f"{name}_top"
     harness = LfsrHarness(build_unit(unit, params, *cell))
     total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(
-        verilog.convert(harness, name=top, emit_src=False, platform=ecp5), top, tmp, top, netlist=True,
+        hdl.convert(harness, name=top, emit_src=False, platform=ecp5), top, tmp, top, netlist=True,
         lut_multipliers=lut_multipliers)
     seconds["yosys_harness"] = t_top
     report["dsp_registers"] = dsp_registers(tmp / f"{top}.json")

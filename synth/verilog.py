@@ -24,7 +24,7 @@ unit, ``board``: ``BoardTop(cell="filtered")``; default format d_k exact and w_k
 except those of the ``fabric_units`` (left as ``*``, for LUT multipliers).
 """
 
-from amaranth.back import verilog
+from .. import hdl
 
 from ..errors import ParameterError
 from ..filtered import CELLS, check_cell as _check_cell_name, default_format
@@ -119,7 +119,7 @@ def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units
     ``blockray_<unit>``)."""
     platform = target_platform(target, fabric_units)
     component = build_unit(unit, params, cell, filter_format)
-    return verilog.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
+    return hdl.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
 def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",

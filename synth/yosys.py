@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from amaranth.back import verilog
+from .. import hdl
 
 from .tools import tool_command
 
@@ -86,7 +86,7 @@ def synth_stats(component, *, name="top", target="generic", verilog_text=None):
     """Convert ``component`` (or take ``verilog_text``) and synthesise it for ``target``."""
     if target not in ("generic", "ecp5"):
         raise ValueError(f"synthesis target must be 'generic' or 'ecp5', not {target!r}")
-    text = verilog_text if verilog_text is not None else verilog.convert(component, name=name, emit_src=False)
+    text = verilog_text if verilog_text is not None else hdl.convert(component, name=name, emit_src=False)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="blockray-yosys-") as tmp:
         Path(tmp, f"{name}.v").write_text(text)

