@@ -522,22 +522,22 @@ def _versus(name):
         m.pair_factors(S[:4], R[:4])
     with threads.using(1):
         for _ in range(2):
-            for name, m in (("before", old), ("now", ff)):
+            for version, m in (("before", old), ("now", ff)):
                 for label, target in (("closed form", 0.0), ("default", m.FAR_TARGET)):
                     used = np.zeros(len(m.METHODS), dtype=np.int64)
                     c0 = time.process_time()
                     m.pair_factors(S, R, target=target, stats=used)
-                    print(f"{name} {label}: {(time.process_time() - c0) / len(I) * 1e6:.2f} us/pair",
+                    print(f"{version} {label}: {(time.process_time() - c0) / len(I) * 1e6:.2f} us/pair",
                           dict(zip(m.METHODS, used.tolist())), flush=True)
     # unoccluded radiosity: the visibility multiplies both alike
     M = np.array([ff.exchange_mask(scene, i) for i in range(N)])
     I, J = np.nonzero(np.triu(M | M.T, 1))
     B = {}
-    for name, m in (("before", old), ("now", ff)):
+    for label, m in (("before", old), ("now", ff)):
         AF = np.zeros((N, N))
         AF[I, J] = AF[J, I] = m.pair_factors(V[I], V[J])
         F = np.where(M.T, AF / scene.areas[:, None], 0.0)            # F[j, i]: receiver j, shooter i
-        B[name] = np.stack([np.linalg.solve(np.eye(N) - scene.reflectance[:, c][:, None] * F, scene.emission[:, c])
+        B[label] = np.stack([np.linalg.solve(np.eye(N) - scene.reflectance[:, c][:, None] * F, scene.emission[:, c])
                             for c in range(3)], axis=1)
     lit = B["before"] > 1e-12 * B["before"].max()
     rel = np.abs(B["now"][lit] / B["before"][lit] - 1)

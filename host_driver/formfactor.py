@@ -79,7 +79,7 @@ __all__ = ["point_to_triangles", "triangle_to_points", "exchange_mask", "pair_fa
            "unoccluded_factors", "PairCache", "form_factor_matrix", "FAR_TARGET", "METHODS"]
 
 #: relative error bound a far-pair cubature must meet to replace the closed form
-FAR_TARGET = 1e-9
+FAR_TARGET = 1e-6
 #: method codes in the statistics of :func:`pair_factors`
 METHODS = ("zero", "closed form", "centroid", "7-point", "25-point", "64-point", "subdivided", "edge quadrature",
            "144-point", "unresolved")
@@ -91,8 +91,9 @@ CANCELLATION = 64 * 2.0 ** -53
 _U = 2.0 ** -53
 #: absolute error of :func:`_cl2` (tests/test_formfactor.py, against mpmath)
 CL2_ERROR = 2.5e-16
-#: relative error the contour sum's edge pairs are held to: an edge pair whose closed form's
-#: derived error bound exceeds its share of this times the value is integrated numerically
+#: relative error the contour sum's edge pairs are held to at ``target=0`` (else a tenth of the
+#: target): an edge pair whose closed form's derived error bound exceeds its share of this times
+#: the value is integrated numerically
 EDGE_TARGET = 1e-12
 
 
@@ -273,19 +274,10 @@ def _edge_pair(P, p, p1, Q, q, q1):
     w = math.sqrt(wx * wx + wy * wy + wz * wz)
     far2 = (w + La + Lb) ** 2                           # >= r^2 on the two edges
     sign = sa * sb
-    if S == 0.0:                                          # parallel: both along u
-        t0 = -(wx * ux + wy * uy + wz * uz)               # (b0 - a0) . u
-        t1 = t0 + Lb * c
-        px, py, pz = wx + t0 * ux, wy + t0 * uy, wz + t0 * uz
-        d = math.sqrt(px * px + py * py + pz * pz)
-        f1, e1 = _f_parallel(La, t1, d)
-        f2, e2 = _f_parallel(0.0, t1, d)
-        f3, e3 = _f_parallel(La, t0, d)
-        f4, e4 = _f_parallel(0.0, t0, d)
-        shift = 4 * _U * w                                # t0 and d are rounded dot products
-        lam = 2 + abs(math.log(far2)) + abs(math.log(max(d * d, (_U * far2) ** 2)))
-        err = e1 + e2 + e3 + e4 + shift * 2 * lam * (La + Lb)
-        return -sign * (f1 - f2 - f3 + f4), abs(f1) + abs(f2) + abs(f3) + abs(f4), err, 4 * far2 * lam
+    if S < 1e-4:       # nearly parallel: the parallel form, with its model error, may be better
+        par = _parallel_term(wx, wy, wz, w, ux, uy, uz, vx, vy, vz, c, S, La, Lb, far2)
+        if S == 0.0:
+            return -sign * par[0], par[1], par[2], par[3]
     if c > 1.0:
         c = 1.0
     elif c < -1.0:
@@ -314,8 +306,41 @@ def _edge_pair(P, p, p1, Q, q, q1):
     err = e1 + e2 + e3 + e4 + dsc * lam * (La + Lb)
     if d > 0.0:
         err += dd * min(2 * La * Lb / d, 2 * math.pi * d / (S * S) * (1 + math.log1p(S * S * (La * La + Lb * Lb) / (d * d))))
+    if S < 1e-4 and par[2] < abs(c) * err:
+        return -sign * par[0], par[1], par[2], par[3]
     return (-sign * c * (f1 - f2 - f3 + f4), abs(c) * (abs(f1) + abs(f2) + abs(f3) + abs(f4)),
             abs(c) * err, abs(c) * 4 * far2 * lam)
+
+
+@njit(cache=True)
+def _parallel_term(wx, wy, wz, w, ux, uy, uz, vx, vy, vz, c, S, La, Lb, far2):
+    """:func:`_edge_pair`'s term by the parallel form, edge b turned about its start onto the
+    direction +-u (angle theta = asin S), with its bound: rounding, plus the turn's model error.
+    Turning moves b's points by at most theta Lb, and ``|grad ln r^2| = 2 / r``, so I changes by
+    at most ``2 theta Lb La Lb / delta``, delta a lower bound on the distance from a's line to b
+    along the way (docs/formfactors.md); infinite where delta is not positive."""
+    sgn = 1.0 if c >= 0.0 else -1.0
+    t0 = -(wx * ux + wy * uy + wz * uz)               # (b0 - a0) . u
+    t1 = t0 + Lb * sgn
+    px, py, pz = wx + t0 * ux, wy + t0 * uy, wz + t0 * uz
+    d = math.sqrt(px * px + py * py + pz * pz)
+    f1, e1 = _f_parallel(La, t1, d)
+    f2, e2 = _f_parallel(0.0, t1, d)
+    f3, e3 = _f_parallel(La, t0, d)
+    f4, e4 = _f_parallel(0.0, t0, d)
+    shift = 4 * _U * w                                # t0 and d are rounded dot products
+    lam = 2 + abs(math.log(far2)) + abs(math.log(max(d * d, (_U * far2) ** 2)))
+    err = e1 + e2 + e3 + e4 + shift * 2 * lam * (La + Lb)
+    if S > 0.0:
+        # b's nearest approach to a's line: |p + t q|, p = b0's offset from the line, q = v's part across it
+        qx, qy, qz = vx - c * ux, vy - c * uy, vz - c * uz
+        qq = qx * qx + qy * qy + qz * qz
+        t = 0.0 if qq == 0.0 else min(max((px * qx + py * qy + pz * qz) / qq, 0.0), Lb)   # p = -(w + t0 u)
+        mx, my, mz = -px + t * qx, -py + t * qy, -pz + t * qz
+        theta = math.asin(min(S, 1.0))
+        delta = math.sqrt(mx * mx + my * my + mz * mz) - 8 * _U * (w + Lb) - theta * Lb
+        err += 2 * theta * Lb * La * Lb / delta if delta > 0.0 else np.inf
+    return f1 - f2 - f3 + f4, abs(f1) + abs(f2) + abs(f3) + abs(f4), err, 4 * far2 * lam
 
 
 # ---------------------------------------------------------------------------- edge quadrature
@@ -448,12 +473,13 @@ def _contour(P, nP, Q, nQ, rel):
     quadrature = False
     for _ in range(4):        # the value the shares are of may itself have been wrong: until it holds
         # no edge pair need be better than the sum's own rounding (CANCELLATION of its terms' sizes)
-        budget = max(rel * abs(total), CANCELLATION * np.minimum(mags, scales).sum())
-        share = 0.5 * budget / n
-        if errs.sum() <= 0.5 * budget:
+        sizes = np.minimum(mags, scales)
+        if errs.sum() <= 0.5 * max(rel * abs(total), CANCELLATION * sizes.sum()):
             break
         again = False
         for k in range(n):
+            # its share of the target, or its own rounding, whichever is larger
+            share = 0.5 * max(rel * abs(total) / n, CANCELLATION * sizes[k])
             if errs[k] > share:
                 p, q = k // nQ, k % nQ
                 p1 = p + 1 if p + 1 < nP else 0
@@ -900,7 +926,8 @@ def _pair(Ti, Tj, target, stats, P, Q):
     if nP < 3 or nQ < 3:
         stats[0] += 1
         return 0.0
-    value, size, err, quadrature = _contour(P, nP, Q, nQ, EDGE_TARGET)
+    # each edge pair held to a tenth of the pair's target (EDGE_TARGET for the reference, target 0)
+    value, size, err, quadrature = _contour(P, nP, Q, nQ, 0.1 * target if target > 0.0 else EDGE_TARGET)
     if CANCELLATION * size + err > max(target, EDGE_TARGET) * value:
         # the closed form may have lost the target to cancellation (grazing far pairs, slivers):
         # a product cubature with the cosine-free bound instead, else two high-order rules

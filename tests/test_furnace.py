@@ -79,7 +79,8 @@ def test_every_patch_of_an_emitting_enclosure_reaches_E_over_1_minus_rho(name):
           f"{np.abs(rows - 1).max():.2e}")
     assert np.isfinite(B).all()
     assert np.abs(B - E / (1 - RHO)).max() < 1e-6
-    assert np.abs(rows - 1).max() < 1e-9
+    # each pair is held to FAR_TARGET (1e-6) relative, each of its edge pairs to a tenth of it
+    assert np.abs(rows - 1).max() < 1e-7
 
 
 def write_obj(path, T, decimals):
