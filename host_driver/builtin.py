@@ -18,7 +18,7 @@ import os
 from pathlib import Path
 
 from ..errors import SceneError
-from .contact import split_contacts
+from .contact import rounding, split_contacts
 from .objload import LoadLimits, _check_max_edge, load_obj, subdivide
 from .scene import Camera
 
@@ -55,13 +55,15 @@ def load(name, *, max_edge=None, max_triangles=None, contact=True):
 
 
 def _finish(scene, max_edge, max_triangles, contact):
-    """Contact lines cut (host_driver/contact.py) before subdivision, so that the pieces are refined
-    like every other patch; the counts go to ``scene.contact`` (the report's ``contact`` key)."""
-    info = None
-    if contact:
-        scene, info = split_contacts(scene)
+    """Subdivided, then cut along contact lines (host_driver/contact.py): cut first, a large triangle
+    round a small footprint becomes long thin pieces that bisection refines into many more (room:
+    3890 patches, smallest angle 0.05 degrees, against 3605 and 0.19 this way). The counts go to
+    ``scene.contact`` (the report's ``contact`` key)."""
+    info, delta = None, rounding(scene.vertices)       # the file's, not the midpoints'
     if max_edge is not None:
         scene = subdivide(scene, max_edge, max_triangles=max_triangles)
+    if contact:
+        scene, info = split_contacts(scene, delta)
     scene.contact = info
     return scene
 

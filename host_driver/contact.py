@@ -81,7 +81,7 @@ def _plane_tolerance(delta, scale):
 class _Geometry:
     """Per-patch planes, sizes and tolerances of ``scene``."""
 
-    def __init__(self, scene):
+    def __init__(self, scene, delta):
         self.V = scene.vertices
         self.P = scene.patch_vertices
         self.normal = scene.normals
@@ -89,12 +89,8 @@ class _Geometry:
         edges = np.linalg.norm(self.P - np.roll(self.P, -1, axis=1), axis=2)
         self.height = 2.0 * scene.areas / edges.max(axis=1)        # smallest height
         self.diameter = edges.max(axis=1)
-        self.delta = rounding(self.V)
+        self.delta = rounding(self.V) if delta is None else delta
         self.tol = _plane_tolerance(self.delta, float(np.abs(self.V).max()))   # in-plane matching
-
-    def distance_tolerance(self, i, points):
-        r = np.linalg.norm(points - self.centroid[i], axis=-1)
-        return self.tol * (1.0 + r / self.height[i])
 
     def candidates(self):
         """(i, j) pairs, i != j, whose boxes, grown by i's plane tolerance, overlap."""
@@ -109,10 +105,13 @@ class _Geometry:
 
 
 def _sides(geo, i, j):
-    """(3,) in {-1, 0, 1}: where triangle j's corners lie against patch i's plane."""
+    """(K, 3) in {-1, 0, 1}: where triangle j[k]'s corners lie against patch i[k]'s plane, and
+    their signed distances (K, 3)."""
     Q = geo.P[j]
-    s = (Q - geo.P[i, 0]) @ geo.normal[i]
-    return np.where(np.abs(s) <= geo.distance_tolerance(i, Q), 0, np.sign(s)).astype(int), s
+    s = np.einsum("kvx,kx->kv", Q - geo.P[i, 0][:, None], geo.normal[i])
+    r = np.linalg.norm(Q - geo.centroid[i][:, None], axis=2)
+    tol = geo.tol * (1.0 + r / geo.height[i][:, None])
+    return np.where(np.abs(s) <= tol, 0, np.sign(s)).astype(int), s
 
 
 def _trace(Q, side, s):
@@ -176,18 +175,18 @@ def _planes(geo, n):
             a = parent[a]
         return a
 
-    found = []
-    for i, j in zip(*geo.candidates()):
-        side, s = _sides(geo, i, j)
-        if not side.any():
-            if np.dot(geo.normal[i], geo.normal[j]) > 0:
-                parent[max(root(i), root(j))] = min(root(i), root(j))
-            else:
-                found.append((i, j, None))
-        else:
-            segment = _trace(geo.P[j], side, s)
-            if segment is not None:
-                found.append((i, j, segment))
+    I, J = geo.candidates()
+    side, s = _sides(geo, I, J)
+    coplanar = ~side.any(axis=1)
+    same = coplanar & (np.einsum("kx,kx->k", geo.normal[I], geo.normal[J]) > 0)
+    for i, j in zip(I[same], J[same]):
+        parent[max(root(i), root(j))] = min(root(i), root(j))
+    found = [(i, j, None) for i, j in zip(I[coplanar & ~same], J[coplanar & ~same])]
+    may = (side == 1).any(axis=1) & ((side == -1).any(axis=1) | ((side == 0).sum(axis=1) == 2))
+    for k in np.flatnonzero(may):
+        segment = _trace(geo.P[J[k]], side[k], s[k])
+        if segment is not None:
+            found.append((I[k], J[k], segment))
     groups = {}
     for m in range(n):
         groups.setdefault(root(m), []).append(m)
@@ -248,8 +247,10 @@ def _pieces(plane, geo, i, covered):
     """Patch i's uncovered part as (M, 3, 3) triangles facing its way, the covered pieces' count
     and area; None if nothing of it is covered."""
     tri = plane.polygon(geo.P[i])
+    if not plane.covers[i] and not shapely.intersects(covered, tri):
+        return None
     stretch = 1.0 / abs(geo.normal[i, 3 - sum(plane.axes)])     # patch i's 3D area over its 2D area
-    cover = shapely.unary_union([covered] + plane.covers[i])
+    cover = shapely.unary_union([covered] + plane.covers[i]) if plane.covers[i] else covered
     cover = shapely.intersection(shapely.snap(cover, tri, geo.tol), tri)
     slack = geo.tol * tri.length                    # area of a band as wide as the tolerance
     if cover.area <= slack:
@@ -270,15 +271,19 @@ def _pieces(plane, geo, i, covered):
     return out, len(parts), (tri.area - rest.area) * stretch
 
 
-def split_contacts(scene):
+def split_contacts(scene, delta=None):
     """``scene`` with every patch split along its contact lines and the covered pieces dropped
     (module docstring), and a dict for the report: patches split, patches covered whole, covered
-    pieces dropped, the triangles the split patches became, the covered area and delta."""
-    geo = _Geometry(scene)
+    pieces dropped, the triangles the split patches became, the covered area and delta.
+
+    ``delta``: the coordinates' rounding (default :func:`rounding` of ``scene``'s; pass the file's
+    for a subdivided scene, whose midpoints show more decimals than the file had)."""
+    geo = _Geometry(scene, delta)
     replaced, info = {}, {"patches_split": 0, "patches_covered": 0, "covered_pieces": 0,
                           "triangles_from_split": 0, "covered_area": 0.0, "rounding": geo.delta}
     for plane in _planes(geo, scene.patches):
         covered = _covered_faces(plane, geo.tol)
+        shapely.prepare(covered)
         for i in plane.members:
             got = _pieces(plane, geo, i, covered)
             if got is None:

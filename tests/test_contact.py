@@ -210,24 +210,26 @@ def test_builtin_room_covered_areas():
     assert cut.contact["patches_split"] > 0 and full.contact is None
 
 
-def closed_box_with_block(n=3):
-    """The unit cube (inward faces, n x n cells a face) with a 0.3 x 0.2 x 0.4 block on its floor,
-    lit by the middle ceiling cell."""
+def closed_box_with_slab(n=3):
+    """The unit cube (inward faces, n x n cells a face) with a 0.3 x 0.2 x 0.02 slab on its floor (low,
+    so that it shadows little and the balance shows the covered part's loss, not the visibility's
+    error), lit by the middle ceiling cell."""
     box, face = closed_box(n)
-    block = prism(rect(0.35, 0.45, 0.65, 0.65), 0.4)
-    tris = np.concatenate([box, block])
+    slab = prism(rect(0.35, 0.4, 0.65, 0.6), 0.02)
+    tris = np.concatenate([box, slab])
     E = np.zeros((len(tris), 3))
     ceiling = np.flatnonzero(face == 1)
     E[ceiling[len(ceiling) // 2 - 1:len(ceiling) // 2 + 1]] = [1.0, 2.0, 0.5]
     R = np.full((len(tris), 3), [0.5, 0.3, 0.7])
     R[len(box):] = [0.8, 0.6, 0.2]
-    return make_scene(tris, reflectance=R, emission=E, name="closed box with block")
+    return make_scene(tris, reflectance=R, emission=E, name="closed box with slab")
 
 
 def test_energy_balance_better_with_the_split():
-    """Golden board: the floor cell under the block spreads what it receives over its covered part
-    unless it is split; with the split, absorbed / emitted - 1 is smaller in every channel."""
-    scene = closed_box_with_block()
+    """Golden board: the floor cell under the slab spreads what it receives over its covered part
+    unless it is split (measured -2.1%, -1.7%, -2.9%); split, absorbed / emitted - 1 is at least 5
+    times smaller in every channel (measured +0.12%, +0.09%, +0.20%: the visibility's own error)."""
+    scene = closed_box_with_slab()
     split, info = split_contacts(scene)
     assert info["patches_split"] == 2
     balances = {}
@@ -235,7 +237,7 @@ def test_energy_balance_better_with_the_split():
         result = render(s, board="golden", tolerance=1e-7)
         balances[name] = _balance(s, result.radiosity)
     print(f"{split.patches} patches: absorbed / emitted - 1 = {balances}")
-    assert (np.abs(balances["split"]) < np.abs(balances["whole"])).all()
+    assert (np.abs(balances["split"]) < 0.2 * np.abs(balances["whole"])).all()
 
 
 def test_cli_reports_and_turns_off(tmp_path):
