@@ -142,6 +142,7 @@ class _Plane:
         self.known = {}
         for v in geo.P[members].reshape(-1, 3):
             self.known.setdefault(tuple(self.flat(v)), v)
+        self.fresh = []                               # new points (2D, 3D): neighbours share them
 
     def flat(self, points):
         return np.asarray(points)[..., self.axes]
@@ -234,12 +235,17 @@ def _lift(plane, geo, i, points2):
     out = np.empty((len(points2), 3))
     for r, (u, v) in enumerate(points2):
         hit = plane.known.get((u, v))
-        if hit is not None:
-            out[r] = hit
-        else:
-            out[r, plane.axes] = u, v
-            out[r, k] = p0[k] - (n[plane.axes[0]] * (u - p0[plane.axes[0]])
-                                 + n[plane.axes[1]] * (v - p0[plane.axes[1]])) / n[k]
+        if hit is None:
+            # a trace crossing an edge two patches share: each computes the crossing, a few ulps
+            # apart; the second takes the first's point, so that the edge is not cracked
+            hit = next((q for p, q in plane.fresh if abs(p[0] - u) + abs(p[1] - v) <= geo.tol), None)
+        if hit is None:
+            hit = np.empty(3)
+            hit[plane.axes] = u, v
+            hit[k] = p0[k] - (n[plane.axes[0]] * (u - p0[plane.axes[0]])
+                              + n[plane.axes[1]] * (v - p0[plane.axes[1]])) / n[k]
+            plane.fresh.append(((u, v), hit))
+        out[r] = hit
     return out
 
 
