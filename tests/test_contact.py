@@ -253,3 +253,12 @@ def test_cli_reports_and_turns_off(tmp_path):
         reports[mode] = json.loads(report.read_text())
     assert reports["on"]["contact"]["patches_split"] == 2 and reports["off"]["contact"] is None
     assert reports["on"]["patches"] > reports["off"]["patches"] == 12
+
+
+@pytest.mark.parametrize("coordinates, delta", [
+    ([0.5, 0.25, 1.0], 5e-7),                        # few decimals shown: 6 assumed (exporters print 6)
+    ([0.166666667, 0.5, 2.0], 5e-10),                # 9 decimals
+    ([1.234567e-12, 2.5e-12, 0.0], 5e-19),           # exponent notation: the 7th significant digit
+])
+def test_rounding_reads_the_printed_precision(coordinates, delta):
+    assert rounding(np.array([coordinates])) == pytest.approx(delta, rel=1e-12)
