@@ -3,7 +3,9 @@
     python benchmarks/bench_contact.py room cornell-closed --board model --tolerance 1e-4
 
 Prints one markdown row per scene and setting: patches, what the split did, the solve, and
-absorbed / emitted - 1 per channel (host_driver/closure.py's absorbed_balance). ``cornell-closed`` is
+absorbed / emitted - 1 per channel (host_driver/closure.py's absorbed_balance). ``--row-sums``
+instead solves by Jacobi (every column of visible factors) and prints, per group, the area-weighted
+mean of each patch's visible row sum sum_i F_ji minus 1 (0 in a closed scene), and its extremes. ``cornell-closed`` is
 the built-in cornell file with a front wall over its opening (its floor as published, running under
 the blocks), loaded as a user's OBJ file would be, at the built-in's subdivision.
 """
@@ -50,7 +52,10 @@ def main():
     p.add_argument("--board", default="model")
     p.add_argument("--tolerance", type=float, default=1e-4)
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--row-sums", action="store_true")
     args = p.parse_args()
+    if args.row_sums:
+        return row_sums(args)
     print("| scene | contact | patches | split / covered whole / pieces dropped | shots | residual "
           "| absorbed / emitted - 1 (R, G, B) | seconds |")
     print("|---|---|---|---|---|---|---|---|")
@@ -66,6 +71,24 @@ def main():
                       f"| {res.report['residual']:.1e} | "
                       + ", ".join(f"{x:+.3%}" for x in absorbed_balance(scene, res.radiosity))
                       + f" | {time.perf_counter() - t:.0f} |", flush=True)
+
+
+def row_sums(args):
+    print("| scene | contact | group | patches | area | area-weighted mean (row sum - 1) | min | max |")
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as folder:
+        for name in args.scenes:
+            for contact in (False, True):
+                scene = load(name, folder, contact)
+                res = render(scene, board=args.board, solver="jacobi", tolerance=1e-6, threads=args.threads)
+                rows, A = res.factors.sum(axis=1), scene.areas
+                for g in ["all"] + list(range(len(scene.group_names))):
+                    m = scene.group == g if g != "all" else slice(None)
+                    if not A[m].size:
+                        continue
+                    print(f"| {name} | {'on' if contact else 'off'} | {scene.group_names[g] if g != 'all' else 'all'} "
+                          f"| {A[m].size} | {A[m].sum():.3f} | {(A[m] * (rows[m] - 1)).sum() / A[m].sum():+.4f} "
+                          f"| {rows[m].min():.3f} | {rows[m].max():.3f} |", flush=True)
 
 
 if __name__ == "__main__":
