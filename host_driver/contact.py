@@ -28,8 +28,8 @@ object overhanging P's outer edge where no wall closes it; coplanar faces turned
 Vertices: P's own corners and the other triangles' corners are kept exactly (they are looked up, not
 recomputed); new vertices (a trace crossing P's edge) lie in P's plane. GEOS's overlay is robust
 (snap-rounding noder), the pieces are triangulated by constrained Delaunay triangulation (no
-needles beyond what the outline forces; :func:`~blockray.host_driver.objload.subdivide` refines them
-later), and every step is deterministic.
+needles beyond what the outline forces; ``load_scene`` cuts after subdividing, so that a small
+footprint cuts small triangles: builtin.py, ``_finish``), and every step is deterministic.
 
 Tolerance: coordinates written to d decimals are each off by up to half a unit of the last decimal,
 delta = 0.5e-d (d is the most decimals any coordinate shows, at least 6: exporters print 6; with
