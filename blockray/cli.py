@@ -157,6 +157,9 @@ def _render_parser(sub):
     p.add_argument("scene", help="built-in scene name (cornell, room) or path to an .obj file")
     p.add_argument("--max-edge", type=_positive_float, default=None, metavar="LEN",
                    help="subdivide triangles until no edge is longer than LEN (scene units)")
+    p.add_argument("--contact", default="on", choices=["on", "off"],
+                   help="split patches along the lines where other geometry rests on them and drop the covered "
+                        "pieces (default on; the report's 'contact' key counts them)")
     p.add_argument("--voxels", type=_positive_int, default=None, metavar="V",
                    help="voxels per axis (default: chosen from the paper's cost model)")
     p.add_argument("--samples", type=_positive_int, default=8, metavar="K",
@@ -275,7 +278,7 @@ def _cmd_render(args):
     from .host_driver.solver import check_matrix_memory
 
     _check_render(args)
-    scene = load_scene(args.scene, max_edge=args.max_edge, limits=_load_limits(args))
+    scene = load_scene(args.scene, max_edge=args.max_edge, limits=_load_limits(args), contact=args.contact == "on")
     check_matrix_memory(scene.patches, args.solver)
     if args.bits is not None and not MIN_BITS <= args.bits <= MAX_BITS:
         raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 
 from ..errors import SceneError
+from .contact import rounding, split_contacts
 from .objload import LoadLimits, _check_max_edge, load_obj, subdivide
 from .scene import Camera
 
@@ -41,31 +42,47 @@ def path(name):
     return Path(__file__).resolve().parent / "scenes" / f"{name}.obj"
 
 
-def load(name, *, max_edge=None, max_triangles=None):
+def load(name, *, max_edge=None, max_triangles=None, contact=True):
     """Load a built-in scene, subdivided to ``max_edge`` (default ``DEFAULT_MAX_EDGE[name]``);
-    ``max_triangles``: as :func:`~blockray.host_driver.objload.subdivide`."""
+    ``max_triangles``: as :func:`~blockray.host_driver.objload.subdivide`; ``contact``: as
+    :func:`load_scene`."""
     if name not in NAMES:
         raise KeyError(name)
     scene = load_obj(path(name), name=name)
     scene.camera = CAMERAS[name]
     scene.source = f"builtin:{name}"
-    return subdivide(scene, DEFAULT_MAX_EDGE[name] if max_edge is None else max_edge,
-                     max_triangles=max_triangles)
+    return _finish(scene, DEFAULT_MAX_EDGE[name] if max_edge is None else max_edge, max_triangles, contact)
 
 
-def load_scene(spec, *, max_edge=None, limits=None):
+def _finish(scene, max_edge, max_triangles, contact):
+    """Subdivided, then cut along contact lines (host_driver/contact.py): cut first, a large triangle
+    round a small footprint becomes long thin pieces that bisection refines into many more (room:
+    3890 patches, smallest angle 0.05 degrees, against 3605 and 0.19 this way). The counts go to
+    ``scene.contact`` (the report's ``contact`` key)."""
+    info, delta = None, rounding(scene.vertices)       # the file's, not the midpoints'
+    if max_edge is not None:
+        scene = subdivide(scene, max_edge, max_triangles=max_triangles)
+    if contact:
+        scene, info = split_contacts(scene, delta)
+    scene.contact = info
+    return scene
+
+
+def load_scene(spec, *, max_edge=None, limits=None, contact=True):
     """A built-in scene by name (``cornell``, ``room``) or an OBJ file by path.
 
     For a built-in scene ``max_edge=None`` means its documented default subdivision
     (see this module); for a file it means no subdivision.
     ``limits``: :class:`LoadLimits` (files read, subdivision size).
+    ``contact``: split patches along contact lines and drop the covered pieces
+    (host_driver/contact.py; ``--contact off`` turns it off).
     """
     limits = LoadLimits() if limits is None else limits
     if max_edge is not None:
         _check_max_edge(max_edge)
     if spec in NAMES:
-        return load(spec, max_edge=max_edge, max_triangles=limits.max_triangles)
+        return load(spec, max_edge=max_edge, max_triangles=limits.max_triangles, contact=contact)
     if not os.path.lexists(spec):
         raise SceneError(f"no such scene file or built-in scene (built-ins: "
                          f"{', '.join(NAMES)})", path=spec)
-    return load_obj(spec, max_edge=max_edge, limits=limits)
+    return _finish(load_obj(spec, limits=limits), max_edge, limits.max_triangles, contact)

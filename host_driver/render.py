@@ -259,6 +259,7 @@ def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, trav
         "scene": scene.name,
         "source": scene.source,
         "patches": int(scene.patches),
+        "contact": scene.contact,        # patches split along contact lines at load (None: not done)
         "voxels": int(voxels),
         "voxels_hardware_optimum": int(voxels_hardware),
         "columns_cast": int(columns),

@@ -58,6 +58,7 @@ class Scene:
     group_names: list = field(default_factory=list)
     camera: Camera | None = None
     source: str = ""            # file path, or "builtin:NAME"
+    contact: dict | None = None # what load_scene's contact-line split did (host_driver/contact.py)
 
     @property
     def patches(self):

@@ -168,7 +168,7 @@ def test_max_patches_raises_the_subdivision_limit(capsys, no_render):
     # 46 triangles at max_edge 100 become 928: refused under a limit of 500, let through at 1000
     code, err = cli(capsys, ["render", "cornell", "--max-edge", "100", "--max-patches", "500"])
     assert_one_line_error(code, err, "--max-edge 100", "--max-patches")
-    assert load_scene("cornell", max_edge=100, limits=LoadLimits(max_triangles=1000)).patches == 928
+    assert load_scene("cornell", max_edge=100, limits=LoadLimits(max_triangles=1000), contact=False).patches == 928
 
 
 def test_subdivision_lower_bound_never_exceeds_the_count():
@@ -185,7 +185,7 @@ def test_subdivision_lower_bound_never_exceeds_the_count():
 
 def test_subdivision_stops_when_it_passes_the_limit():
     # the lower bound (~900 for max_edge 100) lets it start under a limit of 920; it gives 928
-    scene = builtin.load("cornell", max_edge=1e9)
+    scene = builtin.load("cornell", max_edge=1e9, contact=False)
     assert subdivision_lower_bound(scene, 100.0) < 920
     with pytest.raises(ParameterError, match=r"--max-edge 100 would subdivide the scene into 9[0-9][0-9] "):
         subdivide(scene, 100.0, max_triangles=920)
@@ -493,10 +493,11 @@ def test_nul_in_a_material_library_name_is_an_error(tmp_path):
 
 def test_gathering_solver_matrix_beyond_memory_is_refused(capsys, no_render, monkeypatch):
     from blockray.host_driver import solver
-    # cornell's 928 patches: a 6.6 MiB matrix, refused under a 4 MiB limit; progressive needs none
+    # cornell's 966 patches (928, cut round the blocks): a 7.1 MiB matrix, refused under a 4 MiB limit;
+    # progressive needs none
     monkeypatch.setattr(solver, "MAX_MATRIX_BYTES", 4 << 20)
     code, err = cli(capsys, ["render", "cornell", "--solver", "jacobi"])
-    assert_one_line_error(code, err, "--solver jacobi", "928 patches", "0.00642 GiB")
+    assert_one_line_error(code, err, "--solver jacobi", "966 patches", "0.00695 GiB")
     with pytest.raises(AssertionError, match="render started"):
         main(["render", "cornell", "--solver", "progressive"])
 
