@@ -7,6 +7,7 @@
     python benchmarks/bench_formfactor.py grazing    # cornell's grazing pairs: closed form and default vs mpmath
     python benchmarks/bench_formfactor.py trigger    # the closed form's error against its cancellation estimate
     python benchmarks/bench_formfactor.py versus cornell room   # against an earlier formfactor.py: speed, radiosity
+    python benchmarks/bench_formfactor.py unresolved cornell room   # pairs no route certifies
     python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
@@ -545,6 +546,28 @@ def _versus(name):
           f"RMS {np.sqrt(np.mean(rel ** 2)):.2e}")
 
 
+def unresolved(args):
+    """The pairs of every 8th shooter that no route certifies within FAR_TARGET (method
+    "unresolved"): how many, their largest F, and the worst four against the mpmath oracle."""
+    from blockray.host_driver.builtin import load_scene
+    from test_formfactor import clip_front, contour_oracle
+    for name in args.scenes:
+        scene = load_scene(name)
+        V, A = scene.patch_vertices, scene.areas
+        I, J = _every_step_pairs(scene, 8)
+        methods = np.zeros((len(I), len(ff.METHODS)), dtype=np.int64)
+        AF = ff._pairs(np.ascontiguousarray(V[I]), np.ascontiguousarray(V[J]), ff.FAR_TARGET, methods)
+        q = np.flatnonzero(methods[:, ff.METHODS.index("unresolved")] > 0)
+        F = AF[q] / np.minimum(A[I[q]], A[J[q]])
+        print(f"{name}: {scene.patches} patches, {len(I)} pairs, unresolved {len(q)}, largest F "
+              f"{F.max() if len(q) else 0:.2e}", flush=True)
+        for k in q[np.argsort(-F)[:4]]:
+            P, Q = clip_front(V[J[k]], V[I[k]]), clip_front(V[I[k]], V[J[k]])
+            oracle = contour_oracle(P, Q, dps=30) if len(P) > 2 and len(Q) > 2 else 0.0
+            print(f"  pair {I[k]}, {J[k]}: F {AF[k] / min(A[I[k]], A[J[k]]):.2e}, against mpmath "
+                  f"{AF[k] / oracle - 1 if oracle else float('nan'):+.1e}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -587,12 +610,14 @@ def main(argv=None):
     tr = sub.add_parser("trigger")
     tr.add_argument("--pairs", type=int, default=30)
     tr.add_argument("--seed", type=int, default=3)
+    un = sub.add_parser("unresolved")
+    un.add_argument("scenes", nargs="*", default=["cornell", "room"])
     vs = sub.add_parser("versus")
     vs.add_argument("scenes", nargs="*", default=["cornell"])
     args = ap.parse_args(argv)
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
-     "versus": versus, "closure": closure, "boards": boards, "change": change, "ends": end_points}[args.what](args)
+     "versus": versus, "unresolved": unresolved, "closure": closure, "boards": boards, "change": change, "ends": end_points}[args.what](args)
 
 
 if __name__ == "__main__":
