@@ -27,6 +27,7 @@ from ..params import BoardParams
 from ..protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
 from ..timing import BoardTiming
+from .framed import integrity_report
 from .transport import TransportError
 
 __all__ = ["BoardDriver", "blocked_bits"]
@@ -137,12 +138,16 @@ class BoardDriver(CountingBoard):
             # one board's link (every board gets the same block commands and sends its results)
             "bytes_per_ray": block_bytes / links / rays,
         }
+        stats = [t.stats() for t in self.transports] if self.transports else self._stats.get("transports")
         out["driver"] = {
             "backend": self.name,
             "params": None if bp is None else {"rows": bp.rows, "cols": bp.cols, "boards": bp.boards, "bits": bp.bits,
                                                "patch_depth": bp.patch_depth, "voxel_depth": bp.voxel_depth},
-            "transports": [t.stats() for t in self.transports] if self.transports else self._stats.get("transports"),
+            "transports": stats,
         }
+        integrity = integrity_report(stats or [])
+        if integrity is not None:           # a framed link: frames resent and errors seen
+            out["link_integrity"] = integrity
         return out
 
     def _reset_counters(self):
