@@ -14,6 +14,9 @@ from blockray.cli import main
 from blockray.framing import (MAX_PAYLOAD, RESEND, Endpoint, Frame, FrameError, FrameSplitter, LinkConfig, crc32,
                               encode_frame, parse_frame, wire_frame_bytes)
 from blockray.host_driver.framed import FaultInjector, FramedTransport, LinkFaults
+from blockray.host_driver.driver import BoardDriver
+from blockray.host_driver.render import render
+from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
 
 import test_rtl_board
@@ -235,3 +238,23 @@ def test_link_faults_need_a_framed_board(room, capsys):
     path, _ = room
     assert main(["render", str(path), *RENDER[:2], "--board", "model", "--link-faults", "1e-3", "--quiet"]) == 2
     assert "--link-faults needs a board with a framed link (--board model-link)" in capsys.readouterr().err
+
+
+class _Flipper(ModelTransport):
+    """An unframed model link that flips the tag of the first blocked word (bits 1:0 = 3)."""
+
+    def recv(self, count, *, timeout=None):
+        data = bytearray(super().recv(count, timeout=timeout))
+        if count > 31:                      # a batch of blocks, not IDENTIFY or the load's counters
+            data[0] |= 3
+        return bytes(data)
+
+
+def test_a_corrupted_result_tag_on_an_unframed_link_is_one_error(room):
+    """Without framing (a board on the old serial link) a corrupted result header is a
+    TransportError naming the board, not a ValueError."""
+    path, _ = room
+    scene = test_rtl_board.room_scene(path.parent, 1.5)
+    board = BoardDriver(test_rtl_board.PARAMS, bits=10, transport=lambda p, b: _Flipper(p))
+    with pytest.raises(TransportError, match=r"board 0 \(the link\): a corrupted result: result tag 3"):
+        render(scene, board=board, params=test_rtl_board.PARAMS, bits=10, samples=4, max_shots=1, voxels=3)
