@@ -163,7 +163,8 @@ class Endpoint:
         self._ack_due = False
         self.counts = {"frames_sent": 0, "frames_resent": 0, "frames_accepted": 0, "naks_sent": 0,
                        "crc": 0, "length": 0, "stuffing": 0, "short": 0, "garbage_bytes": 0,
-                       "out_of_order": 0, "discarded": 0, "duplicate": 0}
+                       "out_of_order": 0, "discarded": 0, "duplicate": 0,
+                       "timeouts": 0}
         self.last_fault = None
 
     @property
@@ -232,6 +233,7 @@ class Endpoint:
     def rewind(self):
         """A time-out: resend the unacknowledged frames, and ask the other side to resend its own."""
         self._resend = self._ask_resend = True
+        self.counts["timeouts"] += 1
 
     def output(self):
         """Wire bytes to send now: resent frames, new frames within the window, else (if owed)

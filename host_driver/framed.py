@@ -119,15 +119,17 @@ class ModelBoardLink:
 
 class FramedTransport(Transport):
     """The core's bytes over ``pipe`` in frames (see the module docstring). ``where`` names the
-    link in errors; ``timeout``: seconds of silence before a resend; ``max_retries``: resends in
+    link in errors; ``timeout``: seconds of silence before a resend (a board answers within a
+    USB round trip, a few ms); ``max_retries``: resends in
     a row without progress (no frame acknowledged or accepted) before the link is given up."""
 
-    def __init__(self, pipe, *, where, config=LinkConfig(), timeout=0.2, max_retries=32):
+    def __init__(self, pipe, *, where, config=LinkConfig(), timeout=0.05, max_retries=32):
         super().__init__()
         self.pipe, self.where, self.timeout, self.max_retries = pipe, where, timeout, max_retries
         self.endpoint = Endpoint(config)
         self._results = bytearray()
         self._resets = 0
+        self.wire_sent = self.wire_received = 0     # bytes on the wire, frames and resends included
 
     def send(self, data):
         self.endpoint.submit(bytes(data))
@@ -137,6 +139,7 @@ class FramedTransport(Transport):
         out = self.endpoint.output()
         if out:
             self.pipe.write(out)
+            self.wire_sent += len(out)
 
     def recv(self, count, *, timeout=None):
         e = self.endpoint
@@ -145,6 +148,7 @@ class FramedTransport(Transport):
         while len(self._results) < count:
             self._flush()
             data = self.pipe.read(silence)
+            self.wire_received += len(data)
             if data:
                 self._results += e.receive(data)
             now = (e.base, e.expect)
@@ -176,7 +180,7 @@ class FramedTransport(Transport):
         e = self.endpoint
         pipe = self.pipe.stats() if hasattr(self.pipe, "stats") else {}
         return {**pipe, "host": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts},
-                "resets": self._resets}
+                "resets": self._resets, "wire_bytes_sent": self.wire_sent, "wire_bytes_received": self.wire_received}
 
 
 def integrity_report(stats):
@@ -188,6 +192,8 @@ def integrity_report(stats):
     out = {"frames_sent": 0, "frames_resent": 0, "errors": 0}
     for s in stats:
         out["frames_sent"] += s["host"]["frames_sent"]
+        for key in ("wire_bytes_sent", "wire_bytes_received"):
+            out[key] = out.get(key, 0) + s[key]
         for side in ("host", "board"):
             for key in ("frames_resent", "errors"):
                 out[key] += s.get(side, {}).get(key, 0)
