@@ -27,7 +27,8 @@ from dataclasses import dataclass
 from cobs import cobs
 
 __all__ = ["RESEND", "HEADER_BYTES", "CRC_BYTES", "MAX_PAYLOAD", "DELIMITER", "crc32", "encode_frame",
-           "parse_frame", "Frame", "FrameError", "FrameSplitter", "Endpoint", "wire_frame_bytes", "LinkConfig"]
+           "parse_frame", "Frame", "FrameError", "FrameSplitter", "Endpoint", "wire_frame_bytes", "LinkConfig",
+           "HOST_LINK", "BOARD_LINK"]
 
 RESEND = 0x01
 HEADER_BYTES = 4
@@ -135,6 +136,13 @@ class LinkConfig:
             raise ValueError(f"the resend window must be 1 to {_SEQ // 2 - 1} frames, not {self.window}")
 
 
+#: the host's sender: full frames, 8 in flight (8 x 256 wire bytes fit the board's 2048-byte
+#: receive FIFO, so a UART byte never finds it full: the window is the credit)
+HOST_LINK = LinkConfig(MAX_PAYLOAD, 8)
+#: the board's sender: 4 frames of 128 result bytes, a 512-byte replay memory (the result FIFO's size)
+BOARD_LINK = LinkConfig(128, 4)
+
+
 def _ahead(a, b):
     """How far sequence number ``a`` is ahead of ``b`` (mod 256)."""
     return (a - b) % _SEQ
@@ -146,7 +154,7 @@ class Endpoint:
     queues bytes to send; ``output()`` gives the wire bytes to send now; ``rewind()`` resends
     every unacknowledged frame (a time-out). ``counts``: faults seen and frames (re)sent."""
 
-    def __init__(self, config=LinkConfig()):
+    def __init__(self, config):
         self.config = config
         self.reset()
 

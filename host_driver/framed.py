@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from ..framing import Endpoint, LinkConfig
+from ..framing import BOARD_LINK, HOST_LINK, Endpoint
 from .transport import Transport, TransportError
 
 __all__ = ["FramedTransport", "ModelBoardLink", "FaultyPipe", "LinkFaults", "FaultInjector", "integrity_report"]
@@ -95,7 +95,7 @@ class ModelBoardLink:
     :class:`~blockray.host_driver.simulated.ModelTransport`): frames accepted go to the core at
     once, its results are framed when the host reads (the board answers only; it has no timer)."""
 
-    def __init__(self, core, config=LinkConfig()):
+    def __init__(self, core, config=BOARD_LINK):
         self.core = core
         self.endpoint = Endpoint(config)
 
@@ -123,7 +123,7 @@ class FramedTransport(Transport):
     USB round trip, a few ms); ``max_retries``: resends in
     a row without progress (no frame acknowledged or accepted) before the link is given up."""
 
-    def __init__(self, pipe, *, where, config=LinkConfig(), timeout=0.05, max_retries=32):
+    def __init__(self, pipe, *, where, config=HOST_LINK, timeout=0.05, max_retries=32):
         super().__init__()
         self.pipe, self.where, self.timeout, self.max_retries = pipe, where, timeout, max_retries
         self.endpoint = Endpoint(config)

@@ -120,7 +120,7 @@ def test_go_back_n_wraps_sequence_numbers_and_keeps_the_window():
 
 
 def test_no_frame_accepted_twice_or_out_of_order():
-    a, b = Endpoint(LinkConfig(payload=1, window=4)), Endpoint()
+    a, b = Endpoint(LinkConfig(payload=1, window=4)), Endpoint(LinkConfig())
     a.submit(b"wxyz")
     frames = [f + b"\x00" for f in a.output().split(b"\x00")[:-1]]
     assert b.receive(frames[1]) == b""                                  # out of order: a gap
@@ -134,7 +134,7 @@ def test_no_frame_accepted_twice_or_out_of_order():
 
 
 def test_ack_and_resend_edge_cases():
-    a, b = Endpoint(LinkConfig(payload=2, window=3)), Endpoint()
+    a, b = Endpoint(LinkConfig(payload=2, window=3)), Endpoint(LinkConfig())
     a.submit(b"aabbccdd")
     wire = a.output()
     assert a.next == 3 and len(a._unacked) == 3
