@@ -93,7 +93,8 @@ def parse_frame(stuffed):
 
 class FrameSplitter:
     """Cuts a received byte stream at the delimiters; a chunk longer than any frame is garbage,
-    dropped up to the next delimiter (so a receiver's buffer stays bounded, as in hardware)."""
+    dropped up to the next delimiter (so a receiver's buffer stays bounded, as in hardware) and
+    given as None there (a bad frame, in its place in the stream)."""
 
     limit = wire_frame_bytes(MAX_PAYLOAD) - 1
 
@@ -113,7 +114,9 @@ class FrameSplitter:
                 self._buf, self._overlong = bytearray(), True
             if k == len(parts) - 1:         # no delimiter after the last part yet
                 break
-            if self._buf and not self._overlong:
+            if self._overlong:
+                out.append(None)
+            elif self._buf:
                 out.append(bytes(self._buf))
             self._buf, self._overlong = bytearray(), False
         return out, dropped
@@ -190,12 +193,12 @@ class Endpoint:
     def receive(self, wire):
         """Accept what arrived; returns the payload bytes of the frames accepted, in order."""
         chunks, dropped = self._splitter.feed(wire)
-        if dropped:
-            self.counts["garbage_bytes"] += dropped
-            self._fault("length", f"{dropped} bytes without a frame delimiter")
+        self.counts["garbage_bytes"] += dropped
         out = bytearray()
         for chunk in chunks:
             try:
+                if chunk is None:
+                    raise FrameError("length", f"more than {FrameSplitter.limit} bytes without a frame delimiter")
                 frame = parse_frame(chunk)
             except FrameError as e:
                 self._fault(e.kind, str(e))
