@@ -169,7 +169,7 @@ def _integrity(args, plain, plain_rate, bps):
           f"{f['frames_resent']} resent, {f['errors']} errors, {f['timeouts']} time-outs of {TIMEOUT * 1e3:g} ms; "
           f"injected {f.get('injected_flipped', 0)} flips, {f.get('injected_dropped', 0)} drops, "
           f"{f.get('injected_duplicated', 0)} duplicates")
-    print(f"framed link: {rate:,.0f} rays/s through the UART, {1 - rate / plain_rate:+.1%} less than the credited "
+    print(f"framed link: {rate:,.0f} rays/s through the UART, {1 - rate / plain_rate:.1%} fewer than the credited "
           f"link's {plain_rate:,.0f}; host CPU {f['host_seconds'] / rays * 1e6:.1f} us/ray (credited "
           f"{plain['host_seconds'] / rays * 1e6:.1f})")
 

@@ -21,16 +21,19 @@ While a payload leaves, ``wire.ready`` is low: the receive FIFO in front absorbs
 host's window, 8 frames of 256 wire bytes, is the FIFO's 2048 bytes).
 """
 
+import operator
+
 from amaranth.hdl import Module, Signal
 from amaranth.lib import crc, stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
+from amaranth.utils import ceil_log2
 
-from ..framing import CRC_BYTES, HEADER_BYTES, FrameSplitter
+from ..framing import CRC_BYTES, FrameSplitter, HEADER_BYTES
 
 __all__ = ["FrameReceiver"]
 
-_BODY_MAX = 254                         # header + payload + CRC: one COBS block
+_BODY_MAX = FrameSplitter.limit - 1     # header + payload + CRC: 254 bytes, one COBS block
 
 
 class FrameReceiver(wiring.Component):
@@ -52,25 +55,46 @@ class FrameReceiver(wiring.Component):
     frames: Out(16)
     errors: Out(16)
 
+    def __init__(self, *, max_body=_BODY_MAX):
+        """``max_body``: the longest frame (header, payload, CRC) in decoded bytes; a chunk of
+        more than ``max_body + 1`` stuffed bytes is refused. The protocol's is 254; the formal
+        proofs use shorter ones (a smaller memory)."""
+        max_body = operator.index(max_body)
+        if not HEADER_BYTES + CRC_BYTES <= max_body <= _BODY_MAX:
+            raise ValueError(f"a frame's body must be {HEADER_BYTES + CRC_BYTES} to {_BODY_MAX} bytes, not {max_body}")
+        self._max_body = max_body
+        self._crc = crc.catalog.CRC32_ETHERNET(data_width=8).create()
+        super().__init__()
+
+    @property
+    def max_body(self):
+        return self._max_body
+
+    @property
+    def crc(self):
+        """The CRC-32 unit over the decoded bytes (the formal proofs compare its register)."""
+        return self._crc
+
     def elaborate(self, platform):
         m = Module()
-        m.submodules.mem = mem = Memory(shape=8, depth=256, init=[])
+        body_max, raw_max = self._max_body, self._max_body + 1
+        m.submodules.mem = mem = Memory(shape=8, depth=1 << ceil_log2(body_max + 1), init=[])
         wr, rd = mem.write_port(), mem.read_port(domain="comb")
-        m.submodules.crc = check = crc.catalog.CRC32_ETHERNET(data_width=8).create()
+        m.submodules.crc = check = self._crc
 
-        raw = Signal(range(FrameSplitter.limit + 2))     # stuffed bytes of this chunk (saturating)
-        count = Signal(range(_BODY_MAX + 1))            # decoded bytes in the memory
+        raw = Signal(range(raw_max + 2))                # stuffed bytes of this chunk (saturating)
+        count = Signal(range(body_max + 1))             # decoded bytes in the memory
         code_left = Signal(8)                           # bytes left in the COBS block
         zero_due = Signal()                             # the block ends in a zero, unless the frame ends
         header = [Signal(8, name=f"header{k}") for k in range(HEADER_BYTES)]
         flags, seq, ack, length = header              # flags bit 0: RESEND
         nak_sent = Signal()
-        addr, left = Signal(8), Signal(8)
+        addr, left = Signal(range(body_max + 1)), Signal(8)
 
         put, put_data = Signal(), Signal(8)
-        m.d.comb += [wr.addr.eq(count), wr.data.eq(put_data), wr.en.eq(put & (count < _BODY_MAX)),
+        m.d.comb += [wr.addr.eq(count), wr.data.eq(put_data), wr.en.eq(put & (count < body_max)),
                      check.data.eq(put_data), check.valid.eq(put), rd.addr.eq(addr)]
-        with m.If(put & (count < _BODY_MAX)):
+        with m.If(put & (count < body_max)):
             m.d.sync += count.eq(count + 1)
             for k, field in enumerate(header):
                 with m.If(count == k):
@@ -99,7 +123,7 @@ class FrameReceiver(wiring.Component):
                     with m.If(raw != 0):
                         m.next = "Check"
                 with m.Elif(self.wire.valid):
-                    with m.If(raw <= FrameSplitter.limit):
+                    with m.If(raw <= raw_max):
                         m.d.sync += raw.eq(raw + 1)
                     with m.If(code_left == 0):                  # a code byte
                         m.d.comb += [put.eq(zero_due), put_data.eq(0)]
@@ -108,7 +132,7 @@ class FrameReceiver(wiring.Component):
                         m.d.comb += [put.eq(1), put_data.eq(byte)]
                         m.d.sync += code_left.eq(code_left - 1)
             with m.State("Check"):
-                self._check(m, raw, count, code_left, check, seq, length, nak_sent, addr, left, raise_nak)
+                self._check(m, raw <= raw_max, count, code_left, check, seq, length, nak_sent, addr, left, raise_nak)
                 restart()
             with m.State("Emit"):
                 m.d.comb += self.payload.valid.eq(1)
@@ -118,10 +142,10 @@ class FrameReceiver(wiring.Component):
                         m.next = "Collect"
         return m
 
-    def _check(self, m, raw, count, code_left, check, seq, length, nak_sent, addr, left, raise_nak):
+    def _check(self, m, fits, count, code_left, check, seq, length, nak_sent, addr, left, raise_nak):
         """The frame is complete: accept it, acknowledge a duplicate, or ask for a resend."""
         good = Signal()
-        m.d.comb += good.eq((raw <= FrameSplitter.limit) & (code_left == 0) & (count >= HEADER_BYTES + CRC_BYTES)
+        m.d.comb += good.eq(fits & (code_left == 0) & (count >= HEADER_BYTES + CRC_BYTES)
                             & check.match_detected & (length == count - HEADER_BYTES - CRC_BYTES))
         gap = Signal(8)
         m.d.comb += gap.eq(seq - self.expect)
