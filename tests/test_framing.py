@@ -214,7 +214,8 @@ def room(tmp_path_factory):
     return path, out.read_bytes()
 
 
-@pytest.mark.parametrize("rate,seed", [(1e-5, 3), (1e-4, 4), (1e-3, 5), (1e-3, 6)])
+#: seeds for which the small room's ~30 kB of link traffic meets faults even at 1e-5 (seed 24: two)
+@pytest.mark.parametrize("rate,seed", [(1e-5, 24), (1e-4, 4), (1e-3, 5), (1e-3, 6)])
 def test_render_with_link_faults_is_byte_identical(room, tmp_path, rate, seed):
     path, clean = room
     csv, report = tmp_path / "p.csv", tmp_path / "r.json"
@@ -223,9 +224,9 @@ def test_render_with_link_faults_is_byte_identical(room, tmp_path, rate, seed):
     integrity = json.loads(report.read_text())["link_integrity"]
     print("rate", rate, "seed", seed, integrity)
     assert csv.read_bytes() == clean
-    if rate >= 1e-3:                    # faults were injected, and corrected by resending
-        assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
-        assert integrity["frames_resent"] > 0 and integrity["errors"] > 0
+    # faults were injected, and corrected by resending
+    assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
+    assert integrity["frames_resent"] > 0 and integrity["errors"] > 0
 
 
 def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
