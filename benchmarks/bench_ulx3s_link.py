@@ -16,11 +16,13 @@ so ``baud / 10`` bytes per second each way; the array's own rate is rays / board
 
 import argparse
 import platform
+import time
 
 import numpy as np
 
 from blockray.host_driver import builtin
 from blockray.host_driver.driver import BoardDriver
+from blockray.host_driver.framed import FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.render import Visibility
 from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.voxel import VoxelGrid, default_voxels
@@ -50,31 +52,60 @@ class Counting(ModelTransport):
             self.reads += 1
         return super().recv(count, timeout=timeout)
 
+    def run(self, data=b"", *, whole=True):
+        out = super().run(data, whole=whole)
+        if self.on and not whole:           # behind the framed link (recv counts the others)
+            self.received += len(out)
+        return out
 
-def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS):
+
+def _framed(core, faults):
+    """The framed link (blockray.framing) over ``core``, with ``faults`` injected."""
+    pipe = ModelBoardLink(core)
+    return FramedTransport(FaultyPipe(pipe, faults.injector(0, 0), faults.injector(0, 1)), where="bench")
+
+
+def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS, faults=None):
+    """Bytes on one board's link for the block rays; ``faults``: through the framed link with
+    them (:class:`~blockray.host_driver.framed.LinkFaults`), else the credited link's figures."""
     scene = builtin.load(scene_name)
     samples = SampleScheme(8)
     params = BoardParams(rows=rows, cols=cols, boards=1)
-    links = []
-    driver = BoardDriver(params, name="ulx3s-link",
-                         transport=lambda p, b: links.append(Counting(p)) or links[-1])
+    links, outer = [], []
+
+    def transport(p, b):
+        links.append(Counting(p))
+        outer.append(links[-1] if faults is None else _framed(links[-1], faults))
+        return outer[-1]
+
+    driver = BoardDriver(params, name="ulx3s-link", transport=transport)
     driver.prepare(scene, samples)
     grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=driver.margin)
     driver.load(grid)
     cycles0 = driver.counters()["board_cycles"]
     link = links[0]
     link.on = True
+    wire0 = outer[0].stats()
     vis = Visibility(scene, driver, grid, samples, rows=params.rows, cols=params.cols)
     rng = np.random.default_rng(seed)
+    host = time.process_time()
     for i in rng.choice(scene.patches, shooters, replace=False):
         blocks = vis._blocks_for(int(i), np.arange(scene.patches))
         driver.run(blocks)
+    host = time.process_time() - host
     c = driver.counters()
+    if faults is not None:
+        wire = outer[0].stats()
+        return {"rays": c["rays"], "host_seconds": host, "down": link.sent, "up": link.received,
+                "down_wire": wire["wire_bytes_sent"] - wire0["wire_bytes_sent"],
+                "up_wire": wire["wire_bytes_received"] - wire0["wire_bytes_received"],
+                "timeouts": wire["host"]["timeouts"] - wire0["host"]["timeouts"], **c["link_integrity"]}
     proto = driver.protocol
     from blockray.protocol import ResultKind
     nb = proto.result_bytes(ResultKind.BLOCKED)
     records = c["blocks"] + (link.received - c["blocks"] * nb) // proto.result_bytes(ResultKind.COUNTERS)
     return {"scene": scene_name, "patches": scene.patches, "bits": driver.params.bits, "rays": c["rays"],
+            "host_seconds": host,
             "blocks": c["blocks"], "board_cycles": c["board_cycles"] - cycles0,
             "down": link.sent, "up": link.received, "records": records,
             "down_wire": link.sent, "up_wire": link.received + records + -(-link.sent // GRANT_BATCH)}
@@ -90,6 +121,8 @@ def main():
     ap.add_argument("--baud", type=int, default=3_000_000)
     ap.add_argument("--rows", type=int, default=DEFAULT_ROWS, help=f"array rows (default {DEFAULT_ROWS}: the bitstream's)")
     ap.add_argument("--cols", type=int, default=DEFAULT_COLS, help=f"array columns (default {DEFAULT_COLS})")
+    ap.add_argument("--faults", type=float, default=None, metavar="RATE",
+                    help="also measure the framed link (issue 31) with RATE faults per byte each way")
     args = ap.parse_args()
     r = measure(args.scene, args.shooters, args.seed, args.rows, args.cols)
     rays = r["rays"]
@@ -113,6 +146,32 @@ def main():
         print(f"{name}: link {r_link:,.0f} rays/s; the board {min(r_link, array_rate):,.0f} rays/s, "
               f"{min(r_link, array_rate) / link_rate:.1f}x the UART ({'link' if r_link < array_rate else 'array'}-bound; "
               f"the link could feed {r_link / array_rate:.2f} such arrays)")
+    if args.faults is not None:
+        _integrity(args, r, link_rate, bps)
+
+
+#: seconds the framed host waits in silence before it resends (FramedTransport's default)
+TIMEOUT = FramedTransport.__init__.__kwdefaults__["timeout"]
+
+
+def _integrity(args, plain, plain_rate, bps):
+    """The framed link at ``--faults`` against the credited link (``plain``): its bytes, resends,
+    time-outs and rays/s through the UART (each time-out costs ``TIMEOUT`` seconds of silence)."""
+    f = measure(args.scene, args.shooters, args.seed, args.rows, args.cols, faults=LinkFaults(args.faults, args.seed))
+    rays = f["rays"]
+    assert (f["down"], f["up"]) == (plain["down"], plain["up"]), "the framed link carried other core bytes"
+    seconds = max(f["down_wire"], f["up_wire"]) / bps + f["timeouts"] * TIMEOUT
+    rate = rays / seconds
+    print(f"framed link at {args.faults:g} faults per byte each way (seed {args.seed}): host -> board "
+          f"{f['down_wire'] / rays:.2f} B/ray, board -> host {f['up_wire'] / rays:.2f} B/ray, "
+          f"{(f['down_wire'] + f['up_wire']) / rays:.2f} B/ray together (credited: "
+          f"{(plain['down_wire'] + plain['up_wire']) / rays:.2f}); {f['frames_sent']} frames sent, "
+          f"{f['frames_resent']} resent, {f['errors']} errors, {f['timeouts']} time-outs of {TIMEOUT * 1e3:g} ms; "
+          f"injected {f.get('injected_flipped', 0)} flips, {f.get('injected_dropped', 0)} drops, "
+          f"{f.get('injected_duplicated', 0)} duplicates")
+    print(f"framed link: {rate:,.0f} rays/s through the UART, {1 - rate / plain_rate:.1%} fewer than the credited "
+          f"link's {plain_rate:,.0f}; host CPU {f['host_seconds'] / rays * 1e6:.1f} us/ray (credited "
+          f"{plain['host_seconds'] / rays * 1e6:.1f})")
 
 
 if __name__ == "__main__":

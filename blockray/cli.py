@@ -82,7 +82,11 @@ def _add_board_options(p):
     g.add_argument("--link-bursts", type=float, default=0.0, metavar="P",
                    help="with probability P per cycle the simulated host starts a long stall (16 to 256 cycles) "
                         "on each stream (--board amaranth)")
-    g.add_argument("--link-seed", type=int, default=0, metavar="N", help="seed of the simulated host's timing")
+    g.add_argument("--link-faults", type=float, default=None, metavar="RATE",
+                   help="flip, drop or duplicate each byte on every board's link, both ways, with probability "
+                        "RATE (--board model-link; faults are resent, or end the run naming the link)")
+    g.add_argument("--link-seed", type=int, default=0, metavar="N",
+                   help="seed of the simulated host's timing and of --link-faults")
 
 
 def _host_timing(args):
@@ -269,6 +273,20 @@ def _ulx3s_board(args, params):
                        transport=lambda p, b: links[b])
 
 
+def _faulty_board(args, params):
+    """--link-faults: the board built here, its links injecting faults (render takes the object)."""
+    from .errors import ParameterError
+    from .host_driver.backends import make_board
+    from .host_driver.framed import LinkFaults
+    if args.sets != 1 or args.scheduler is not None or args.workers is not None:
+        raise ParameterError("--link-faults injects faults on one set's links; it cannot be used with --sets, "
+                             "--scheduler or --workers")
+    faults = _naming_option(lambda: LinkFaults(args.link_faults, args.link_seed))
+    return _naming_option(lambda: make_board(args.board, params, bits=args.bits, vcd=args.vcd,
+                                             partition=args.partition, host=_host_timing(args), cell=args.cell,
+                                             filter_format=_render_filter_format(args), faults=faults))
+
+
 def _cmd_render(args):
     from .errors import ParameterError
     from .params import MIN_BITS, MAX_BITS
@@ -287,6 +305,9 @@ def _cmd_render(args):
     if args.board == "ulx3s":       # a real board: its links are opened and reset first
         params = _ulx3s_params(args, params)
         args.board, args.bits = _ulx3s_board(args, params), params.bits
+
+    if args.link_faults is not None:
+        args.board = _faulty_board(args, params)
 
     progress = not args.quiet and sys.stderr.isatty()
     result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,

@@ -358,7 +358,18 @@ class BoardProtocol:
 
     def decode_commands(self, stream):
         """The typed commands of a wire-format byte string (the inverse of :meth:`encode_all`)."""
-        out, i = [], 0
+        out, ends = self.decode_prefix(stream)
+        used = ends[-1] if ends else 0
+        if used < len(stream):
+            op = Op(stream[used] & 0xF)
+            raise ParameterError(f"byte {used}: {op.name} needs {self.command_bytes(op, (stream[used] >> 4 & 3) + 1) - 1} "
+                                 f"payload bytes, the stream ends first")
+        return out
+
+    def decode_prefix(self, stream):
+        """``(commands, ends)``: the complete commands at the start of ``stream`` and the offset
+        after each (a command cut off at the end is left, as a board's deframer waits for it)."""
+        out, ends, i = [], [], 0
         stream = bytes(stream)
         while i < len(stream):
             header = stream[i]
@@ -369,11 +380,12 @@ class BoardProtocol:
             points = (header >> 4 & 3) + 1
             n = _nbytes(self.payload_bits(op, points))
             if i + 1 + n > len(stream):
-                raise ParameterError(f"byte {i}: {op.name} needs {n} payload bytes, the stream ends first")
+                break
             bits = int.from_bytes(stream[i + 1:i + 1 + n], "little")
             out.append(self._command(op, bits, points))
             i += 1 + n
-        return out
+            ends.append(i)
+        return out, ends
 
     def _command(self, op, bits, points):
         cls = COMMANDS[op]
@@ -420,7 +432,10 @@ class BoardProtocol:
         if isinstance(word, (bytes, bytearray)):
             word = int.from_bytes(word, "little")
         value = unpack(self.result_layout, word)
-        kind = ResultKind(value["kind"])
+        try:
+            kind = ResultKind(value["kind"])
+        except ValueError:
+            raise ParameterError(f"result tag {value['kind']} is not a result kind") from None
         member = self._members[kind]
         return BoardResult(kind, **{member: value["data"][member]})
 

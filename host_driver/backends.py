@@ -21,7 +21,8 @@ class Backend:
     """``name``; ``help`` (one phrase for ``--board``); ``factory``; ``quantises``: the board
     quantises the scene (``--bits``, ``--partition`` apply); ``waveform``: it can write ``--vcd``;
     ``host_timing``: it takes random host idle / back-pressure (``--link-*``); ``cells``: the
-    processor cells it can be built with (``--cell``)."""
+    processor cells it can be built with (``--cell``); ``faults``: its link is framed and can
+    inject faults (``--link-faults``)."""
     name: str
     help: str
     factory: Callable
@@ -29,6 +30,7 @@ class Backend:
     waveform: bool = False
     host_timing: bool = False
     cells: tuple = ("exact",)
+    faults: bool = False
 
 
 BACKENDS = {}
@@ -51,14 +53,15 @@ def backend(name):
 
 
 def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host=None, cell="exact",
-               filter_format=None):
+               filter_format=None, faults=None):
     """Build back-end ``name``. ``bits=None`` lets the board choose B for the scene; ``vcd`` (a
     path) a waveform of a simulated board (board b > 0 writes ``FILE.b``); ``host``: the host's
     timing on a simulated board's link: ``(idle, backpressure, seed)``, two
     :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor cell,
     ``"exact"`` or ``"filtered"`` (``filter_format``: its :class:`~blockray.filtered.FilterFormat`,
     default :func:`~blockray.filtered.default_format`); the back-ends that build the board's
-    model or RTL take both."""
+    model or RTL take both. ``faults``: a :class:`~blockray.host_driver.framed.LinkFaults` to
+    inject on every board's link."""
     entry = backend(name)
     if check_cell(cell) not in entry.cells:
         able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
@@ -74,10 +77,16 @@ def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host
         able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
         raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
                              f"by cycle (--board {able}), not {name!r}")
+    extra = {}
+    if faults is not None:
+        if not entry.faults:
+            able = " or ".join(n for n, b in BACKENDS.items() if b.faults)
+            raise ParameterError(f"--link-faults needs a board with a framed link (--board {able}), not {name!r}",
+                                 parameter="link_faults")
+        extra["faults"] = faults
     if cell != "exact" or filter_format is not None:
-        return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host, cell=cell,
-                             filter_format=filter_format)
-    return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host)
+        extra.update(cell=cell, filter_format=filter_format)
+    return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host, **extra)
 
 
 def _wave(vcd, b):
@@ -113,15 +122,20 @@ def _verilator(p, b, *, vcd, host, **cell):
     return VerilatorTransport(p, vcd=vcd, **cell)
 
 
-def _model_link(p, b, *, vcd, host, **cell):
+def _model_link(p, b, *, vcd, host, faults=None, **cell):
+    from .framed import FaultyPipe, FramedTransport, ModelBoardLink
     from .simulated import ModelTransport
-    return ModelTransport(p, **cell)
+    pipe = ModelBoardLink(ModelTransport(p, **cell))
+    if faults is not None:
+        pipe = FaultyPipe(pipe, faults.injector(b, 0), faults.injector(b, 1))
+    return FramedTransport(pipe, where=f"model-link board {b}")
 
 
 register(Backend("golden", "exact reference on the float scene", _golden, quantises=False))
 register(Backend("model", "bit-exact model of the hardware; default", _model, cells=_CELLS))
-register(Backend("model-link", "the host driver and the board's byte link answered by the bit-exact model "
-                 "(no RTL; link traffic)", _driven("model-link", _model_link), cells=_CELLS))
+register(Backend("model-link", "the host driver and the board's framed byte link answered by the bit-exact "
+                 "model (no RTL; link traffic, --link-faults)", _driven("model-link", _model_link), cells=_CELLS,
+                 faults=True))
 register(Backend("amaranth", "the board's RTL in the Amaranth simulator: small scenes, debugging",
                  _driven("amaranth", _amaranth), waveform=True, host_timing=True, cells=_CELLS))
 register(Backend("verilator", "the board's Verilog under Verilator + cocotb; builds once per design, cached",

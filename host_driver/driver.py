@@ -20,13 +20,14 @@ From these the driver forms exactly the model's report (:class:`~blockray.board.
 import numpy as np
 
 from ..board import CountingBoard
-from ..errors import CapacityError
+from ..errors import CapacityError, ParameterError
 from ..fixedpoint import DEFAULT_MAX_ERROR
 from ..memory import BoardMemories, check_partition, quantise
 from ..params import BoardParams
 from ..protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
 from ..timing import BoardTiming
+from .framed import integrity_report
 from .transport import TransportError
 
 __all__ = ["BoardDriver", "blocked_bits"]
@@ -137,12 +138,16 @@ class BoardDriver(CountingBoard):
             # one board's link (every board gets the same block commands and sends its results)
             "bytes_per_ray": block_bytes / links / rays,
         }
+        stats = [t.stats() for t in self.transports] if self.transports else self._stats.get("transports")
         out["driver"] = {
             "backend": self.name,
             "params": None if bp is None else {"rows": bp.rows, "cols": bp.cols, "boards": bp.boards, "bits": bp.bits,
                                                "patch_depth": bp.patch_depth, "voxel_depth": bp.voxel_depth},
-            "transports": [t.stats() for t in self.transports] if self.transports else self._stats.get("transports"),
+            "transports": stats,
         }
+        integrity = integrity_report(stats or [])
+        if integrity is not None:           # a framed link: frames resent and errors seen
+            out["link_integrity"] = integrity
         return out
 
     def _reset_counters(self):
@@ -167,7 +172,7 @@ class BoardDriver(CountingBoard):
         self._bytes_sent += len(request) * len(self.transports)
         out = []
         for b, t in enumerate(self.transports):
-            got = proto.decode_result(self._recv(t, n))
+            got = self._decode(b, t, self._recv(t, n))
             if got.kind is not ResultKind.IDENTITY:
                 raise TransportError(f"board {b}: answered IDENTIFY with a {got.kind.name} result")
             ident = got.identity
@@ -179,6 +184,14 @@ class BoardDriver(CountingBoard):
                 raise CapacityError(f"board {b} was built for another configuration: {diff}")
             out.append(ident)
         return out
+
+    def _decode(self, b, transport, data):
+        """One result; a corrupted one (an unknown tag) is a TransportError naming the link."""
+        try:
+            return self.protocol.decode_result(data)
+        except ParameterError as e:
+            where = getattr(transport, "where", "the link")
+            raise TransportError(f"board {b} ({where}): a corrupted result: {e}") from None
 
     def _recv(self, transport, n):
         data = transport.recv(n)
@@ -202,8 +215,8 @@ class BoardDriver(CountingBoard):
         words = []
         for b, t in enumerate(self.transports):
             data = self._recv(t, expect)
-            results = [proto.decode_result(data[k * nb:(k + 1) * nb]) for k in range(blocks)]
-            results.append(proto.decode_result(data[blocks * nb:]))
+            results = [self._decode(b, t, data[k * nb:(k + 1) * nb]) for k in range(blocks)]
+            results.append(self._decode(b, t, data[blocks * nb:]))
             kinds = [r.kind for r in results]
             if kinds != [ResultKind.BLOCKED] * blocks + [ResultKind.COUNTERS]:
                 raise TransportError(f"board {b}: result kinds {[k.name for k in kinds[:8]]}... do not follow the commands")

@@ -239,27 +239,41 @@ class ModelTransport(_Buffered):
         self._out += data
 
     def recv(self, count, *, timeout=None):
-        from ..protocol import BoardResult, ResultKind
-
-        if len(self._in) < count and self._out:
-            cmds = self.protocol.decode_commands(self._out)
-            self._out.clear()
-            res = self.board.execute(cmds)
-            for r in res.results:
-                if r.kind is ResultKind.COUNTERS:
-                    c = {k: v + self._base[k] for k, v in r.counters.items()}
-                    r = BoardResult(r.kind, counters={**c, "stalls": 0})
-                self._in += self.protocol.result_wire(r)
-            self._base["cycles"] += res.cycles
-            self._base["busy"] += res.busy
-            self._base["tests_issued"] += res.tests_issued
-            self._base["tests_useful"] += res.tests_useful
+        if len(self._in) < count and (self._out or self._decoded):
+            self._in += self.run()
         if len(self._in) < count:
             raise TransportError(f"the model board sent {len(self._in)} of {count} result bytes")
         return self._take(count)
+
+    def run(self, data=b"", *, whole=True):
+        """Take ``data`` after what was sent, execute the complete commands and return their
+        result bytes. ``whole=False``: only up to the last READ_COUNTERS or IDENTIFY, later ones
+        wait for the next call (the driver ends every batch with one, and the model counts the
+        filtered cell's lost cycles per call: so a framed link's pieces run per batch, as
+        unframed)."""
+        from ..protocol import BoardResult, Op, ResultKind
+
+        self._out += data
+        cmds, ends = self.protocol.decode_prefix(self._out)
+        del self._out[:ends[-1] if ends else 0]
+        self._decoded += cmds
+        last = len(self._decoded) if whole else 1 + max(
+            (k for k, c in enumerate(self._decoded) if c.op in (Op.READ_COUNTERS, Op.IDENTIFY)), default=-1)
+        cmds, self._decoded = self._decoded[:last], self._decoded[last:]
+        res = self.board.execute(cmds)
+        out = bytearray()
+        for r in res.results:
+            if r.kind is ResultKind.COUNTERS:
+                c = {k: v + self._base[k] for k, v in r.counters.items()}
+                r = BoardResult(r.kind, counters={**c, "stalls": 0})
+            out += self.protocol.result_wire(r)
+        for name in self._base:
+            self._base[name] += getattr(res, name)
+        return bytes(out)
 
     def reset(self):
         self.board = self._model(self.params)
         self._base = {"cycles": 0, "busy": 0, "tests_issued": 0, "tests_useful": 0}
         self._out.clear()
+        self._decoded = []          # complete commands not yet executed
         self._in.clear()

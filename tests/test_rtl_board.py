@@ -39,15 +39,18 @@ COUNTER_KEYS = ("board_cycles", "tests_issued", "tests_useful", "tests", "utiliz
                 "utilization_per_board", "load_cycles_per_board", "blocks", "rays", "bits")
 
 
-def room_scene(tmp_path, max_edge):
-    """A closed room with one emitting wall and a box that casts shadows."""
+def room_obj(tmp_path):
+    """A closed room with one emitting wall and a box that casts shadows: its OBJ file."""
     room = box_faces((0, 0, 0), (2, 2, 2), True)
     light, walls = room[3:4], room[:3] + room[4:]
     inner = box_faces((0.6, 0.0, 0.6), (1.4, 0.8, 1.4), False)
-    path = write_obj(tmp_path, [("walls", ("white", (0.5,) * 3, (0,) * 3), walls),
+    return write_obj(tmp_path, [("walls", ("white", (0.5,) * 3, (0,) * 3), walls),
                                 ("light", ("lamp", (0.5,) * 3, (1,) * 3), light),
                                 ("block", ("white", (0.5,) * 3, (0,) * 3), inner)], name="room")
-    return load_obj(path, max_edge=max_edge)
+
+
+def room_scene(tmp_path, max_edge):
+    return load_obj(room_obj(tmp_path), max_edge=max_edge)
 
 
 @pytest.fixture(scope="module")
