@@ -767,6 +767,23 @@ def _polygon_ball(O, nO):
 
 
 @njit(cache=True)
+def _split4(T, stack, top):
+    """The midpoint split of triangle T into stack[top:top + 4], in the order the cubatures pop them."""
+    for m in range(4):
+        for c in range(3):
+            a, b, e = T[0, c], T[1, c], T[2, c]
+            ab, be, ea = 0.5 * (a + b), 0.5 * (b + e), 0.5 * (e + a)
+            if m == 0:
+                stack[top + m, 0, c], stack[top + m, 1, c], stack[top + m, 2, c] = a, ab, ea
+            elif m == 1:
+                stack[top + m, 0, c], stack[top + m, 1, c], stack[top + m, 2, c] = ab, b, be
+            elif m == 2:
+                stack[top + m, 0, c], stack[top + m, 1, c], stack[top + m, 2, c] = ea, be, e
+            else:
+                stack[top + m, 0, c], stack[top + m, 1, c], stack[top + m, 2, c] = be, ea, ab
+
+
+@njit(cache=True)
 def _grazing_nodes(I, nI, ox, oy, oz, orho, target, X, W):
     """Cubature nodes X (rows) and weights W (area included) over polygon I, fanned into triangles,
     each split in 4 until :func:`_grazing_bound` against the other polygon's ball (centre o,
@@ -795,20 +812,9 @@ def _grazing_nodes(I, nI, ox, oy, oz, orho, target, X, W):
         elif _grazing_bound(rho, D, 22) <= target:
             rule, weights = _RULE144, _RULE144_W
         elif level < 3 and top + 4 <= len(stack):
-            for m in range(4):                       # midpoint split: children of half the radius
-                for c in range(3):
-                    a, b, e = T[0, c], T[1, c], T[2, c]
-                    ab, be, ea = 0.5 * (a + b), 0.5 * (b + e), 0.5 * (e + a)
-                    if m == 0:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = a, ab, ea
-                    elif m == 1:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ab, b, be
-                    elif m == 2:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ea, be, e
-                    else:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = be, ea, ab
-                depth[top] = level + 1
-                top += 1
+            _split4(T, stack, top)                   # children of half the radius
+            depth[top:top + 4] = level + 1
+            top += 4
             continue
         else:
             return -1
@@ -985,19 +991,8 @@ def _two_rules(O, nO, nx, ny, nz, T, target):
         elif parts + top + 4 > 256 or top + 4 > len(stack):
             return -1.0
         else:
-            for m in range(4):                           # midpoint split
-                for c in range(3):
-                    a, b, e = S[0, c], S[1, c], S[2, c]
-                    ab, be, ea = 0.5 * (a + b), 0.5 * (b + e), 0.5 * (e + a)
-                    if m == 0:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = a, ab, ea
-                    elif m == 1:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ab, b, be
-                    elif m == 2:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = ea, be, e
-                    else:
-                        stack[top, 0, c], stack[top, 1, c], stack[top, 2, c] = be, ea, ab
-                top += 1
+            _split4(S, stack, top)
+            top += 4
     if not total > 0 or f1 * area > 2 * total:
         return -1.0            # the centre's estimate was too large: the shares were too loose
     return 0.5 * total
