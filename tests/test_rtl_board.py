@@ -117,7 +117,7 @@ def _blocks(scene, board, shooters):
 
 
 @pytest.mark.cocotb
-@pytest.mark.parametrize("backend", ["amaranth", "verilator"])
+@pytest.mark.parametrize("backend", ["amaranth", "verilator", "verilator-cocotb"])
 def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     seed = 11
     print(f"seed={seed}")
@@ -128,11 +128,15 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     # the same two batches as the RTL board below: each batch pays its last END_BLOCK's drain
     expect = model.run(blocks[:len(blocks) // 2]) + model.run(blocks[len(blocks) // 2:])
     host = (HostTiming(0.2, burst=0.003, burst_length=(30, 200)),
-            HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend == "amaranth" else None
-    board = make_board(backend, PARAMS, bits=BITS, host=host)
+            HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend != "verilator-cocotb" else None
+    if backend == "verilator-cocotb":          # the cocotb route (host_driver/simulated.py)
+        from blockray.host_driver.simulated import VerilatorTransport
+        board = BoardDriver(PARAMS, bits=BITS, transport=lambda p, b: VerilatorTransport(p))
+    else:
+        board = make_board(backend, PARAMS, bits=BITS, host=host)
     try:
         assert len(_blocks(scene, board, shooters)) == len(blocks)
-        if backend == "verilator":
+        if backend == "verilator-cocotb":
             for t in board.transports:
                 t.depth = 37                   # the host splits batches anywhere: same results
         # two calls: the counters carry over between batches

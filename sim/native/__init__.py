@@ -30,7 +30,7 @@ from ..drive import HostTiming
 
 HERE = Path(__file__).resolve().parent
 
-__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
+__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
            "NativeBoard", "seed_words"]
 
 #: Verilator's arguments (measured: docs/rtl-render.md)
@@ -85,7 +85,8 @@ class NativeBuild:
     cached: bool
 
 
-def _compiler():
+def compiler_version():
+    """The C++ compiler's version line; :class:`NativeBuildError` if it or make is missing."""
     cxx = os.environ.get("CXX", "g++")
     for tool in (cxx, "make"):
         if shutil.which(tool) is None:
@@ -114,7 +115,7 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
         verilator = verilator_env()
     except BlockrayError as e:
         raise NativeBuildError(str(e)) from None
-    compiler = _compiler()
+    compiler = compiler_version()
     files = {f"{TOP}.v": hdl.convert(component, name=TOP, emit_src=False),
              "harness.cpp": (HERE / "harness.cpp").read_text(),
              "native_config.h": ports.header(trace)}
