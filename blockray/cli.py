@@ -11,6 +11,7 @@ import logging
 import sys
 import warnings
 
+from .atomic import Terminated, sigterm_raises
 from .errors import BlockrayError
 
 __all__ = ["main"]
@@ -292,6 +293,7 @@ def _cmd_render(args):
     from .params import MIN_BITS, MAX_BITS
     from .host_driver.builtin import load_scene
     from .host_driver.render import render
+    from .atomic import Outputs
     from .host_driver.output import write_patches_csv, write_report_json
     from .host_driver.solver import check_matrix_memory
 
@@ -318,14 +320,15 @@ def _cmd_render(args):
                     echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
                     host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
                     closure=args.closure)
-    if args.image:
-        from .host_driver.image import render_image, save_png
-        img = render_image(scene, result.radiosity, width=args.size, height=args.size)
-        save_png(args.image, img)
-    if args.patches:
-        write_patches_csv(args.patches, scene, result.radiosity)
-    if args.report:
-        write_report_json(args.report, result.report)
+    with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
+        if args.image:
+            from .host_driver.image import render_image, save_png
+            img = render_image(scene, result.radiosity, width=args.size, height=args.size)
+            save_png(args.image, img, outputs)
+        if args.patches:
+            write_patches_csv(args.patches, scene, result.radiosity, outputs)
+        if args.report:
+            write_report_json(args.report, result.report, outputs)
     if not args.quiet:
         r = result.report
         print(f"{r['scene']}: {r['patches']} patches, {r['voxels']}^3 voxels, board {r['board']}, "
@@ -570,7 +573,8 @@ def main(argv=None):
         print(f"blockray: warning: {message}", file=sys.stderr)
     warnings.showwarning = _warn
     try:
-        return args.func(args)
+        with sigterm_raises():
+            return args.func(args)
     except BlockrayError as e:
         print(f"blockray: error: {e}", file=sys.stderr)
         return 2
@@ -578,9 +582,9 @@ def main(argv=None):
         print("blockray: error: out of memory; raise the memory limit (ulimit -v) or make the scene or design "
               "smaller", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("blockray: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:      # SIGINT, or SIGTERM as Terminated: every finally has run
+        print("blockray: terminated" if isinstance(e, Terminated) else "blockray: interrupted", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
 
 
 if __name__ == "__main__":
