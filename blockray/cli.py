@@ -147,8 +147,10 @@ def _check_render(args):
     from .extras import require
     from .paths import check_output_file
     from .host_driver.image import check_image_size
+    from .paths import check_output_dir
     for option in ("image", "patches", "report", "vcd"):
         check_output_file(getattr(args, option), f"--{option}")
+    check_output_dir(args.checkpoint or args.resume, "--checkpoint" if args.checkpoint else "--resume")
     if args.image is not None:
         check_image_size(args.size, args.size)
     if args.board == "verilator":
@@ -205,6 +207,12 @@ def _render_parser(sub):
     out.add_argument("--patches", metavar="CSV", help="write per-patch radiosity")
     out.add_argument("--report", metavar="JSON", help="write run statistics")
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    out.add_argument("--checkpoint", metavar="DIR",
+                     help="save the solve to DIR/checkpoint.npz as it runs (atomically, at most every 30 s: "
+                          "after a shot, or after a sweep); docs/robustness.md")
+    out.add_argument("--resume", metavar="DIR",
+                     help="continue the render whose checkpoint is in DIR (same scene and options, else "
+                          "refused) and keep saving there; the outputs equal an uninterrupted render's")
     p.set_defaults(func=_cmd_render)
     return p
 
@@ -288,6 +296,14 @@ def _faulty_board(args, params):
                                              filter_format=_render_filter_format(args), faults=faults))
 
 
+def _checkpoint(args):
+    """--checkpoint / --resume: where the solve is saved (the --resume folder unless --checkpoint)."""
+    if args.checkpoint is None and args.resume is None:
+        return None
+    from .host_driver.checkpoint import Checkpoint
+    return Checkpoint(save_to=args.checkpoint or args.resume, resume_from=args.resume)
+
+
 def _cmd_render(args):
     from .errors import ParameterError
     from .params import MIN_BITS, MAX_BITS
@@ -319,7 +335,7 @@ def _cmd_render(args):
                     threads=args.threads, scheduler=args.scheduler, workers=args.workers,
                     echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
                     host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
-                    closure=args.closure)
+                    closure=args.closure, checkpoint=_checkpoint(args))
     with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
         if args.image:
             from .host_driver.image import render_image, save_png

@@ -3,7 +3,7 @@
 The client (``blockray render``) prepares the scene, builds the voxel grid and assigns every patch
 to a set (:func:`~blockray.host_driver.scaleout.assign_sets`). It then sends the scene, the grid,
 the sample scheme, the quantisation (its B; every worker quantises the same scene to the same
-grid) and the set assignment to the workers once (``Client.scatter``), and submits one task per
+grid) and the set assignment to the cluster once (each held by a task, :func:`_hold`), and submits one task per
 set (:func:`cast_set`): the worker builds its own board (``make_board``: model, golden, or an RTL
 board with its own simulator process), loads the grid, casts the rays that end on its own patches
 and keeps its rows of F. Those rows never leave the worker. Each gathering sweep sends the
@@ -11,9 +11,12 @@ current radiosities to the workers and brings back each set's new ones
 (:func:`~blockray.host_driver.solver.jacobi_sweeps`,
 :func:`~blockray.host_driver.solver.gauss_seidel_sweeps`): only radiosities move.
 
-Faults are Dask's: a worker lost while casting or holding its rows has its set's task run again
-on another worker (the scattered inputs are on every worker), and as the cast is deterministic
-the answer is the same. The cluster is a ``LocalCluster`` on the loopback interface, one worker
+Faults: the inputs are held as tasks (:func:`_hold`), not scattered, so Dask can make any of them
+again; a worker lost while casting, holding its rows or sweeping has its tasks run again on
+another worker, and as the cast and the sweeps are deterministic the answer is the same, bit for
+bit. The loss of the scheduler, or of every worker for :data:`WORKERLESS` s, ends the render with
+:class:`~blockray.errors.ResourceError` (one line, exit 2; :func:`_results`), which a
+``--checkpoint`` lets ``--resume`` continue from the last sweep. The cluster is a ``LocalCluster`` on the loopback interface, one worker
 process per core (no more than there are sets), started and closed here; or the user's
 (``--scheduler ADDRESS``).
 """
@@ -54,9 +57,17 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
     is told the dashboard's address when the cluster serves one. Yields ``(client, threads)``,
     ``threads`` the cores each worker's kernels may use (None: the worker's own setting).
 
+    Dask's own logging is silenced (errors only; nothing at all when ``echo`` is None, as with
+    ``--quiet``): the render reports a lost cluster itself, in one line. The client and the
+    cluster are closed on every path, within seconds even when the scheduler is gone.
+
     A script that calls this must guard its top level with ``if __name__ == "__main__":``: the
     local workers are spawned processes that import it."""
     from dask.distributed import Client, LocalCluster
+    quiet = logging.CRITICAL if echo is None else logging.ERROR
+    dask_logger = logging.getLogger("distributed")
+    level = dask_logger.level
+    dask_logger.setLevel(quiet)
     cluster = None
     if scheduler is None:
         cores = os.cpu_count() or 1
@@ -68,7 +79,7 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
         dashboard = importlib.util.find_spec("bokeh") is not None
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
                                dashboard_address=f"{LOOPBACK}:0", scheduler_kwargs={"dashboard": dashboard},
-                               silence_logs=logging.ERROR)
+                               silence_logs=quiet)
         client = Client(cluster)
     else:
         threads = None
@@ -78,10 +89,18 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
         if echo is not None and dashboard:
             echo(f"Dask dashboard: {client.dashboard_link}")
         yield client, threads
+    except BaseException:
+        dask_logger.setLevel(logging.CRITICAL + 1)    # e.g. "failed to reconnect": the error says it
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        try:
+            client.close(timeout=CONNECT_TIMEOUT)
+            if cluster is not None:
+                cluster.close(timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError, RuntimeError):
+            pass                              # a cluster that is gone already
+        finally:
+            dask_logger.setLevel(level)
 
 
 def _connect(scheduler):
@@ -99,7 +118,7 @@ def _connect(scheduler):
 
 @dataclass(frozen=True)
 class SetJob:
-    """What every set's worker needs besides the scattered scene, grid and assignment."""
+    """What every set's worker needs besides the scene, grid and assignment the cluster holds."""
     board: str
     params: object             # BoardParams
     bits: object               # the client's quantisation B (None: a board without one)
