@@ -328,14 +328,18 @@ def _cmd_render(args):
         args.board = _faulty_board(args, params)
 
     progress = not args.quiet and sys.stderr.isatty()
-    result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
-                    samples=args.samples, solver=args.solver, tolerance=args.tolerance,
-                    max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
-                    threads=args.threads, scheduler=args.scheduler, workers=args.workers,
-                    echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
-                    host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
-                    closure=args.closure, checkpoint=_checkpoint(args))
+    try:
+        result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
+                        samples=args.samples, solver=args.solver, tolerance=args.tolerance,
+                        max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
+                        partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
+                        threads=args.threads, scheduler=args.scheduler, workers=args.workers,
+                        echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
+                        host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
+                        closure=args.closure, checkpoint=_checkpoint(args))
+    finally:                        # a board built here (ulx3s, --link-faults): closed on every path
+        if not isinstance(args.board, str) and hasattr(args.board, "close"):
+            args.board.close()
     with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
         if args.image:
             from .host_driver.image import render_image, save_png
