@@ -12,7 +12,8 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, TimeoutError as FutureTimeout
 
-from .transport import Transport, TransportError
+from .simulated import _Buffered
+from .transport import TransportError
 
 __all__ = ["NativeTransport", "native_build"]
 
@@ -36,7 +37,7 @@ def native_build(params, *, cell="exact", filter_format=None, trace=False):
         return _builds[key]
 
 
-class NativeTransport(Transport):
+class NativeTransport(_Buffered):
     """One :class:`~blockray.rtl.core.BoardCore` for ``params`` in the native harness.
 
     ``idle`` / ``backpressure``: :class:`~blockray.sim.drive.HostTiming` on the command and result
@@ -61,7 +62,6 @@ class NativeTransport(Transport):
             NativeBoard, self.build, idle=idle or HostTiming(), backpressure=backpressure or HostTiming(), seed=seed,
             vcd=vcd, patience=patience or params.patch_depth + 4096).result()
         self._out = bytearray()
-        self._in = bytearray()
         self._pending = None
         self.simulator_seconds = 0.0
         self.batches = 0
@@ -108,9 +108,7 @@ class NativeTransport(Transport):
             self._wait(timeout)
         if len(self._in) < count:
             raise TransportError(f"the native Verilator board sent {len(self._in)} of {count} result bytes")
-        data = bytes(self._in[:count])
-        del self._in[:count]
-        return data
+        return self._take(count)
 
     def reset(self):
         try:
