@@ -116,28 +116,30 @@ def plot(rows, slope, folder, what):
     import matplotlib.pyplot as plt
     os.makedirs(folder, exist_ok=True)
     prs = [w["PRS"] for w in rows]
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    ax.plot(prs, [w["us_per_ray_50MHz"] for w in rows], "o-", label=f"blockray board at 50 MHz (slope {slope:.2f})")
-    ax.plot(prs, [w["paper_model_us_per_ray"] for w in rows], "s--", label="paper's cost model, eq. 5, same v")
-    ax.set(xscale="log", yscale="log", xlabel="parallelism P x R x S", ylabel="time per ray (us)",
-           title=f"Figure 2: time per ray against parallelism\n{what}")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(os.path.join(folder, "paper-fig2.png"), dpi=120)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    ax.plot(prs, [w["us_per_ray_50MHz"] for w in rows], "o-", label="blockray board at 50 MHz")
-    ax.plot(prs, [w["traverse_s_per_ray"] * 1e6 for w in rows], "^-", label="blockray host traversal (this machine)")
-    ax.plot([512], [PAPER_US_PER_RAY], "r*", markersize=12, label="paper: 8 x 8 x 8, 0.12 us")
-    ax.axhline(PAPER_HOST_US_PER_RAY, color="gray", ls=":", label="paper: host alone, 34 us")
-    ax.set(xscale="log", yscale="log", xlabel="parallelism P x R x S", ylabel="time per ray (us)",
-           title=f"Figure 4: the machine's time per ray\n{what}")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(os.path.join(folder, "paper-fig4.png"), dpi=120)
-    plt.close(fig)
+
+    def figure(name, title, draw):
+        fig, ax = plt.subplots(figsize=(6.5, 4.5))
+        ax.plot(prs, [w["us_per_ray_50MHz"] for w in rows], "o-", label=draw(ax))
+        ax.set(xscale="log", yscale="log", xlabel="parallelism P x R x S", ylabel="time per ray (us)",
+               title=f"{title}\n{what}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(os.path.join(folder, name), dpi=120)
+        plt.close(fig)
+
+    def fig2(ax):
+        ax.plot(prs, [w["paper_model_us_per_ray"] for w in rows], "s--", label="paper's cost model, eq. 5, same v")
+        return f"blockray board at 50 MHz (slope {slope:.2f})"
+
+    def fig4(ax):
+        ax.plot(prs, [w["traverse_s_per_ray"] * 1e6 for w in rows], "^-", label="blockray host traversal (this machine)")
+        ax.plot([512], [PAPER_US_PER_RAY], "r*", markersize=12, label="paper: 8 x 8 x 8, 0.12 us")
+        ax.axhline(PAPER_HOST_US_PER_RAY, color="gray", ls=":", label="paper: host alone, 34 us")
+        return "blockray board at 50 MHz"
+
+    figure("paper-fig2.png", "Figure 2: time per ray against parallelism", fig2)
+    figure("paper-fig4.png", "Figure 4: the machine's time per ray", fig4)
 
 
 if __name__ == "__main__":
