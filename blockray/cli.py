@@ -600,7 +600,7 @@ def _sweep_parser(sub):
 def _cmd_sweep(args):
     from .errors import ParameterError
     from .paths import check_output_dir
-    from .host_driver.sweep import parse_vary, plot_front, run_sweep
+    from .host_driver.sweep import parse_vary, run_sweep
     grid = parse_vary(args.vary)
     fixed = parse_vary(args.fix, "--fix") if args.fix else {}
     if any(len(v) != 1 for v in fixed.values()):
@@ -609,9 +609,6 @@ def _cmd_sweep(args):
     echo = (lambda text: None) if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
     rows = run_sweep(args.scene, grid, reference=args.reference, fixed={k: v[0] for k, v in fixed.items()},
                      out=args.out, fmax=args.fmax, progress=not args.quiet and sys.stderr.isatty(), echo=echo)
-    png = f"{args.out}/pareto.png"
-    if not plot_front(rows, grid, png, f"{args.scene}: RMS error against CPU time"):
-        echo("no plot: matplotlib is not installed (pip install 'blockray[plot]'); the tables are written")
     failed = [r for r in rows if r["status"] != "ok"]
     echo(f"{len(rows) - len(failed)} of {len(rows)} points in {args.out}/sweep.csv")
     if failed:

@@ -28,11 +28,12 @@ from itertools import product
 
 import numpy as np
 
+from ..atomic import Outputs
 from ..errors import ParameterError, printable
 from ..params import MAX_BITS, MIN_BITS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
-           "error_against", "map_to_mesh", "pareto_front", "run_sweep", "COLUMNS"]
+           "error_against", "map_to_mesh", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
 
 
 @dataclass(frozen=True)
@@ -346,7 +347,8 @@ def run_sweep(scene, grid, *, reference="golden", fixed=None, out="sweep", fmax=
               echo=lambda text: None):
     """Render every point of ``grid`` (see :func:`parse_vary`) with the ``fixed`` settings, measure
     each against ``reference``; writes ``out/sweep.csv``, ``out/sweep.json`` and, with matplotlib,
-    ``out/pareto.png``. Returns the rows (failed points carry ``status`` = their error)."""
+    ``out/pareto.png``, all three together (blockray/atomic.py). Returns the rows (failed points carry
+    ``status`` = their error)."""
     from tqdm import tqdm
     from .builtin import load_scene
     fixed = dict(fixed or {})
@@ -368,28 +370,35 @@ def run_sweep(scene, grid, *, reference="golden", fixed=None, out="sweep", fmax=
                          "command": command})
         except ParameterError as e:
             rows.append({**settings, "status": f"failed: {e}", "command": command})
-    _write(out, scene, grid, fixed, ref, fmax, embree, rows)
+    with Outputs() as outputs:
+        _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows)
+        plotted = plot_front(outputs, rows, grid, os.path.join(out, "pareto.png"),
+                             f"{os.path.basename(scene)}: RMS error against CPU time")
+    if not plotted:
+        echo("no plot: matplotlib is not installed (pip install 'blockray[plot]'); the tables are written")
     return rows
 
 
-def _write(out, scene, grid, fixed, ref, fmax, embree, rows):
+def _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows):
     names = list(grid)
-    with open(os.path.join(out, "sweep.csv"), "w", newline="") as f:
+
+    def table(f):
         w = csv.DictWriter(f, fieldnames=names + COLUMNS, restval="")
         w.writeheader()
         w.writerows({k: ("" if v is None else v) for k, v in r.items()} for r in rows)
+
     meta = {"scene": scene, "vary": grid, "fixed": fixed, "reference": {"csv": ref.csv, "recipe": ref.recipe,
             "command": ref.command}, "fmax_mhz": fmax, "embree_cpu_s_per_ray": embree,
             "error": "per channel: area-weighted RMS relative to the reference's, and max |b - r| relative to its "
                      "area-weighted RMS radiosity, on the reference's mesh; error_rms/error_max: worst channel",
             "points": rows}
-    with open(os.path.join(out, "sweep.json"), "w") as f:
-        json.dump(meta, f, indent=2)
+    outputs.add(os.path.join(out, "sweep.csv"), "--out", table)
+    outputs.add(os.path.join(out, "sweep.json"), "--out", lambda f: json.dump(meta, f, indent=2))
 
 
-def plot_front(rows, grid, path, title):
-    """Error against CPU seconds, log-log, each point labelled by its setting and the front drawn.
-    Returns False when matplotlib is not installed."""
+def plot_front(outputs, rows, grid, path, title):
+    """Error against CPU seconds, log-log, each point labelled by its setting and the front drawn,
+    staged in ``outputs``. Returns False when matplotlib is not installed."""
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -410,6 +419,8 @@ def plot_front(rows, grid, path, title):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        outputs.add(path, "--out", lambda f: fig.savefig(f, format="png", dpi=120), binary=True)
+    finally:
+        plt.close(fig)
     return True
