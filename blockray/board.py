@@ -155,6 +155,16 @@ class Board(ABC):
     def counters(self):
         """Measured counters since prepare: at least ``tests`` (ray-patch tests performed)."""
 
+    def close(self):
+        """Release what the board holds (a simulator, serial links); whoever built the board
+        closes it (``with board:``)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
 
 class CountingBoard(Board):
     """A board of ``params.boards`` boards that keeps the machine's counters the same way,

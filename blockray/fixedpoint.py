@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import CapacityError, ParameterError
 from .exact import patch_normals
-from .params import MIN_BITS, MAX_BITS, Widths
+from .params import MIN_BITS, MAX_BITS, Widths, check_bits
 
 __all__ = ["QuantisedScene", "quantise", "choose_bits", "resolve_bits", "DEFAULT_MAX_ERROR",
            "MAX_DEGENERATE_FRACTION"]
@@ -120,9 +120,7 @@ def quantise(scene, samples, bits):
     Raises :class:`ParameterError` (naming --bits) when B is outside the limits or too small to
     hold even one lattice step of D.
     """
-    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not MIN_BITS <= bits <= MAX_BITS:
-        raise ParameterError(f"--bits must be an integer from {MIN_BITS} to {MAX_BITS}, not {bits!r}")
-    bits = int(bits)
+    bits = check_bits(bits)
     D = int(samples.denominator)
     cells = ((1 << bits) - 1) // D
     if cells < 1:

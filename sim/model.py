@@ -84,9 +84,9 @@ class BoardModel:
         if cell == "filtered":
             self.filter_format = filter_format or default_format(params.bits)
             self.depth = depth or default_array_depth()
-            self.timing = timing or BoardTiming.for_bits(params.bits, cell="filtered")
+            self.timing = timing or BoardTiming.for_cell("filtered")
         else:
-            self.timing = timing or BoardTiming.for_bits(params.bits)
+            self.timing = timing or BoardTiming.for_cell()
         self.layout = patch_layout(params.bits)
         self.protocol = BoardProtocol(params)
         self.vertices = np.zeros((params.patch_depth, 3, 3), dtype=np.int64)
@@ -269,9 +269,9 @@ class ModelBoard(CountingBoard):
         self.params = self.params.with_(bits=q.bits)
         if self.cell == "filtered":
             self.filter_format = self._filter_format or default_format(q.bits)
-            self.timing = self._timing or BoardTiming.for_bits(q.bits, cell="filtered")
+            self.timing = self._timing or BoardTiming.for_cell("filtered")
         else:
-            self.timing = self._timing or BoardTiming.for_bits(q.bits)
+            self.timing = self._timing or BoardTiming.for_cell()
         self.memories = None
         self._reset_counters()
 

@@ -84,7 +84,7 @@ def test_latencies_match_timing_contract():
     for bits in (4, 8, 16, 20):
         board = BoardTop(BoardParams(rows=1, cols=1, bits=bits, patch_depth=4, voxel_depth=2))
         Fragment.get(board, None)          # elaborates (and asserts the submodules' latencies)
-        contract = BoardTiming.for_bits(bits)
+        contract = BoardTiming.for_cell()
         assert board.timing == contract
         assert board.drain_latency == contract.drain_latency
         assert board.memory_latency == contract.memory_latency
@@ -106,7 +106,7 @@ def test_board_back_to_back_exact_cycles(seed, rows, cols):
     assert counters["stalls"] == 1, counters
     # a result reaches the host result_latency cycles after its command's own cycle, which is the
     # cycle after the command was accepted
-    latency = BoardTiming.for_bits(params.bits).result_latency
+    latency = BoardTiming.for_cell().result_latency
     assert {log.received[i] - log.accepted[i] for i in log.results} == {latency + 1}
 
 

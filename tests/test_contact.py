@@ -234,7 +234,7 @@ def test_energy_balance_better_with_the_split():
     assert info["patches_split"] == 2
     balances = {}
     for name, s in (("whole", scene), ("split", split)):
-        result = render(s, board="golden", tolerance=1e-7)
+        result = render(s, backend="golden", tolerance=1e-7)
         balances[name] = _balance(s, result.radiosity)
     print(f"{split.patches} patches: absorbed / emitted - 1 = {balances}")
     assert (np.abs(balances["split"]) < 0.2 * np.abs(balances["whole"])).all()

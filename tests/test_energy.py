@@ -60,7 +60,7 @@ def test_closed_scene_render_balance(prefix):
     enforcement (host_driver/closure.py): within 0.05% per channel. The raw factors' balance (not
     within 0.05% with occluders, docs/formfactors.md) is printed from the report."""
     scene = _scene(prefix)
-    result = render(scene, board="golden", tolerance=1e-6, closure="enforce")
+    result = render(scene, backend="golden", tolerance=1e-6, closure="enforce")
     c = result.report["closure"]
     balance = _balance(scene, result.radiosity)
     print(f"{scene.name} ({scene.patches} patches): absorbed / emitted - 1 = {balance}; raw factors "

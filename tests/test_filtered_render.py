@@ -20,7 +20,7 @@ from test_rtl_board import BITS, PARAMS, scene  # noqa: F401  (the module-scoped
 
 
 def _render(scene, board, **cell):
-    return render(scene, board=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
+    return render(scene, backend=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
 
 
 @pytest.fixture(scope="module")

@@ -167,5 +167,3 @@ def test_timing_contract():
     assert [load_commands_needed(r, s) for r, s in ((0, 0), (1, 0), (4, 0), (3, 2), (8, 8))] == [0, 1, 1, 2, 4]
     with pytest.raises(ParameterError, match="processor_latency"):
         BoardTiming(processor_latency=-1)
-    lat = [BoardTiming.for_bits(b).processor_latency for b in range(4, 21)]
-    assert lat == sorted(lat) and lat[0] >= 4        # wider operands never make the pipeline shorter

@@ -239,9 +239,9 @@ def _scaled_box(tmp_path, scale, name):
 def test_scene_at_the_ends_of_the_range_renders_as_at_unit_scale(tmp_path, scale, board):
     """Radiosity does not depend on the scene's scale: each board gives the unit box's answer at
     the largest and smallest accepted scales (not inf areas and a NaN residual)."""
-    unit = render(load_obj(_scaled_box(tmp_path, 1.0, "unit"), max_edge=0.7), board=board,
+    unit = render(load_obj(_scaled_box(tmp_path, 1.0, "unit"), max_edge=0.7), backend=board,
                   solver="jacobi", voxels=3)
-    scaled = render(load_obj(_scaled_box(tmp_path, scale, "scaled"), max_edge=0.7 * scale), board=board,
+    scaled = render(load_obj(_scaled_box(tmp_path, scale, "scaled"), max_edge=0.7 * scale), backend=board,
                     solver="jacobi", voxels=3)
     assert np.isfinite(scaled.report["residual"]) and scaled.report["rays"] == unit.report["rays"] > 0
     assert np.count_nonzero(unit.radiosity[:, 0] > 0) > len(unit.radiosity) // 2   # lit, not all zero

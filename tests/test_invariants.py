@@ -64,7 +64,7 @@ def test_correct_render_passes_and_reports_row_sums_and_balance(tmp_path, capsys
 def test_closed_box_balance_is_zero_and_a_dark_channel_is_null(box):
     scene, _ = box
     scene.emission[:, 2] = 0.0                  # nothing emits blue
-    result = render(scene, board="golden", solver="jacobi", tolerance=1e-10)
+    result = render(scene, backend="golden", solver="jacobi", tolerance=1e-10)
     r, g, b = result.report["absorbed_balance"]
     print(f"closed box: absorbed / emitted - 1 = {r}, {g}; blue {b}")
     assert abs(r) < 1e-3 and abs(g) < 1e-3 and b is None

@@ -67,7 +67,7 @@ def closed_box(tmp_path):
 @pytest.mark.parametrize("solver", ["progressive", "gauss-seidel"])
 def test_closed_box_uniform_emission(closed_box, board, solver):
     # Sum_j F_ij = 1 in a closed enclosure, so B = E + rho B: B = E / (1 - rho) on every patch.
-    res = render(closed_box, board=board, solver=solver, tolerance=1e-5, voxels=3)
+    res = render(closed_box, backend=board, solver=solver, tolerance=1e-5, voxels=3)
     expect = E / (1 - RHO)
     err = np.abs(res.radiosity / expect - 1)
     print(f"{board} {solver}: max relative error {err.max():.2e} over {closed_box.patches} patches")
@@ -85,7 +85,7 @@ def test_energy_balance_with_occluder(tmp_path):
                                 ("light", ("lamp", (RHO,) * 3, (E,) * 3), light),
                                 ("block", ("white", (RHO,) * 3, (0,) * 3), inner)])
     scene = load_obj(path, max_edge=0.5)
-    res = render(scene, board="model", tolerance=1e-4, voxels=4)
+    res = render(scene, backend="model", tolerance=1e-4, voxels=4)
     A = scene.areas[:, None]
     lhs = (A * res.radiosity).sum(0)
     rhs = (A * scene.emission).sum(0) / (1 - RHO)
@@ -174,7 +174,7 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
     scene = _occluded_room(tmp_path)
     runs = {}
     for traversal, packing in (("block", "voxel"), ("block", "fill"), ("ray", "voxel")):
-        res = render(scene, board="model", voxels=4, max_shots=6, traversal=traversal, packing=packing)
+        res = render(scene, backend="model", voxels=4, max_shots=6, traversal=traversal, packing=packing)
         runs[traversal, packing] = res
     base = runs["block", "voxel"]
     assert base.report["blocks"] > 0 and base.report["rays"] > 0
@@ -208,11 +208,11 @@ def test_gathering_render_returns_the_factors_progressive_refinement_shoots(tmp_
     # column the one a progressive render shoots, so both solves reproduce the renders to the bit.
     from blockray.host_driver import solver as solvers
     scene = _occluded_room(tmp_path)
-    gathered = render(scene, board="model", voxels=4, solver="jacobi", tolerance=1e-8)
+    gathered = render(scene, backend="model", voxels=4, solver="jacobi", tolerance=1e-8)
     F = gathered.factors
     assert F.shape == (scene.patches, scene.patches) and np.count_nonzero(F == 0) < F.size
     assert np.array_equal(solvers.jacobi(scene, F, tolerance=1e-8).B, gathered.radiosity)
-    shot = render(scene, board="model", voxels=4, max_shots=12)
+    shot = render(scene, backend="model", voxels=4, max_shots=12)
     assert shot.factors is None
     again = solvers.progressive_refinement(scene, lambda i: F[:, i], max_shots=12)
     assert np.array_equal(again.B, shot.radiosity)
@@ -254,8 +254,8 @@ def test_model_within_1e_4_of_golden(scene):
     and benchmarks/bench_render.py measure it (per channel printed; room: 10 min of golden)."""
     from blockray.host_driver import builtin
     scene = builtin.load(scene)
-    golden = render(scene, board="golden").radiosity
-    model = render(scene, board="model").radiosity
+    golden = render(scene, backend="golden").radiosity
+    model = render(scene, backend="model").radiosity
     per_channel = np.sqrt(((model - golden) ** 2).mean(axis=0) / (golden ** 2).mean(axis=0))
     rms = np.sqrt(((model - golden) ** 2).mean() / (golden ** 2).mean())
     print(f"{scene.name}: model vs golden RMS relative {rms:.3e}, per channel {per_channel}")

@@ -59,7 +59,7 @@ def scene(tmp_path_factory):
 
 
 def _render(scene, board, vcd=None):
-    return render(scene, board=board, params=PARAMS, bits=None if board == "golden" else BITS,
+    return render(scene, backend=board, params=PARAMS, bits=None if board == "golden" else BITS,
                   samples=4, max_shots=2, voxels=3, vcd=vcd)
 
 
@@ -244,7 +244,7 @@ def test_cli_render_verilator(tmp_path, capsys):
 @pytest.mark.cocotb
 def test_verilator_vcd(scene, tmp_path):
     vcd = tmp_path / "board.vcd"
-    render(scene, board="verilator", params=PARAMS, bits=BITS, samples=4, max_shots=1, voxels=3, vcd=vcd)
+    render(scene, backend="verilator", params=PARAMS, bits=BITS, samples=4, max_shots=1, voxels=3, vcd=vcd)
     for path in (vcd, tmp_path / "board.vcd.1"):         # one waveform per simulator process (board)
         text = path.read_text()
         assert "i_bytes__valid" in text and "\n#1" in text
