@@ -198,7 +198,7 @@ def _render_parser(sub):
 
 
 def _add_link_options(p):
-    from .host_driver.serial_link import DEFAULT_BAUD
+    from .link import DEFAULT_BAUD
     g = p.add_argument_group("real board (--board ulx3s; its memories are those its IDENTIFY reply gives)")
     g.add_argument("--port", default=(), metavar="DEV[,DEV...]",
                    help="serial port of each board (e.g. /dev/ttyUSB0; one per board, --boards of them)")
@@ -221,7 +221,7 @@ def _cmd_render(args):
     progress = not args.quiet and sys.stderr.isatty()
     echo = None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
     with _naming_option(lambda: build_board(options.board)) as board:
-        result = render(scene, board, options, progress=progress, echo=echo)
+        result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo))
     if args.image:
         from .host_driver.image import render_image, save_png
         img = render_image(scene, result.radiosity, width=args.size, height=args.size)
@@ -383,7 +383,7 @@ def _cmd_synth(args):
 
 
 def _bitstream_parser(sub):
-    from .host_driver.serial_link import DEFAULT_BAUD
+    from .link import DEFAULT_BAUD
     p = sub.add_parser("bitstream", help="build a board's bitstream for an FPGA board (ULX3S-85F)",
                        description="Build the bitstream of a blockray board on the ULX3S-85F (LFE5U-85F, speed "
                                    "grade -6): PLL from the 25 MHz oscillator, reset synchroniser, UART link on "

@@ -22,11 +22,10 @@ import numpy as np
 from ..board import CountingBoard
 from ..errors import CapacityError, ParameterError
 from ..fixedpoint import DEFAULT_MAX_ERROR
-from ..memory import BoardMemories, check_partition, quantise
+from ..memory import BoardMemories, check_partition
 from ..params import BoardParams
 from ..protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
-from ..timing import BoardTiming
 from .framed import integrity_report
 from .transport import TransportError
 
@@ -84,13 +83,9 @@ class BoardDriver(CountingBoard):
     # -- Board interface -------------------------------------------------------------------------
 
     def prepare(self, scene, samples):
-        q, self.margin = quantise(scene, samples, self.bits, max_error=self.max_error)
-        self.quantised, self.samples = q, samples
-        self.params = self.params.with_(bits=q.bits)
         # with the filtered cell the drain of a batch's last END_BLOCK depends on the data: the
         # report counts its least (the boards' own cycles are exact)
-        self.timing = BoardTiming.for_cell(self.cell)
-        self._reset_counters()
+        self._quantise(scene, samples)
 
     def load(self, grid):
         if self.quantised is None:

@@ -32,7 +32,7 @@ SOLVERS = ("progressive", "jacobi", "gauss-seidel")
 
 def _one_of(name, value, choices):
     if value not in choices:
-        raise ParameterError(f"--{name.replace('_', '-')} must be one of {', '.join(choices)}, not {value!r}",
+        raise ParameterError(f"{name} must be one of {', '.join(choices)}, not {value!r}",
                              parameter=name)
     return value
 
@@ -62,6 +62,7 @@ class BoardOptions:
     baud: int = DEFAULT_BAUD
 
     def __post_init__(self):
+        from ..filtered import check_cell
         from .backends import backend, check_board
         entry = backend(self.backend)
         if not isinstance(self.params, BoardParams):
@@ -69,17 +70,15 @@ class BoardOptions:
         if self.bits is not None:
             check_bits(self.bits)
             if not entry.quantises:
-                raise ParameterError("--bits applies to boards that quantise the scene; the golden board is "
-                                     "float64", parameter="bits")
+                raise ParameterError(f"bits applies to boards that quantise the scene; the {self.backend} board "
+                                     f"is float64", parameter="bits")
         check_partition(self.partition)
+        check_cell(self.cell, self.filter_format)
         check_board(self)
-        if self.filter_format is not None and self.cell != "filtered":
-            raise ParameterError("--filter-bits sets the filtered cell's format; it needs --cell filtered",
-                                 parameter="filter_bits")
         if isinstance(self.port, str):
             object.__setattr__(self, "port", tuple(p for p in self.port.split(",") if p))
         if not _integer(self.baud) or self.baud < 1:
-            raise ParameterError(f"--baud must be a positive integer, not {self.baud!r}", parameter="baud")
+            raise ParameterError(f"baud must be a positive integer, not {self.baud!r}", parameter="baud")
 
 
 @dataclass(frozen=True)
@@ -96,7 +95,7 @@ class RayOptions:
     def __post_init__(self):
         from .visibility import PACKINGS, TRAVERSALS
         if self.voxels is not None and (not _integer(self.voxels) or not 1 <= self.voxels <= 256):
-            raise ParameterError(f"--voxels must be an integer from 1 to 256, not {self.voxels!r}", parameter="voxels")
+            raise ParameterError(f"voxels must be an integer from 1 to 256, not {self.voxels!r}", parameter="voxels")
         if not isinstance(self.samples, SampleScheme):
             object.__setattr__(self, "samples", SampleScheme(self.samples))
         _one_of("traversal", self.traversal, TRAVERSALS)
@@ -120,10 +119,10 @@ class SolveOptions:
         from .closure import MODES
         _one_of("solver", self.solver, SOLVERS)
         if not (isinstance(self.tolerance, (int, float)) and math.isfinite(self.tolerance) and self.tolerance > 0):
-            raise ParameterError(f"--tolerance must be a positive number, not {self.tolerance!r}",
+            raise ParameterError(f"tolerance must be a positive number, not {self.tolerance!r}",
                                  parameter="tolerance")
         if self.max_shots is not None and (not _integer(self.max_shots) or self.max_shots < 1):
-            raise ParameterError(f"--max-shots must be at least 1, not {self.max_shots!r}", parameter="max_shots")
+            raise ParameterError(f"max_shots must be at least 1, not {self.max_shots!r}", parameter="max_shots")
         if not _integer(self.max_iterations) or self.max_iterations < 1:
             raise ParameterError(f"max_iterations must be at least 1, not {self.max_iterations!r}",
                                  parameter="max_iterations")
@@ -142,11 +141,11 @@ class SetOptions:
 
     def __post_init__(self):
         if not _integer(self.sets) or self.sets < 1:
-            raise ParameterError(f"--sets must be a positive integer, not {self.sets!r}", parameter="sets")
+            raise ParameterError(f"sets must be a positive integer, not {self.sets!r}", parameter="sets")
         for name in ("workers", "threads"):
             value = getattr(self, name)
             if value is not None and (not _integer(value) or value < 1):
-                raise ParameterError(f"--{name} must be a positive integer, not {value!r}", parameter=name)
+                raise ParameterError(f"{name} must be a positive integer, not {value!r}", parameter=name)
         if self.scheduler is not None and self.workers is not None:
             raise ParameterError("--workers sizes the local cluster; a cluster joined with --scheduler has its own "
                                  "workers", parameter="workers")
@@ -164,7 +163,7 @@ def filter_format(text):
     from ..filtered import FilterFormat
     parts = text.split(":")
     if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
-        raise ParameterError(f"--filter-bits must be D or D:W (integers), not {text!r}", parameter="filter_bits")
+        raise ParameterError(f"filter_bits must be D or D:W (integers), not {text!r}", parameter="filter_bits")
     bits = [int(p) for p in parts]
     return FilterFormat(bits[0], bits[-1])
 

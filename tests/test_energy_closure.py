@@ -8,7 +8,7 @@ code under test.
 import numpy as np
 import pytest
 
-from test_formfactor import closed_box, make_scene
+from scenes import closed_box, make_scene
 from blockray.errors import ParameterError
 from blockray.host_driver import closure
 from blockray.host_driver.formfactor import form_factor_matrix

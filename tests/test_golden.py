@@ -14,7 +14,7 @@ from blockray.host_driver.board import BlockRay
 from blockray.host_driver.golden import GoldenBoard
 from blockray.samples import SampleScheme
 
-from test_formfactor import make_scene, rectangle
+from scenes import make_scene, rectangle
 
 
 def one_voxel(n):

@@ -15,7 +15,7 @@ from blockray.host_driver.objload import load_obj
 from blockray.host_driver.output import write_patches_csv, write_report_json
 from blockray.host_driver.render import render
 
-from test_formfactor import closed_box, make_scene
+from scenes import closed_box, make_scene
 from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
 
 SOLVERS = ["progressive", "jacobi", "gauss-seidel"]

@@ -6,7 +6,6 @@ import pytest
 from blockray.errors import CapacityError, ParameterError
 from blockray.exact import blocked_reference, blocked_block
 from blockray.host_driver.board import BlockRay
-from blockray.host_driver.scene import Scene
 from blockray.params import BoardParams
 from blockray.records import patch_layout, unpack_array
 from blockray.samples import SampleScheme
@@ -16,12 +15,7 @@ from blockray.protocol import (BeginBlock, EndBlock, LoadReceiver, LoadShooter, 
 from blockray.sim.model import BoardModel, ModelBoard, result_word
 from blockray.timing import BoardTiming
 
-
-def make_scene(vertices, triangles, name="t"):
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    n = len(t)
-    return Scene(name, v, t, np.full((n, 3), 0.5), np.zeros((n, 3)), np.zeros(n, dtype=np.int64))
+from scenes import mesh_scene as make_scene
 
 
 def random_scene(seed, n=30):

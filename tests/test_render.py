@@ -10,48 +10,7 @@ from blockray.cli import main
 from blockray.host_driver.objload import load_obj
 from blockray.host_driver.render import render
 
-
-def box_faces(lo, hi, inward):
-    """Six quads of an axis-aligned box, oriented so normals point in (inward) or out."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    c = (lo + hi) / 2
-    faces = []
-    for axis in range(3):
-        for side in (lo, hi):
-            u, w = [a for a in range(3) if a != axis]
-            quad = []
-            for du, dw in ((0, 0), (1, 0), (1, 1), (0, 1)):
-                p = np.empty(3)
-                p[axis] = side[axis]
-                p[u] = (lo, hi)[du][u]
-                p[w] = (lo, hi)[dw][w]
-                quad.append(p)
-            n = np.cross(quad[1] - quad[0], quad[2] - quad[0])
-            towards_centre = np.dot(n, c - quad[0]) > 0
-            if towards_centre != inward:
-                quad = quad[::-1]
-            faces.append(quad)
-    return faces
-
-
-def write_obj(tmp_path, objects, *, name="scene"):
-    """objects: list of (group, material, faces); materials: dict name -> (Kd, Ke)."""
-    lines, mtl, nv = [f"mtllib {name}.mtl"], [], 0
-    mats = {}
-    for group, (mat, kd, ke), faces in objects:
-        mats[mat] = (kd, ke)
-        lines += [f"o {group}", f"usemtl {mat}"]
-        for quad in faces:
-            for p in quad:
-                lines.append("v " + " ".join(repr(float(x)) for x in p))
-            lines.append("f " + " ".join(str(nv + k + 1) for k in range(len(quad))))
-            nv += len(quad)
-    for mat, (kd, ke) in mats.items():
-        mtl += [f"newmtl {mat}", "Kd " + " ".join(map(str, kd)), "Ke " + " ".join(map(str, ke))]
-    (tmp_path / f"{name}.mtl").write_text("\n".join(mtl) + "\n")
-    path = tmp_path / f"{name}.obj"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+from scenes import box_faces, write_obj
 
 
 RHO, E = 0.5, 1.0

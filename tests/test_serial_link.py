@@ -139,7 +139,7 @@ def test_credits_and_frames_over_a_pty(pty_pair):
     assert not board.overrun and stats["bytes_sent"] == len(data)
 
 
-class ModelPtyBoard(threading.Thread):
+class ModelPtyBoard(PtyBoard):
     """A ULX3S on the master side of a pty, answered by the bit-exact model built for ``params``
     (the bitstream's configuration): once ``released`` (the host ended its reset break) it grants
     ``depth`` credits; it runs the commands through the model as they come, sends their results in
@@ -147,17 +147,8 @@ class ModelPtyBoard(threading.Thread):
 
     def __init__(self, fd, params, *, depth=64):
         from blockray.host_driver.simulated import ModelTransport
-        super().__init__(daemon=True)
-        self.fd, self.depth = fd, depth
+        super().__init__(fd, depth=depth, seed=0)
         self.model = ModelTransport(params)
-        self.released = threading.Event()
-        self.stop = False
-
-    def run(self):
-        try:
-            self._serve()
-        except OSError:         # the test closed the pty
-            pass
 
     def _serve(self):
         from blockray.link import frame_results, grant_header
