@@ -11,6 +11,7 @@ import logging
 import sys
 import warnings
 
+from .atomic import Terminated, sigterm_raises
 from .errors import BlockrayError
 
 __all__ = ["main"]
@@ -135,8 +136,10 @@ def _check_render(args):
     from .extras import require
     from .paths import check_output_file
     from .host_driver.image import check_image_size
+    from .paths import check_output_dir
     for option in ("image", "patches", "report", "vcd"):
         check_output_file(getattr(args, option), f"--{option}")
+    check_output_dir(args.checkpoint or args.resume, "--checkpoint" if args.checkpoint else "--resume")
     if args.image is not None:
         check_image_size(args.size, args.size)
     if args.board == "verilator":
@@ -193,6 +196,12 @@ def _render_parser(sub):
     out.add_argument("--patches", metavar="CSV", help="write per-patch radiosity")
     out.add_argument("--report", metavar="JSON", help="write run statistics")
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    out.add_argument("--checkpoint", metavar="DIR",
+                     help="save the solve to DIR/checkpoint.npz as it runs (atomically, at most every 30 s: "
+                          "after a shot, or after a sweep); docs/robustness.md")
+    out.add_argument("--resume", metavar="DIR",
+                     help="continue the render whose checkpoint is in DIR (same scene and options, else "
+                          "refused) and keep saving there; the outputs equal an uninterrupted render's")
     p.set_defaults(func=_cmd_render)
     return p
 
@@ -206,11 +215,20 @@ def _add_link_options(p):
                    help=f"the bitstream's baud rate (default {DEFAULT_BAUD})")
 
 
+def _checkpoint(args):
+    """--checkpoint / --resume: where the solve is saved (the --resume folder unless --checkpoint)."""
+    if args.checkpoint is None and args.resume is None:
+        return None
+    from .host_driver.checkpoint import Checkpoint
+    return Checkpoint(save_to=args.checkpoint or args.resume, resume_from=args.resume)
+
+
 def _cmd_render(args):
     from .host_driver.backends import build_board
     from .host_driver.builtin import load_scene
     from .host_driver.options import RenderOptions
     from .host_driver.render import render
+    from .atomic import Outputs
     from .host_driver.output import write_patches_csv, write_report_json
     from .host_driver.solver import check_matrix_memory
 
@@ -220,16 +238,18 @@ def _cmd_render(args):
     check_matrix_memory(scene.patches, args.solver)
     progress = not args.quiet and sys.stderr.isatty()
     echo = None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
-    with _naming_option(lambda: build_board(options.board)) as board:
-        result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo))
-    if args.image:
-        from .host_driver.image import render_image, save_png
-        img = render_image(scene, result.radiosity, width=args.size, height=args.size)
-        save_png(args.image, img)
-    if args.patches:
-        write_patches_csv(args.patches, scene, result.radiosity)
-    if args.report:
-        write_report_json(args.report, result.report)
+    with _naming_option(lambda: build_board(options.board)) as board:       # closed on every path
+        result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo,
+                                               checkpoint=_checkpoint(args)))
+    with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
+        if args.image:
+            from .host_driver.image import render_image, save_png
+            img = render_image(scene, result.radiosity, width=args.size, height=args.size)
+            save_png(args.image, img, outputs)
+        if args.patches:
+            write_patches_csv(args.patches, scene, result.radiosity, outputs)
+        if args.report:
+            write_report_json(args.report, result.report, outputs)
     if not args.quiet:
         r = result.report
         print(f"{r['scene']}: {r['patches']} patches, {r['voxels']}^3 voxels, board {r['board']}, "
@@ -460,7 +480,8 @@ def main(argv=None):
         print(f"blockray: warning: {message}", file=sys.stderr)
     warnings.showwarning = _warn
     try:
-        return args.func(args)
+        with sigterm_raises():
+            return args.func(args)
     except BlockrayError as e:
         print(f"blockray: error: {e}", file=sys.stderr)
         return 2
@@ -468,9 +489,9 @@ def main(argv=None):
         print("blockray: error: out of memory; raise the memory limit (ulimit -v) or make the scene or design "
               "smaller", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("blockray: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:      # SIGINT, or SIGTERM as Terminated: every finally has run
+        print("blockray: terminated" if isinstance(e, Terminated) else "blockray: interrupted", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
 
 
 if __name__ == "__main__":

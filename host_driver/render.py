@@ -39,7 +39,7 @@ class RenderResult:
     factors: object = None        # (N, N) visible form factors F[j, i], when a gathering solver built them
 
 
-def render(scene, board=None, options=None, *, progress=False, echo=None, **flat):
+def render(scene, board=None, options=None, *, progress=False, echo=None, checkpoint=None, **flat):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     ``options``: a :class:`~blockray.host_driver.options.RenderOptions` (or its flat names as
@@ -60,6 +60,9 @@ def render(scene, board=None, options=None, *, progress=False, echo=None, **flat
     the size of the correction, and the energy balance solved with the raw and the corrected
     factors side by side.
 
+    ``checkpoint``: a :class:`~blockray.host_driver.checkpoint.Checkpoint` that saves the solve
+    as it runs and/or gives the state it continues from (not with ``closure``).
+
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
     """
     if options is None:
@@ -68,12 +71,29 @@ def render(scene, board=None, options=None, *, progress=False, echo=None, **flat
         raise TypeError("render() takes options or their flat names, not both")
     with host_threads.using(options.run.threads):
         if board is not None:
-            return _render(scene, board, options, progress=progress, echo=echo)
-        with build_board(options.board) as board:
-            return _render(scene, board, options, progress=progress, echo=echo)
+            return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
+        with build_board(options.board) as board:           # closed on every path
+            return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
 
 
-def _render(scene, board, options, *, progress, echo):
+def _resume(scene, board, options, params, checkpoint):
+    """The state ``checkpoint`` continues from (None: from the beginning), bound to the scene and
+    the options it was saved with."""
+    if checkpoint is None:
+        return None
+    b, ray, solve = options.board, options.ray, options.solve
+    if solve.closure != "off":
+        raise ParameterError("--checkpoint / --resume: a --closure render solves twice from the whole matrix; "
+                             "it is not checkpointed", parameter="closure")
+    return checkpoint.bind(scene, {
+        "board": board.name, "bits": b.bits, "voxels": ray.voxels, "samples": ray.samples.count,
+        "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
+        "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
+        "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
+        "rows": params.rows, "cols": params.cols, "boards": params.boards})
+
+
+def _render(scene, board, options, *, progress, echo, checkpoint):
     b, ray, solve = options.board, options.ray, options.solve
     params = getattr(board, "params", None) or b.params       # R, S, P of the board as built
     if options.run.distributed:
@@ -82,6 +102,7 @@ def _render(scene, board, options, *, progress, echo):
                                  f"{board.name!r} given", parameter="sets")
         check_sets(options.run.sets, scene.patches)
     samples = ray.samples
+    resume = _resume(scene, board, options, params, checkpoint)
     phases = Phases()
     t_start, c_start = time.perf_counter(), time.process_time()
 
@@ -96,7 +117,7 @@ def _render(scene, board, options, *, progress, echo):
     with phases.timed("voxelise"):
         grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
     run = _Run(scene=scene, board=board, options=options, params=params, phases=phases, t_start=t_start,
-               voxels=voxels, voxels_hardware=voxels_hardware)
+               voxels=voxels, voxels_hardware=voxels_hardware, checkpoint=checkpoint, resume=resume)
     if options.run.distributed:
         return _render_sets(run, grid, progress=progress, echo=echo)
     with phases.timed("load"):
@@ -107,6 +128,8 @@ def _render(scene, board, options, *, progress, echo):
                      traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats)
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
+    if checkpoint is not None and cache is not None:
+        checkpoint.columns = cache.keys
     pair_cache = formfactor.PairCache(scene)      # each unordered pair's factor computed once
 
     def shoot(i):
@@ -127,16 +150,18 @@ def _render(scene, board, options, *, progress, echo):
 
     bar = _progress(progress, solve.solver,
                     scene.patches if solve.solver != "progressive" or solve.closure != "off" else solve.max_shots)
+    saving = None if checkpoint is None else checkpoint.save
     closure_info = factors = None
     with phases.timed("solve"):
         if solve.closure != "off":
             result, closure_info = _solve_closed(scene, shoot, solve, bar)
         elif solve.solver == "progressive":
             result = solvers.progressive_refinement(scene, shoot, tolerance=solve.tolerance,
-                                                    max_shots=solve.max_shots, progress=bar, refuse_gain=True)
+                                                    max_shots=solve.max_shots, progress=bar, refuse_gain=True,
+                                                    checkpoint=saving, resume=resume)
         else:
             factors, sums = _columns(scene, shoot, bar)
-            result = _solve_matrix(scene, factors, solve)
+            result = _solve_matrix(scene, factors, solve, checkpoint=saving, resume=resume)
             result.row_sums = sums
     solvers.check_finite(scene, result)         # nothing non-finite is written
     if bar is not None:
@@ -158,6 +183,7 @@ def _render(scene, board, options, *, progress, echo):
     report["exchange_bytes_per_sweep"] = 0
     if closure_info is not None:
         report["closure"] = closure_info
+    _resumed(report, resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report, factors=factors)
 
 
@@ -197,12 +223,20 @@ def _columns(scene, shoot, bar):
     return F, sums
 
 
-def _solve_matrix(scene, F, solve):
+def _solve_matrix(scene, F, solve, *, checkpoint=None, resume=None):
     if solve.solver == "progressive":
         return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=solve.tolerance,
                                               max_shots=solve.max_shots, refuse_gain=True)
     gather = solvers.jacobi if solve.solver == "jacobi" else solvers.gauss_seidel
-    return gather(scene, F, tolerance=solve.tolerance, max_iterations=solve.max_iterations)
+    return gather(scene, F, tolerance=solve.tolerance, max_iterations=solve.max_iterations, checkpoint=checkpoint,
+                  resume=resume)
+
+
+def _resumed(report, resume):
+    """The report's ``resumed_from``: the shots or sweeps the checkpoint had done (absent when
+    the render started from the beginning)."""
+    if resume is not None:
+        report["resumed_from"] = {"shots": int(resume["shots"]), "sweeps": int(resume["iterations"])}
 
 
 @dataclass(frozen=True)
@@ -216,6 +250,8 @@ class _Run:
     t_start: float
     voxels: int
     voxels_hardware: int
+    checkpoint: object = None
+    resume: object = None
 
 
 def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds, traversal_stats, cpu_seconds=None):
@@ -282,7 +318,9 @@ def _render_sets(run, grid, *, progress, echo):
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
                                                     _morton(grid.cell_of(scene.centroids)), job,
                                                     solver=solve.solver, tolerance=solve.tolerance,
-                                                    max_iterations=solve.max_iterations, progress=progress)
+                                                    max_iterations=solve.max_iterations, progress=progress,
+                                                    checkpoint=None if run.checkpoint is None else run.checkpoint.save,
+                                                    resume=run.resume)
     solvers.check_finite(scene, result)
     phases.add("cluster", -(info["assign_seconds"] + info["cast_seconds"] + info["solve_seconds"]))
     phases.add("assign", info["assign_seconds"])
@@ -310,6 +348,7 @@ def _render_sets(run, grid, *, progress, echo):
         "cast_seconds_per_set": [float(s["seconds"]) for s in summaries],
         "cast_cpu_seconds_per_set": [float(s["cpu_seconds"]) for s in summaries],
     }
+    _resumed(report, run.resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
 
 
