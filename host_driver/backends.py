@@ -9,10 +9,13 @@ serial links it opens itself, ``ulx3s-sim`` its top level under Verilator.
 """
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable
 
 from ..errors import ParameterError
 from ..filtered import CELLS as _CELLS, check_cell
+from ..link import DEFAULT_BAUD
+from ..memory import check_partition
 
 __all__ = ["Backend", "BACKENDS", "register", "backend", "make_board", "build_board", "check_board"]
 
@@ -55,19 +58,25 @@ def backend(name):
                              parameter="board") from None
 
 
-def make_board(name, params=None, **options):
-    """Build back-end ``name`` for ``params`` (default :class:`~blockray.params.BoardParams`);
-    ``options``: the other fields of :class:`~blockray.host_driver.options.BoardOptions`."""
+def make_board(name, params=None, *, bits=None, partition="deal", cell="exact", filter_format=None, vcd=None,
+               host=None, faults=None, port=(), baud=DEFAULT_BAUD):
+    """Build back-end ``name`` for ``params`` (default :class:`~blockray.params.BoardParams`); the
+    keywords are the fields of :class:`~blockray.host_driver.options.BoardOptions` (see
+    :func:`build_board`)."""
     from ..params import BoardParams
-    from .options import BoardOptions
-    return build_board(BoardOptions(backend=name, params=params or BoardParams(), **options))
+    board = SimpleNamespace(backend=name, params=params or BoardParams(), bits=bits, partition=partition, cell=cell,
+                            filter_format=filter_format, vcd=vcd, host=host, faults=faults, port=port, baud=baud)
+    check_board(board)
+    return build_board(board)
 
 
 def check_board(options):
-    """ParameterError if back-end ``options.backend`` cannot be built as ``options`` asks (a cell,
-    partition, waveform, host timing or fault injection it does not have)."""
+    """ParameterError if back-end ``options.backend`` cannot be built as ``options`` (a
+    :class:`~blockray.host_driver.options.BoardOptions`) asks: a cell, filter format, partition,
+    waveform, host timing or fault injection it does not have."""
     entry, name, cell = backend(options.backend), options.backend, options.cell
-    if check_cell(cell) not in entry.cells:
+    check_partition(options.partition)
+    if check_cell(cell, options.filter_format) not in entry.cells:
         able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
         raise ParameterError(f"--cell {cell} needs a board built with that cell (--board {able}), not {name!r}",
                              parameter="cell")

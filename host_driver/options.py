@@ -19,10 +19,9 @@ import math
 from dataclasses import dataclass, field, fields
 
 from ..errors import ParameterError
-from ..memory import check_partition
 from ..params import BoardParams, check_bits
 from ..samples import SampleScheme
-from .serial_link import DEFAULT_BAUD
+from ..link import DEFAULT_BAUD
 
 __all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "filter_format",
            "host_timing"]
@@ -62,8 +61,7 @@ class BoardOptions:
     baud: int = DEFAULT_BAUD
 
     def __post_init__(self):
-        from ..filtered import check_cell
-        from .backends import backend, check_board
+        from .backends import backend, check_board       # (the registry imports nothing of this module)
         entry = backend(self.backend)
         if not isinstance(self.params, BoardParams):
             raise ParameterError(f"board params must be BoardParams, not {self.params!r}", parameter="params")
@@ -72,8 +70,6 @@ class BoardOptions:
             if not entry.quantises:
                 raise ParameterError(f"bits applies to boards that quantise the scene; the {self.backend} board "
                                      f"is float64", parameter="bits")
-        check_partition(self.partition)
-        check_cell(self.cell, self.filter_format)
         check_board(self)
         if isinstance(self.port, str):
             object.__setattr__(self, "port", tuple(p for p in self.port.split(",") if p))

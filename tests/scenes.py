@@ -122,3 +122,62 @@ def balance(scene, B):
     rho, E, A = scene.reflectance, scene.emission, scene.areas
     H = (B - E) / rho
     return ((1 - rho) * H * A[:, None]).sum(axis=0) / (E * A[:, None]).sum(axis=0) - 1
+
+
+# An open box: floor, two walls and a light under the top; a few patches, some occlusion.
+BOX = """\
+mtllib box.mtl
+o floor
+usemtl white
+v 0 0 0
+v 1 0 0
+v 1 0 1
+v 0 0 1
+f 1 4 3 2
+o left
+usemtl red
+v 0 0 0
+v 0 1 0
+v 0 1 1
+v 0 0 1
+f 5 8 7 6
+o back
+usemtl white
+v 0 0 1
+v 1 0 1
+v 1 1 1
+v 0 1 1
+f 9 12 11 10
+o blocker
+usemtl white
+v 0.3 0.4 0.3
+v 0.7 0.4 0.3
+v 0.7 0.4 0.7
+v 0.3 0.4 0.7
+f 13 14 15 16
+o light
+usemtl lamp
+v 0.3 0.95 0.3
+v 0.7 0.95 0.3
+v 0.7 0.95 0.7
+v 0.3 0.95 0.7
+f 17 18 19 20
+"""
+BOX_MTL = """\
+newmtl white
+Kd 0.7 0.7 0.7
+newmtl red
+Kd 0.6 0.1 0.1
+newmtl lamp
+Kd 0.2 0.2 0.2
+Ke 10 10 10
+"""
+
+
+def write(folder, obj, mtl=None, name="s", mtl_name=None):
+    folder.mkdir(parents=True, exist_ok=True)
+    if mtl is not None:
+        (folder / (mtl_name or f"{name}.mtl")).write_text(mtl)
+    path = folder / f"{name}.obj"
+    path.write_text(obj)
+    return path

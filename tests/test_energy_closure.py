@@ -146,7 +146,8 @@ def test_closure_needs_one_host():
 
 
 def test_cli_refuses_enforcement_on_an_open_scene(tmp_path, capsys):
-    from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
+    from clirun import assert_one_line_error, cli
+    from scenes import BOX, BOX_MTL, write
     path = write(tmp_path, BOX, BOX_MTL, name="box")                     # a box without its front and top
     code, err = cli(capsys, ["render", path, "--board", "golden", "--quiet", "--closure", "enforce"])
     assert_one_line_error(code, err, "--closure enforce", "not closed")

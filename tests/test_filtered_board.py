@@ -28,7 +28,7 @@ from blockray.timing import BoardTiming
 from blockray.sim.model import BoardModel, ModelBoard
 
 from board_host import BatchRun, check_run
-from test_board_sim import make_batch
+from board_scenes import make_batch
 
 
 def run_filtered(params, commands, *, fmt, depth, seed):

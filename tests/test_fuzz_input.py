@@ -22,7 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, note, seed, settings, strategies as st
 
 from blockray.cli import main
-from test_hostile_input import BOX, BOX_MTL
+from scenes import BOX, BOX_MTL
 
 SEED = int(os.environ.get("BLOCKRAY_FUZZ_SEED", "18"))
 EXAMPLES = int(os.environ.get("BLOCKRAY_FUZZ_EXAMPLES", "40"))

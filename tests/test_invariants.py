@@ -16,7 +16,8 @@ from blockray.host_driver.output import write_patches_csv, write_report_json
 from blockray.host_driver.render import render
 
 from scenes import closed_box, make_scene
-from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
+from clirun import assert_one_line_error, cli
+from scenes import BOX, BOX_MTL, write
 
 SOLVERS = ["progressive", "jacobi", "gauss-seidel"]
 

@@ -16,7 +16,7 @@ from blockray.samples import SampleScheme
 from blockray.sim import kernel
 from blockray.sim.model import ModelBoard
 
-from test_model import random_blocks, random_scene, BoxGrid
+from board_scenes import BoxGrid, random_blocks, scattered_scene as random_scene
 
 SEED = 1313
 
