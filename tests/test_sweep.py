@@ -10,59 +10,19 @@ import os
 import numpy as np
 import pytest
 
-from blockray.cli import main
 from blockray.host_driver.sweep import map_to_mesh, pareto_front, parse_vary, points
-
-#: a closed 2 m room, one emitting wall (the ceiling), a block on the floor that casts shadows
-ROOM_OBJ = """mtllib room.mtl
-v 0 0 0
-v 2 0 0
-v 2 2 0
-v 0 2 0
-v 0 0 2
-v 2 0 2
-v 2 2 2
-v 0 2 2
-v 0.6 0 0.6
-v 1.4 0 0.6
-v 1.4 0.8 0.6
-v 0.6 0.8 0.6
-v 0.6 0 1.4
-v 1.4 0 1.4
-v 1.4 0.8 1.4
-v 0.6 0.8 1.4
-o walls
-usemtl white
-f 1 2 3 4
-f 5 8 7 6
-f 1 4 8 5
-f 2 6 7 3
-f 1 5 6 2
-o light
-usemtl lamp
-f 4 3 7 8
-o block
-usemtl white
-f 9 12 11 10
-f 13 14 15 16
-f 9 13 16 12
-f 10 11 15 14
-f 12 16 15 11
-"""
-ROOM_MTL = "newmtl white\nKd 0.5 0.5 0.5\nKe 0 0 0\nnewmtl lamp\nKd 0.5 0.5 0.5\nKe 1 1 1\n"
+from clirun import cli
+from scenes import room_obj
 
 
 @pytest.fixture
 def room(tmp_path):
-    (tmp_path / "room.mtl").write_text(ROOM_MTL)
-    path = tmp_path / "room.obj"
-    path.write_text(ROOM_OBJ)
-    return str(path)
+    """A closed 2 m room, one emitting wall, a block that casts shadows (tests/scenes.py)."""
+    return str(room_obj(tmp_path))
 
 
 def run(capsys, *argv):
-    code = main(list(argv))
-    return code, capsys.readouterr().err
+    return cli(capsys, argv)
 
 
 @pytest.mark.parametrize("vary, needle", [
