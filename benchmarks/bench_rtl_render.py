@@ -102,7 +102,7 @@ def full(scene_name):
     runs = {}
     for board in ("verilator", "model"):
         t0 = time.perf_counter()
-        runs[board] = render(scene, board=board, params=BoardParams())
+        runs[board] = render(scene, backend=board, params=BoardParams())
         runs[board + " wall"] = time.perf_counter() - t0
     v, m = runs["verilator"], runs["model"]
     assert np.array_equal(v.radiosity, m.radiosity), "radiosity differs from the model"

@@ -26,7 +26,8 @@ from blockray.params import BoardParams
 from blockray.sim.drive import HostTiming
 from blockray.sim.native import NativeBuildError, Ports, build_native
 
-from test_rtl_board import BITS, COUNTER_KEYS, PARAMS, _blocks, room_obj, room_scene
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_obj, room_scene
+from test_rtl_board import COUNTER_KEYS, _blocks
 
 
 #: shooters of the room rendered in the default suite (to convergence: 2255, 17.8 M board cycles)
@@ -47,8 +48,8 @@ def _same_render(got, model):
 @pytest.mark.cocotb
 def test_a_room_of_a_few_hundred_patches_renders_as_the_model(room):
     kw = dict(params=PARAMS, bits=BITS, samples=4, voxels=4, max_shots=SHOTS)
-    model = render(room, board="model", **kw)
-    got = render(room, board="verilator", **kw)
+    model = render(room, backend="model", **kw)
+    got = render(room, backend="verilator", **kw)
     print(f"{room.patches} patches, {model.report['shots']} shots, {model.report['blocks']} blocks, "
           f"{model.report['board_cycles']} board cycles")
     assert room.patches >= 200 and model.report["shots"] == SHOTS
@@ -65,8 +66,8 @@ def test_a_room_of_a_few_hundred_patches_renders_as_the_model(room):
 @pytest.mark.cocotb
 def test_the_room_to_convergence_renders_as_the_model(room):
     kw = dict(params=PARAMS, bits=BITS, samples=4, voxels=4)
-    model = render(room, board="model", **kw)
-    _same_render(render(room, board="verilator", **kw), model)
+    model = render(room, backend="model", **kw)
+    _same_render(render(room, backend="verilator", **kw), model)
     assert model.report["shots"] > room.patches
 
 
@@ -96,8 +97,8 @@ def test_host_timing_is_the_drive_loops_cycle_for_cycle(scene_small):
 
 
 @pytest.fixture(scope="module")
-def scene_small(tmp_path_factory):
-    return room_scene(tmp_path_factory.mktemp("native_small"), 1.5)
+def scene_small(rtl_room):
+    return rtl_room
 
 
 def test_a_missing_compiler_is_a_one_line_error(tmp_path, monkeypatch, capsys):
@@ -141,7 +142,7 @@ def test_a_failed_build_is_a_one_line_error_naming_its_log(tmp_path):
 @pytest.mark.cocotb
 def test_cornell_renders_as_the_model():
     scene = builtin.load("cornell")
-    model = render(scene, board="model", params=BoardParams())
-    got = render(scene, board="verilator", params=BoardParams())
+    model = render(scene, backend="model", params=BoardParams())
+    got = render(scene, backend="verilator", params=BoardParams())
     _same_render(got, model)
     assert got.report["board_cycles"] == model.report["board_cycles"] > 10 ** 6
