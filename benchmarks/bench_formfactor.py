@@ -389,6 +389,10 @@ def estimators(args):
     if args.scene == "block":
         from test_energy_closure import _box_with_block
         scene = _box_with_block()
+    elif args.scene == "slab":
+        from test_contact import closed_box_with_slab
+        from blockray.host_driver.contact import split_contacts
+        scene = split_contacts(closed_box_with_slab())[0]
     else:
         scene = next(s for name, s in closed_scenes() if name.startswith(args.scene))
     K, levels = args.samples, 3
@@ -723,7 +727,8 @@ def main(argv=None):
     en = sub.add_parser("ends")
     en.add_argument("--samples", type=int, default=8)
     es = sub.add_parser("estimators")
-    es.add_argument("--scene", default="block", help="block (a cube in a box, 60 patches) or a closed_scenes prefix")
+    es.add_argument("--scene", default="block", help="block (a cube in a box, 60 patches), slab (a slab on a box's "
+                    "floor, cut along its contact lines) or a closed_scenes prefix")
     es.add_argument("--samples", type=int, default=8)
     es.add_argument("--which", nargs="+", default=list(ESTIMATORS),
                     help=f"of {', '.join(ESTIMATORS)}; pair-centroid/N: on j's 1/N barycentric lattice")
