@@ -375,6 +375,8 @@ ESTIMATORS = {
     "sample-centroid": "one end point per ray: j's kernel-weighted centroid seen from that sample",
     "sample-centroid/21": "the same on the nearest point of j's 1/21 barycentric lattice (the board's D)",
     "KxK": "K x K rays to j's K sample points, each weighted by the point-to-point kernel",
+    "KxK-sum": "K x K rays to j's K sample points, j's weighted by the kernel summed over i, i's by their point factor",
+    "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
 }
 
 
@@ -448,9 +450,15 @@ def estimators(args):
                 for m in range(len(J)):
                     for k in range(K):
                         bits[m, k] = clear(i, W[k:k + 1], J[m], y[m, k][None])[0, 0]
-            elif e == "KxK":
+            elif e.startswith("KxK"):
                 Y = X[J]
                 g = _kernel(X[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None])       # (J, K, K)
+                if e == "KxK-area":         # j's points in front of i's plane, equally
+                    ahead = np.array([ff.samples_in_front(scene, samples, j, [i])[0] for j in J], dtype=float)
+                    g = w[:, :, None] * ahead[:, None, :]
+                elif e == "KxK-sum":        # j's points by the kernel summed over i
+                    u = _kernel(SPi[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None]).sum(axis=1)
+                    g = w[:, :, None] * u[:, None, :]
                 v = np.zeros(len(J))
                 for m in range(len(J)):
                     b = clear(i, W, J[m], W).T                                                   # (K, K)
