@@ -375,6 +375,7 @@ ESTIMATORS = {
     "sample-centroid": "one end point per ray: j's kernel-weighted centroid seen from that sample",
     "sample-centroid/21": "the same on the nearest point of j's 1/21 barycentric lattice (the board's D)",
     "KxK": "K x K rays to j's K sample points, each weighted by the point-to-point kernel",
+    "cell-centroids": "4 end points per pair: each quarter of j's kernel-weighted centroid, weighted by its kernel mass",
     "KxK-sum": "K x K rays to j's K sample points, j's weighted by the kernel summed over i, i's by their point factor",
     "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
 }
@@ -450,6 +451,19 @@ def estimators(args):
                 for m in range(len(J)):
                     for k in range(K):
                         bits[m, k] = clear(i, W[k:k + 1], J[m], y[m, k][None])[0, 0]
+            elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
+                g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
+                v = np.zeros(len(J))
+                for m in range(len(J)):
+                    mass = np.array([g[m, cell == q].sum() for q in range(4)])
+                    y = np.array([(g[m, cell == q, None] * SP[J[m], cell == q]).sum(0) / mass[q] if mass[q] > 0
+                                  else SP[J[m], cell == q].mean(0) for q in range(4)])
+                    b = clear(i, W, J[m], _on_lattice(np.repeat(V[J[m]][None], 4, axis=0), y, fine))   # (4, K)
+                    weight = w[m][None, :] * mass[:, None]
+                    v[m] = (weight * b).sum() / weight.sum() if weight.sum() > 0 else b.mean()
+                out[e][J, i] = F[J, i] * v
+                continue
             elif e.startswith("KxK"):
                 Y = X[J]
                 g = _kernel(X[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None])       # (J, K, K)
