@@ -1,0 +1,240 @@
+"""The lean array (rtl/lean.py) and its cycle model (sim/lean_model.py).
+
+The model's bits against the independent orient3d predicate (``blocked_reference``) on the
+processor vectors and on a small scene; the RTL against the model in Amaranth's simulator with
+zero tolerance: every marker's cycle and the accumulators' bits when it leaves, and the cycle
+every step is presented under the model's credits.
+"""
+
+import numpy as np
+import pytest
+from amaranth.hdl import Module, unsigned
+from amaranth.lib import wiring
+from amaranth.lib.memory import Memory
+from amaranth.sim import Simulator
+
+from blockray.errors import ParameterError
+from blockray.exact import blocked_block, blocked_reference, patch_normals
+from blockray.filtered import FilterFormat
+from blockray.records import pack, pack_array, patch_columns, patch_layout, point_layout
+from blockray.rtl.lean import LeanArray, LeanExact, lean_format
+from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record
+
+from board_scenes import crossing_patches, random_points
+from processor_vectors import hard_cases, random_tests
+
+
+def _reference(P, Q, V):
+    return np.array([blocked_reference(*(tuple(int(c) for c in x) for x in (p, q, v[0], v[1], v[2])))
+                     for p, q, v in zip(P, Q, V)], dtype=bool)
+
+
+def _single_tests(tests, first_mark=True):
+    """Each test a 1 x 1 record with its own patch (address = its index), a marker after it."""
+    steps = []
+    for i in range(len(tests)):
+        steps.append(Record(i, True, tests.P[i:i + 1], tests.Q[i:i + 1], np.ones(1, bool), np.ones(1, bool)))
+        if first_mark:
+            steps.append(Mark())
+    return steps
+
+
+def test_latency_constant_is_the_rtl_exact_units():
+    assert LEAN_EXACT_LATENCY == LeanExact.latency == 9
+
+
+@pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4))])
+def test_model_bits_equal_the_reference_on_processor_vectors(bits, fmt):
+    """Every delivered bit of the model (filter where decided, exact unit where not) equals the
+    independent orient3d predicate, on hard cases and random blocks, one test per record."""
+    seed = 3000 + bits
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    hard = hard_cases(bits)
+    tests = hard[rng.permutation(len(hard))[:1500]] + random_tests(bits, 800, rng)
+    model = LeanArrayModel(bits, 1, 1, fmt=fmt)
+    trace = model.run(_single_tests(tests), tests.V, tests.n)
+    got = np.array([h[0, 0] for h in trace.hits])
+    want = _reference(tests.P, tests.Q, tests.V)
+    assert (got == want).all(), np.flatnonzero(got != want)[:10]
+    assert trace.undecided.sum() > 0                     # the exact unit's path is exercised
+    print("undecided", int(trace.undecided.sum()), "of", len(tests), "cycles", trace.cycles)
+
+
+def _scene_blocks(rng, bits, rows, cols, blocks, patches):
+    """Random blocks of the board's kind: points, crossing-heavy patches, some records gapped."""
+    out = []
+    for _ in range(blocks):
+        P, Q = random_points(rng, bits, cols), random_points(rng, bits, rows)
+        V = crossing_patches(rng, bits, P, Q, int(rng.integers(1, patches)))
+        out.append((P, Q, V))
+    return out
+
+
+def _steps(rng, blocks, rows, cols, gap=0.2, partial=True):
+    """Steps of ``blocks`` (P, Q, V of each) with patch addresses into the concatenated V; a
+    marker after each block; random gaps; a partial block's row and column masks."""
+    steps, Vs = [], []
+    for P, Q, V in blocks:
+        row_mask, col_mask = np.ones(rows, bool), np.ones(cols, bool)
+        if partial and rng.random() < 0.3:
+            row_mask[rng.integers(rows)] = False
+            col_mask[rng.integers(cols)] = False
+        for i in range(len(V)):
+            while rng.random() < gap:
+                steps.append(Gap())
+            steps.append(Record(len(Vs), i == 0, P, Q, row_mask, col_mask))
+            Vs.append(V[i])
+        steps.append(Mark())
+    V = np.array(Vs, dtype=np.int64)
+    return steps, V, patch_normals(V)
+
+
+def test_model_on_a_small_scene_equals_the_exact_blocks():
+    """2 x 3 array, 3 x 3-bit filter (many undecided), 30 blocks: the OR at each marker equals
+    blocked_block's OR over the block, where the rows and columns are loaded."""
+    seed = 3101
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    bits, rows, cols = 10, 2, 3
+    blocks = _scene_blocks(rng, bits, rows, cols, 30, 10)
+    steps, V, n = _steps(rng, blocks, rows, cols)
+    trace = LeanArrayModel(bits, rows, cols, fmt=FilterFormat(3, 3)).run(steps, V, n)
+    records = [s for s in steps if isinstance(s, Record)]
+    k = 0
+    for b, (P, Q, Vb) in enumerate(blocks):
+        mask = records[k].row_mask[:, None] & records[k].col_mask[None, :]
+        want = blocked_block(P, Q, Vb, patch_normals(Vb)).any(axis=2)
+        assert ((trace.hits[b] & mask) == (want & mask)).all(), b
+        k += len(Vb)
+    assert trace.undecided.sum() > 20
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
+
+
+class _Bench(wiring.Component):
+    """LeanArray with the patch memory its records come from (its second read port)."""
+
+    def __init__(self, array, bits, patch_words):
+        self.array = array
+        self.memory = Memory(shape=unsigned(patch_layout(bits).size), depth=max(2, len(patch_words)),
+                             init=patch_words)
+        super().__init__({})
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.array = a = self.array
+        m.submodules.patches = self.memory
+        rp = self.memory.read_port()
+        m.d.comb += [rp.addr.eq(a.patch_read.addr), rp.en.eq(a.patch_read.en), a.patch_read.data.eq(rp.data)]
+        return m
+
+
+def _run_rtl(bits, rows, cols, fmt, depth, steps, V, n):
+    """The RTL under the owner's credits (items inside < depth, as the board): the cycle each
+    step is presented, each marker's cycle and ``hit`` then."""
+    dut = LeanArray(bits, rows, cols, fmt=fmt, depth=depth, address_bits=max(1, (len(V) - 1).bit_length()))
+    words = pack_array(patch_layout(bits), patch_columns(V, n))
+    sim = Simulator(_Bench(dut, bits, words))
+    sim.add_clock(1e-8)
+    presented, marks, hits = [], [], []
+
+    def point(p):
+        return pack(point_layout(bits), dict(zip("xyz", map(int, p))))
+
+    async def bench(ctx):
+        inside, t, i = 0, 0, 0
+        limit = 60 * len(steps) + 500
+        while (i < len(steps) or inside > 0) and t < limit:
+            step = steps[i] if i < len(steps) else Gap()
+            issue = not isinstance(step, Gap) and inside < depth
+            go = isinstance(step, Gap) or issue
+            ctx.set(dut.valid, int(issue and isinstance(step, Record)))
+            ctx.set(dut.mark, int(issue and isinstance(step, Mark)))
+            if isinstance(step, Record):
+                ctx.set(dut.first, int(step.first))
+                ctx.set(dut.address, step.address)
+                ctx.set(dut.patch.as_value(), words[step.address])
+                ctx.set(dut.row_mask, int(sum(int(b) << r for r, b in enumerate(step.row_mask))))
+                ctx.set(dut.col_mask, int(sum(int(b) << s for s, b in enumerate(step.col_mask))))
+                for s in range(cols):
+                    ctx.set(dut.shooters[s].as_value(), point(step.shooters[s]))
+                for r in range(rows):
+                    ctx.set(dut.receivers[r].as_value(), point(step.receivers[r]))
+            else:       # garbage on the data inputs while nothing is presented
+                ctx.set(dut.patch.as_value(), 0x5A5A5A5A)
+                ctx.set(dut.address, t % len(words))
+            delivered, mark_out, hit = ctx.get(dut.delivered), ctx.get(dut.mark_out), ctx.get(dut.hit)
+            if mark_out:
+                marks.append(t)
+                hits.append(hit)
+            if go and i < len(steps):
+                presented.append(t)
+                i += 1
+            inside += int(issue) - delivered
+            await ctx.tick()
+            t += 1
+        assert t < limit, "the array stopped delivering"
+
+    sim.add_testbench(bench)
+    sim.run()
+    return np.array(presented), np.array(marks), hits
+
+
+def _word(bits_rs):
+    return int(sum(1 << int(i) for i in np.flatnonzero(np.asarray(bits_rs).ravel())))
+
+
+def _compare(bits, rows, cols, fmt, depth, steps, V, n):
+    model = LeanArrayModel(bits, rows, cols, fmt=fmt, depth=depth)
+    trace = model.run(steps, V, n)
+    presented, marks, hits = _run_rtl(bits, rows, cols, model.fmt, model.depth, steps, V, n)
+    assert (presented == trace.cycle).all(), np.flatnonzero(presented != trace.cycle)[:5]
+    assert list(marks) == list(trace.marks)
+    masks = []
+    for s in steps:
+        if isinstance(s, Record):
+            mask = _word(s.row_mask[:, None] & s.col_mask[None, :])
+        elif isinstance(s, Mark):
+            masks.append(mask)
+    got = [h & m for h, m in zip(hits, masks)]
+    want = [_word(h) & m for h, m in zip(trace.hits, masks)]
+    assert got == want, [k for k, (a, b) in enumerate(zip(got, want)) if a != b][:5]
+    return trace
+
+
+@pytest.mark.parametrize("bits,fmt,depth,count", [(6, FilterFormat(3, 3), None, 160), (16, None, None, 160),
+                                                   (16, FilterFormat(3, 4), 5, 120)])
+def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
+    """1 x 1 lean array, one test per record and a marker after each: cycles and bits equal the
+    model's, zero tolerance (hard cases and random tests)."""
+    seed = 3200 + bits + (depth or 0)
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    hard = hard_cases(bits)
+    tests = hard[rng.permutation(len(hard))[:count]] + random_tests(bits, count // 2, rng)
+    trace = _compare(bits, 1, 1, fmt, depth, _single_tests(tests), tests.V, tests.n)
+    assert trace.undecided.sum() > 0
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
+
+
+@pytest.mark.parametrize("bits,rows,cols,fmt,depth,seed", [(8, 2, 2, FilterFormat(3, 3), None, 3301),
+                                                           (8, 2, 3, FilterFormat(3, 3), 6, 3302),
+                                                           (12, 2, 2, None, None, 3303)])
+def test_rtl_equals_model_on_blocks(bits, rows, cols, fmt, depth, seed):
+    """R x S lean arrays on random blocks with gaps, partial blocks and markers: cycles and the
+    accumulators' bits at every marker equal the model's (and the small depth loses cycles to
+    the credits)."""
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    blocks = _scene_blocks(rng, bits, rows, cols, 8, 8)
+    steps, V, n = _steps(rng, blocks, rows, cols)
+    trace = _compare(bits, rows, cols, fmt, depth, steps, V, n)
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
+
+
+def test_parameters_are_checked():
+    with pytest.raises(ParameterError, match="address_bits"):
+        LeanArray(8, 2, 2, address_bits=0)
+    with pytest.raises(ValueError, match="depth"):
+        LeanArray(8, 2, 2, depth=2)
+    assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
