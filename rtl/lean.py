@@ -25,7 +25,7 @@ from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
-from ..filtered import FilterFormat
+from ..filtered import lean_format
 from ..records import patch_layout, point_layout
 from .filtered import ArrayResolve, FilteredArray, sum_or
 from .processor import Processor, ReceiverUnit, ShooterUnit, _delay
@@ -34,12 +34,6 @@ __all__ = ["LeanExact", "LeanResolve", "LeanArray", "lean_format", "tag_layout",
 
 #: patch memory address width of a stand-alone array (the board's is its memory's)
 DEFAULT_ADDRESS_BITS = 12
-
-
-def lean_format(bits):
-    """The lean cell's default filter: 9-bit mantissas for P - V_k and w_k (at most B + 1: d_k
-    is then exact). docs/fixed-point.md measures 1.3e-3 (cornell) and 1.9e-3 (room) undecided."""
-    return FilterFormat(min(9, bits + 1), 9)
 
 
 def endpoints_layout(bits, rows, cols):

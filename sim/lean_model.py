@@ -23,14 +23,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..exact import blocked_block
-from ..filtered import filtered_block
-from .filtered_model import DATAPATH_LATENCY, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock
+from ..filtered import filtered_block, lean_format
+from .filtered_model import DATAPATH_LATENCY, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
-__all__ = ["LEAN_EXACT_LATENCY", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel", "record_answers"]
+__all__ = ["LEAN_EXACT_LATENCY", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel", "record_answers",
+           "default_lean_depth", "lean_format"]
 
 #: the lean exact unit's latency: tag in, the patch memory and end-point memory read (1), the
 #: shooter and receiver units (4), the exact Processor (4)
 LEAN_EXACT_LATENCY = 1 + 4 + 4
+#: credits the lean array has beyond the filtered array's: its exact unit's latency and 4
+LEAN_EXTRA_DEPTH = LEAN_EXACT_LATENCY + 4
+
+
+def default_lean_depth(extra_latency=2):
+    """The lean array's credits (:meth:`blockray.rtl.lean.LeanArray.default_depth`): issue to
+    delivery (``extra_latency`` in front of the array: the board's memory, 2), 4, and
+    :data:`LEAN_EXTRA_DEPTH`."""
+    return default_array_depth() - 2 + extra_latency + LEAN_EXTRA_DEPTH
 
 
 @dataclass(frozen=True)
@@ -83,10 +93,9 @@ class LeanArrayModel:
     """The answers and cycles of ``LeanArray(bits, rows, cols, fmt, depth)``."""
 
     def __init__(self, bits, rows, cols, fmt=None, depth=None):
-        from ..rtl.lean import LeanArray, lean_format        # the RTL's defaults, no HDL built
         self.bits, self.rows, self.cols = bits, rows, cols
         self.fmt = fmt if fmt is not None else lean_format(bits)
-        self.depth = depth if depth is not None else LeanArray.default_depth()
+        self.depth = depth if depth is not None else default_lean_depth(0)
 
     def run(self, steps, vertices, normals):
         vertices, normals = np.asarray(vertices, np.int64), np.asarray(normals, np.int64)

@@ -17,11 +17,13 @@ from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
 from blockray.filtered import FilterFormat
 from blockray.records import pack, pack_array, patch_columns, patch_layout, point_layout
-from blockray.rtl.lean import LeanArray, LeanExact, lean_format
-from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record
+from blockray.filtered import lean_format
+from blockray.rtl.lean import LeanArray, LeanExact
+from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
 from board_scenes import crossing_patches, random_points
 from processor_vectors import hard_cases, random_tests
+from test_rtl_board import scene  # noqa: F401  (the module-scoped scene fixture)
 
 
 def _reference(P, Q, V):
@@ -39,8 +41,10 @@ def _single_tests(tests, first_mark=True):
     return steps
 
 
-def test_latency_constant_is_the_rtl_exact_units():
+def test_model_constants_are_the_rtls():
     assert LEAN_EXACT_LATENCY == LeanExact.latency == 9
+    assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 31
+    assert default_lean_depth() == LeanArray.default_depth(2) == 33       # behind the board's memory
 
 
 @pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4))])
@@ -238,3 +242,33 @@ def test_parameters_are_checked():
     with pytest.raises(ValueError, match="depth"):
         LeanArray(8, 2, 2, depth=2)
     assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
+
+
+def test_model_board_lean_equals_exact(scene):       # noqa: F811  (the module-scoped scene fixture)
+    """The model board with the lean cell (``--cell lean --board model``) and behind the byte
+    link: radiosity and tests equal the exact cell's; at 3 x 3 bits the broadcast stalls for the
+    shared exact unit, and the model behind the link counts the same per-board cycles."""
+    from blockray.host_driver.render import render
+    from test_rtl_board import BITS, PARAMS
+
+    def run(board, **cell):
+        return render(scene, board=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
+
+    exact = run("model")
+    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3))
+    assert np.array_equal(lean.radiosity, exact.radiosity)
+    for key in ("tests_issued", "tests_useful", "blocks", "rays"):
+        assert lean.report[key] == exact.report[key], key
+    assert (np.array(lean.report["board_cycles_per_board"]) > np.array(exact.report["board_cycles_per_board"])).all()
+    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3))
+    assert np.array_equal(link.radiosity, lean.radiosity)
+    for key in ("board_cycles_per_board", "tests_issued_per_board"):
+        assert link.report[key] == lean.report[key], key
+    print("board_cycles exact", exact.report["board_cycles"], "lean 3x3", lean.report["board_cycles"])
+
+
+def test_the_lean_board_is_refused_with_one_line():
+    from blockray.params import BoardParams
+    from blockray.rtl.board import BoardTop
+    with pytest.raises(ParameterError, match="lean cell has no board"):
+        BoardTop(BoardParams(bits=8, rows=2, cols=2), cell="lean")
