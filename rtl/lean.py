@@ -144,7 +144,6 @@ class LeanArray(FilteredArray):
         self._address_bits = address_bits
         super().__init__(bits, rows, cols, fmt=fmt if fmt is not None else lean_format(bits),
                          depth=depth if depth is not None else self.default_depth(), mark_shape=mark_shape)
-        self.exact = LeanExact(bits, rows, cols, address_bits, self._depth)
         self._MustUse__silence = False
 
     def _extra_members(self):
@@ -156,8 +155,10 @@ class LeanArray(FilteredArray):
         return FilteredArray.default_depth(extra_latency) + LeanExact.latency + 4
 
     def _resolve(self):
+        # made here, so that _queue_terms can wire its read ports to the memories
+        self.exact = exact = LeanExact(self._bits, self._rows, self._cols, self._address_bits, self._depth)
         return LeanResolve(self._bits, self._rows, self._cols, self._mark_shape, self._depth,
-                           exact_unit=lambda: self.exact, address_bits=self._address_bits)
+                           exact_unit=lambda: exact, address_bits=self._address_bits)
 
     def _queue_terms(self, m, hand, shooters, receivers):
         R, S, depth = self._rows, self._cols, self._depth
