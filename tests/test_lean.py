@@ -8,20 +8,18 @@ every step is presented under the model's credits.
 
 import numpy as np
 import pytest
-from amaranth.hdl import Module, unsigned
-from amaranth.lib import wiring
-from amaranth.lib.memory import Memory
 from amaranth.sim import Simulator
 
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
 from blockray.filtered import FilterFormat
-from blockray.records import pack, pack_array, patch_columns, patch_layout, point_layout
+from blockray.records import pack_array, patch_columns, patch_layout
 from blockray.filtered import lean_format
 from blockray.rtl.lean import LeanArray, LeanExact
 from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
 from board_scenes import crossing_patches, random_points
+from lean_bench import LeanBench, StepDriver
 from processor_vectors import hard_cases, random_tests
 from test_rtl_board import scene  # noqa: F401  (the module-scoped scene fixture)
 
@@ -115,83 +113,56 @@ def test_model_on_a_small_scene_equals_the_exact_blocks():
     print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
 
 
-class _Bench(wiring.Component):
-    """LeanArray with the patch memory its records come from (its second read port)."""
-
-    def __init__(self, array, bits, patch_words):
-        self.array = array
-        self.memory = Memory(shape=unsigned(patch_layout(bits).size), depth=max(2, len(patch_words)),
-                             init=patch_words)
-        super().__init__({})
-
-    def elaborate(self, platform):
-        m = Module()
-        m.submodules.array = a = self.array
-        m.submodules.patches = self.memory
-        rp = self.memory.read_port()
-        m.d.comb += [rp.addr.eq(a.patch_read.addr), rp.en.eq(a.patch_read.en), a.patch_read.data.eq(rp.data)]
-        return m
-
-
 def _run_rtl(bits, rows, cols, fmt, depth, steps, V, n):
-    """The RTL under the owner's credits (items inside < depth, as the board): the cycle each
-    step is presented, each marker's cycle and ``hit`` then."""
-    dut = LeanArray(bits, rows, cols, fmt=fmt, depth=depth, address_bits=max(1, (len(V) - 1).bit_length()))
+    """The RTL in the Amaranth simulator under the owner's credits (tests/lean_bench.py): the
+    cycle each step is presented, each marker's cycle and ``hit`` then."""
     words = pack_array(patch_layout(bits), patch_columns(V, n))
-    sim = Simulator(_Bench(dut, bits, words))
+    bench = LeanBench(bits, rows, cols, fmt, depth, words)
+    driver = StepDriver(steps, words, bits, rows, cols, depth)
+    sim = Simulator(bench)
     sim.add_clock(1e-8)
-    presented, marks, hits = [], [], []
 
-    def point(p):
-        return pack(point_layout(bits), dict(zip("xyz", map(int, p))))
-
-    async def bench(ctx):
-        inside, t, i = 0, 0, 0
+    async def drive(ctx):
         limit = 60 * len(steps) + 500
-        while (i < len(steps) or inside > 0) and t < limit:
-            step = steps[i] if i < len(steps) else Gap()
-            issue = not isinstance(step, Gap) and inside < depth
-            go = isinstance(step, Gap) or issue
-            ctx.set(dut.valid, int(issue and isinstance(step, Record)))
-            ctx.set(dut.mark, int(issue and isinstance(step, Mark)))
-            if isinstance(step, Record):
-                ctx.set(dut.first, int(step.first))
-                ctx.set(dut.address, step.address)
-                ctx.set(dut.patch.as_value(), words[step.address])
-                ctx.set(dut.row_mask, int(sum(int(b) << r for r, b in enumerate(step.row_mask))))
-                ctx.set(dut.col_mask, int(sum(int(b) << s for s, b in enumerate(step.col_mask))))
-                for s in range(cols):
-                    ctx.set(dut.shooters[s].as_value(), point(step.shooters[s]))
-                for r in range(rows):
-                    ctx.set(dut.receivers[r].as_value(), point(step.receivers[r]))
-            else:       # garbage on the data inputs while nothing is presented
-                ctx.set(dut.patch.as_value(), 0x5A5A5A5A)
-                ctx.set(dut.address, t % len(words))
-            delivered, mark_out, hit = ctx.get(dut.delivered), ctx.get(dut.mark_out), ctx.get(dut.hit)
-            if mark_out:
-                marks.append(t)
-                hits.append(hit)
-            if go and i < len(steps):
-                presented.append(t)
-                i += 1
-            inside += int(issue) - delivered
+        while not driver.done and driver.t < limit:
+            for name, value in driver.inputs().items():
+                port = getattr(bench, name)
+                ctx.set(port.as_value() if hasattr(port, "as_value") else port, value)
+            driver.observe(ctx.get(bench.delivered), ctx.get(bench.mark_out), ctx.get(bench.hit))
             await ctx.tick()
-            t += 1
-        assert t < limit, "the array stopped delivering"
+        assert driver.done, "the array stopped delivering"
 
-    sim.add_testbench(bench)
+    sim.add_testbench(drive)
     sim.run()
-    return np.array(presented), np.array(marks), hits
+    return np.array(driver.presented), np.array(driver.marks), driver.hits
 
 
 def _word(bits_rs):
     return int(sum(1 << int(i) for i in np.flatnonzero(np.asarray(bits_rs).ravel())))
 
 
-def _compare(bits, rows, cols, fmt, depth, steps, V, n):
+def _run_verilator(bits, rows, cols, fmt, depth, steps, V, n, tmp_path):
+    """The Verilog of the same bench under cocotb + Verilator (tests/cocotb_lean.py)."""
+    import json
+    import pickle
+    from pathlib import Path
+
+    from blockray.sim.cocotb_support import build_verilator, run_cocotb
+    words = pack_array(patch_layout(bits), patch_columns(V, n))
+    build = build_verilator(LeanBench(bits, rows, cols, fmt, depth, words), name=f"lean_bench_{rows}x{cols}")
+    print(f"verilator build: {'cached' if build.cached else f'{build.seconds:.1f} s'}")
+    (tmp_path / "steps.pkl").write_bytes(pickle.dumps((steps, words, bits, rows, cols, depth)))
+    out = tmp_path / "out.json"
+    run_cocotb(build, "cocotb_lean", module_dir=Path(__file__).parent, test_dir=tmp_path,
+               env={"BLOCKRAY_STEPS": str(tmp_path / "steps.pkl"), "BLOCKRAY_OUT": str(out)})
+    got = json.loads(out.read_text())
+    return np.array(got["presented"]), np.array(got["marks"]), got["hits"]
+
+
+def _compare(bits, rows, cols, fmt, depth, steps, V, n, run=_run_rtl):
     model = LeanArrayModel(bits, rows, cols, fmt=fmt, depth=depth)
     trace = model.run(steps, V, n)
-    presented, marks, hits = _run_rtl(bits, rows, cols, model.fmt, model.depth, steps, V, n)
+    presented, marks, hits = run(bits, rows, cols, model.fmt, model.depth, steps, V, n)
     assert (presented == trace.cycle).all(), np.flatnonzero(presented != trace.cycle)[:5]
     assert list(marks) == list(trace.marks)
     masks = []
@@ -272,3 +243,19 @@ def test_the_lean_board_is_refused_with_one_line():
     from blockray.rtl.board import BoardTop
     with pytest.raises(ParameterError, match="lean cell has no board"):
         BoardTop(BoardParams(bits=8, rows=2, cols=2), cell="lean")
+
+
+@pytest.mark.cocotb
+def test_verilator_equals_model_on_blocks(tmp_path):
+    """The Verilog 2 x 2 lean array under cocotb + Verilator, B = 12, 3 x 3 bits (many tests to
+    the exact unit), random blocks with gaps, partial masks and markers: the cycle every step is
+    presented, every marker's cycle and ``hit`` equal the model's."""
+    seed = 3401
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    bits, rows, cols = 12, 2, 2
+    steps, V, n = _steps(rng, _scene_blocks(rng, bits, rows, cols, 40, 10), rows, cols)
+    trace = _compare(bits, rows, cols, FilterFormat(3, 3), None, steps, V, n,
+                     run=lambda *a: _run_verilator(*a, tmp_path))
+    assert trace.undecided.sum() > 50
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
