@@ -6,22 +6,29 @@ zero tolerance: every marker's cycle and the accumulators' bits when it leaves, 
 every step is presented under the model's credits.
 """
 
+import json
+import pickle
+from pathlib import Path
+
 import numpy as np
 import pytest
 from amaranth.sim import Simulator
 
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
-from blockray.filtered import FilterFormat
+from blockray.filtered import FilterFormat, lean_format
+from blockray.host_driver.render import render
+from blockray.params import BoardParams
 from blockray.records import pack_array, patch_columns, patch_layout
-from blockray.filtered import lean_format
+from blockray.rtl.board import BoardTop
 from blockray.rtl.lean import LeanArray, LeanExact
+from blockray.sim.cocotb_support import build_verilator, run_cocotb
 from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
 from board_scenes import crossing_patches, random_points
 from lean_bench import LeanBench, StepDriver
 from processor_vectors import hard_cases, random_tests
-from test_rtl_board import scene  # noqa: F401  (the module-scoped scene fixture)
+from test_rtl_board import BITS, PARAMS, scene  # noqa: F401  (the module-scoped scene fixture)
 
 
 def _reference(P, Q, V):
@@ -143,11 +150,6 @@ def _word(bits_rs):
 
 def _run_verilator(bits, rows, cols, fmt, depth, steps, V, n, tmp_path):
     """The Verilog of the same bench under cocotb + Verilator (tests/cocotb_lean.py)."""
-    import json
-    import pickle
-    from pathlib import Path
-
-    from blockray.sim.cocotb_support import build_verilator, run_cocotb
     words = pack_array(patch_layout(bits), patch_columns(V, n))
     build = build_verilator(LeanBench(bits, rows, cols, fmt, depth, words), name=f"lean_bench_{rows}x{cols}")
     print(f"verilator build: {'cached' if build.cached else f'{build.seconds:.1f} s'}")
@@ -219,9 +221,6 @@ def test_model_board_lean_equals_exact(scene):       # noqa: F811  (the module-s
     """The model board with the lean cell (``--cell lean --board model``) and behind the byte
     link: radiosity and tests equal the exact cell's; at 3 x 3 bits the broadcast stalls for the
     shared exact unit, and the model behind the link counts the same per-board cycles."""
-    from blockray.host_driver.render import render
-    from test_rtl_board import BITS, PARAMS
-
     def run(board, **cell):
         return render(scene, board=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
 
@@ -239,8 +238,6 @@ def test_model_board_lean_equals_exact(scene):       # noqa: F811  (the module-s
 
 
 def test_the_lean_board_is_refused_with_one_line():
-    from blockray.params import BoardParams
-    from blockray.rtl.board import BoardTop
     with pytest.raises(ParameterError, match="lean cell has no board"):
         BoardTop(BoardParams(bits=8, rows=2, cols=2), cell="lean")
 
