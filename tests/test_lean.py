@@ -242,6 +242,7 @@ def test_the_lean_board_is_refused_with_one_line():
         BoardTop(BoardParams(bits=8, rows=2, cols=2), cell="lean")
 
 
+@pytest.mark.slow           # a Verilator build of minutes
 @pytest.mark.cocotb
 def test_verilator_equals_model_on_blocks(tmp_path):
     """The Verilog 2 x 2 lean array under cocotb + Verilator, B = 12, 3 x 3 bits (many tests to
