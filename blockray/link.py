@@ -22,9 +22,11 @@ This module is the one home of these constants and of the host's side of the fra
 the tests alike.
 """
 
-__all__ = ["FRAME_MAX", "GRANT_FLAG", "result_header", "grant_header", "parse_header", "LinkHost",
+__all__ = ["DEFAULT_BAUD", "FRAME_MAX", "GRANT_FLAG", "result_header", "grant_header", "parse_header", "LinkHost",
            "frame_results", "wire_bytes"]
 
+#: the link's baud rate unless a bitstream is built for another (``--baud``): 3 Mbaud, the FT231X's fastest
+DEFAULT_BAUD = 3_000_000
 #: the largest frame: 128 result bytes, or a grant of 128 credits
 FRAME_MAX = 128
 #: header bit 7: a credit grant (else a result frame)

@@ -10,19 +10,17 @@ A missing port or a silent board fails with one line (:class:`TransportError`, e
 ``answer_timeout`` seconds: after the reset the board must grant its credits, and once running,
 a board that sends nothing for ``timeout`` seconds while the host waits is reported too.
 
-    with SerialTransport("/dev/ttyUSB0", baud=3_000_000) as link:
+    with SerialTransport("/dev/ttyUSB0", baud=DEFAULT_BAUD) as link:
         link.send(command_bytes)
         results = link.recv(n)
 """
 
 import time
 
-from ..link import LinkHost
+from ..link import DEFAULT_BAUD, LinkHost
 from .transport import Transport, TransportError
 
 __all__ = ["CreditedLink", "SerialTransport", "DEFAULT_BAUD"]
-
-DEFAULT_BAUD = 3_000_000
 
 
 class CreditedLink(Transport):

@@ -76,7 +76,7 @@ def _one_set(tolerance, cache={}):
     """The radiosity of one set, in this process."""
     if tolerance not in cache:
         scene = load_scene("cornell", **SCENE)
-        cache[tolerance] = render(scene, board="model", solver="jacobi", tolerance=tolerance, sets=1).radiosity
+        cache[tolerance] = render(scene, backend="model", solver="jacobi", tolerance=tolerance, sets=1).radiosity
     return cache[tolerance]
 
 
@@ -145,7 +145,7 @@ def test_a_lost_worker_costs_no_work(cluster, phase, repeat):
     cluster.watcher.wait_for_workers(2, timeout=120)          # the last case's victim restarted
     tolerance = 1e-10 if phase == "sole-copy" else 1e-4
     reference = _one_set(tolerance)
-    thread, out = _in_thread(lambda: render(scene, board="model", solver="jacobi", tolerance=tolerance, sets=2,
+    thread, out = _in_thread(lambda: render(scene, backend="model", solver="jacobi", tolerance=tolerance, sets=2,
                                             scheduler=cluster.address))
     if phase == "casting":
         victim = _until(thread, lambda: (cluster.running("cast_set") or [None])[0])

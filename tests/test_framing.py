@@ -19,7 +19,7 @@ from blockray.host_driver.render import render
 from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
 
-import test_rtl_board
+from scenes import RTL_PARAMS, room_obj, room_scene
 
 
 def _bitwise_crc32(data):
@@ -208,7 +208,7 @@ RENDER = ["--max-edge", "1.5", "--board", "model-link", "--rows", "2", "--cols",
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    path = test_rtl_board.room_obj(tmp_path_factory.mktemp("framing_room"))
+    path = room_obj(tmp_path_factory.mktemp("framing_room"))
     out = path.parent / "clean.csv"
     assert main(["render", str(path), *RENDER, "--patches", str(out)]) == 0
     return path, out.read_bytes()
@@ -261,7 +261,7 @@ def test_a_corrupted_result_tag_on_an_unframed_link_is_one_error(room):
     """Without framing (a board on the old serial link) a corrupted result header is a
     TransportError naming the board, not a ValueError."""
     path, _ = room
-    scene = test_rtl_board.room_scene(path.parent, 1.5)
-    board = BoardDriver(test_rtl_board.PARAMS, bits=10, transport=lambda p, b: _Flipper(p))
+    scene = room_scene(path.parent, 1.5)
+    board = BoardDriver(RTL_PARAMS, bits=10, transport=lambda p, b: _Flipper(p))
     with pytest.raises(TransportError, match=r"board 0 \(the link\): a corrupted result: result tag 3"):
-        render(scene, board=board, params=test_rtl_board.PARAMS, bits=10, samples=4, max_shots=1, voxels=3)
+        render(scene, board=board, params=RTL_PARAMS, bits=10, samples=4, max_shots=1, voxels=3)
