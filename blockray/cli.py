@@ -84,7 +84,7 @@ def _add_board_options(p):
                         "on each stream (--board amaranth)")
     g.add_argument("--link-faults", type=float, default=None, metavar="RATE",
                    help="flip, drop or duplicate each byte on every board's link, both ways, with probability "
-                        "RATE (--board model-link; faults are resent, or end the run naming the link)")
+                        "RATE (--board model-link, ulx3s-sim or ulx3s; faults are resent, or end the run naming the link)")
     g.add_argument("--link-seed", type=int, default=0, metavar="N",
                    help="seed of the simulated host's timing and of --link-faults")
 
@@ -248,10 +248,14 @@ def _ulx3s_board(args, params):
     ports = [p for p in args.port.split(",") if p]
     if len(ports) != params.boards:
         raise ParameterError(f"--boards: {params.boards} boards need {params.boards} ports, --port names {len(ports)}")
+    faults = None
+    if args.link_faults is not None:
+        from .host_driver.framed import LinkFaults
+        faults = _naming_option(lambda: LinkFaults(args.link_faults, args.link_seed))
     links = []
     try:
-        for port in ports:
-            links.append(SerialTransport(port, baud=args.baud))
+        for b, port in enumerate(ports):
+            links.append(SerialTransport(port, baud=args.baud, faults=faults, board=b))
         try:
             from .host_driver.driver import BoardDriver
         except ImportError:
@@ -306,7 +310,7 @@ def _cmd_render(args):
         params = _ulx3s_params(args, params)
         args.board, args.bits = _ulx3s_board(args, params), params.bits
 
-    if args.link_faults is not None:
+    if args.link_faults is not None and isinstance(args.board, str):
         args.board = _faulty_board(args, params)
 
     progress = not args.quiet and sys.stderr.isatty()

@@ -17,17 +17,19 @@ from .uart_sim import SIM_DIVISOR, UartSimTransport
 __all__ = ["ulx3s_transport", "ulx3s_sim_transport"]
 
 
-def ulx3s_transport(port, *, baud=DEFAULT_BAUD):
-    """Board behind serial ``port`` (a real ULX3S running ``blockray bitstream``'s bitstream)."""
-    return SerialTransport(port, baud=baud)
+def ulx3s_transport(port, *, baud=DEFAULT_BAUD, faults=None, board=0):
+    """Board behind serial ``port`` (a real ULX3S running ``blockray bitstream``'s bitstream), over
+    the framed link; ``faults``: a :class:`~blockray.host_driver.framed.LinkFaults` to inject."""
+    return SerialTransport(port, baud=baud, faults=faults, board=board)
 
 
-def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, fifo_depth=2048, result_depth=512):
-    """The board core for ``params`` behind the UART link under Verilator (bit time
-    ``SIM_DIVISOR`` cycles). ``vcd``/``host`` are not supported (the link sets the host's timing)."""
+def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, faults=None, fifo_depth=2048):
+    """The board core for ``params`` behind the UART and the framed link under Verilator (bit
+    time ``SIM_DIVISOR`` cycles); ``faults``: as :func:`ulx3s_transport`. ``vcd``/``host`` are not
+    supported (the link sets the host's timing)."""
     from ..errors import ParameterError
     from ..rtl.core import BoardCore
     if vcd is not None or host is not None:
         raise ParameterError("--board ulx3s-sim: the UART sets the host's timing; no --vcd or --host-timing")
-    return UartSimTransport(BoardCore(params), divisor=SIM_DIVISOR, fifo_depth=fifo_depth,
-                            result_depth=result_depth, name="blockray_ulx3s_sim")
+    return UartSimTransport(BoardCore(params), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
+                            board=board, name="blockray_ulx3s_sim")

@@ -1,15 +1,17 @@
 """The serial transport without hardware: a missing port and a silent board fail in seconds with
-one line (exit 2 from the CLI); over a pseudo-terminal, a board written here from the link's
-framing definition (credits, frames) exchanges bytes with the transport."""
+one line (exit 2 from the CLI); over a pseudo-terminal, the board's half of the framed link
+exchanges bytes with the transport, and its counters are read over it."""
 
 import os
 import random
 import threading
 import time
+import tty
 
 import pytest
 
 from blockray.cli import main
+from blockray.framing import BOARD_LINK, Endpoint
 from blockray.host_driver.serial_link import SerialTransport
 from blockray.host_driver.transport import TransportError
 
@@ -54,76 +56,44 @@ def test_cli_render_needs_a_port(capsys):
 
 
 class PtyBoard(threading.Thread):
-    """A board on the master side of a pty, from the framing definition: ``depth`` credits
-    granted once ``released`` is set (the host ended its break), every command byte b answered with the
-    result b ^ 0x5A in frames of random length, a grant per few bytes taken. Records whether the
-    host ever sent beyond its credits."""
+    """A board on the master side of a pty: the board's half of the framed link (an
+    :class:`~blockray.framing.Endpoint` with the board's frame sizes) in front of a core that
+    answers every command byte b with b ^ 0x5A; the pty's bytes are read in random pieces."""
 
-    def __init__(self, fd, *, depth, seed):
+    def __init__(self, fd, *, seed):
         super().__init__(daemon=True)
-        self.fd, self.depth, self.rng = fd, depth, random.Random(seed)
-        self.released = threading.Event()      # a pty carries no break: the test's transport says
-        self.overrun = False
-        self.received = 0
+        self.fd, self.rng = fd, random.Random(seed)
+        self.endpoint = Endpoint(BOARD_LINK)
         self.stop = False
 
     def run(self):
         try:
-            self._serve()
+            while not self.stop:
+                data = os.read(self.fd, self.rng.randint(1, 300))
+                self.endpoint.submit(bytes(b ^ 0x5A for b in self.endpoint.receive(data)))
+                os.write(self.fd, self.endpoint.output())
         except OSError:         # the test closed the pty
             pass
 
-    def _serve(self):
-        self.released.wait()
-        os.write(self.fd, bytes([0x80 | (self.depth - 1)]))
-        owed, granted, pending = 0, self.depth, bytearray()
-        while not self.stop:
-            data = os.read(self.fd, 64)
-            self.received += len(data)
-            if self.received > granted:
-                self.overrun = True
-            pending += bytes(b ^ 0x5A for b in data)
-            owed += len(data)
-            out = bytearray()
-            while pending:
-                n = min(len(pending), self.rng.randint(1, 128))
-                out.append(n - 1)
-                out += pending[:n]
-                del pending[:n]
-            if owed >= self.rng.randint(1, self.depth):
-                out.append(0x80 | (owed - 1))
-                granted += owed
-                owed = 0
-            os.write(self.fd, bytes(out))
-            if owed:                # grant the rest soon, so the host is never left waiting
-                time.sleep(0.01)
-                os.write(self.fd, bytes([0x80 | (owed - 1)]))
-                granted += owed
-                owed = 0
 
-
-def test_credits_and_frames_over_a_pty(pty_pair):
+def test_framed_link_over_a_pty(pty_pair):
     seed = 7
     print("seed", seed)
     master, name = pty_pair
-    board = PtyBoard(master, depth=16, seed=seed)
+    tty.setraw(master)
+    board = PtyBoard(master, seed=seed)
     board.start()
     rng = random.Random(seed)
-    data = bytes(rng.randrange(256) for _ in range(600))
-
-    class Transport(SerialTransport):
-        def _set_break(self, on):
-            super()._set_break(on)
-            if not on:
-                board.released.set()
-
-    with Transport(name, answer_timeout=5.0, timeout=5.0) as link:
+    data = bytes(rng.randrange(256) for _ in range(3000))
+    with SerialTransport(name, answer_timeout=5.0) as link:
         got = bytearray()
-        for i in range(0, len(data), 50):
-            link.send(data[i:i + 50])
-            got += link.recv(rng.randint(0, 50 + i - len(got)))
+        for i in range(0, len(data), 500):
+            link.send(data[i:i + 500])
+            got += link.recv(rng.randint(0, 500 + i - len(got)))
         got += link.recv(len(data) - len(got))
         stats = link.stats()
     board.stop = True
     assert bytes(got) == bytes(b ^ 0x5A for b in data)
-    assert not board.overrun and stats["bytes_sent"] == len(data)
+    # the board's counters came over the link: each send's frames (of at most 246 bytes) accepted once
+    assert stats["board"]["frames_accepted"] == stats["host"]["frames_sent"] == 6 * -(-500 // 246)
+    assert stats["board"]["errors"] == stats["host"]["errors"] == 0
