@@ -128,10 +128,15 @@ class ModelBoardLink:
         return {"board_model": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts}}
 
 
+#: the longest time-out, in units of FramedTransport's ``timeout``
+_MAX_BACKOFF = 16
+
+
 class FramedTransport(Transport):
     """The core's bytes over ``pipe`` in frames (see the module docstring). ``where`` names the
     link in errors; ``timeout``: seconds of silence before a resend (a board answers within a
-    USB round trip, a few ms); ``max_retries``: the link is given up after ``max_retries`` time-outs
+    USB round trip, a few ms), doubled after each time-out up to 16 times, halved after progress
+    (so a window still in transit is not resent over and over); ``max_retries``: the link is given up after ``max_retries`` time-outs
     worth of time without progress (no frame acknowledged or accepted);
     ``answer_timeout``: if given, every :meth:`reset` waits at most this long for the board's
     answer to a status frame (a board that does not answer is one :class:`TransportError`)."""
@@ -144,6 +149,7 @@ class FramedTransport(Transport):
         self._results = bytearray()
         self._resets = 0
         self._failed = False
+        self._wait = 1          # the time-out in units of ``timeout``: doubled on a time-out, halved on progress
         self.wire_sent = self.wire_received = 0     # bytes on the wire, frames and resends included
 
     def send(self, data):
@@ -162,19 +168,21 @@ class FramedTransport(Transport):
         mark, since = None, time.monotonic()
         while len(self._results) < count:
             self._flush()
-            data = self.pipe.read(silence)
+            data = self.pipe.read(self._wait * silence)
             self.wire_received += len(data)
             if data:
                 self._results += e.receive(data)
             now = (e.base, e.expect)
             if now != mark:
                 mark, since = now, time.monotonic()
+                self._wait = max(1, self._wait // 2)
                 continue
             if time.monotonic() - since > self.max_retries * silence:
                 self._failed = True
                 raise TransportError(self._failure(count, silence))
-            if not data:
+            if not data:        # a time-out: resend, and wait longer next time (the window may be in transit)
                 e.rewind()
+                self._wait = min(2 * self._wait, _MAX_BACKOFF)
         self._flush()                               # acknowledge what came
         out = bytes(self._results[:count])
         del self._results[:count]
