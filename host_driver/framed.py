@@ -244,11 +244,12 @@ class FramedTransport(Transport):
 
 def integrity_report(stats):
     """The report's ``link_integrity`` from the transports' ``stats()``: frames resent and errors
-    seen (host and board sides) and the faults injected; None if no link is framed."""
+    seen, both sides together and the board's alone (``board_*``: the board's own counters, read
+    over the link), and the faults injected; None if no link is framed."""
     stats = [s for s in stats if "host" in s]
     if not stats:
         return None
-    out = {"frames_sent": 0, "frames_resent": 0, "errors": 0}
+    out = {"frames_sent": 0, "frames_resent": 0, "errors": 0, "board_frames_resent": 0, "board_errors": 0}
     for s in stats:
         out["frames_sent"] += s["host"]["frames_sent"]
         for key in ("wire_bytes_sent", "wire_bytes_received"):
@@ -256,6 +257,8 @@ def integrity_report(stats):
         for side in ("host", "board"):
             for key in ("frames_resent", "errors"):
                 out[key] += s.get(side, {}).get(key, 0)
+        for key in ("frames_resent", "errors"):
+            out[f"board_{key}"] += s.get("board", {}).get(key, 0)
         for counts in s.get("injected", {}).values():
             for kind, n in counts.items():
                 out[f"injected_{kind}"] = out.get(f"injected_{kind}", 0) + n

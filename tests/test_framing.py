@@ -13,7 +13,7 @@ import pytest
 from blockray.cli import main
 from blockray.framing import (MAX_PAYLOAD, RESEND, Endpoint, Frame, FrameError, FrameSplitter, LinkConfig, crc32,
                               encode_frame, parse_frame, wire_frame_bytes)
-from blockray.host_driver.framed import FaultInjector, FramedTransport, LinkFaults
+from blockray.host_driver.framed import FaultInjector, FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.driver import BoardDriver
 from blockray.host_driver.render import render
 from blockray.host_driver.simulated import ModelTransport
@@ -180,6 +180,43 @@ def test_fault_injector_is_seeded_and_counts():
     assert FaultInjector(0, None)(data) == data
     with pytest.raises(Exception, match="link-faults"):
         LinkFaults(1.5)
+
+
+def test_the_board_counters_read_over_the_link_are_the_boards():
+    """A model board's own counts, and the same counts as the host reads them in a status frame."""
+    seed = 12
+    print("seed", seed)
+    faults = LinkFaults(2e-3, seed)
+    pipe = FaultyPipe(_Mirror(), faults.injector(0, 0), faults.injector(0, 1))
+    link = FramedTransport(pipe, where="test", answer_timeout=5.0)
+    link.reset()
+    data = bytes(random.Random(seed).randrange(256) for _ in range(20000))
+    link.send(data)
+    assert link.recv(len(data)) == bytes(b ^ 0xFF for b in data)
+    pipe.outgoing.rate = pipe.incoming.rate = 0          # the counters' exchange itself unharmed
+    stats = link.stats()
+    own = stats["board_model"]
+    assert sum(pipe.outgoing.counts.values()) > 0 and own["errors"] > 0 and own["frames_resent"] > 0
+    assert stats["board"] == {k: own[k] for k in ("frames_resent", "errors", "frames_accepted")}
+
+
+class _Mirror(ModelBoardLink):
+    """The board's half of the link in front of a core that inverts every byte."""
+
+    def __init__(self):
+        super().__init__(core=None)
+        self._out = bytearray()
+
+    def write(self, data):
+        self._out += bytes(b ^ 0xFF for b in self.endpoint.receive(data))
+
+    def read(self, timeout):
+        self.endpoint.submit(bytes(self._out))
+        self._out.clear()
+        return self.endpoint.output()
+
+    def reset(self):
+        self.endpoint.reset()
 
 
 class _Silent:

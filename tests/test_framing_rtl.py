@@ -125,7 +125,8 @@ class _Loopback(wiring.Component):
 def test_framed_bridge_against_the_host(rate):
     """The host's Endpoint (HOST_LINK-sized window, short frames) sends through the bridge to a
     looping core; what comes back, through the board's FrameSender, is exactly what was sent,
-    with faults both ways. The host resends after 400 silent cycles; the UART never overruns."""
+    with faults both ways. The host resends after 400 silent cycles; the UART never overruns. At
+    the end the board's counters come in a status frame."""
     seed = random.randrange(2**32)
     print("seed", seed, "rate", rate)
     rng = random.Random(seed)
@@ -140,7 +141,7 @@ def test_framed_bridge_against_the_host(rate):
     got = bytearray()
 
     async def bench(ctx):
-        queue, silent = bytearray(), 0
+        queue, silent, asked = bytearray(), 0, False
         ctx.set(dut.tx_bytes.ready, 1)
         for cycle in range(150000):
             if not queue:
@@ -159,10 +160,21 @@ def test_framed_bridge_against_the_host(rate):
                 host.rewind()
                 silent = 0
             if len(got) >= len(data) and not host.pending:
-                break
+                if host.peer_status is not None:
+                    break
+                if not asked:                       # then the board's counters, in a status frame
+                    host.request_status()
+                    down.rate = up.rate = 0
+                    asked = True
             await ctx.tick()
         assert not ctx.get(dut.bridge.overrun)
 
     sim.add_testbench(bench)
     sim.run()
     assert bytes(got) == data
+    # every new frame the host sent was accepted once; without faults nothing was resent or wrong
+    board = host.peer_status
+    print("board", board, "host", host.counts)
+    assert board["frames_accepted"] == host.counts["frames_sent"]
+    if rate == 0:
+        assert board["errors"] == board["frames_resent"] == 0

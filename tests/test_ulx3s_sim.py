@@ -1,12 +1,16 @@
-"""``--board ulx3s-sim``: the ULX3S top level (UART, FIFOs, credits, the board core) under
+"""``--board ulx3s-sim``: the ULX3S top level (UART, framed link, the board core) under
 Verilator, driven by the host driver through the same link code as the real board, renders
-bit-identically to ``--board model`` (radiosities and every counter).
+bit-identically to ``--board model`` (radiosities and every counter), with ``--link-faults``
+too (byte-identical CSVs), and a hopeless fault rate ends with one error line, exit 2.
 
 """
+
+import json
 
 import numpy as np
 import pytest
 
+from blockray.cli import main
 from blockray.host_driver.driver import BoardDriver
 from blockray.host_driver.render import render
 from blockray.host_driver.ulx3s import ulx3s_sim_transport
@@ -39,3 +43,58 @@ def test_small_scene_equals_the_model(tmp_path):
 def test_cornell_equals_the_model():
     from blockray.host_driver.builtin import load_scene
     _compare(load_scene("cornell"), BoardParams(rows=2, cols=2, boards=1), None, max_shots=2)
+
+
+# -- --link-faults through the simulated board's UART ---------------------------------------------
+
+RENDER = ["--max-edge", "1.5", "--board", "ulx3s-sim", "--rows", "2", "--cols", "2", "--boards", "1",
+          "--bits", "10", "--samples", "4", "--max-shots", "1", "--voxels", "3", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """The small room and its CSV from --board model (which ulx3s-sim equals, test above)."""
+    from test_rtl_board import room_obj
+    path = room_obj(tmp_path_factory.mktemp("ulx3s_faults"))
+    out = path.parent / "model.csv"
+    assert main(["render", str(path), *RENDER, "--board", "model", "--patches", str(out)]) == 0
+    return path, out.read_bytes()
+
+
+def _faulty_render(room, tmp_path, rate, seed):
+    path, clean = room
+    csv, report = tmp_path / "p.csv", tmp_path / "r.json"
+    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--report", str(report),
+                 "--link-faults", str(rate), "--link-seed", str(seed)]) == 0
+    integrity = json.loads(report.read_text())["link_integrity"]
+    print("rate", rate, "seed", seed, integrity)
+    assert csv.read_bytes() == clean
+    return integrity
+
+
+def test_render_at_1e_3_faults_is_byte_identical(room, tmp_path):
+    """Faults both ways, corrected by resending; the board's own counters (read over the link)
+    show the errors it saw and the frames it resent."""
+    integrity = _faulty_render(room, tmp_path, 1e-3, 3)
+    assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
+    assert integrity["board_errors"] > 0 and integrity["board_frames_resent"] > 0
+    assert integrity["frames_resent"] >= integrity["board_frames_resent"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate,seed", [(1e-5, 24), (1e-4, 4)])
+def test_render_at_low_fault_rates_is_byte_identical(room, tmp_path, rate, seed):
+    _faulty_render(room, tmp_path, rate, seed)
+
+
+@pytest.mark.slow
+def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
+    """About 90 s: a minute of time-outs without progress before the link is given up."""
+    path, _ = room
+    csv = tmp_path / "p.csv"
+    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--link-faults", "0.05"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    err = [line for line in lines if not line.startswith("blockray: warning:")]
+    assert len(err) == 1 and "the simulated board 0: " in err[0] and "last fault: " in err[0], lines
+    assert not any("Traceback" in line for line in lines)
+    assert not csv.exists()
