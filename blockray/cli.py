@@ -11,6 +11,7 @@ import logging
 import sys
 import warnings
 
+from .atomic import Terminated, sigterm_raises
 from .errors import BlockrayError
 
 __all__ = ["main"]
@@ -146,8 +147,10 @@ def _check_render(args):
     from .extras import require
     from .paths import check_output_file
     from .host_driver.image import check_image_size
+    from .paths import check_output_dir
     for option in ("image", "patches", "report", "vcd"):
         check_output_file(getattr(args, option), f"--{option}")
+    check_output_dir(args.checkpoint or args.resume, "--checkpoint" if args.checkpoint else "--resume")
     if args.image is not None:
         check_image_size(args.size, args.size)
     if args.board == "verilator":
@@ -204,6 +207,12 @@ def _render_parser(sub):
     out.add_argument("--patches", metavar="CSV", help="write per-patch radiosity")
     out.add_argument("--report", metavar="JSON", help="write run statistics")
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    out.add_argument("--checkpoint", metavar="DIR",
+                     help="save the solve to DIR/checkpoint.npz as it runs (atomically, at most every 30 s: "
+                          "after a shot, or after a sweep); docs/robustness.md")
+    out.add_argument("--resume", metavar="DIR",
+                     help="continue the render whose checkpoint is in DIR (same scene and options, else "
+                          "refused) and keep saving there; the outputs equal an uninterrupted render's")
     p.set_defaults(func=_cmd_render)
     return p
 
@@ -291,11 +300,20 @@ def _faulty_board(args, params):
                                              filter_format=_render_filter_format(args), faults=faults))
 
 
+def _checkpoint(args):
+    """--checkpoint / --resume: where the solve is saved (the --resume folder unless --checkpoint)."""
+    if args.checkpoint is None and args.resume is None:
+        return None
+    from .host_driver.checkpoint import Checkpoint
+    return Checkpoint(save_to=args.checkpoint or args.resume, resume_from=args.resume)
+
+
 def _cmd_render(args):
     from .errors import ParameterError
     from .params import MIN_BITS, MAX_BITS
     from .host_driver.builtin import load_scene
     from .host_driver.render import render
+    from .atomic import Outputs
     from .host_driver.output import write_patches_csv, write_report_json
     from .host_driver.solver import check_matrix_memory
 
@@ -314,22 +332,27 @@ def _cmd_render(args):
         args.board = _faulty_board(args, params)
 
     progress = not args.quiet and sys.stderr.isatty()
-    result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
-                    samples=args.samples, solver=args.solver, tolerance=args.tolerance,
-                    max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                    partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
-                    threads=args.threads, scheduler=args.scheduler, workers=args.workers,
-                    echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
-                    host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
-                    closure=args.closure)
-    if args.image:
-        from .host_driver.image import render_image, save_png
-        img = render_image(scene, result.radiosity, width=args.size, height=args.size)
-        save_png(args.image, img)
-    if args.patches:
-        write_patches_csv(args.patches, scene, result.radiosity)
-    if args.report:
-        write_report_json(args.report, result.report)
+    try:
+        result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
+                        samples=args.samples, solver=args.solver, tolerance=args.tolerance,
+                        max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
+                        partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
+                        threads=args.threads, scheduler=args.scheduler, workers=args.workers,
+                        echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
+                        host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
+                        closure=args.closure, checkpoint=_checkpoint(args))
+    finally:                        # a board built here (ulx3s, --link-faults): closed on every path
+        if not isinstance(args.board, str) and hasattr(args.board, "close"):
+            args.board.close()
+    with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
+        if args.image:
+            from .host_driver.image import render_image, save_png
+            img = render_image(scene, result.radiosity, width=args.size, height=args.size)
+            save_png(args.image, img, outputs)
+        if args.patches:
+            write_patches_csv(args.patches, scene, result.radiosity, outputs)
+        if args.report:
+            write_report_json(args.report, result.report, outputs)
     if not args.quiet:
         r = result.report
         print(f"{r['scene']}: {r['patches']} patches, {r['voxels']}^3 voxels, board {r['board']}, "
@@ -574,7 +597,8 @@ def main(argv=None):
         print(f"blockray: warning: {message}", file=sys.stderr)
     warnings.showwarning = _warn
     try:
-        return args.func(args)
+        with sigterm_raises():
+            return args.func(args)
     except BlockrayError as e:
         print(f"blockray: error: {e}", file=sys.stderr)
         return 2
@@ -582,9 +606,9 @@ def main(argv=None):
         print("blockray: error: out of memory; raise the memory limit (ulimit -v) or make the scene or design "
               "smaller", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("blockray: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:      # SIGINT, or SIGTERM as Terminated: every finally has run
+        print("blockray: terminated" if isinstance(e, Terminated) else "blockray: interrupted", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 The client (``blockray render``) prepares the scene, builds the voxel grid and assigns every patch
 to a set (:func:`~blockray.host_driver.scaleout.assign_sets`). It then sends the scene, the grid,
 the sample scheme, the quantisation (its B; every worker quantises the same scene to the same
-grid) and the set assignment to the workers once (``Client.scatter``), and submits one task per
+grid) and the set assignment to the cluster once (each held by a task, :func:`_hold`), and submits one task per
 set (:func:`cast_set`): the worker builds its own board (``make_board``: model, golden, or an RTL
 board with its own simulator process), loads the grid, casts the rays that end on its own patches
 and keeps its rows of F. Those rows never leave the worker. Each gathering sweep sends the
@@ -11,9 +11,12 @@ current radiosities to the workers and brings back each set's new ones
 (:func:`~blockray.host_driver.solver.jacobi_sweeps`,
 :func:`~blockray.host_driver.solver.gauss_seidel_sweeps`): only radiosities move.
 
-Faults are Dask's: a worker lost while casting or holding its rows has its set's task run again
-on another worker (the scattered inputs are on every worker), and as the cast is deterministic
-the answer is the same. The cluster is a ``LocalCluster`` on the loopback interface, one worker
+Faults: the inputs are held as tasks (:func:`_hold`), not scattered, so Dask can make any of them
+again; a worker lost while casting, holding its rows or sweeping has its tasks run again on
+another worker, and as the cast and the sweeps are deterministic the answer is the same, bit for
+bit. The loss of the scheduler, or of every worker for :data:`WORKERLESS` s, ends the render with
+:class:`~blockray.errors.ResourceError` (one line, exit 2; :func:`_results`), which a
+``--checkpoint`` lets ``--resume`` continue from the last sweep. The cluster is a ``LocalCluster`` on the loopback interface, one worker
 process per core (no more than there are sets), started and closed here; or the user's
 (``--scheduler ADDRESS``).
 """
@@ -23,11 +26,12 @@ import importlib.util
 import logging
 import os
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, ResourceError
 from . import formfactor, solver as solvers
 from .backends import make_board
 from .scaleout import assign_sets, receiver_work
@@ -40,6 +44,10 @@ __all__ = ["SetJob", "SetRows", "cluster_client", "cast_set", "solve_sets", "LOO
 LOOPBACK = "127.0.0.1"
 #: seconds to wait for a user's scheduler before --scheduler is reported unreachable
 CONNECT_TIMEOUT = 5
+#: seconds between the client's looks at the tasks it waits on (and at the scheduler)
+POLL = 0.25
+#: seconds a cluster may have no worker before the render ends
+WORKERLESS = 10
 
 
 @contextlib.contextmanager
@@ -49,9 +57,17 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
     is told the dashboard's address when the cluster serves one. Yields ``(client, threads)``,
     ``threads`` the cores each worker's kernels may use (None: the worker's own setting).
 
+    Dask's own logging is silenced (errors only; nothing at all when ``echo`` is None, as with
+    ``--quiet``): the render reports a lost cluster itself, in one line. The client and the
+    cluster are closed on every path, within seconds even when the scheduler is gone.
+
     A script that calls this must guard its top level with ``if __name__ == "__main__":``: the
     local workers are spawned processes that import it."""
     from dask.distributed import Client, LocalCluster
+    quiet = logging.CRITICAL if echo is None else logging.ERROR
+    dask_logger = logging.getLogger("distributed")
+    level = dask_logger.level
+    dask_logger.setLevel(quiet)
     cluster = None
     if scheduler is None:
         cores = os.cpu_count() or 1
@@ -63,7 +79,7 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
         dashboard = importlib.util.find_spec("bokeh") is not None
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
                                dashboard_address=f"{LOOPBACK}:0", scheduler_kwargs={"dashboard": dashboard},
-                               silence_logs=logging.ERROR)
+                               silence_logs=quiet)
         client = Client(cluster)
     else:
         threads = None
@@ -73,10 +89,18 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
         if echo is not None and dashboard:
             echo(f"Dask dashboard: {client.dashboard_link}")
         yield client, threads
+    except BaseException:
+        dask_logger.setLevel(logging.CRITICAL + 1)    # e.g. "failed to reconnect": the error says it
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        try:
+            client.close(timeout=CONNECT_TIMEOUT)
+            if cluster is not None:
+                cluster.close(timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError, RuntimeError):
+            pass                              # a cluster that is gone already
+        finally:
+            dask_logger.setLevel(level)
 
 
 def _connect(scheduler):
@@ -94,7 +118,7 @@ def _connect(scheduler):
 
 @dataclass(frozen=True)
 class SetJob:
-    """What every set's worker needs besides the scattered scene, grid and assignment."""
+    """What every set's worker needs besides the scene, grid and assignment the cluster holds."""
     board: str
     params: object             # BoardParams
     bits: object               # the client's quantisation B (None: a board without one)
@@ -200,16 +224,19 @@ def _gauss_seidel_rows(rows, B):
     return solvers.set_gauss_seidel(rows.F, rows.own, rows.E, rows.rho, rows.A, B)
 
 
-def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max_iterations, progress=False):
+def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max_iterations, progress=False,
+               checkpoint=None, resume=None):
     """Assign the patches to ``sets`` sets (:func:`_assign`), cast every set's rows on the
     cluster, then solve by gathering with radiosities exchanged through the cluster.
     Returns ``(owner, SolveResult, summaries, info)``: per set its summary (in set order), and the
-    measured ``exchanged_bytes``, ``workers`` and wall seconds of the phases."""
+    measured ``exchanged_bytes``, ``workers`` and wall seconds of the phases. ``checkpoint``,
+    ``resume``: the gathering solvers' (host_driver/solver.py), the state saved after each sweep
+    and the state to continue from."""
     t0 = time.perf_counter()
-    scene_f, grid_f = client.scatter([scene, grid], broadcast=True)
+    scene_f, grid_f = _hold(client, scene), _hold(client, grid)
     owner = _assign(client, scene, scene_f, sets, morton)
     t1 = time.perf_counter()
-    owner_f = client.scatter(owner, broadcast=True)
+    owner_f = _hold(client, owner)
     rows = [client.submit(cast_set, k, scene_f, grid_f, owner_f, job, pure=False) for k in range(sets)]
     summaries = _summaries(client, rows, progress)
     row_sums = solvers.RowSums.of_totals(scene, sum(s["power"] for s in summaries),
@@ -219,14 +246,90 @@ def solve_sets(client, scene, grid, sets, morton, job, *, solver, tolerance, max
     bar = _bar(progress, max_iterations, solver, "sweep")
     gather = solvers.jacobi_sweeps if solver == "jacobi" else solvers.gauss_seidel_sweeps
     result = gather(scene, sweeps.jacobi if solver == "jacobi" else sweeps.gauss_seidel, tolerance=tolerance,
-                    max_iterations=max_iterations, progress=bar)
+                    max_iterations=max_iterations, progress=bar, checkpoint=checkpoint, resume=resume)
     if bar is not None:
         bar.close()
     result.row_sums = row_sums
-    info = {"workers": client.scheduler_info()["workers"], "exchanged_bytes": sweeps.bytes,
+    info = {"workers": _call(client, client.scheduler_info)["workers"], "exchanged_bytes": sweeps.bytes,
             "exchanges": sweeps.count, "assign_seconds": t1 - t0, "cast_seconds": t2 - t1,
             "solve_seconds": time.perf_counter() - t2}
     return owner, result, summaries, info
+
+
+def _value(x):
+    return x
+
+
+def _hold(client, value):
+    """A future of ``value`` that the cluster can always make again: a task returning it, whose
+    spec the scheduler keeps. Dask's memory manager drops the extra replicas of data a client
+    scatters, and scattered data whose last copy is lost cannot be made again; a task's result
+    lost with its worker is recomputed on a live one, and so is every task that needs it."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sending large graph")
+        return client.submit(_value, value, pure=False)
+
+
+def _lost(client):
+    address = getattr(client.scheduler, "address", None) or "its address"
+    return ResourceError(f"--sets: lost the Dask scheduler at {address} (resume from the last --checkpoint "
+                         f"with --resume)")
+
+
+def _call(client, method, *args):
+    """``method(*args)`` on the scheduler; a lost scheduler raises :class:`ResourceError`."""
+    from distributed.comm import CommClosedError
+    from distributed.utils import CancelledError
+    if client.status != "running":
+        raise _lost(client)
+    try:
+        return method(*args)
+    except (OSError, CommClosedError, CancelledError):
+        raise _lost(client) from None
+
+
+def _results(client, futures, done=None):
+    """The results of ``futures`` (in order) once all are finished, waiting while Dask reruns the
+    tasks of a lost worker. ``done(n)`` is told of every ``n`` newly finished. Never hangs: the
+    loss of the scheduler (:data:`POLL` s to notice), no worker for :data:`WORKERLESS` s, or a task
+    whose workers keep dying raise :class:`ResourceError`; a task's own error is raised as is."""
+    from distributed import wait
+    from distributed.scheduler import KilledWorker
+    from distributed.utils import CancelledError, TimeoutError
+    finished, workerless = 0, None
+    while True:
+        states = [f.status for f in futures]
+        if client.status != "running" or "cancelled" in states:
+            raise _lost(client)
+        now = states.count("finished")
+        if done is not None and now > finished:
+            done(now - finished)
+        finished = now
+        if now == len(futures) or "error" in states:
+            break
+        if _workers(client):
+            workerless = None
+        elif workerless is None:
+            workerless = time.monotonic()
+        elif time.monotonic() - workerless > WORKERLESS:
+            raise ResourceError(f"--sets: the Dask cluster has had no worker for {WORKERLESS} s (resume from the "
+                                f"last --checkpoint with --resume)")
+        try:
+            wait(futures, timeout=POLL)
+        except TimeoutError:
+            pass
+        except CancelledError:
+            raise _lost(client) from None
+    try:
+        return client.gather(futures)
+    except KilledWorker as e:
+        raise ResourceError(f"--sets: {e.args[0] if e.args else 'a task'}: every worker that ran it died") from None
+    except CancelledError:
+        raise _lost(client) from None
+
+
+def _workers(client):
+    return len(_call(client, client.scheduler_info)["workers"])
 
 
 def _assign(client, scene, scene_f, sets, morton):
@@ -234,22 +337,18 @@ def _assign(client, scene, scene_f, sets, morton):
     :func:`~blockray.host_driver.scaleout.receiver_work`, counted on the cluster (O(N^2))."""
     work = None
     if sets > 1:
-        n, parts = scene.patches, 4 * max(1, len(client.scheduler_info()["workers"]))
+        n, parts = scene.patches, 4 * max(1, _workers(client))
         pieces = [client.submit(receiver_work, scene_f, range(n * p // parts, n * (p + 1) // parts), pure=False)
                   for p in range(parts)]
-        work = sum(client.gather(pieces))
+        work = sum(_results(client, pieces))
     return assign_sets(morton, sets, work)
 
 
 def _summaries(client, rows, progress):
     """Every set's summary, in set order, as the sets finish casting (a progress bar over sets)."""
-    from dask.distributed import as_completed
-    summaries = [None] * len(rows)
     bar = _bar(progress, len(rows), "casting", "set")
-    for _, summary in as_completed([client.submit(_summary, r, pure=False) for r in rows], with_results=True):
-        summaries[summary["set"]] = summary
-        if bar is not None:
-            bar.update(1)
+    summaries = _results(client, [client.submit(_summary, r, pure=False) for r in rows],
+                         None if bar is None else bar.update)
     if bar is not None:
         bar.close()
     return summaries
@@ -266,9 +365,9 @@ class _Sweeps:
 
     def _exchange(self, kernel, B):
         client = self.client
-        B_f = client.scatter(B, broadcast=True, hash=False)
-        pieces = client.gather([client.submit(kernel, r, B_f, pure=False) for r in self.rows])
-        workers = len(client.scheduler_info()["workers"])
+        B_f = _hold(client, B)
+        pieces = _results(client, [client.submit(kernel, r, B_f, pure=False) for r in self.rows])
+        workers = _workers(client)
         self.bytes += B.nbytes * workers + sum(
             p[1].nbytes + 8 if isinstance(p, tuple) else p.nbytes for p in pieces)   # (weighted, new) or new
         self.count += 1

@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from blockray.atomic import write_file
 from blockray.errors import ParameterError
 
 from .scene import Camera
@@ -214,10 +215,9 @@ def render_image(scene, radiosity, *, width=512, height=512, camera=None,
     return np.round(out * 255).astype(np.uint8)
 
 
-def save_png(path, image):
-    """Write an (H, W, 3) uint8 image as PNG. An unwritable path is a ParameterError (``--image``)."""
+def save_png(path, image, outputs=None):
+    """Write an (H, W, 3) uint8 image as PNG (``--image``), atomically (:mod:`blockray.atomic`):
+    alone, or staged in the batch ``outputs``. A failed write raises ResourceError naming the file."""
     from PIL import Image
-    try:
-        Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8), "RGB").save(path, format="PNG")
-    except OSError as e:
-        raise ParameterError(f"--image {path}: cannot write: {e.strerror or e}") from None
+    picture = Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8), "RGB")
+    write_file(path, "--image", lambda f: picture.save(f, format="PNG"), binary=True, outputs=outputs)

@@ -1,6 +1,7 @@
 """Writers for --patches (CSV) and --report (JSON). Neither writes a non-finite number: the
 render stops a diverging solve first (host_driver/solver.py), and these refuse one before
-opening the file, so no half-written output is left."""
+writing anything. Both write atomically (:mod:`blockray.atomic`): alone, or staged in the
+render's batch of outputs (``outputs``), renamed together with the image."""
 
 import csv
 import json
@@ -8,28 +9,23 @@ import math
 
 import numpy as np
 
-from ..errors import ParameterError, SolveError, printable
+from ..atomic import write_file
+from ..errors import SolveError, printable
 
 __all__ = ["write_patches_csv", "write_report_json"]
 
 PATCH_COLUMNS = ["patch", "group", "area", "cx", "cy", "cz", "B_r", "B_g", "B_b"]
 
 
-def _open(path, option):
-    try:
-        return open(path, "w", newline="")
-    except OSError as e:
-        raise ParameterError(f"{option} {path}: cannot write: {e.strerror}") from None
-
-
-def write_patches_csv(path, scene, radiosity):
+def write_patches_csv(path, scene, radiosity, outputs=None):
     """One row per patch: ``patch,group,area,cx,cy,cz,B_r,B_g,B_b``."""
     bad = np.flatnonzero(~np.isfinite(radiosity).all(axis=1))
     if len(bad):
         i = int(bad[0])
         raise SolveError(f"--patches {printable(path, 200)}: patch {i}'s radiosity is {np.asarray(radiosity[i]).tolist()}; "
                          f"not written", patch=i)
-    with _open(path, "--patches") as f:
+
+    def write(f):
         w = csv.writer(f)
         w.writerow(PATCH_COLUMNS)
         c = scene.centroids
@@ -37,6 +33,7 @@ def write_patches_csv(path, scene, radiosity):
             g = scene.group_names[scene.group[i]] if scene.group_names else str(scene.group[i])
             w.writerow([i, g, repr(float(scene.areas[i])), *(repr(float(x)) for x in c[i]),
                         *(repr(float(x)) for x in radiosity[i])])
+    write_file(path, "--patches", write, outputs=outputs)
 
 
 def _plain(x):
@@ -65,11 +62,13 @@ def _non_finite(x, key="report"):
     return None
 
 
-def write_report_json(path, report):
+def write_report_json(path, report, outputs=None):
     plain = _plain(report)
     bad = _non_finite(plain)
     if bad:
         raise SolveError(f"--report {printable(path, 200)}: {bad} is not a finite number; not written")
-    with _open(path, "--report") as f:
+
+    def write(f):
         json.dump(plain, f, indent=2, sort_keys=False, allow_nan=False)
         f.write("\n")
+    write_file(path, "--report", write, outputs=outputs)

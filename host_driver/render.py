@@ -46,7 +46,7 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
            solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
            traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
            stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None, host=None,
-           cell="exact", filter_format=None, closure="off"):
+           cell="exact", filter_format=None, closure="off", checkpoint=None):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
     ``board``: a name of the back-end registry (host_driver/backends.py) or a Board; ``vcd``,
@@ -66,6 +66,11 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     the size of the correction, and the energy balance solved with the raw and the corrected
     factors side by side.
 
+    ``checkpoint``: a :class:`~blockray.host_driver.checkpoint.Checkpoint` that saves the solve
+    as it runs and/or gives the state it continues from (not with ``closure``).
+
+    A board built here (``board`` a name) is closed on every path: success, error or signal.
+
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
     """
     with host_threads.using(threads):
@@ -74,12 +79,12 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
                        traversal=traversal, packing=packing, partition=partition, sets=sets,
                        progress=progress, stats_fraction=stats_fraction, vcd=vcd,
                        scheduler=scheduler, workers=workers, echo=echo, host=host, cell=cell,
-                       filter_format=filter_format, closure=closure)
+                       filter_format=filter_format, closure=closure, checkpoint=checkpoint)
 
 
 def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
             traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo, host,
-            cell, filter_format, closure):
+            cell, filter_format, closure, checkpoint):
     if solver not in SOLVERS:
         raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     if not (np.isfinite(tolerance) and tolerance > 0):
@@ -115,13 +120,38 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     if bits is not None and isinstance(board, str) and not backend(board).quantises:
         raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
     samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
+    resume = None
+    if checkpoint is not None:
+        if closure != "off":
+            raise ParameterError("--checkpoint / --resume: a --closure render solves twice from the whole matrix; "
+                                 "it is not checkpointed", parameter="closure")
+        resume = checkpoint.bind(scene, {
+            "board": board if isinstance(board, str) else board.name, "bits": bits, "voxels": voxels,
+            "samples": samples.count, "solver": solver, "tolerance": tolerance, "max_shots": max_shots,
+            "max_iterations": max_iterations, "traversal": traversal, "packing": packing, "partition": partition,
+            "sets": sets, "cell": cell, "filter_format": repr(filter_format), "rows": params.rows,
+            "cols": params.cols, "boards": params.boards})
     phases = Phases()
     t_start, c_start = time.perf_counter(), time.process_time()
     board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition, host=host, cell=cell,
                             filter_format=filter_format)
                  if isinstance(board, str) else board)
     board_name = board if isinstance(board, str) else board_obj.name
+    try:
+        return _render_on(scene, board, board_obj, board_name, params, samples, phases, t_start, c_start,
+                          voxels=voxels, solver=solver, tolerance=tolerance, max_shots=max_shots,
+                          max_iterations=max_iterations, traversal=traversal, packing=packing,
+                          partition=partition, sets=sets, progress=progress, stats_fraction=stats_fraction,
+                          scheduler=scheduler, workers=workers, echo=echo, closure=closure,
+                          distributed=distributed, checkpoint=checkpoint, resume=resume)
+    finally:
+        if isinstance(board, str) and hasattr(board_obj, "close"):
+            board_obj.close()                   # a simulated board stops its simulator
 
+
+def _render_on(scene, board, board_obj, board_name, params, samples, phases, t_start, c_start, *, voxels, solver,
+               tolerance, max_shots, max_iterations, traversal, packing, partition, sets, progress, stats_fraction,
+               scheduler, workers, echo, closure, distributed, checkpoint, resume):
     with phases.timed("prepare"):
         board_obj.prepare(scene, samples)
     # The paper's cost model (5)-(8) sizes the grid. With the hardware's P x R x S parallelism the
@@ -140,7 +170,8 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                             solver=solver, tolerance=tolerance, max_iterations=max_iterations,
                             traversal=traversal, packing=packing, stats_fraction=stats_fraction,
                             scheduler=scheduler, workers=workers, progress=progress, echo=echo,
-                            phases=phases, t_start=t_start, voxels=voxels, voxels_hardware=voxels_hardware)
+                            phases=phases, t_start=t_start, voxels=voxels, voxels_hardware=voxels_hardware,
+                            checkpoint=checkpoint, resume=resume)
     with phases.timed("load"):
         board_obj.load(grid)
 
@@ -149,6 +180,8 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                      traversal=traversal, packing=packing, phases=phases, stats=stats)
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
+    if checkpoint is not None and cache is not None:
+        checkpoint.columns = cache.keys
     pair_cache = formfactor.PairCache(scene)      # each unordered pair's factor computed once
 
     def shoot(i):
@@ -168,6 +201,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
         return out
 
     bar = _progress(progress, solver, scene.patches if solver != "progressive" or closure != "off" else max_shots)
+    saving = None if checkpoint is None else checkpoint.save
     closure_info = factors = None
     with phases.timed("solve"):
         if closure != "off":
@@ -175,11 +209,11 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
                                                  max_shots=max_shots, max_iterations=max_iterations)
         elif solver == "progressive":
             result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance, max_shots=max_shots,
-                                                    progress=bar, refuse_gain=True)
+                                                    progress=bar, refuse_gain=True, checkpoint=saving, resume=resume)
         else:
             factors, sums = _columns(scene, shoot, bar)
-            result = _solve_matrix(scene, factors, solver, tolerance=tolerance,
-                                   max_shots=max_shots, max_iterations=max_iterations)
+            result = _solve_matrix(scene, factors, solver, tolerance=tolerance, max_shots=max_shots,
+                                   max_iterations=max_iterations, checkpoint=saving, resume=resume)
             result.row_sums = sums
     solvers.check_finite(scene, result)         # nothing non-finite is written
     if bar is not None:
@@ -196,8 +230,6 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     cpu_seconds["total"] = time.process_time() - c_start
 
     counters = board_obj.counters()
-    if isinstance(board, str) and hasattr(board_obj, "close"):
-        board_obj.close()                   # a simulated board stops its simulator
     report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board_name,
                      params=params, samples=samples, traversal=traversal, packing=packing,
                      partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
@@ -206,6 +238,7 @@ def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, m
     report["exchange_bytes_per_sweep"] = 0
     if closure_info is not None:
         report["closure"] = closure_info
+    _resumed(report, resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report, factors=factors)
 
 
@@ -244,12 +277,20 @@ def _columns(scene, shoot, bar):
     return F, sums
 
 
-def _solve_matrix(scene, F, solver, *, tolerance, max_shots, max_iterations):
+def _solve_matrix(scene, F, solver, *, tolerance, max_shots, max_iterations, checkpoint=None, resume=None):
     if solver == "progressive":
         return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=tolerance, max_shots=max_shots,
                                               refuse_gain=True)
     gather = solvers.jacobi if solver == "jacobi" else solvers.gauss_seidel
-    return gather(scene, F, tolerance=tolerance, max_iterations=max_iterations)
+    return gather(scene, F, tolerance=tolerance, max_iterations=max_iterations, checkpoint=checkpoint,
+                  resume=resume)
+
+
+def _resumed(report, resume):
+    """The report's ``resumed_from``: the shots or sweeps the checkpoint had done (absent when
+    the render started from the beginning)."""
+    if resume is not None:
+        report["resumed_from"] = {"shots": int(resume["shots"]), "sweeps": int(resume["iterations"])}
 
 
 def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing, partition, solver,
@@ -302,7 +343,7 @@ def _absorbed_balance(scene, B):
 
 def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, sets, solver, tolerance,
                  max_iterations, traversal, packing, stats_fraction, scheduler, workers, progress, echo, phases,
-                 t_start, voxels, voxels_hardware):
+                 t_start, voxels, voxels_hardware, checkpoint=None, resume=None):
     """render()'s gathering on ``sets`` host + board sets of a Dask cluster (host_driver/cluster.py),
     from the client's prepared (not loaded) board and voxel grid."""
     from .cluster import SetJob, cluster_client, solve_sets
@@ -313,7 +354,9 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
                      stats_fraction=stats_fraction, threads=threads)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets, _morton(grid.cell_of(scene.centroids)),
                                                     job, solver=solver, tolerance=tolerance,
-                                                    max_iterations=max_iterations, progress=progress)
+                                                    max_iterations=max_iterations, progress=progress,
+                                                    checkpoint=None if checkpoint is None else checkpoint.save,
+                                                    resume=resume)
     solvers.check_finite(scene, result)
     phases.add("cluster", -(info["assign_seconds"] + info["cast_seconds"] + info["solve_seconds"]))
     phases.add("assign", info["assign_seconds"])
@@ -344,6 +387,7 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
         "cast_seconds_per_set": [float(s["seconds"]) for s in summaries],
         "cast_cpu_seconds_per_set": [float(s["cpu_seconds"]) for s in summaries],
     }
+    _resumed(report, resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
 
 

@@ -38,7 +38,7 @@ from blockray.errors import ParameterError, SolveError
 
 __all__ = ["RowSums", "GAIN_ALLOWANCE", "DIVERGED", "check_factors", "column_sums", "check_finite", "product", "gauss_seidel_sets", "set_gauss_seidel", "gauss_seidel_sweeps", "jacobi_sweeps", "SolveResult",
            "progressive_refinement", "jacobi", "gauss_seidel", "residual", "ambient", "MAX_MATRIX_BYTES",
-           "check_matrix_memory"]
+           "check_matrix_memory", "solve_state"]
 
 #: Largest form-factor matrix the gathering solvers hold: N x N float64 of 8 GiB (N = 32768).
 MAX_MATRIX_BYTES = 8 << 30
@@ -270,7 +270,7 @@ def _report(progress, done, res):
 
 
 def progressive_refinement(scene, shoot, *, tolerance=1e-3, max_shots=None, progress=None,
-                           shoot_many=None, batch=1, refuse_gain=False):
+                           shoot_many=None, batch=1, refuse_gain=False, checkpoint=None, resume=None):
     """Progressive refinement (Cohen et al. 1988; the paper's eqs. (3)-(4)), unshot formulation.
 
     Start with ``B = U = E``. Each shot picks the shooter i with the largest ``A_i * sum_rgb U_i``
@@ -293,6 +293,9 @@ def progressive_refinement(scene, shoot, *, tolerance=1e-3, max_shots=None, prog
     Every row is checked (:class:`RowSums`: finite, >= 0, and with ``refuse_gain`` no shooter
     getting back more light than it sends) and the unshot energy must stay finite and below
     :data:`DIVERGED` times its start; else :class:`~blockray.errors.SolveError`, naming the patch.
+
+    ``checkpoint(state)`` is called after every round with the state (:func:`solve_state`) that
+    ``resume`` takes to continue exactly where it was: the same shots, bit for bit.
     """
     A = scene.areas
     E = np.asarray(scene.emission, dtype=np.float64)
@@ -312,6 +315,9 @@ def progressive_refinement(scene, shoot, *, tolerance=1e-3, max_shots=None, prog
     energy = A * U.sum(axis=1)
     res = float(energy.sum()) / emitted
     result.history.append(res)
+    if resume is not None:
+        _resume(result, resume, energy=energy)
+        res = result.history[-1]
     while res >= tolerance and (max_shots is None or result.shots < max_shots):
         k = batch if shoot_many is not None else 1
         if max_shots is not None:
@@ -337,6 +343,8 @@ def progressive_refinement(scene, shoot, *, tolerance=1e-3, max_shots=None, prog
             result.history.append(res)
             _check_growth(result, res, "the unshot energy", result.row_sums.blame)
             _report(progress, result.shots, res)
+        if checkpoint is not None:
+            checkpoint(solve_state(result, energy=energy))
     result.residual = res
     result.converged = res < tolerance
     return result
@@ -389,7 +397,7 @@ def _check_matrix(scene, F):
     return F
 
 
-def jacobi(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None):
+def jacobi(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None, checkpoint=None, resume=None):
     """Jacobi gathering ``B <- E + rho * (F @ B)`` from ``B = E``, on a dense F (N, N).
 
     Stops when :func:`residual` of the current B is below ``tolerance`` or after
@@ -399,19 +407,26 @@ def jacobi(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None):
     F = _check_matrix(scene, F)
     E, rho = scene.emission, scene.reflectance
     return jacobi_sweeps(scene, lambda B: E + rho * product(F, B), tolerance=tolerance,
-                         max_iterations=max_iterations, progress=progress, factors=F)
+                         max_iterations=max_iterations, progress=progress, factors=F, checkpoint=checkpoint,
+                         resume=resume)
 
 
-def jacobi_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress=None, factors=None):
+def jacobi_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress=None, factors=None,
+                  checkpoint=None, resume=None):
     """:func:`jacobi` with its sweep ``sweep(B) -> E + rho * product(F, B)`` computed elsewhere, e.g. by
     host + board sets that each hold their own rows of F (host_driver/cluster.py).
 
     A residual that is not finite or climbs above :data:`DIVERGED` times its start raises
     :class:`~blockray.errors.SolveError` naming the shooter of largest row sum of ``factors`` (the
-    dense F, if there is one) or else the patch whose radiosity moved most."""
+    dense F, if there is one) or else the patch whose radiosity moved most.
+
+    ``checkpoint(state)`` is called after every sweep, ``resume``: such a state to continue from
+    (:func:`solve_state`)."""
     E = scene.emission
     B = np.array(E, dtype=np.float64)
     result = SolveResult(B=B, U=np.zeros_like(B), solver="jacobi")
+    if resume is not None:
+        B = _resume(result, resume)
     while True:
         new = sweep(B)
         res = _relative(scene, B - new)
@@ -422,11 +437,13 @@ def jacobi_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress
         B = new
         result.iterations += 1
         _report(progress, result.iterations, res)
+        if checkpoint is not None:
+            checkpoint(solve_state(result, B=B))
     result.B, result.residual, result.converged = B, res, res < tolerance
     return result
 
 
-def gauss_seidel(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None):
+def gauss_seidel(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None, checkpoint=None, resume=None):
     """Gauss-Seidel gathering on a dense F (N, N): sweep j = 0..N-1 in place,
     ``B_j <- E_j + rho_j * sum_i F[j, i] B_i`` with the newest B, from ``B = E``.
 
@@ -435,10 +452,11 @@ def gauss_seidel(scene, F, *, tolerance=1e-3, max_iterations=1000, progress=None
     :func:`gauss_seidel_sets` with every patch in one set.
     """
     return gauss_seidel_sets(scene, F, np.zeros(scene.patches, dtype=np.int64), tolerance=tolerance,
-                             max_iterations=max_iterations, progress=progress)
+                             max_iterations=max_iterations, progress=progress, checkpoint=checkpoint, resume=resume)
 
 
-def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, progress=None):
+def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, progress=None, checkpoint=None,
+                      resume=None):
     """Gauss-Seidel gathering distributed over host + board sets (the paper's section 6).
 
     ``owner[j]`` is the set that owns patch j. In a sweep every set updates its own patches in
@@ -463,7 +481,7 @@ def gauss_seidel_sets(scene, F, owner, *, tolerance=1e-3, max_iterations=1000, p
             weighted += w
         return weighted, new
     return gauss_seidel_sweeps(scene, sweep, tolerance=tolerance, max_iterations=max_iterations,
-                               progress=progress, factors=F)
+                               progress=progress, factors=F, checkpoint=checkpoint, resume=resume)
 
 
 def set_gauss_seidel(F_rows, own, E_own, rho_own, A_own, B):
@@ -479,14 +497,17 @@ def set_gauss_seidel(F_rows, own, E_own, rho_own, A_own, B):
     return weighted, view[own]
 
 
-def gauss_seidel_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress=None, factors=None):
+def gauss_seidel_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, progress=None, factors=None,
+                        checkpoint=None, resume=None):
     """:func:`gauss_seidel_sets` with its sweep computed elsewhere (host_driver/cluster.py):
     ``sweep(B) -> (weighted, B')``, :func:`residual`'s numerator for B summed over the sets, and
     the next iterate. The next iterate of the last sweep is not used. Stops on a diverging
-    residual as :func:`jacobi_sweeps`."""
+    residual as :func:`jacobi_sweeps`; checkpoints and resumes as it does."""
     B = np.array(scene.emission, dtype=np.float64)
     emitted = _emitted(scene)
     result = SolveResult(B=B, U=np.zeros_like(B), solver="gauss-seidel")
+    if resume is not None:
+        B = _resume(result, resume)
 
     def relative(weighted):
         return weighted / emitted if emitted else (0.0 if weighted == 0 else float("inf"))
@@ -501,7 +522,39 @@ def gauss_seidel_sweeps(scene, sweep, *, tolerance=1e-3, max_iterations=1000, pr
     while res >= tolerance and result.iterations < max_iterations:
         B = new
         result.iterations += 1
+        if checkpoint is not None:
+            checkpoint(solve_state(result, B=B))
         res, new = step(B)
         _report(progress, result.iterations, res)
     result.B, result.residual, result.converged = B, res, res < tolerance
     return result
+
+
+def solve_state(result, *, B=None, energy=None):
+    """What a solve needs to continue exactly where it is (numpy arrays and numbers; a
+    checkpoint, host_driver/checkpoint.py): the solver, its radiosity ``B`` (gathering: the
+    iterate to sweep next), the unshot ``U`` and per-patch unshot ``energy`` (progressive), the
+    shots or sweeps done, the residual history and the largest row sum and gain checked."""
+    sums = result.row_sums
+    return {"solver": result.solver, "B": np.array(result.B if B is None else B), "U": np.array(result.U),
+            "energy": np.zeros(0) if energy is None else np.array(energy), "shots": result.shots,
+            "iterations": result.iterations, "history": np.array(result.history, dtype=np.float64),
+            "row_sums": np.array([sums.largest, sums.patch, sums.gain, sums.gain_patch] if sums is not None
+                                 else [], dtype=np.float64)}
+
+
+def _resume(result, state, energy=None):
+    """Load :func:`solve_state`'s ``state`` into ``result`` (and ``energy``, in place); returns B."""
+    if state["solver"] != result.solver:
+        raise ValueError(f"a {state['solver']} state cannot resume a {result.solver} solve")
+    result.B[...] = state["B"]
+    result.U[...] = state["U"]
+    if energy is not None:
+        energy[...] = state["energy"]
+    result.shots, result.iterations = int(state["shots"]), int(state["iterations"])
+    result.history = [float(x) for x in state["history"]]
+    if result.row_sums is not None and len(state["row_sums"]):
+        largest, patch, gain, gain_patch = state["row_sums"]
+        sums = result.row_sums
+        sums.largest, sums.patch, sums.gain, sums.gain_patch = float(largest), int(patch), float(gain), int(gain_patch)
+    return np.array(result.B)

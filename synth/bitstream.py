@@ -33,6 +33,7 @@ import subprocess
 import time
 from pathlib import Path
 
+from ..atomic import write_file
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import patch_layout
@@ -310,6 +311,6 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
     seconds["ecppack"] = round(time.perf_counter() - start, 1)
     if rc != 0:
         raise RuntimeError(f"ecppack failed ({rc}):\n{_tail(tmp / 'ecppack.out')}")
-    shutil.copyfile(tmp / f"{name}.bit", out)
+    write_file(out, "--out", lambda f: f.write((tmp / f"{name}.bit").read_bytes()), binary=True)
     report["bitstream"] = {"path": str(out), "bytes": out.stat().st_size}
     return report

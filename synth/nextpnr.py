@@ -48,6 +48,7 @@ import tempfile
 
 from .. import hdl
 
+from ..atomic import write_file
 from ..errors import ParameterError
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
@@ -443,9 +444,8 @@ def dsp_registers(netlist):
 
 
 def write_report(path, report):
-    try:
-        with open(path, "w") as f:
-            json.dump(report, f, indent=2)
-            f.write("\n")
-    except OSError as e:
-        raise ParameterError(f"cannot write the report to {path}: {e.strerror}") from None
+    """``report`` as JSON to ``path`` (``--report``), atomically."""
+    def write(f):
+        json.dump(report, f, indent=2)
+        f.write("\n")
+    write_file(path, "--report", write)

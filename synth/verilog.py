@@ -26,6 +26,7 @@ except those of the ``fabric_units`` (left as ``*``, for LUT multipliers).
 
 from .. import hdl
 
+from ..atomic import write_file
 from ..errors import ParameterError
 from ..filtered import CELLS, check_cell as _check_cell_name, default_format
 from ..params import BoardParams
@@ -127,9 +128,5 @@ def write_verilog(path, unit, params=None, *, name=None, target="generic", fabri
     """Write :func:`unit_verilog` to ``path``; returns the text."""
     text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell,
                         filter_format=filter_format)
-    try:
-        with open(path, "w") as f:
-            f.write(text)
-    except OSError as e:
-        raise ParameterError(f"cannot write Verilog to {path}: {e.strerror}") from None
+    write_file(path, "--out", lambda f: f.write(text))
     return text
