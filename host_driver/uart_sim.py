@@ -105,7 +105,7 @@ class UartSimTransport(FramedTransport):
     than a board (``timeout``: silence before a resend)."""
 
     def __init__(self, core, *, divisor=SIM_DIVISOR, fifo_depth=2048, name="blockray_uart_sim", faults=None, board=0,
-                 startup_timeout=600, timeout=5.0, max_retries=12, answer_timeout=60.0):
+                 startup_timeout=600, timeout=10.0, max_retries=12, answer_timeout=60.0):
         pipe = UartSimPipe(core, divisor=divisor, fifo_depth=fifo_depth, name=name, startup_timeout=startup_timeout)
         self.log_path = pipe.log_path
         if faults is not None:

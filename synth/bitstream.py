@@ -81,12 +81,11 @@ def _blocks(depth, width):
 def bram_estimate(params, *, core="board"):
     """Block RAMs of the board's memories and the framed link's: ``{name: blocks}``. The patch
     memory holds a patch record per word; a voxel-table entry is a start address and a count
-    into it (two patch-memory addresses). The link: the receive FIFO, the accepted payloads'
-    command FIFO, the receiver's frame memory, the sender's replay memory and stuffed frame."""
-    from ..rtl.framing import COMMAND_DEPTH, FRAME_MEMORY
-    out = {"receive_fifo": _blocks(FIFO_DEPTH - 1, 8), "command_fifo": _blocks(COMMAND_DEPTH - 1, 8),
-           "frame_memory": _blocks(FRAME_MEMORY, 8), "replay_memory": _blocks(FRAME_PAYLOAD * FRAME_WINDOW, 8),
-           "send_buffer": _blocks(FRAME_MEMORY, 8)}
+    into it (two patch-memory addresses). The link: the receive FIFO and the accepted payloads'
+    command FIFO (its frame memories, 256 to 512 bytes, are distributed RAM: Yosys maps them to
+    DPR16X4, docs/ulx3s.md)."""
+    from ..rtl.framing import COMMAND_DEPTH
+    out = {"receive_fifo": _blocks(FIFO_DEPTH - 1, 8), "command_fifo": _blocks(COMMAND_DEPTH - 1, 8)}
     if core == "board":
         address = max(1, params.patch_depth.bit_length())
         out["patch_memory"] = _blocks(params.patch_depth, patch_layout(params.bits).size)

@@ -5,8 +5,6 @@ too (byte-identical CSVs), and a hopeless fault rate ends with one error line, e
 
 """
 
-import json
-
 import numpy as np
 import pytest
 
@@ -62,19 +60,15 @@ def room(tmp_path_factory):
 
 
 def _faulty_render(room, tmp_path, rate, seed):
-    path, clean = room
-    csv, report = tmp_path / "p.csv", tmp_path / "r.json"
-    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--report", str(report),
-                 "--link-faults", str(rate), "--link-seed", str(seed)]) == 0
-    integrity = json.loads(report.read_text())["link_integrity"]
-    print("rate", rate, "seed", seed, integrity)
-    assert csv.read_bytes() == clean
-    return integrity
+    from test_framing import faulty_render
+    return faulty_render(room, tmp_path, RENDER, rate, seed)
 
 
+@pytest.mark.slow
 def test_render_at_1e_3_faults_is_byte_identical(room, tmp_path):
     """Faults both ways, corrected by resending; the board's own counters (read over the link)
-    show the errors it saw and the frames it resent."""
+    show the errors it saw and the frames it resent. Slow: the simulated UART carries a few
+    hundred bytes per second, and every fault that needs a time-out costs 10 s of it."""
     integrity = _faulty_render(room, tmp_path, 1e-3, 3)
     assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
     assert integrity["board_errors"] > 0 and integrity["board_frames_resent"] > 0
