@@ -64,7 +64,7 @@ def main():
             for contact in (False, True):
                 scene = load(name, folder, contact)
                 t = time.perf_counter()
-                res = render(scene, board=args.board, tolerance=args.tolerance, threads=args.threads)
+                res = render(scene, backend=args.board, tolerance=args.tolerance, threads=args.threads)
                 c = scene.contact
                 did = f"{c['patches_split']} / {c['patches_covered']} / {c['covered_pieces']}" if c else "-"
                 print(f"| {name} | {'on' if contact else 'off'} | {scene.patches} | {did} | {res.report['shots']} "
@@ -80,7 +80,7 @@ def row_sums(args):
         for name in args.scenes:
             for contact in (False, True):
                 scene = load(name, folder, contact)
-                res = render(scene, board=args.board, solver="jacobi", tolerance=1e-6, threads=args.threads)
+                res = render(scene, backend=args.board, solver="jacobi", tolerance=1e-6, threads=args.threads)
                 rows, A = res.factors.sum(axis=1), scene.areas
                 for g in ["all"] + list(range(len(scene.group_names))):
                     m = scene.group == g if g != "all" else slice(None)

@@ -200,7 +200,7 @@ def energy(args):
             continue
         for board in args.boards.split(","):
             t = time.perf_counter()
-            res = render(scene, board=board, tolerance=args.tolerance)
+            res = render(scene, backend=board, tolerance=args.tolerance)
             bal = absorbed_balance(scene, res.radiosity)
             print(f"| {name} | {board} | {scene.patches} | {res.report['residual']:.1e} | "
                   + ", ".join(f"{x:+.1e}" for x in bal) + f" | {time.perf_counter() - t:.0f} |", flush=True)
@@ -215,7 +215,7 @@ def closure(args):
         if args.only and args.only not in name:
             continue
         t = time.perf_counter()
-        res = render(scene, board=args.board, tolerance=args.tolerance, solver=args.solver, closure=args.mode)
+        res = render(scene, backend=args.board, tolerance=args.tolerance, solver=args.solver, closure=args.mode)
         c = res.report["closure"]
         print(json.dumps({"scene": name, "patches": scene.patches, "board": args.board, "solver": args.solver,
                           "residual": res.report["residual"], "seconds": round(time.perf_counter() - t, 1),

@@ -152,7 +152,7 @@ def main(argv=None):
         # loading the compiled kernels (from numba's disk cache, or compiling them on a fresh
         # machine) is once per process: done here, by a one-shot render, and reported apart
         t0 = time.perf_counter()
-        render(scene, board="model", max_shots=1, threads=args.threads)
+        render(scene, backend="model", max_shots=1, threads=args.threads)
         warmup = time.perf_counter() - t0
         t0 = time.perf_counter()
         res, board, batches = recorded_render(scene, shots, args.threads, args.stats_fraction)

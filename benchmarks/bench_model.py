@@ -251,7 +251,7 @@ def part_render(scene_name, max_shots, bits_range=range(10, 21)):
     from blockray.host_driver.render import render
     scene = _load_scene(scene_name)
     t0 = time.perf_counter()
-    gold = render(scene, board="golden", max_shots=max_shots)
+    gold = render(scene, backend="golden", max_shots=max_shots)
     tg = time.perf_counter() - t0
     g = gold.radiosity
     print(f"render: {scene_name}, {scene.patches} patches, max_shots {max_shots}; golden {tg:.1f} s")

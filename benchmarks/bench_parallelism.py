@@ -66,7 +66,7 @@ def main(argv=None):
         else:
             v = int(args.voxels)
         t0 = time.perf_counter()
-        res = render(scene, board="model", params=params, bits=args.bits, voxels=v,
+        res = render(scene, backend="model", params=params, bits=args.bits, voxels=v,
                      max_shots=args.max_shots, partition=args.partition, stats_fraction=0.0)
         r = res.report
         rays, cycles = r["rays"], r["board_cycles"]

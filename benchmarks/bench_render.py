@@ -38,7 +38,7 @@ def main(argv=None):
     for traversal in args.traversal.split(","):
         for board in args.boards.split(","):
             t0 = time.perf_counter()
-            res = render(scene, board=board, bits=args.bits, voxels=args.voxels,
+            res = render(scene, backend=board, bits=args.bits, voxels=args.voxels,
                          max_shots=args.max_shots, traversal=traversal,
                          stats_fraction=args.stats_fraction)
             r = res.report

@@ -8,7 +8,7 @@
     python benchmarks/bench_room_ties.py ties F_golden.npy F_model.npy [--bits B]
     python benchmarks/bench_room_ties.py near 361,1494 [--bits B]
 
-``matrix``: ``render(SCENE, board=BOARD, solver="jacobi", tolerance=1e-9)`` (the same as
+``matrix``: ``render(SCENE, backend=BOARD, solver="jacobi", tolerance=1e-9)`` (the same as
 ``blockray render SCENE --board BOARD --solver jacobi --tolerance 1e-9``), saving the visible
 form factors F[j, i] it gathered with (.npy) and the per-patch radiosity (``--patches``).
 ``--move dx,dy,dz`` renders the scene translated by that vector: the same scene with its float
@@ -81,12 +81,12 @@ def moved(args):
     """``blockray render SCENE --board BOARD --patches CSV`` (progressive refinement to 1e-3) on the
     scene translated by ``--move``."""
     scene = _moved(load_scene(args.scene), args.move)
-    write_patches_csv(args.patches, scene, render(scene, board=args.board, bits=args.bits).radiosity)
+    write_patches_csv(args.patches, scene, render(scene, backend=args.board, bits=args.bits).radiosity)
 
 
 def matrix(args):
     scene = _moved(load_scene(args.scene), args.move)
-    r = render(scene, board=args.board, bits=args.bits, solver="jacobi", tolerance=1e-9)
+    r = render(scene, backend=args.board, bits=args.bits, solver="jacobi", tolerance=1e-9)
     np.save(args.out, r.factors)
     if args.patches:
         write_patches_csv(args.patches, scene, r.radiosity)

@@ -87,7 +87,7 @@ def speed(shooters):
 def full(report_path):
     scene = builtin.load("cornell")
     t0 = time.perf_counter()
-    res = render(scene, board="verilator", params=BoardParams())
+    res = render(scene, backend="verilator", params=BoardParams())
     wall = time.perf_counter() - t0
     r = res.report
     print(f"cornell --board verilator: {wall:.0f} s wall; {r['columns_cast']} columns, {r['blocks']} blocks, "

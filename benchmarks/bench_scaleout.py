@@ -46,7 +46,7 @@ def main(argv=None):
     for K, workers in runs:
         print(f"# load average before K = {K}: {os.getloadavg()[0]:.1f}", flush=True)
         t0 = time.perf_counter()
-        res = render(scene, board="model", solver=args.solver, tolerance=args.tolerance, sets=K,
+        res = render(scene, backend="model", solver=args.solver, tolerance=args.tolerance, sets=K,
                      workers=workers or None)
         wall = time.perf_counter() - t0
         r = res.report

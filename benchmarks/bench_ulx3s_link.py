@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from blockray.host_driver import builtin
+from blockray.link import DEFAULT_BAUD
 from blockray.host_driver.driver import BoardDriver
 from blockray.host_driver.framed import FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.render import Visibility
@@ -118,7 +119,7 @@ def main():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clock", type=float, default=DEFAULT_FREQ_MHZ,
                     help=f"board clock, MHz (default {DEFAULT_FREQ_MHZ:g}: blockray bitstream's)")
-    ap.add_argument("--baud", type=int, default=3_000_000)
+    ap.add_argument("--baud", type=int, default=DEFAULT_BAUD)
     ap.add_argument("--rows", type=int, default=DEFAULT_ROWS, help=f"array rows (default {DEFAULT_ROWS}: the bitstream's)")
     ap.add_argument("--cols", type=int, default=DEFAULT_COLS, help=f"array columns (default {DEFAULT_COLS})")
     ap.add_argument("--faults", type=float, default=None, metavar="RATE",

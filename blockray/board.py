@@ -20,13 +20,16 @@ A back-end may answer a batch with :class:`BlockBits` (all bits in one flat arra
 the same (R_b, S_b) arrays).
 """
 
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import ParameterError
-from .memory import ranges
+from .fixedpoint import resolve_bits
+from .memory import QuantisationWarning, ranges
+from .timing import BoardTiming
 
 __all__ = ["BlockRay", "BlockBatch", "BlockBits", "Board", "CountingBoard", "ranges"]
 
@@ -155,12 +158,41 @@ class Board(ABC):
     def counters(self):
         """Measured counters since prepare: at least ``tests`` (ray-patch tests performed)."""
 
+    def close(self):
+        """Release what the board holds (a simulator, serial links); whoever built the board
+        closes it (``with board:``)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
 
 class CountingBoard(Board):
     """A board of ``params.boards`` boards that keeps the machine's counters the same way,
     whoever computes them (the bit-exact model, or the host driver from the boards' own counter
-    snapshots): see :meth:`counters`. Subclasses set ``params``, ``timing``, ``quantised``,
-    ``load_cycles`` and call :meth:`_add_batch` per batch of blocks."""
+    snapshots): see :meth:`counters`. Subclasses set ``params``, ``bits``, ``max_error``,
+    ``cell``, ``load_cycles``, prepare with :meth:`_quantise` and call :meth:`_add_batch` per
+    batch of blocks."""
+
+    def _quantise(self, scene, samples):
+        """What every quantising board's ``prepare`` does: the scene on the B-bit grid (B, asked
+        for as ``bits`` or chosen for the scene, is resolved here, once, and carried by the
+        quantised scene and ``params`` from here on), the grid's margin, the cell's timing (a
+        ``_timing`` given at construction wins) and fresh counters. Returns the quantised scene."""
+        q = resolve_bits(scene, samples, self.bits, max_error=self.max_error)
+        if len(q.collapsed) or len(q.degenerate):
+            # reported, not ignored: such patches never block and vertices merged at this grid
+            warnings.warn(
+                f"scene {scene.name!r} at B = {q.bits} bits: {sum(len(g) for g in q.collapsed)} vertices "
+                f"collapse onto {len(q.collapsed)} grid points and {len(q.degenerate)} patches degenerate "
+                f"to zero area (they never block); use more --bits to keep them", QuantisationWarning)
+        self.quantised, self.samples, self.margin = q, samples, q.margin
+        self.params = self.params.with_(bits=q.bits)
+        self.timing = getattr(self, "_timing", None) or BoardTiming.for_cell(self.cell)
+        self._reset_counters()
+        return q
 
     def check_block(self, block):
         """(R_b, S_b) of a block ray; ParameterError if it does not fit the array."""

@@ -90,20 +90,6 @@ def _add_board_options(p):
                    help="seed of the simulated host's timing and of --link-faults")
 
 
-def _host_timing(args):
-    """The simulated host's link timing from --link-*: None if it never stalls."""
-    from .errors import ParameterError
-    from .sim.drive import HostTiming
-    if not (args.link_idle or args.link_backpressure or args.link_bursts):
-        return None
-    try:
-        idle = HostTiming(rate=args.link_idle, burst=args.link_bursts)
-        pressure = HostTiming(rate=args.link_backpressure, burst=args.link_bursts)
-    except ValueError as e:
-        raise ParameterError(f"--link-*: {e}") from None
-    return idle, pressure, args.link_seed
-
-
 def _naming_option(run):
     """``run()``; a ParameterError about one parameter is raised again naming its option
     (``fabric_units`` -> ``--fabric-units: ...``; ``d_bits``/``w_bits`` -> ``--filter-bits``)."""
@@ -111,10 +97,13 @@ def _naming_option(run):
     try:
         return run()
     except ParameterError as e:
-        if e.parameter is None:
+        if e.parameter is None or str(e).startswith("--"):
             raise
-        option = "filter_bits" if e.parameter in ("d_bits", "w_bits") else e.parameter
-        raise ParameterError(f"--{option.replace('_', '-')}: {e}") from None
+        option = "--" + ("filter_bits" if e.parameter in ("d_bits", "w_bits") else e.parameter).replace("_", "-")
+        message = str(e)
+        if message.startswith(f"{e.parameter} "):          # "bits must be ..." -> "--bits must be ..."
+            raise ParameterError(option + message[len(e.parameter):], parameter=e.parameter) from None
+        raise ParameterError(f"{option}: {message}", parameter=e.parameter) from None
 
 
 def _board_params(**values):
@@ -218,86 +207,12 @@ def _render_parser(sub):
 
 
 def _add_link_options(p):
-    g = p.add_argument_group("real board (--board ulx3s)")
-    g.add_argument("--port", default=None, metavar="DEV[,DEV...]",
+    from .link import DEFAULT_BAUD
+    g = p.add_argument_group("real board (--board ulx3s; its memories are those its IDENTIFY reply gives)")
+    g.add_argument("--port", default=(), metavar="DEV[,DEV...]",
                    help="serial port of each board (e.g. /dev/ttyUSB0; one per board, --boards of them)")
-    g.add_argument("--baud", type=_positive_int, default=3_000_000, help="the bitstream's baud rate (default 3000000)")
-    _add_config_options(g, _positive_int,
-                        patch_depth=(None, "the bitstream's; default: what blockray bitstream chose for R, S, B"),
-                        voxel_depth=(None, "the bitstream's; default: as blockray bitstream chose"))
-
-
-def _ulx3s_params(args, params):
-    """The configuration the host expects of the bitstream: R, S, B (16 unless --bits) and the
-    memories ``blockray bitstream`` chose for them (unless --patch-depth / --voxel-depth)."""
-    from .synth.bitstream import largest_fit
-    params = _board_params(rows=params.rows, cols=params.cols, boards=params.boards, bits=args.bits or 16)
-    return _naming_option(lambda: largest_fit(params, patch_depth=args.patch_depth, voxel_depth=args.voxel_depth))
-
-
-def _capacity_hint(error, params):
-    """A scene that does not fit the bitstream's memories: say what to change."""
-    from .errors import CapacityError
-    from .synth.bitstream import largest_fit
-    most = largest_fit(params.with_(voxel_depth=1), capped=False).patch_depth
-    return CapacityError(f"{error}; rebuild the bitstream with larger memories (blockray bitstream --patch-depth, "
-                         f"--voxel-depth: the LFE5U-85F holds about {most} patch records at {params.rows} x "
-                         f"{params.cols}, B = {params.bits}), spread the scene over more boards (--boards with "
-                         f"a --port each), or subdivide it less (--max-edge)")
-
-
-def _ulx3s_board(args, params):
-    """--board ulx3s: open and reset every board's serial link first (a missing port or a silent
-    board fails here, in seconds), then the host driver over those links (it checks each
-    board's IDENTIFY against ``params`` before uploading)."""
-    from .errors import CapacityError, ParameterError
-    from .host_driver.serial_link import SerialTransport
-    if not args.port:
-        raise ParameterError("--port: --board ulx3s needs the board's serial port, e.g. --port /dev/ttyUSB0")
-    ports = [p for p in args.port.split(",") if p]
-    if len(ports) != params.boards:
-        raise ParameterError(f"--boards: {params.boards} boards need {params.boards} ports, --port names {len(ports)}")
-    faults = None
-    if args.link_faults is not None:
-        from .host_driver.framed import LinkFaults
-        faults = _naming_option(lambda: LinkFaults(args.link_faults, args.link_seed))
-    links = []
-    try:
-        for b, port in enumerate(ports):
-            links.append(SerialTransport(port, baud=args.baud, faults=faults, board=b))
-        try:
-            from .host_driver.driver import BoardDriver
-        except ImportError:
-            raise ParameterError("--board ulx3s: this tree has no host board driver over transports "
-                                 "(blockray.host_driver.driver.BoardDriver)") from None
-    except BaseException:
-        for link in links:
-            link.close()
-        raise
-
-    class ULX3SDriver(BoardDriver):
-        def load(self, grid):
-            try:
-                return super().load(grid)
-            except CapacityError as e:      # the scene does not fit the bitstream's memories
-                raise _capacity_hint(e, self.params) from None
-
-    return ULX3SDriver(params, bits=params.bits, fit=False, name="ulx3s", partition=args.partition,
-                       transport=lambda p, b: links[b])
-
-
-def _faulty_board(args, params):
-    """--link-faults: the board built here, its links injecting faults (render takes the object)."""
-    from .errors import ParameterError
-    from .host_driver.backends import make_board
-    from .host_driver.framed import LinkFaults
-    if args.sets != 1 or args.scheduler is not None or args.workers is not None:
-        raise ParameterError("--link-faults injects faults on one set's links; it cannot be used with --sets, "
-                             "--scheduler or --workers")
-    faults = _naming_option(lambda: LinkFaults(args.link_faults, args.link_seed))
-    return _naming_option(lambda: make_board(args.board, params, bits=args.bits, vcd=args.vcd,
-                                             partition=args.partition, host=_host_timing(args), cell=args.cell,
-                                             filter_format=_render_filter_format(args), faults=faults))
+    g.add_argument("--baud", type=_positive_int, default=DEFAULT_BAUD,
+                   help=f"the bitstream's baud rate (default {DEFAULT_BAUD})")
 
 
 def _checkpoint(args):
@@ -309,41 +224,23 @@ def _checkpoint(args):
 
 
 def _cmd_render(args):
-    from .errors import ParameterError
-    from .params import MIN_BITS, MAX_BITS
+    from .host_driver.backends import build_board
     from .host_driver.builtin import load_scene
+    from .host_driver.options import RenderOptions
     from .host_driver.render import render
     from .atomic import Outputs
     from .host_driver.output import write_patches_csv, write_report_json
     from .host_driver.solver import check_matrix_memory
 
     _check_render(args)
+    options = _naming_option(lambda: RenderOptions.from_args(args))
     scene = load_scene(args.scene, max_edge=args.max_edge, limits=_load_limits(args), contact=args.contact == "on")
     check_matrix_memory(scene.patches, args.solver)
-    if args.bits is not None and not MIN_BITS <= args.bits <= MAX_BITS:
-        raise ParameterError(f"--bits must be from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
-                             f"needs 3*B+2 <= 62 bits), not {args.bits}")
-    params = _board_params(rows=args.rows, cols=args.cols, boards=args.boards)
-    if args.board == "ulx3s":       # a real board: its links are opened and reset first
-        params = _ulx3s_params(args, params)
-        args.board, args.bits = _ulx3s_board(args, params), params.bits
-
-    if args.link_faults is not None and isinstance(args.board, str):
-        args.board = _faulty_board(args, params)
-
     progress = not args.quiet and sys.stderr.isatty()
-    try:
-        result = render(scene, board=args.board, params=params, bits=args.bits, voxels=args.voxels,
-                        samples=args.samples, solver=args.solver, tolerance=args.tolerance,
-                        max_shots=args.max_shots, traversal=args.traversal, packing=args.packing,
-                        partition=args.partition, sets=args.sets, progress=progress, vcd=args.vcd,
-                        threads=args.threads, scheduler=args.scheduler, workers=args.workers,
-                        echo=None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr)),
-                        host=_host_timing(args), cell=args.cell, filter_format=_render_filter_format(args),
-                        closure=args.closure, checkpoint=_checkpoint(args))
-    finally:                        # a board built here (ulx3s, --link-faults): closed on every path
-        if not isinstance(args.board, str) and hasattr(args.board, "close"):
-            args.board.close()
+    echo = None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
+    with _naming_option(lambda: build_board(options.board)) as board:       # closed on every path
+        result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo,
+                                               checkpoint=_checkpoint(args)))
     with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
         if args.image:
             from .host_driver.image import render_image, save_png
@@ -403,23 +300,8 @@ def _add_cell_option(p, render=False):
 
 def _filter_format(text):
     """``--filter-bits D[:W]`` as a FilterFormat (None when not given); errors name the option."""
-    if text is None:
-        return None
-    from .errors import ParameterError
-    from .filtered import FilterFormat
-    parts = text.split(":")
-    if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
-        raise ParameterError(f"--filter-bits must be D or D:W (integers), not {text!r}")
-    bits = [int(p) for p in parts]
-    return _naming_option(lambda: FilterFormat(bits[0], bits[-1]))
-
-
-def _render_filter_format(args):
-    from .errors import ParameterError
-    fmt = _filter_format(args.filter_bits)
-    if fmt is not None and args.cell != "filtered":
-        raise ParameterError("--filter-bits sets the filtered cell's format; it needs --cell filtered")
-    return fmt
+    from .host_driver.options import filter_format
+    return _naming_option(lambda: filter_format(text))
 
 
 def _unit_list(text):
@@ -521,6 +403,7 @@ def _cmd_synth(args):
 
 
 def _bitstream_parser(sub):
+    from .link import DEFAULT_BAUD
     p = sub.add_parser("bitstream", help="build a board's bitstream for an FPGA board (ULX3S-85F)",
                        description="Build the bitstream of a blockray board on the ULX3S-85F (LFE5U-85F, speed "
                                    "grade -6): PLL from the 25 MHz oscillator, reset synchroniser, UART link on "
@@ -536,7 +419,7 @@ def _bitstream_parser(sub):
     g.add_argument("--core", default="board", choices=["board", "echo"],
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
     t = p.add_argument_group("link and clock")
-    t.add_argument("--baud", type=_positive_int, default=3_000_000, help="UART baud rate (default 3000000)")
+    t.add_argument("--baud", type=_positive_int, default=DEFAULT_BAUD, help=f"UART baud rate (default {DEFAULT_BAUD})")
     t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
                    help="board clock from the PLL (default: DEFAULT_FREQ_MHZ of synth/bitstream.py, 45 = "
                         "3 Mbaud x 15)")

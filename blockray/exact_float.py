@@ -23,7 +23,7 @@ elimination): every row entry is an exact sum of at most 12 floats, and the dete
 sum of all triple products, each split into four floats, grown into one expansion whose largest
 component gives the sign. (A shortcut first: a triangle in a plane x_c = const and a point whose
 vertices all have that x_c are on the plane, exactly.) Expansion arithmetic is exact while
-nothing overflows or underflows: :func:`check_range` requires every coordinate to be 0 or within
+nothing overflows or underflows: :func:`check_exact_range` requires every coordinate to be 0 or within
 2^-300 .. 2^300 in magnitude (products of three differences then stay within 2^-1074 .. 2^1000).
 
 Both stages are compiled with numba (``cache=True``).
@@ -36,7 +36,7 @@ from numba import njit
 
 from .errors import ParameterError
 
-__all__ = ["check_range", "plane_signs", "blocked_rays", "orient_sign", "LOW", "HIGH"]
+__all__ = ["check_exact_range", "plane_signs", "blocked_rays", "orient_sign", "LOW", "HIGH"]
 
 U = 2.0 ** -53
 #: magnitudes of nonzero coordinates for which the exact stage is exact
@@ -44,7 +44,7 @@ LOW, HIGH = 2.0 ** -300, 2.0 ** 300
 _SPLITTER = 134217729.0           # 2^27 + 1
 
 
-def check_range(vertices, what="scene"):
+def check_exact_range(vertices, what="scene"):
     """Raise ParameterError if a coordinate is outside the range where the predicate is exact."""
     v = np.abs(np.asarray(vertices, dtype=np.float64))
     if not np.isfinite(v).all():

@@ -52,10 +52,14 @@ __all__ = ["FilterFormat", "MAX_FILTER_BITS", "MIN_FILTER_BITS", "truncate", "sh
 CELLS = ("exact", "filtered")
 
 
-def check_cell(cell):
-    """``cell`` if it names one of :data:`CELLS`, else a ParameterError naming ``cell``."""
+def check_cell(cell, filter_format=None):
+    """``cell`` if it names one of :data:`CELLS` (and, if a ``filter_format`` is given, is the
+    filtered cell), else a ParameterError naming ``cell`` (``filter_bits``)."""
     if cell not in CELLS:
         raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
+    if filter_format is not None and cell != "filtered":
+        raise ParameterError(f"filter_bits sets the filtered cell's format; it needs cell filtered, not {cell!r}",
+                             parameter="filter_bits")
     return cell
 
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import CapacityError, ParameterError
 from .exact import patch_normals
-from .params import MIN_BITS, MAX_BITS, Widths
+from .params import MIN_BITS, MAX_BITS, Widths, check_bits
 
 __all__ = ["QuantisedScene", "quantise", "choose_bits", "resolve_bits", "DEFAULT_MAX_ERROR",
            "MAX_DEGENERATE_FRACTION"]
@@ -91,6 +91,14 @@ class QuantisedScene:
         return self.lo + np.asarray(points, dtype=np.float64) * self.h
 
     @property
+    def margin(self):
+        """The registration margin the voxel grid must add. The host registers float triangles
+        and traverses float rays; the quantised triangle and segment lie within max(displacement)
+        of them (convex combinations with the same weights), so a margin of that much covers
+        every hit point. The slack covers float rounding."""
+        return max(self.displacement, self.end_displacement) * (1 + 1e-9) + 1e-12 * self.diagonal
+
+    @property
     def relative_error(self):
         """Max vertex displacement / bounding-box diagonal."""
         return self.displacement / self.diagonal if self.diagonal > 0 else 0.0
@@ -120,14 +128,12 @@ def quantise(scene, samples, bits):
     Raises :class:`ParameterError` (naming --bits) when B is outside the limits or too small to
     hold even one lattice step of D.
     """
-    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not MIN_BITS <= bits <= MAX_BITS:
-        raise ParameterError(f"--bits must be an integer from {MIN_BITS} to {MAX_BITS}, not {bits!r}")
-    bits = int(bits)
+    bits = check_bits(bits)
     D = int(samples.denominator)
     cells = ((1 << bits) - 1) // D
     if cells < 1:
-        raise ParameterError(f"--bits {bits} is too small for {samples.count} samples per patch "
-                             f"(denominator {D} needs at least {D.bit_length()} bits)")
+        raise ParameterError(f"bits {bits} is too small for {samples.count} samples per patch "
+                             f"(denominator {D} needs at least {D.bit_length()} bits)", parameter="bits")
     if scene.patches == 0:
         raise CapacityError("the scene has no patches to quantise")
     vx = np.asarray(scene.vertices, dtype=np.float64)
@@ -211,6 +217,7 @@ def resolve_bits(scene, samples, bits=None, *, max_error=DEFAULT_MAX_ERROR):
     bad = len(q.degenerate)
     if bad and (bad > MAX_DEGENERATE_FRACTION * q.nonzero_area or bad == q.nonzero_area):
         raise ParameterError(
-            f"--bits {bits} is too few for scene {scene.name!r}: {bad} of {q.nonzero_area} patches "
-            f"degenerate to zero area (more than {MAX_DEGENERATE_FRACTION:.0%}); use more bits or omit --bits")
+            f"bits {bits} is too few for scene {scene.name!r}: {bad} of {q.nonzero_area} patches "
+            f"degenerate to zero area (more than {MAX_DEGENERATE_FRACTION:.0%}); use more bits or let the "
+            f"board choose them", parameter="bits")
     return q

@@ -16,16 +16,13 @@ the patches"), whose per-voxel counts can be far apart. Either way every (voxel,
 registration is on exactly one board, so the OR of the boards' words is the same.
 """
 
-import warnings
-
 import numpy as np
 
 from .errors import CapacityError, ParameterError
-from .fixedpoint import DEFAULT_MAX_ERROR, resolve_bits
 from .protocol import POINTS_PER_LOAD, BeginBlock, EndBlock, LoadPoints, Voxel, WritePatch, WriteVoxel
 from .records import pack_array, patch_columns, patch_layout
 
-__all__ = ["QuantisationWarning", "quantise", "ranges", "registration", "partition_records",
+__all__ = ["QuantisationWarning", "ranges", "registration", "partition_records",
            "check_partition", "PARTITIONS", "BoardMemories", "load_points_commands"]
 
 PARTITIONS = ("deal", "patch")
@@ -33,24 +30,6 @@ PARTITIONS = ("deal", "patch")
 
 class QuantisationWarning(UserWarning):
     """The chosen bits merge vertices or flatten patches of the scene."""
-
-
-def quantise(scene, samples, bits=None, *, max_error=DEFAULT_MAX_ERROR):
-    """The scene on the board's B-bit grid (:func:`~blockray.fixedpoint.resolve_bits`) and the
-    registration margin the voxel grid must add; warns (:class:`QuantisationWarning`) when
-    vertices merge or patches flatten."""
-    q = resolve_bits(scene, samples, bits, max_error=max_error)
-    if len(q.collapsed) or len(q.degenerate):
-        # reported, not ignored: such patches never block and vertices merged at this grid
-        warnings.warn(
-            f"scene {scene.name!r} at B = {q.bits} bits: {sum(len(g) for g in q.collapsed)} vertices "
-            f"collapse onto {len(q.collapsed)} grid points and {len(q.degenerate)} patches degenerate "
-            f"to zero area (they never block); use more --bits to keep them", QuantisationWarning)
-    # The host registers float triangles and traverses float rays; the quantised triangle and
-    # segment lie within max(displacement) of them (convex combinations with the same weights),
-    # so a margin of that much covers every hit point. The slack covers float rounding.
-    margin = max(q.displacement, q.end_displacement) * (1 + 1e-9) + 1e-12 * q.diagonal
-    return q, margin
 
 
 def _cube_root_floor(n):

@@ -4,7 +4,7 @@ from dataclasses import dataclass, fields, replace
 
 from .errors import ParameterError
 
-__all__ = ["BoardParams", "Widths"]
+__all__ = ["BoardParams", "Widths", "check_bits", "MIN_BITS", "MAX_BITS"]
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,16 @@ MIN_BITS = 4
 MAX_BITS = 20   # the numpy int64 model is exact up to 3B + 2 = 62 bits
 
 
+def check_bits(bits):
+    """``bits`` (as an int) if B is an integer from :data:`MIN_BITS` to :data:`MAX_BITS`, else
+    :class:`ParameterError` about parameter ``bits``."""
+    import numbers
+    if isinstance(bits, bool) or not isinstance(bits, numbers.Integral) or not MIN_BITS <= bits <= MAX_BITS:
+        raise ParameterError(f"bits must be an integer from {MIN_BITS} to {MAX_BITS} (the exact arithmetic "
+                             f"needs 3*B+2 <= 62 bits), not {bits!r}", parameter="bits")
+    return int(bits)
+
+
 @dataclass(frozen=True)
 class BoardParams:
     """Parameters of one board and of the machine made of ``boards`` of them.
@@ -72,10 +82,7 @@ class BoardParams:
             if value < 1:
                 raise ParameterError(f"board parameter {f.name} must be at least 1, not {value}",
                                      parameter=f.name)
-        if not MIN_BITS <= self.bits <= MAX_BITS:
-            raise ParameterError(
-                f"board parameter bits must be between {MIN_BITS} and {MAX_BITS} "
-                f"(the exact arithmetic needs 3*bits+2 <= 62), not {self.bits}", parameter="bits")
+        check_bits(self.bits)
         if self.rows > 64 or self.cols > 64:
             raise ParameterError(f"array of {self.rows} x {self.cols} processors: rows and cols must be at most 64",
                                  parameter="rows" if self.rows > 64 else "cols")

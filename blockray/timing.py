@@ -26,7 +26,7 @@ the accumulators then). Those cycles overlap with the next commands; only a host
 the result before sending more (the end of a batch) sees them, as stalls. Cycles spent waiting
 for the host (an empty command stream, or a full result queue nobody reads) are stalls, not board
 cycles, so a command stream's board cycles do not depend on the host's timing.
-:meth:`BoardTiming.for_bits` gives the RTL's latencies (tests assert them against the RTL).
+:meth:`BoardTiming.for_cell` gives the RTL's latencies (tests assert them against the RTL).
 """
 
 from dataclasses import dataclass
@@ -35,7 +35,6 @@ import numpy as np
 
 from .errors import ParameterError
 from .filtered import check_cell
-from .params import Widths
 from .protocol import POINTS_PER_LOAD, Op
 
 __all__ = ["Op", "BoardTiming", "POINTS_PER_LOAD", "load_commands_needed"]
@@ -75,21 +74,20 @@ class BoardTiming:
                 raise ParameterError(f"timing parameter {name} must be a non-negative integer, not {v!r}")
 
     @classmethod
-    def for_bits(cls, bits, *, memory_latency=MEMORY_LATENCY, cell="exact"):
-        """The latencies of the RTL (:class:`blockray.rtl.board.BoardTop`) for B coordinate bits.
+    def for_cell(cls, cell="exact", *, memory_latency=MEMORY_LATENCY):
+        """The latencies of the RTL (:class:`blockray.rtl.board.BoardTop`) with processor cell
+        ``cell``; they do not depend on B (at B <= 20 every multiplier is one pipeline stage), and
+        a test asserts them against the RTL's properties at several B.
 
         memory_latency 2: patch-memory read (1) + the broadcast register that fans the record out
         to the array (1). processor_latency 8: shooter/receiver units (4: differences, partial
         products, partial sums, the sum joining the pieces) + processor (4: operand registers,
-        partial products, partial sums, the joined sum with the decision and OR). Both are
-        independent of B at B <= 20 (every multiplier is one pipeline stage); a test asserts them
-        against the RTL's properties.
+        partial products, partial sums, the joined sum with the decision and OR).
 
         ``cell="filtered"``: the filtered array's least latency (:data:`FILTERED_LATENCY`); its
         data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
         array's credits run out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
         """
-        Widths(bits)
         if check_cell(cell) == "filtered":
             return cls(processor_latency=FILTERED_LATENCY, memory_latency=memory_latency)
         return cls(processor_latency=UNIT_LATENCY + CELL_LATENCY, memory_latency=memory_latency)

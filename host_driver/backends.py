@@ -1,19 +1,23 @@
 """The board back-ends by name: one registry for ``render.make_board`` and the CLI's ``--board``
 (its choices and help text come from here).
 
-A back-end is a factory ``(params, *, bits, partition, vcd, host) -> Board``. The driven ones are a
+A back-end is a factory ``(params, *, bits, partition, vcd, host) -> Board`` (and ``port``,
+``baud`` for a board on serial ports). The driven ones are a
 :class:`~blockray.host_driver.driver.BoardDriver` over one transport per board
-(host_driver/simulated.py); a back-end for real hardware (issue 15: ``ulx3s`` over a serial link,
-``ulx3s-sim``) registers the same way with its own transport.
+(host_driver/simulated.py); the real ULX3S (``ulx3s``, host_driver/ulx3s.py) is the driver over
+serial links it opens itself, ``ulx3s-sim`` its top level under Verilator.
 """
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable
 
 from ..errors import ParameterError
 from ..filtered import CELLS as _CELLS, check_cell
+from ..link import DEFAULT_BAUD
+from ..memory import check_partition
 
-__all__ = ["Backend", "BACKENDS", "register", "backend", "make_board"]
+__all__ = ["Backend", "BACKENDS", "register", "backend", "make_board", "build_board", "check_board"]
 
 
 @dataclass(frozen=True)
@@ -22,7 +26,8 @@ class Backend:
     quantises the scene (``--bits``, ``--partition`` apply); ``waveform``: it can write ``--vcd``;
     ``host_timing``: it takes random host idle / back-pressure (``--link-*``); ``cells``: the
     processor cells it can be built with (``--cell``); ``faults``: its link is framed and can
-    inject faults (``--link-faults``)."""
+    inject faults (``--link-faults``); ``serial``: a real board on serial ports (``--port``,
+    ``--baud``)."""
     name: str
     help: str
     factory: Callable
@@ -31,6 +36,7 @@ class Backend:
     host_timing: bool = False
     cells: tuple = ("exact",)
     faults: bool = False
+    serial: bool = False
 
 
 BACKENDS = {}
@@ -52,41 +58,63 @@ def backend(name):
                              parameter="board") from None
 
 
-def make_board(name, params=None, *, bits=None, vcd=None, partition="deal", host=None, cell="exact",
-               filter_format=None, faults=None):
-    """Build back-end ``name``. ``bits=None`` lets the board choose B for the scene; ``vcd`` (a
-    path) a waveform of a simulated board (board b > 0 writes ``FILE.b``); ``host``: the host's
-    timing on a simulated board's link: ``(idle, backpressure, seed)``, two
+def make_board(name, params=None, *, bits=None, partition="deal", cell="exact", filter_format=None, vcd=None,
+               host=None, faults=None, port=(), baud=DEFAULT_BAUD):
+    """Build back-end ``name`` for ``params`` (default :class:`~blockray.params.BoardParams`); the
+    keywords are the fields of :class:`~blockray.host_driver.options.BoardOptions` (see
+    :func:`build_board`)."""
+    from ..params import BoardParams
+    board = SimpleNamespace(backend=name, params=params or BoardParams(), bits=bits, partition=partition, cell=cell,
+                            filter_format=filter_format, vcd=vcd, host=host, faults=faults, port=port, baud=baud)
+    check_board(board)
+    return build_board(board)
+
+
+def check_board(options):
+    """ParameterError if back-end ``options.backend`` cannot be built as ``options`` (a
+    :class:`~blockray.host_driver.options.BoardOptions`) asks: a cell, filter format, partition,
+    waveform, host timing or fault injection it does not have."""
+    entry, name, cell = backend(options.backend), options.backend, options.cell
+    check_partition(options.partition)
+    if check_cell(cell, options.filter_format) not in entry.cells:
+        able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
+        raise ParameterError(f"--cell {cell} needs a board built with that cell (--board {able}), not {name!r}",
+                             parameter="cell")
+    if not entry.quantises and options.partition != "deal":
+        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene",
+                             parameter="partition")
+    if options.vcd is not None and not entry.waveform:
+        able = " or ".join(n for n, b in BACKENDS.items() if b.waveform)
+        raise ParameterError(f"--vcd needs a simulated RTL board (--board {able}), not {name!r}", parameter="vcd")
+    if options.host is not None and not entry.host_timing:
+        able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
+        raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
+                             f"by cycle (--board {able}), not {name!r}")
+    if options.faults is not None and not entry.faults:
+        able = " or ".join(n for n, b in BACKENDS.items() if b.faults)
+        raise ParameterError(f"--link-faults needs a board with a framed link (--board {able}), not {name!r}",
+                             parameter="link_faults")
+
+
+def build_board(options):
+    """The board of a :class:`~blockray.host_driver.options.BoardOptions` (checked by
+    :func:`check_board` when the options were built). ``bits=None`` lets the board choose B for
+    the scene; ``vcd`` (a path) a waveform of a simulated board (board b > 0 writes ``FILE.b``);
+    ``host``: the host's timing on a simulated board's link: ``(idle, backpressure, seed)``, two
     :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor cell,
     ``"exact"`` or ``"filtered"`` (``filter_format``: its :class:`~blockray.filtered.FilterFormat`,
     default :func:`~blockray.filtered.default_format`); the back-ends that build the board's
     model or RTL take both. ``faults``: a :class:`~blockray.host_driver.framed.LinkFaults` to
-    inject on every board's link."""
-    entry = backend(name)
-    if check_cell(cell) not in entry.cells:
-        able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
-        raise ParameterError(f"--cell {cell} needs a board built with that cell (--board {able}), not {name!r}",
-                             parameter="cell")
-    if not entry.quantises and partition != "deal":
-        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene",
-                             parameter="partition")
-    if vcd is not None and not entry.waveform:
-        able = " or ".join(n for n, b in BACKENDS.items() if b.waveform)
-        raise ParameterError(f"--vcd needs a simulated RTL board (--board {able}), not {name!r}", parameter="vcd")
-    if host is not None and not entry.host_timing:
-        able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
-        raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
-                             f"by cycle (--board {able}), not {name!r}")
+    inject on every board's link. ``port``, ``baud``: a real board's serial links."""
+    entry, o = backend(options.backend), options
     extra = {}
-    if faults is not None:
-        if not entry.faults:
-            able = " or ".join(n for n, b in BACKENDS.items() if b.faults)
-            raise ParameterError(f"--link-faults needs a board with a framed link (--board {able}), not {name!r}",
-                                 parameter="link_faults")
-        extra["faults"] = faults
-    if cell != "exact" or filter_format is not None:
-        extra.update(cell=cell, filter_format=filter_format)
-    return entry.factory(params, bits=bits, partition=partition, vcd=vcd, host=host, **extra)
+    if o.faults is not None:
+        extra["faults"] = o.faults
+    if o.cell != "exact" or o.filter_format is not None:
+        extra.update(cell=o.cell, filter_format=o.filter_format)
+    if entry.serial:
+        extra.update(port=o.port, baud=o.baud)
+    return entry.factory(o.params, bits=o.bits, partition=o.partition, vcd=o.vcd, host=o.host, **extra)
 
 
 def _wave(vcd, b):
@@ -147,17 +175,15 @@ def _ulx3s_sim(p, b, *, vcd, host, faults=None):
     return ulx3s_sim_transport(p, b, vcd=vcd, host=host, faults=faults)
 
 
-def _ulx3s(params, *, bits, partition, vcd, host):
-    # a real board's links are opened (and checked) by the CLI from --port / --baud, before the
-    # scene is loaded; a library caller builds the driver over host_driver.ulx3s.ulx3s_transport
-    raise ParameterError("--board ulx3s needs --port (the CLI opens the serial links); from Python, build a "
-                         "BoardDriver over blockray.host_driver.ulx3s.ulx3s_transport", parameter="board")
+def _ulx3s(params, *, bits, partition, vcd, host, port=(), baud=None, faults=None):
+    from .ulx3s import ulx3s_board
+    return ulx3s_board(params, port, baud=baud, bits=bits, partition=partition, faults=faults)
 
 
 register(Backend("ulx3s-sim", "the ULX3S top level, UART and framed link included, under Verilator "
                  "(bit-identical to model; --link-faults)", _driven("ulx3s-sim", _ulx3s_sim), faults=True))
 register(Backend("ulx3s", "a ULX3S-85F board on a serial port (--port, --baud; docs/ulx3s.md)", _ulx3s,
-                 faults=True))
+                 serial=True, faults=True))
 
 
 def help_text():

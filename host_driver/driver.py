@@ -22,11 +22,10 @@ import numpy as np
 from ..board import CountingBoard
 from ..errors import CapacityError, ParameterError
 from ..fixedpoint import DEFAULT_MAX_ERROR
-from ..memory import BoardMemories, check_partition, quantise
+from ..memory import BoardMemories, check_partition
 from ..params import BoardParams
 from ..protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
-from ..timing import BoardTiming
 from .framed import integrity_report
 from .transport import TransportError
 
@@ -43,6 +42,15 @@ def blocked_bits(words, rows, cols):
     return bits.reshape(len(words), rows, cols).astype(bool)
 
 
+def _decode(protocol, b, transport, data):
+    """One result; a corrupted one (an unknown tag) is a TransportError naming the link."""
+    try:
+        return protocol.decode_result(data)
+    except ParameterError as e:
+        where = getattr(transport, "where", "the link")
+        raise TransportError(f"board {b} ({where}): a corrupted result: {e}") from None
+
+
 class BoardDriver(CountingBoard):
     """P boards behind the host's Board interface, each reached through its own transport.
 
@@ -50,13 +58,15 @@ class BoardDriver(CountingBoard):
     configuration ``params``. ``fit``: size the boards' memories for the scene
     (:func:`~blockray.protocol.fit_params`, simulated boards built per scene); otherwise the
     boards are built for ``params`` as given (real hardware). Either way a scene that does not fit
-    ``params``' memories raises :class:`CapacityError` before any transport opens. ``bits``,
-    ``max_error``, ``partition``: as :class:`~blockray.sim.model.ModelBoard`.
+    ``params``' memories raises :class:`CapacityError` before any transport opens (followed by
+    ``hint``, what to change, if given). ``bits``, ``max_error``, ``partition``: as
+    :class:`~blockray.sim.model.ModelBoard`.
     """
 
     def __init__(self, params=None, *, transport, name="driver", bits=None, fit=True,
-                 max_error=DEFAULT_MAX_ERROR, partition="deal", cell="exact"):
+                 max_error=DEFAULT_MAX_ERROR, partition="deal", cell="exact", hint=None):
         self.params = params or BoardParams()
+        self.hint = hint
         self.cell = cell
         self.name = name
         self.bits, self.max_error, self.fit = bits, max_error, fit
@@ -73,20 +83,21 @@ class BoardDriver(CountingBoard):
     # -- Board interface -------------------------------------------------------------------------
 
     def prepare(self, scene, samples):
-        q, self.margin = quantise(scene, samples, self.bits, max_error=self.max_error)
-        self.quantised, self.samples = q, samples
-        self.params = self.params.with_(bits=q.bits)
         # with the filtered cell the drain of a batch's last END_BLOCK depends on the data: the
         # report counts its least (the boards' own cycles are exact)
-        self.timing = BoardTiming.for_bits(q.bits, cell=self.cell)
-        self._reset_counters()
+        self._quantise(scene, samples)
 
     def load(self, grid):
         if self.quantised is None:
             raise RuntimeError("prepare() before load()")
         p = self.params
         self.memory = mem = BoardMemories(self.quantised, grid, p, self.partition)
-        check_capacity(p, records=mem.records, voxels=mem.nvox)     # before any transport opens
+        try:
+            check_capacity(p, records=mem.records, voxels=mem.nvox)     # before any transport opens
+        except CapacityError as e:
+            if self.hint is None:
+                raise
+            raise CapacityError(f"{e}; {self.hint}") from None
         self.board_params = fit_params(p, records=mem.records, voxels=mem.nvox) if self.fit else p
         self.protocol = BoardProtocol(self.board_params)
         self._read_counters = self.protocol.encode(ReadCounters())
@@ -162,36 +173,40 @@ class BoardDriver(CountingBoard):
     def identify(self):
         """Send IDENTIFY to every board; check each answers with the protocol's magic and version
         and the configuration the host expects. Returns the identities."""
-        proto = self.protocol
-        want = proto.identity()
-        n = proto.result_bytes(ResultKind.IDENTITY)
-        request = proto.encode(Identify())
-        for t in self.transports:
+        want = self.protocol.identity()
+        out = self.identities_of(self.transports, self.protocol)
+        self._bytes_sent += len(self.protocol.encode(Identify())) * len(self.transports)
+        self._bytes_received += self.protocol.result_bytes(ResultKind.IDENTITY) * len(self.transports)
+        for b, ident in enumerate(out):
+            if ident != want:
+                diff = ", ".join(f"{k} {ident[k]} (host {want[k]})" for k in want if ident[k] != want[k])
+                raise CapacityError(f"board {b} was built for another configuration: {diff}")
+        return out
+
+    @staticmethod
+    def identities_of(transports, protocol):
+        """What each board behind ``transports`` answers to IDENTIFY (an IDENTIFY and its result
+        do not depend on the configuration: any ``protocol`` reads them), each checked to be a
+        blockray board of this protocol's magic and version."""
+        n = protocol.result_bytes(ResultKind.IDENTITY)
+        request = protocol.encode(Identify())
+        for t in transports:
             t.send(request)
             t.expect(n)
-        self._bytes_sent += len(request) * len(self.transports)
         out = []
-        for b, t in enumerate(self.transports):
-            got = self._decode(b, t, self._recv(t, n))
+        for b, t in enumerate(transports):
+            got = _decode(protocol, b, t, t.recv(n))
             if got.kind is not ResultKind.IDENTITY:
                 raise TransportError(f"board {b}: answered IDENTIFY with a {got.kind.name} result")
             ident = got.identity
             if ident["magic"] != MAGIC or ident["version"] != VERSION:
                 raise TransportError(f"board {b}: magic {ident['magic']:#06x} version {ident['version']} is not a "
                                      f"blockray board of protocol version {VERSION} (magic {MAGIC:#06x})")
-            if ident != want:
-                diff = ", ".join(f"{k} {ident[k]} (host {want[k]})" for k in want if ident[k] != want[k])
-                raise CapacityError(f"board {b} was built for another configuration: {diff}")
             out.append(ident)
         return out
 
     def _decode(self, b, transport, data):
-        """One result; a corrupted one (an unknown tag) is a TransportError naming the link."""
-        try:
-            return self.protocol.decode_result(data)
-        except ParameterError as e:
-            where = getattr(transport, "where", "the link")
-            raise TransportError(f"board {b} ({where}): a corrupted result: {e}") from None
+        return _decode(self.protocol, b, transport, data)
 
     def _recv(self, transport, n):
         data = transport.recv(n)

@@ -26,7 +26,7 @@ test per ray).
 
 import numpy as np
 
-from ..exact_float import blocked_rays, check_range
+from ..exact_float import blocked_rays, check_exact_range
 from .board import Board
 
 __all__ = ["GoldenBoard"]
@@ -51,7 +51,7 @@ class GoldenBoard(Board):
 
     def prepare(self, scene, samples):
         V = np.ascontiguousarray(scene.patch_vertices, dtype=np.float64)
-        check_range(V, f"scene {scene.name!r} on the golden board")
+        check_exact_range(V, f"scene {scene.name!r} on the golden board")
         self._V = V
         self._weights = np.asarray(samples.weights, dtype=np.int64)
         lo, hi = scene.bbox

@@ -18,19 +18,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..params import BoardParams
-from ..samples import SampleScheme
 from ..errors import ParameterError
-from .backends import backend, make_board
+from .backends import build_board, make_board
+from .options import SOLVERS, RenderOptions
 from .. import threads as host_threads
 from . import closure as closures, formfactor, solver as solvers
 from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from .visibility import PACKINGS, TRAVERSALS, Phases, Visibility, _morton, visible_fraction
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
-__all__ = ["RenderResult", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
-
-SOLVERS = ("progressive", "jacobi", "gauss-seidel")
+__all__ = ["RenderResult", "RenderOptions", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
 
 
 @dataclass
@@ -42,26 +39,23 @@ class RenderResult:
     factors: object = None        # (N, N) visible form factors F[j, i], when a gathering solver built them
 
 
-def render(scene, *, board="golden", params=None, bits=None, voxels=None, samples=8,
-           solver="progressive", tolerance=1e-3, max_shots=None, max_iterations=200,
-           traversal="block", packing="voxel", partition="deal", sets=1, progress=False,
-           stats_fraction=0.02, vcd=None, threads=None, scheduler=None, workers=None, echo=None, host=None,
-           cell="exact", filter_format=None, closure="off", checkpoint=None):
+def render(scene, board=None, options=None, *, progress=False, echo=None, checkpoint=None, **flat):
     """Solve the radiosity of ``scene`` with every visibility query answered by ``board``.
 
-    ``board``: a name of the back-end registry (host_driver/backends.py) or a Board; ``vcd``,
-    ``host``, ``cell``, ``filter_format``: see :func:`~blockray.host_driver.backends.make_board`.
-
-    ``threads``: cores the compiled host kernels use (None: all, see
-    :mod:`blockray.threads`); the result does not depend on it.
-
-    ``sets`` > 1, a ``scheduler`` address or a number of ``workers`` run the render as ``sets``
-    host + board sets on a Dask cluster (host_driver/cluster.py): the user's at ``scheduler``,
-    else a LocalCluster of ``workers`` processes (default one per core, at most ``sets``).
+    ``options``: a :class:`~blockray.host_driver.options.RenderOptions` (or its flat names as
+    keywords, :meth:`~blockray.host_driver.options.RenderOptions.of`). ``board``: a built
+    :class:`~blockray.board.Board`; None: the registry (host_driver/backends.py) builds
+    ``options.board`` and the board is closed at the end. ``progress``: show a progress bar;
     ``echo(text)`` is told the cluster's dashboard address.
 
-    ``closure``: ``"symmetric"`` or ``"enforce"`` build every column first and make the visible
-    factors reciprocal (and, ``"enforce"``, closed: for closed scenes only), see
+    ``options.run``: ``sets`` > 1, a ``scheduler`` address or a number of ``workers`` run the
+    render as ``sets`` host + board sets on a Dask cluster (host_driver/cluster.py): the user's
+    at ``scheduler``, else a LocalCluster of ``workers`` processes (default one per core, at most
+    ``sets``); each set builds its own ``options.board``. ``threads``: cores the compiled host
+    kernels use (None: all, see :mod:`blockray.threads`); the result does not depend on it.
+
+    ``options.solve.closure``: ``"symmetric"`` or ``"enforce"`` build every column first and make
+    the visible factors reciprocal (and, ``"enforce"``, closed: for closed scenes only), see
     host_driver/closure.py; the report's ``closure`` key then gives the errors before and after,
     the size of the correction, and the energy balance solved with the raw and the corrected
     factors side by side.
@@ -69,115 +63,69 @@ def render(scene, *, board="golden", params=None, bits=None, voxels=None, sample
     ``checkpoint``: a :class:`~blockray.host_driver.checkpoint.Checkpoint` that saves the solve
     as it runs and/or gives the state it continues from (not with ``closure``).
 
-    A board built here (``board`` a name) is closed on every path: success, error or signal.
-
     Returns a :class:`RenderResult` whose ``report`` holds the keys of ``--report``.
     """
-    with host_threads.using(threads):
-        return _render(scene, board=board, params=params, bits=bits, voxels=voxels, samples=samples,
-                       solver=solver, tolerance=tolerance, max_shots=max_shots, max_iterations=max_iterations,
-                       traversal=traversal, packing=packing, partition=partition, sets=sets,
-                       progress=progress, stats_fraction=stats_fraction, vcd=vcd,
-                       scheduler=scheduler, workers=workers, echo=echo, host=host, cell=cell,
-                       filter_format=filter_format, closure=closure, checkpoint=checkpoint)
+    if options is None:
+        options = RenderOptions.of(**flat)
+    elif flat:
+        raise TypeError("render() takes options or their flat names, not both")
+    with host_threads.using(options.run.threads):
+        if board is not None:
+            return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
+        with build_board(options.board) as board:           # closed on every path
+            return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
 
 
-def _render(scene, *, board, params, bits, voxels, samples, solver, tolerance, max_shots, max_iterations,
-            traversal, packing, partition, sets, progress, stats_fraction, vcd, scheduler, workers, echo, host,
-            cell, filter_format, closure, checkpoint):
-    if solver not in SOLVERS:
-        raise ParameterError(f"--solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
-    if not (np.isfinite(tolerance) and tolerance > 0):
-        raise ParameterError(f"--tolerance must be a positive number, not {tolerance!r}")
-    if max_shots is not None and max_shots < 1:
-        raise ParameterError(f"--max-shots must be at least 1, not {max_shots!r}")
-    if closure not in closures.MODES:
-        raise ParameterError(f"--closure must be one of {', '.join(closures.MODES)}, not {closure!r}")
-    params = params or BoardParams()
-    distributed = sets != 1 or scheduler is not None or workers is not None
-    if distributed and closure != "off":
-        raise ParameterError("--closure needs the whole form-factor matrix on one host; it cannot be used with "
-                             "--sets, --scheduler or --workers", parameter="closure")
-    if distributed:
-        if solver == "progressive":
-            raise ParameterError("--sets: host + board sets solve by gathering; use --solver jacobi or "
-                                 "gauss-seidel", parameter="sets")
-        if not isinstance(board, str):
-            raise ParameterError("--sets needs a board name (one board is built per set)", parameter="sets")
-        if vcd is not None:
-            raise ParameterError("--vcd traces one board's simulation; it cannot be used with --sets, "
-                                 "--scheduler or --workers", parameter="vcd")
-        if host is not None:
-            raise ParameterError("--link-idle / --link-backpressure / --link-bursts drive one simulated board; "
-                                 "they cannot be used with --sets, --scheduler or --workers", parameter="sets")
-        if cell != "exact":
-            raise ParameterError("--cell filtered runs one set (not with --sets, --scheduler or --workers)",
-                                 parameter="cell")
-        if scheduler is not None and workers is not None:
-            raise ParameterError("--workers sizes the local cluster; a cluster joined with --scheduler has its own "
-                                 "workers", parameter="workers")
-        check_sets(sets, scene.patches)
-    if bits is not None and isinstance(board, str) and not backend(board).quantises:
-        raise ParameterError("--bits applies to boards that quantise the scene; the golden board is float64")
-    samples = samples if isinstance(samples, SampleScheme) else SampleScheme(samples)
-    resume = None
-    if checkpoint is not None:
-        if closure != "off":
-            raise ParameterError("--checkpoint / --resume: a --closure render solves twice from the whole matrix; "
-                                 "it is not checkpointed", parameter="closure")
-        resume = checkpoint.bind(scene, {
-            "board": board if isinstance(board, str) else board.name, "bits": bits, "voxels": voxels,
-            "samples": samples.count, "solver": solver, "tolerance": tolerance, "max_shots": max_shots,
-            "max_iterations": max_iterations, "traversal": traversal, "packing": packing, "partition": partition,
-            "sets": sets, "cell": cell, "filter_format": repr(filter_format), "rows": params.rows,
-            "cols": params.cols, "boards": params.boards})
+def _resume(scene, board, options, params, checkpoint):
+    """The state ``checkpoint`` continues from (None: from the beginning), bound to the scene and
+    the options it was saved with."""
+    if checkpoint is None:
+        return None
+    b, ray, solve = options.board, options.ray, options.solve
+    if solve.closure != "off":
+        raise ParameterError("--checkpoint / --resume: a --closure render solves twice from the whole matrix; "
+                             "it is not checkpointed", parameter="closure")
+    return checkpoint.bind(scene, {
+        "board": board.name, "bits": b.bits, "voxels": ray.voxels, "samples": ray.samples.count,
+        "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
+        "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
+        "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
+        "rows": params.rows, "cols": params.cols, "boards": params.boards})
+
+
+def _render(scene, board, options, *, progress, echo, checkpoint):
+    b, ray, solve = options.board, options.ray, options.solve
+    params = getattr(board, "params", None) or b.params       # R, S, P of the board as built
+    if options.run.distributed:
+        if board.name != b.backend:
+            raise ParameterError(f"--sets: every set builds a {b.backend!r} board (options.board), not the "
+                                 f"{board.name!r} given", parameter="sets")
+        check_sets(options.run.sets, scene.patches)
+    samples = ray.samples
+    resume = _resume(scene, board, options, params, checkpoint)
     phases = Phases()
     t_start, c_start = time.perf_counter(), time.process_time()
-    board_obj = (make_board(board, params, bits=bits, vcd=vcd, partition=partition, host=host, cell=cell,
-                            filter_format=filter_format)
-                 if isinstance(board, str) else board)
-    board_name = board if isinstance(board, str) else board_obj.name
-    try:
-        return _render_on(scene, board, board_obj, board_name, params, samples, phases, t_start, c_start,
-                          voxels=voxels, solver=solver, tolerance=tolerance, max_shots=max_shots,
-                          max_iterations=max_iterations, traversal=traversal, packing=packing,
-                          partition=partition, sets=sets, progress=progress, stats_fraction=stats_fraction,
-                          scheduler=scheduler, workers=workers, echo=echo, closure=closure,
-                          distributed=distributed, checkpoint=checkpoint, resume=resume)
-    finally:
-        if isinstance(board, str) and hasattr(board_obj, "close"):
-            board_obj.close()                   # a simulated board stops its simulator
 
-
-def _render_on(scene, board, board_obj, board_name, params, samples, phases, t_start, c_start, *, voxels, solver,
-               tolerance, max_shots, max_iterations, traversal, packing, partition, sets, progress, stats_fraction,
-               scheduler, workers, echo, closure, distributed, checkpoint, resume):
     with phases.timed("prepare"):
-        board_obj.prepare(scene, samples)
+        board.prepare(scene, samples)
     # The paper's cost model (5)-(8) sizes the grid. With the hardware's P x R x S parallelism the
     # test term nearly vanishes and it asks for a very coarse grid; the boards here run in
     # software at about one test per 0.05-0.2 us, so the default is the model's optimum for one
     # processor. The hardware optimum is reported alongside.
     voxels_hardware = default_voxels(scene.patches, parallelism=params.processors * params.boards)
-    if voxels is None:
-        voxels = default_voxels(scene.patches, parallelism=1)
-    elif not isinstance(voxels, int) or voxels < 1 or voxels > 256:
-        raise ParameterError(f"--voxels must be an integer from 1 to 256, not {voxels!r}")
+    voxels = ray.voxels or default_voxels(scene.patches, parallelism=1)
     with phases.timed("voxelise"):
-        grid = VoxelGrid(scene.patch_vertices, voxels, margin=board_obj.margin)
-    if distributed:
-        return _render_sets(scene, board, board_obj, grid, samples, params, partition=partition, sets=sets,
-                            solver=solver, tolerance=tolerance, max_iterations=max_iterations,
-                            traversal=traversal, packing=packing, stats_fraction=stats_fraction,
-                            scheduler=scheduler, workers=workers, progress=progress, echo=echo,
-                            phases=phases, t_start=t_start, voxels=voxels, voxels_hardware=voxels_hardware,
-                            checkpoint=checkpoint, resume=resume)
+        grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
+    run = _Run(scene=scene, board=board, options=options, params=params, phases=phases, t_start=t_start,
+               voxels=voxels, voxels_hardware=voxels_hardware, checkpoint=checkpoint, resume=resume)
+    if options.run.distributed:
+        return _render_sets(run, grid, progress=progress, echo=echo)
     with phases.timed("load"):
-        board_obj.load(grid)
+        board.load(grid)
 
-    stats = TraversalStats(grid, sample_fraction=stats_fraction)
-    vis = Visibility(scene, board_obj, grid, samples, rows=params.rows, cols=params.cols,
-                     traversal=traversal, packing=packing, phases=phases, stats=stats)
+    stats = TraversalStats(grid, sample_fraction=ray.stats_fraction)
+    vis = Visibility(scene, board, grid, samples, rows=params.rows, cols=params.cols,
+                     traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats)
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
     if checkpoint is not None and cache is not None:
@@ -200,20 +148,20 @@ def _render_on(scene, board, board_obj, board_name, params, samples, phases, t_s
             cache[i] = out.astype(np.float32) if scene.patches > 4000 else out
         return out
 
-    bar = _progress(progress, solver, scene.patches if solver != "progressive" or closure != "off" else max_shots)
+    bar = _progress(progress, solve.solver,
+                    scene.patches if solve.solver != "progressive" or solve.closure != "off" else solve.max_shots)
     saving = None if checkpoint is None else checkpoint.save
     closure_info = factors = None
     with phases.timed("solve"):
-        if closure != "off":
-            result, closure_info = _solve_closed(scene, shoot, closure, solver, bar, tolerance=tolerance,
-                                                 max_shots=max_shots, max_iterations=max_iterations)
-        elif solver == "progressive":
-            result = solvers.progressive_refinement(scene, shoot, tolerance=tolerance, max_shots=max_shots,
-                                                    progress=bar, refuse_gain=True, checkpoint=saving, resume=resume)
+        if solve.closure != "off":
+            result, closure_info = _solve_closed(scene, shoot, solve, bar)
+        elif solve.solver == "progressive":
+            result = solvers.progressive_refinement(scene, shoot, tolerance=solve.tolerance,
+                                                    max_shots=solve.max_shots, progress=bar, refuse_gain=True,
+                                                    checkpoint=saving, resume=resume)
         else:
             factors, sums = _columns(scene, shoot, bar)
-            result = _solve_matrix(scene, factors, solver, tolerance=tolerance, max_shots=max_shots,
-                                   max_iterations=max_iterations, checkpoint=saving, resume=resume)
+            result = _solve_matrix(scene, factors, solve, checkpoint=saving, resume=resume)
             result.row_sums = sums
     solvers.check_finite(scene, result)         # nothing non-finite is written
     if bar is not None:
@@ -229,12 +177,9 @@ def _render_on(scene, board, board_obj, board_name, params, samples, phases, t_s
     cpu_seconds = dict(phases.cpu)
     cpu_seconds["total"] = time.process_time() - c_start
 
-    counters = board_obj.counters()
-    report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board_name,
-                     params=params, samples=samples, traversal=traversal, packing=packing,
-                     partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
-                     result=result, rays=vis.rays, blocks=vis.blocks, columns=vis.columns, counters=counters,
-                     seconds=seconds, cpu_seconds=cpu_seconds, traversal_stats=stats.summary())
+    report = _report(run, board.name, result=result, rays=vis.rays, blocks=vis.blocks, columns=vis.columns,
+                     counters=board.counters(), seconds=seconds, cpu_seconds=cpu_seconds,
+                     traversal_stats=stats.summary())
     report["exchange_bytes_per_sweep"] = 0
     if closure_info is not None:
         report["closure"] = closure_info
@@ -242,10 +187,11 @@ def _render_on(scene, board, board_obj, board_name, params, samples, phases, t_s
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report, factors=factors)
 
 
-def _solve_closed(scene, shoot, mode, solver, bar, **solve):
+def _solve_closed(scene, shoot, solve, bar):
     """Every column of visible factors, made reciprocal / closed (host_driver/closure.py), then
-    solved twice with ``solver``: with the corrected factors (the result) and with the raw ones,
-    so that the report shows both energy balances side by side."""
+    solved twice with ``solve.solver``: with the corrected factors (the result) and with the raw
+    ones, so that the report shows both energy balances side by side."""
+    mode = solve.closure
     if 8 * scene.patches ** 2 > solvers.MAX_MATRIX_BYTES:
         raise ParameterError(f"--closure {mode}: the form factors of {scene.patches} patches do not fit in "
                              f"{solvers.MAX_MATRIX_BYTES / 2**30:g} GiB", parameter="closure")
@@ -253,8 +199,8 @@ def _solve_closed(scene, shoot, mode, solver, bar, **solve):
     t0 = time.perf_counter()
     corrected, info = closures.enforce(scene, F, mode=mode)
     info["enforce_seconds"] = time.perf_counter() - t0
-    result = _solve_matrix(scene, corrected, solver, **solve)
-    raw = _solve_matrix(scene, F, solver, **solve)
+    result = _solve_matrix(scene, corrected, solve)
+    raw = _solve_matrix(scene, F, solve)
     result.row_sums = sums                      # of the raw factors: the report's visible_row_sum
     info["absorbed_balance"] = closures.absorbed_balance(scene, result.B).tolist()
     info["absorbed_balance_raw"] = closures.absorbed_balance(scene, raw.B).tolist()
@@ -277,12 +223,12 @@ def _columns(scene, shoot, bar):
     return F, sums
 
 
-def _solve_matrix(scene, F, solver, *, tolerance, max_shots, max_iterations, checkpoint=None, resume=None):
-    if solver == "progressive":
-        return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=tolerance, max_shots=max_shots,
-                                              refuse_gain=True)
-    gather = solvers.jacobi if solver == "jacobi" else solvers.gauss_seidel
-    return gather(scene, F, tolerance=tolerance, max_iterations=max_iterations, checkpoint=checkpoint,
+def _solve_matrix(scene, F, solve, *, checkpoint=None, resume=None):
+    if solve.solver == "progressive":
+        return solvers.progressive_refinement(scene, lambda i: F[:, i], tolerance=solve.tolerance,
+                                              max_shots=solve.max_shots, refuse_gain=True)
+    gather = solvers.jacobi if solve.solver == "jacobi" else solvers.gauss_seidel
+    return gather(scene, F, tolerance=solve.tolerance, max_iterations=solve.max_iterations, checkpoint=checkpoint,
                   resume=resume)
 
 
@@ -293,26 +239,41 @@ def _resumed(report, resume):
         report["resumed_from"] = {"shots": int(resume["shots"]), "sweeps": int(resume["iterations"])}
 
 
-def _report(*, scene, voxels, voxels_hardware, board_name, params, samples, traversal, packing, partition, solver,
-            sets, tolerance, result, rays, blocks, columns, counters, seconds, traversal_stats, cpu_seconds=None):
+@dataclass(frozen=True)
+class _Run:
+    """What a render's report says of the run besides its results."""
+    scene: object
+    board: object
+    options: object
+    params: object
+    phases: object
+    t_start: float
+    voxels: int
+    voxels_hardware: int
+    checkpoint: object = None
+    resume: object = None
+
+
+def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds, traversal_stats, cpu_seconds=None):
     """The keys of ``--report`` (the board's own counters last, never overriding the host's)."""
+    scene, params, ray, solve = run.scene, run.params, run.options.ray, run.options.solve
     report = {
         "scene": scene.name,
         "source": scene.source,
         "patches": int(scene.patches),
         "contact": scene.contact,        # patches split along contact lines at load (None: not done)
-        "voxels": int(voxels),
-        "voxels_hardware_optimum": int(voxels_hardware),
+        "voxels": int(run.voxels),
+        "voxels_hardware_optimum": int(run.voxels_hardware),
         "columns_cast": int(columns),
         "board": board_name,
         "board_params": {"rows": params.rows, "cols": params.cols, "boards": params.boards},
-        "samples": samples.count,
-        "traversal": traversal,
-        "packing": packing,
-        "partition": partition,
-        "solver": solver,
-        "sets": int(sets),
-        "tolerance": tolerance,
+        "samples": ray.samples.count,
+        "traversal": ray.traversal,
+        "packing": ray.packing,
+        "partition": getattr(run.board, "partition", None),
+        "solver": solve.solver,
+        "sets": int(run.options.run.sets),
+        "tolerance": solve.tolerance,
         "shots": int(getattr(result, "shots", 0) or 0),
         "iterations": int(getattr(result, "iterations", 0) or 0),
         "rays": int(rays),
@@ -341,22 +302,25 @@ def _absorbed_balance(scene, B):
     return [float(b) if np.isfinite(b) else None for b in balance]
 
 
-def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, sets, solver, tolerance,
-                 max_iterations, traversal, packing, stats_fraction, scheduler, workers, progress, echo, phases,
-                 t_start, voxels, voxels_hardware, checkpoint=None, resume=None):
-    """render()'s gathering on ``sets`` host + board sets of a Dask cluster (host_driver/cluster.py),
-    from the client's prepared (not loaded) board and voxel grid."""
+def _render_sets(run, grid, *, progress, echo):
+    """render()'s gathering on host + board sets of a Dask cluster (host_driver/cluster.py), from
+    the client's prepared (not loaded) board and voxel grid. Every set builds its own board of
+    ``options.board`` with the B the client's board quantised the scene to."""
     from .cluster import SetJob, cluster_client, solve_sets
-    bits = board_obj.counters().get("bits")        # the client's quantisation: the B the sets use
-    with phases.timed("cluster"), cluster_client(scheduler, workers=workers, sets=sets, echo=echo) as (client, threads):
-        job = SetJob(board=board, params=params, bits=bits,
-                     partition=partition, samples=samples, traversal=traversal, packing=packing,
-                     stats_fraction=stats_fraction, threads=threads)
-        owner, result, summaries, info = solve_sets(client, scene, grid, sets, _morton(grid.cell_of(scene.centroids)),
-                                                    job, solver=solver, tolerance=tolerance,
-                                                    max_iterations=max_iterations, progress=progress,
-                                                    checkpoint=None if checkpoint is None else checkpoint.save,
-                                                    resume=resume)
+    scene, options, phases, params = run.scene, run.options, run.phases, run.params
+    b, ray, solve, sets = options.board, options.ray, options.solve, options.run
+    quantised = getattr(run.board, "quantised", None)       # None: a board that does not quantise
+    with phases.timed("cluster"), cluster_client(sets.scheduler, workers=sets.workers, sets=sets.sets,
+                                                 echo=echo) as (client, threads):
+        job = SetJob(board=b.backend, params=params, bits=None if quantised is None else quantised.bits,
+                     partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
+                     stats_fraction=ray.stats_fraction, threads=threads)
+        owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
+                                                    _morton(grid.cell_of(scene.centroids)), job,
+                                                    solver=solve.solver, tolerance=solve.tolerance,
+                                                    max_iterations=solve.max_iterations, progress=progress,
+                                                    checkpoint=None if run.checkpoint is None else run.checkpoint.save,
+                                                    resume=run.resume)
     solvers.check_finite(scene, result)
     phases.add("cluster", -(info["assign_seconds"] + info["cast_seconds"] + info["solve_seconds"]))
     phases.add("assign", info["assign_seconds"])
@@ -366,20 +330,17 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
         for phase in ("prepare", "load", "formfactor", "traverse", "board"):
             phases.add(phase, s["phases"].get(phase, 0.0))
     seconds = dict(phases.seconds)
-    seconds["total"] = time.perf_counter() - t_start
+    seconds["total"] = time.perf_counter() - run.t_start
     stats = TraversalStats(grid)
     for s in summaries:
         stats.add_counts(s["stats"])
     counters = combine_counters(owner, summaries, params.processors * params.boards)
-    report = _report(scene=scene, voxels=voxels, voxels_hardware=voxels_hardware, board_name=board, params=params,
-                     samples=samples, traversal=traversal, packing=packing,
-                     partition=getattr(board_obj, "partition", None), solver=solver, sets=sets, tolerance=tolerance,
-                     result=result, rays=sum(s["rays"] for s in summaries),
+    report = _report(run, b.backend, result=result, rays=sum(s["rays"] for s in summaries),
                      blocks=sum(s["blocks"] for s in summaries), columns=max(s["columns"] for s in summaries),
                      counters=counters, seconds=seconds, traversal_stats=stats.summary())
     report["exchange_bytes_per_sweep"] = int(exchange_bytes_per_sweep(owner))
     report["cluster"] = {
-        "scheduler": scheduler or "LocalCluster",
+        "scheduler": sets.scheduler or "LocalCluster",
         "workers": [{"address": a, "nthreads": w.get("nthreads")} for a, w in sorted(info["workers"].items())],
         "kernel_threads": threads,
         "exchanged_bytes": int(info["exchanged_bytes"]),
@@ -387,7 +348,7 @@ def _render_sets(scene, board, board_obj, grid, samples, params, *, partition, s
         "cast_seconds_per_set": [float(s["seconds"]) for s in summaries],
         "cast_cpu_seconds_per_set": [float(s["cpu_seconds"]) for s in summaries],
     }
-    _resumed(report, resume)
+    _resumed(report, run.resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report)
 
 

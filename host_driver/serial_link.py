@@ -8,19 +8,18 @@ the board's link and core). :class:`SerialTransport` is a
 silent board fails with one line (:class:`TransportError`, exit 2) within ``answer_timeout``
 seconds: after the reset the board must answer a status frame.
 
-    with SerialTransport("/dev/ttyUSB0", baud=3_000_000) as link:
+    with SerialTransport("/dev/ttyUSB0", baud=DEFAULT_BAUD) as link:
         link.send(command_bytes)
         results = link.recv(n)
 """
 
 import time
 
+from ..link import DEFAULT_BAUD
 from .framed import FaultyPipe, FramedTransport
 from .transport import TransportError
 
 __all__ = ["SerialPipe", "SerialTransport", "DEFAULT_BAUD"]
-
-DEFAULT_BAUD = 3_000_000
 
 
 class SerialPipe:

@@ -2,19 +2,57 @@
 simulated (UART included) under Verilator.
 
 Both open one board's link for the host driver (``transport(params, board)`` of
-:class:`~blockray.host_driver.driver.BoardDriver`, issue 12) and reset it; the driver then sends
-``IDENTIFY`` and checks the bitstream's configuration before it uploads anything. Registered in
-host_driver/backends.py as::
-
-    register(Backend("ulx3s", "a ULX3S board on a serial port (--port, --baud)", ...))
-    register(Backend("ulx3s-sim", "the ULX3S top level, UART included, under Verilator",
-                     _driven("ulx3s-sim", ulx3s_sim_transport)))
+:class:`~blockray.host_driver.driver.BoardDriver`) and reset it; the driver then sends
+``IDENTIFY`` and checks the bitstream's configuration before it uploads anything. The real
+board's back-end (``--board ulx3s``, registered in host_driver/backends.py) is
+:func:`ulx3s_board`: it opens every board's serial link first (a missing port or a silent board
+fails there, in seconds) and takes the boards' memories and B from their IDENTIFY replies.
 """
 
+from ..errors import ParameterError
+from ..protocol import BoardProtocol
 from .serial_link import DEFAULT_BAUD, SerialTransport
 from .uart_sim import SIM_DIVISOR, UartSimTransport
 
-__all__ = ["ulx3s_transport", "ulx3s_sim_transport"]
+__all__ = ["ulx3s_board", "ulx3s_transport", "ulx3s_sim_transport", "CAPACITY_HINT"]
+
+#: what to change when a scene does not fit the bitstream's memories
+CAPACITY_HINT = ("rebuild the bitstream with larger memories (blockray bitstream --patch-depth, --voxel-depth), "
+                 "spread the scene over more boards (--boards with a --port each), or subdivide it less "
+                 "(--max-edge)")
+
+
+def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal", open_link=None, faults=None):
+    """The host driver over ULX3S boards, one behind each of ``ports`` (``params.boards`` of them).
+
+    Every link is opened and reset first, then every board is asked for its configuration
+    (IDENTIFY): the boards' memories and, unless ``bits`` asks for a B, their B are what board 0
+    answers; R and S are ``params``' (the driver checks every board against the whole
+    configuration before it uploads). ``open_link(port, baud=)``: the transport of one port
+    (default :func:`ulx3s_transport`; with ``faults``, a
+    :class:`~blockray.host_driver.framed.LinkFaults`, it gets ``faults=`` and ``board=`` too)."""
+    from .driver import BoardDriver
+    open_link = open_link or ulx3s_transport
+    ports = (ports,) if isinstance(ports, str) else tuple(ports or ())
+    if not ports:
+        raise ParameterError("--port: --board ulx3s needs the board's serial port, e.g. --port /dev/ttyUSB0",
+                             parameter="port")
+    if len(ports) != params.boards:
+        raise ParameterError(f"--boards: {params.boards} boards need {params.boards} ports, --port names "
+                             f"{len(ports)}", parameter="boards")
+    links = []
+    try:
+        for b, port in enumerate(ports):
+            links.append(open_link(port, baud=baud, **({} if faults is None else {"faults": faults, "board": b})))
+        built = BoardDriver.identities_of(links, BoardProtocol(params))[0]
+    except BaseException:
+        for link in links:
+            link.close()
+        raise
+    expect = params.with_(bits=bits or built["bits"], patch_depth=built["patch_depth"],
+                          voxel_depth=built["voxel_depth"])
+    return BoardDriver(expect, bits=expect.bits, fit=False, name="ulx3s", partition=partition, hint=CAPACITY_HINT,
+                       transport=lambda p, b: links[b])
 
 
 def ulx3s_transport(port, *, baud=DEFAULT_BAUD, faults=None, board=0):

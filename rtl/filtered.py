@@ -23,8 +23,8 @@ from amaranth.lib.wiring import In, Out
 from ..filtered import default_format
 from .array import broadcast_signature
 from .platform import product_platform
-from ..params import Widths
-from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _check_bits, _credits, _crossing, _delay,
+from ..params import Widths, check_bits
+from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _credits, _crossing, _delay,
                         _delay_memory, _delay_through, _product, query_layout, receiver_terms_layout, result_layout,
                         shooter_terms_layout)
 
@@ -98,7 +98,7 @@ class _Filter(wiring.Component):
     latency = 3
 
     def __init__(self, bits, fmt):
-        self._bits = _check_bits(bits)
+        self._bits = check_bits(bits)
         self._fmt = fmt
         super().__init__({
             "exact": In(self.exact_layout(bits)),
@@ -290,7 +290,7 @@ class _FilteredCells:
     latency = ShooterUnit.latency + _Filter.latency + FilteredProcessor.latency
 
     def _configure(self, bits, fmt, depth):
-        self._bits = _check_bits(bits)
+        self._bits = check_bits(bits)
         # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
         self._fmt = fmt if fmt is not None else default_format(bits)
         self._depth = _check_depth(depth)

@@ -33,7 +33,7 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
-from ..params import MAX_BITS, MIN_BITS, Widths
+from ..params import Widths, check_bits
 from ..records import patch_layout, point_layout, vector_layout
 from .platform import product_platform
 
@@ -43,15 +43,6 @@ __all__ = [
 ]
 
 TAG_BITS = 16
-
-
-def _check_bits(bits):
-    if isinstance(bits, bool) or not isinstance(bits, int):
-        raise ParameterError(f"processor parameter bits must be an integer, not {bits!r}")
-    if not MIN_BITS <= bits <= MAX_BITS:
-        raise ParameterError(
-            f"processor parameter bits must be between {MIN_BITS} and {MAX_BITS}, not {bits}")
-    return bits
 
 
 # -- records ----------------------------------------------------------------------------------
@@ -306,7 +297,7 @@ class _TermsUnit(wiring.Component):
     latency = 4
 
     def __init__(self, bits):
-        self._bits = _check_bits(bits)
+        self._bits = check_bits(bits)
         super().__init__({
             "point": In(point_layout(bits)),
             "patch": In(patch_layout(bits)),
@@ -442,7 +433,7 @@ class Processor(wiring.Component):
     latency = 4
 
     def __init__(self, bits, *, unit="cell"):
-        self._bits = _check_bits(bits)
+        self._bits = check_bits(bits)
         self._unit = unit
         super().__init__({
             "shooter": In(shooter_terms_layout(bits)),
@@ -505,7 +496,7 @@ class ArrayTiming:
     """
 
     def __init__(self, bits):
-        _check_bits(bits)
+        check_bits(bits)
         if ShooterUnit.latency != ReceiverUnit.latency:    # pragma: no cover - design invariant
             raise AssertionError("shooter and receiver unit latencies differ")
         self.unit = ShooterUnit.latency
@@ -532,7 +523,7 @@ class Intersector(wiring.Component):
     """
 
     def __init__(self, bits):
-        self._bits = _check_bits(bits)
+        self._bits = check_bits(bits)
         self._timing = ArrayTiming(bits)
         super().__init__({
             "i": In(stream.Signature(query_layout(bits))),

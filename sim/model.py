@@ -32,7 +32,7 @@ import numpy as np
 from ..board import BlockBatch, BlockBits, CountingBoard
 from ..errors import ParameterError
 from ..fixedpoint import DEFAULT_MAX_ERROR
-from ..memory import BoardMemories, QuantisationWarning, check_partition, quantise, ranges
+from ..memory import BoardMemories, QuantisationWarning, check_partition, ranges
 from ..params import BoardParams
 from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKind
 from ..records import patch_layout, unpack_array
@@ -84,9 +84,9 @@ class BoardModel:
         if cell == "filtered":
             self.filter_format = filter_format or default_format(params.bits)
             self.depth = depth or default_array_depth()
-            self.timing = timing or BoardTiming.for_bits(params.bits, cell="filtered")
+            self.timing = timing or BoardTiming.for_cell("filtered")
         else:
-            self.timing = timing or BoardTiming.for_bits(params.bits)
+            self.timing = timing or BoardTiming.for_cell()
         self.layout = patch_layout(params.bits)
         self.protocol = BoardProtocol(params)
         self.vertices = np.zeros((params.patch_depth, 3, 3), dtype=np.int64)
@@ -263,17 +263,10 @@ class ModelBoard(CountingBoard):
     # -- Board interface -------------------------------------------------------------------------
 
     def prepare(self, scene, samples):
-        q, self.margin = quantise(scene, samples, self.bits, max_error=self.max_error)
-        self.quantised = q
-        self.samples = samples
-        self.params = self.params.with_(bits=q.bits)
+        q = self._quantise(scene, samples)
         if self.cell == "filtered":
             self.filter_format = self._filter_format or default_format(q.bits)
-            self.timing = self._timing or BoardTiming.for_bits(q.bits, cell="filtered")
-        else:
-            self.timing = self._timing or BoardTiming.for_bits(q.bits)
         self.memories = None
-        self._reset_counters()
 
     def load(self, grid):
         if self.quantised is None:

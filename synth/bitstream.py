@@ -1,6 +1,6 @@
 """A bitstream of a blockray board for the ULX3S-85F: Yosys, nextpnr-ecp5 (-6) and ecppack from YoWASP.
 
-    report = build_bitstream(params, out="board.bit", freq=45, baud=3_000_000)
+    report = build_bitstream(params, out="board.bit", freq=45, baud=DEFAULT_BAUD)
     report["fits"], report["fmax_mhz"], report["resources"]
 
 Flow:
@@ -35,6 +35,7 @@ from pathlib import Path
 
 from ..atomic import write_file
 from ..errors import ParameterError
+from ..link import DEFAULT_BAUD
 from ..params import BoardParams
 from ..records import patch_layout
 from .nextpnr import (DEVICES, PACKAGE, ROUTER, _cells_resources, _machine, _run, _tail, _workdir,
@@ -118,7 +119,7 @@ def _device(platform):
     return DEVICES[PLATFORMS[platform][1]]
 
 
-def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ, baud=3_000_000):
+def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ, baud=DEFAULT_BAUD):
     """Refuse, before any tool runs, what cannot fit. Returns the estimates (dict)."""
     dev = _device(platform)
     if core not in CORES:
@@ -224,7 +225,7 @@ def _core(core, params):
 
 
 def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ,
-                    baud=3_000_000, seed=1, router=ROUTER, threads=1, workdir=None):
+                    baud=DEFAULT_BAUD, seed=1, router=ROUTER, threads=1, workdir=None):
     """Build the bitstream ``out`` (.bit) of ``core`` on ``platform``; returns the report dict.
     Raises ParameterError (before any tool runs) for what cannot fit."""
     params = BoardParams() if params is None else params

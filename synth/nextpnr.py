@@ -53,7 +53,8 @@ from ..errors import ParameterError
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
 from .tools import tool_command
-from .verilog import build_unit, check_cell, UNITS
+from ..filtered import check_cell
+from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
 
@@ -257,7 +258,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if not (isinstance(freq, (int, float)) and freq > 0):
         raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
     params = BoardParams() if params is None else params
-    check_cell(unit, cell, filter_format)                # a bad cell/unit pair fails here, before any tool
+    check_cell(cell, filter_format)                      # a bad cell/format pair fails here, before any tool
     report = {"unit": unit, "cell": cell, "filter_format": None if filter_format is None else str(filter_format), "params": _params_dict(unit, params), "target": target,
               "tools": _versions(), "machine": _machine()}
 

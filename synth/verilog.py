@@ -28,11 +28,11 @@ from .. import hdl
 
 from ..atomic import write_file
 from ..errors import ParameterError
-from ..filtered import CELLS, check_cell as _check_cell_name, default_format
+from ..filtered import CELLS, check_cell, default_format
 from ..params import BoardParams
 from .target import target_platform
 
-__all__ = ["UNITS", "CELLS", "check_cell", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog",
+__all__ = ["UNITS", "CELLS", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog",
            "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
@@ -68,14 +68,6 @@ def _check_unit(unit):
     return unit
 
 
-def check_cell(unit, cell, filter_format=None):
-    """``cell`` if it is one of :data:`CELLS` and built for ``unit`` (a ``filter_format`` only with
-    the filtered cell), else ParameterError."""
-    if filter_format is not None and cell != "filtered":
-        raise ParameterError("a filter format needs the filtered cell (--cell filtered)", parameter="filter_bits")
-    return _check_cell_name(cell)
-
-
 def _filtered_unit(unit, params, fmt):
     from ..rtl.filtered import FilteredArray, FilteredIntersector, FilteredProcessor
     if unit == "processor":
@@ -97,7 +89,7 @@ def build_unit(unit, params=None, cell="exact", filter_format=None):
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
-    if check_cell(unit, cell, filter_format) == "filtered":
+    if check_cell(cell, filter_format) == "filtered":
         return _filtered_unit(unit, params, filter_format)
     if unit == "processor":
         from ..rtl.processor import Intersector

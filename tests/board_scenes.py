@@ -7,12 +7,17 @@ registered in several voxels.
 
 import numpy as np
 
+from blockray.board import BlockRay
 from blockray.exact import patch_normals
+from blockray.params import BoardParams
 from blockray.records import pack_array, patch_columns, patch_layout
-from blockray.protocol import (POINTS_PER_LOAD, BeginBlock, EndBlock, LoadPoints, LoadReceiver, LoadShooter,
-                               Voxel, WritePatch, WriteVoxel)
+from blockray.protocol import (POINTS_PER_LOAD, BeginBlock, EndBlock, Identify, LoadPoints, LoadReceiver, LoadShooter,
+                               ReadCounters, Voxel, WritePatch, WriteVoxel, fit_params)
 
-__all__ = ["crossing_patches", "random_memory", "load_commands", "random_block", "random_points"]
+from scenes import mesh_scene
+
+__all__ = ["crossing_patches", "random_memory", "load_commands", "random_block", "random_points", "make_batch",
+           "scattered_scene", "BoxGrid", "random_blocks"]
 
 
 def random_points(rng, bits, n):
@@ -96,3 +101,64 @@ def random_block(rng, rows, cols, P, Q, voxels, *, max_voxels=6):
     cmds += [Voxel(int(v)) for v in rng.integers(0, voxels, int(rng.integers(0, max_voxels + 1)))]
     cmds.append(EndBlock())
     return cmds
+
+
+def make_batch(seed, *, rows, cols, bits, patches=14, voxels=6, blocks=6):
+    """Params sized for the scene, and a batch: memory load, blocks, READ_COUNTERS between some."""
+    rng = np.random.default_rng(seed)
+    P, Q = random_points(rng, bits, 6), random_points(rng, bits, 6)
+    V = crossing_patches(rng, bits, P, Q, patches)
+    ids, start, count = random_memory(rng, bits, V, voxels)
+    params = fit_params(BoardParams(rows=rows, cols=cols, bits=bits), records=len(ids), voxels=voxels)
+    cmds = [Identify()] + load_commands(bits, V, ids, start, count) + [ReadCounters()]
+    for b in range(blocks):
+        cmds += random_block(rng, rows, cols, P, Q, voxels)
+        if rng.random() < 0.5:
+            cmds.append(ReadCounters())
+    # back to back: a VOXEL right after a WRITE_VOXEL of the same voxel, results back to back
+    cmds += [WriteVoxel(0, int(start[1]), int(count[1])), BeginBlock()]
+    cmds += [LoadReceiver(r, tuple(map(int, Q[r]))) for r in range(rows)]
+    cmds += [LoadShooter(s, tuple(map(int, P[s]))) for s in range(cols)]
+    cmds += [Voxel(0), Voxel(1), EndBlock(), Identify(), ReadCounters()]
+    return params, cmds
+
+
+def scattered_scene(seed, n=30):
+    """``n`` random triangles scattered in an 8-unit cube (printed seed)."""
+    rng = np.random.default_rng(seed)
+    print(f"seed={seed}")
+    centres = rng.random((n, 1, 3)) * 8
+    v = centres + (rng.random((n, 3, 3)) - 0.5) * 3
+    return mesh_scene(v.reshape(-1, 3), np.arange(3 * n))
+
+
+class BoxGrid:
+    """Test grid: a patch is registered in every voxel its bounding box (plus margin) overlaps."""
+
+    def __init__(self, patch_vertices, v, margin=0.0):
+        lo = patch_vertices.reshape(-1, 3).min(axis=0)
+        hi = patch_vertices.reshape(-1, 3).max(axis=0)
+        size = (hi - lo) / v
+        lists = [[] for _ in range(v ** 3)]
+        for i, tri in enumerate(patch_vertices):
+            a = np.clip(((tri.min(axis=0) - margin - lo) // size).astype(int), 0, v - 1)
+            b = np.clip(((tri.max(axis=0) + margin - lo) // size).astype(int), 0, v - 1)
+            for ix in range(a[0], b[0] + 1):
+                for iy in range(a[1], b[1] + 1):
+                    for iz in range(a[2], b[2] + 1):
+                        lists[(ix * v + iy) * v + iz].append(i)
+        self.voxel_patches = [np.array(x, dtype=np.int64) for x in lists]
+        self.count = np.array([len(x) for x in lists])
+
+
+def random_blocks(rng, scene, samples, params, nblocks, nvox):
+    blocks = []
+    for _ in range(nblocks):
+        Rb = int(rng.integers(1, params.rows + 1))
+        Sb = int(rng.integers(1, params.cols + 1))
+        blocks.append(BlockRay(
+            shooter_patch=rng.integers(0, scene.patches, Sb),
+            shooter_sample=rng.integers(0, samples.count, Sb),
+            receiver_patch=rng.integers(0, scene.patches, Rb),
+            voxels=rng.choice(nvox, int(rng.integers(0, nvox + 1)), replace=False)))
+    return blocks

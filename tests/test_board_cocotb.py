@@ -25,7 +25,7 @@ from blockray.protocol import BoardProtocol, ReadCounters, check_capacity, fit_p
 from blockray.sim.model import ModelBoard
 
 from board_host import check_run
-from test_board_sim import make_batch
+from board_scenes import make_batch
 
 HERE = Path(__file__).resolve().parent
 

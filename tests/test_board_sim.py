@@ -25,27 +25,7 @@ from blockray.sim.model import result_word
 from blockray.timing import BoardTiming
 
 from board_host import BatchRun, check_run
-from board_scenes import crossing_patches, load_commands, random_block, random_memory, random_points
-
-
-def make_batch(seed, *, rows, cols, bits, patches=14, voxels=6, blocks=6):
-    """Params sized for the scene, and a batch: memory load, blocks, READ_COUNTERS between some."""
-    rng = np.random.default_rng(seed)
-    P, Q = random_points(rng, bits, 6), random_points(rng, bits, 6)
-    V = crossing_patches(rng, bits, P, Q, patches)
-    ids, start, count = random_memory(rng, bits, V, voxels)
-    params = fit_params(BoardParams(rows=rows, cols=cols, bits=bits), records=len(ids), voxels=voxels)
-    cmds = [Identify()] + load_commands(bits, V, ids, start, count) + [ReadCounters()]
-    for b in range(blocks):
-        cmds += random_block(rng, rows, cols, P, Q, voxels)
-        if rng.random() < 0.5:
-            cmds.append(ReadCounters())
-    # back to back: a VOXEL right after a WRITE_VOXEL of the same voxel, results back to back
-    cmds += [WriteVoxel(0, int(start[1]), int(count[1])), BeginBlock()]
-    cmds += [LoadReceiver(r, tuple(map(int, Q[r]))) for r in range(rows)]
-    cmds += [LoadShooter(s, tuple(map(int, P[s]))) for s in range(cols)]
-    cmds += [Voxel(0), Voxel(1), EndBlock(), Identify(), ReadCounters()]
-    return params, cmds
+from board_scenes import crossing_patches, load_commands, make_batch, random_memory, random_points
 
 
 def run_board(params, commands, *, seed, idle=HostTiming(), backpressure=HostTiming(), reset_at=None,
@@ -84,7 +64,7 @@ def test_latencies_match_timing_contract():
     for bits in (4, 8, 16, 20):
         board = BoardTop(BoardParams(rows=1, cols=1, bits=bits, patch_depth=4, voxel_depth=2))
         Fragment.get(board, None)          # elaborates (and asserts the submodules' latencies)
-        contract = BoardTiming.for_bits(bits)
+        contract = BoardTiming.for_cell()
         assert board.timing == contract
         assert board.drain_latency == contract.drain_latency
         assert board.memory_latency == contract.memory_latency
@@ -106,7 +86,7 @@ def test_board_back_to_back_exact_cycles(seed, rows, cols):
     assert counters["stalls"] == 1, counters
     # a result reaches the host result_latency cycles after its command's own cycle, which is the
     # cycle after the command was accepted
-    latency = BoardTiming.for_bits(params.bits).result_latency
+    latency = BoardTiming.for_cell().result_latency
     assert {log.received[i] - log.accepted[i] for i in log.results} == {latency + 1}
 
 

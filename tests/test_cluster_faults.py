@@ -73,7 +73,7 @@ class Cluster:
 def reference():
     """The radiosity of one set, in this process."""
     scene = load_scene("cornell", **SCENE)
-    return render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=1).radiosity
+    return render(scene, backend="model", solver="jacobi", tolerance=1e-4, sets=1).radiosity
 
 
 @pytest.fixture
@@ -131,7 +131,7 @@ def test_a_lost_worker_costs_no_work(reference, cluster, phase, repeat):
     rng = random.Random(seed)
     print(f"seed={seed}")
     scene = load_scene("cornell", **SCENE)
-    thread, out = _in_thread(lambda: render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=2,
+    thread, out = _in_thread(lambda: render(scene, backend="model", solver="jacobi", tolerance=1e-4, sets=2,
                                             scheduler=cluster.address))
     if phase == "casting":
         victim = _until(thread, lambda: (cluster.running("cast_set") or [None])[0])

@@ -3,17 +3,16 @@ dropped. Areas are checked against the footprints' closed forms; that the pieces
 checked by sampling points with barycentric tests (no shapely, which the splitter uses)."""
 
 import json
-import random
 
 import numpy as np
 import pytest
 
-from test_energy import _balance
-from test_formfactor import closed_box, make_scene, rectangle
 from blockray.cli import main
 from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.contact import rounding, split_contacts
 from blockray.host_driver.render import render
+
+from scenes import balance, closed_box, make_scene, rectangle
 
 FLOOR = rectangle((0, 0, 0), (1, 0, 0), (0, 1, 0), 1, 1)          # unit square, z = 0, normal +z
 
@@ -137,7 +136,7 @@ def test_rotated_scaled_rounded_box_still_found(decimals):
 def test_random_boxes_on_floor():
     """Seeded: up to four boxes, turned about the vertical, in disjoint quarters of the floor, some with a
     bottom face, the whole scene rotated and printed to 9 decimals."""
-    seed = random.SystemRandom().randrange(2**32)
+    seed = 140
     print(f"seed {seed}")
     rng = np.random.default_rng(seed)
     parts, feet = [FLOOR], []
@@ -234,8 +233,8 @@ def test_energy_balance_better_with_the_split():
     assert info["patches_split"] == 2
     balances = {}
     for name, s in (("whole", scene), ("split", split)):
-        result = render(s, board="golden", tolerance=1e-7)
-        balances[name] = _balance(s, result.radiosity)
+        result = render(s, backend="golden", tolerance=1e-7)
+        balances[name] = balance(s, result.radiosity)
     print(f"{split.patches} patches: absorbed / emitted - 1 = {balances}")
     assert (np.abs(balances["split"]) < 0.2 * np.abs(balances["whole"])).all()
 

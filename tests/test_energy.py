@@ -19,6 +19,8 @@ from blockray.host_driver.formfactor import form_factor_matrix          # noqa: 
 from blockray.host_driver.render import render                          # noqa: E402
 from blockray.host_driver.solver import jacobi                          # noqa: E402
 
+from scenes import balance, make_scene                                  # noqa: E402
+
 BALANCE = 5e-4
 
 
@@ -28,7 +30,6 @@ def _scene(prefix):
 
 def test_absorbed_balance_formula():
     """A one-patch check of the measure itself: a patch with B = E + rho H absorbs (1 - rho) H A."""
-    from test_formfactor import make_scene
     scene = make_scene(np.zeros((1, 3, 3)) + np.eye(3)[None], reflectance=[0.5, 0.25, 0.8], emission=[1.0, 1.0, 1.0])
     H = np.array([[2.0, 4.0, 1.0]])
     B = scene.emission + scene.reflectance * H
@@ -46,13 +47,6 @@ def test_empty_closed_box_absorbs_what_it_emits():
     assert np.abs(balance).max() < 1e-9
 
 
-def _balance(scene, B):
-    """absorbed / emitted - 1 per channel, from B, E, rho and A alone (not the code under test)."""
-    rho, E, A = scene.reflectance, scene.emission, scene.areas
-    H = (B - E) / rho
-    return ((1 - rho) * H * A[:, None]).sum(axis=0) / (E * A[:, None]).sum(axis=0) - 1
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("prefix", ["empty closed box", "icosphere", "cornell closed"])
 def test_closed_scene_render_balance(prefix):
@@ -60,9 +54,9 @@ def test_closed_scene_render_balance(prefix):
     enforcement (host_driver/closure.py): within 0.05% per channel. The raw factors' balance (not
     within 0.05% with occluders, docs/formfactors.md) is printed from the report."""
     scene = _scene(prefix)
-    result = render(scene, board="golden", tolerance=1e-6, closure="enforce")
+    result = render(scene, backend="golden", tolerance=1e-6, closure="enforce")
     c = result.report["closure"]
-    balance = _balance(scene, result.radiosity)
+    balance = balance(scene, result.radiosity)
     print(f"{scene.name} ({scene.patches} patches): absorbed / emitted - 1 = {balance}; raw factors "
           f"{c['absorbed_balance_raw']} (summation rule {c['raw_imbalance_from_closure']}, reciprocity "
           f"{c['raw_imbalance_from_reciprocity']}); scale max |d - 1| = {c['scale_max_change']:.2e}")

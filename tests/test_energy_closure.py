@@ -8,7 +8,7 @@ code under test.
 import numpy as np
 import pytest
 
-from test_formfactor import closed_box, make_scene
+from scenes import closed_box, make_scene
 from blockray.errors import ParameterError
 from blockray.host_driver import closure
 from blockray.host_driver.formfactor import form_factor_matrix
@@ -126,7 +126,7 @@ def _box_with_block():
 
 def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
     scene = _box_with_block()
-    res = render(scene, board="golden", tolerance=1e-10, closure="enforce")
+    res = render(scene, backend="golden", tolerance=1e-10, closure="enforce")
     c = res.report["closure"]
     fixed = _balance(scene, res.radiosity)
     print(f"enforced {fixed}; raw (reported) {c['absorbed_balance_raw']}; "
@@ -135,18 +135,19 @@ def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
     assert c["mode"] == "enforce" and c["scale_max_change"] > 0
     assert np.allclose(c["absorbed_balance"], fixed, atol=1e-12)
     assert np.abs(c["absorbed_balance_raw"]).max() > 1e-6             # the board's raw estimate is not closed
-    off = render(scene, board="golden", tolerance=1e-10)
+    off = render(scene, backend="golden", tolerance=1e-10)
     assert "closure" not in off.report
     assert np.allclose(_balance(scene, off.radiosity), c["absorbed_balance_raw"], atol=1e-7)
 
 
 def test_closure_needs_one_host():
     with pytest.raises(ParameterError, match="--closure"):
-        render(_box_with_block(), board="golden", solver="jacobi", sets=2, closure="enforce")
+        render(_box_with_block(), backend="golden", solver="jacobi", sets=2, closure="enforce")
 
 
 def test_cli_refuses_enforcement_on_an_open_scene(tmp_path, capsys):
-    from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
+    from clirun import assert_one_line_error, cli
+    from scenes import BOX, BOX_MTL, write
     path = write(tmp_path, BOX, BOX_MTL, name="box")                     # a box without its front and top
     code, err = cli(capsys, ["render", path, "--board", "golden", "--quiet", "--closure", "enforce"])
     assert_one_line_error(code, err, "--closure enforce", "not closed")

@@ -70,7 +70,7 @@ def test_hard_cases_never_decided_wrong(bits, fmt):
 @pytest.mark.parametrize("bits", [8, 16, 20])
 @pytest.mark.parametrize("fmt", FORMATS, ids=str)
 def test_random_tests_never_decided_wrong(bits, fmt):
-    seed = int(np.random.SeedSequence().entropy % (1 << 32))
+    seed = 73 + bits
     print(f"seed {seed}")
     tests = random_tests(bits, 4000, np.random.default_rng(seed))
     undecided = _check_tests(tests, fmt)
@@ -79,7 +79,7 @@ def test_random_tests_never_decided_wrong(bits, fmt):
 
 @pytest.mark.parametrize("fmt", FORMATS, ids=str)
 def test_certified_signs_hold(fmt):
-    seed = int(np.random.SeedSequence().entropy % (1 << 32))
+    seed = 82
     print(f"seed {seed}")
     rng = np.random.default_rng(seed)
     for bits in (6, 11, 16, 20):

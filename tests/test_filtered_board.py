@@ -28,7 +28,7 @@ from blockray.timing import BoardTiming
 from blockray.sim.model import BoardModel, ModelBoard
 
 from board_host import BatchRun, check_run
-from test_board_sim import make_batch
+from board_scenes import make_batch
 
 
 def run_filtered(params, commands, *, fmt, depth, seed):
@@ -78,7 +78,7 @@ def test_filtered_board_latencies_and_parameters():
     params = BoardParams(rows=2, cols=2, bits=8, patch_depth=4, voxel_depth=2)
     board = BoardTop(params, cell="filtered")
     Fragment.get(board, None)
-    assert board.timing == BoardTiming.for_bits(8, cell="filtered")
+    assert board.timing == BoardTiming.for_cell("filtered")
     assert board.array_depth == default_array_depth() == FilteredArray.default_depth(board.memory_latency)
     assert board.result_queue_depth >= board.array_depth + 3
     with pytest.raises(ParameterError, match="cell"):

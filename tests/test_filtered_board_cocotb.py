@@ -19,7 +19,7 @@ from blockray.sim.model import BoardModel
 
 from board_host import check_run
 from test_board_cocotb import BUILD_ARGS, cornell_partition, cornell_runs, run_batch
-from test_board_sim import make_batch
+from board_scenes import make_batch
 
 pytestmark = pytest.mark.cocotb
 

@@ -1,7 +1,7 @@
 """Radiosity with the filtered cell (``--cell filtered``) equals the exact cell's bit for bit.
 
 The filtered array's blocked bits are the exact predicate's by construction (undecided tests go
-to its exact unit); only the cycles differ. The small room scene of tests/test_rtl_board.py
+to its exact unit); only the cycles differ. The small room scene (the rtl_room fixture, tests/conftest.py)
 (2 x 2 array, P = 2, B = 10) through the model board, the model behind the byte link, and the
 board's RTL under Verilator; cornell through ``--board model`` and ``--board verilator`` is
 ``-m slow``.
@@ -16,11 +16,16 @@ from blockray.cli import main
 from blockray.filtered import FilterFormat
 from blockray.host_driver.render import render
 
-from test_rtl_board import BITS, PARAMS, scene  # noqa: F401  (the module-scoped scene fixture)
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
+
+
+@pytest.fixture(scope="module")
+def scene(rtl_room):
+    return rtl_room
 
 
 def _render(scene, board, **cell):
-    return render(scene, board=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
+    return render(scene, backend=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,6 @@
 """Form factors against closed forms (prior-art.md D.2) and an independent quadrature.
 
-The mesh builders here (``rectangle``, ``make_scene``, ``closed_box``) are also used by
-test_solver.py and test_golden.py.
+The mesh builders (``rectangle``, ``make_scene``, ``closed_box``) are in tests/scenes.py.
 """
 
 import math
@@ -11,50 +10,11 @@ import pytest
 
 from blockray.host_driver.formfactor import (METHODS, exchange_mask, form_factor_matrix, pair_factors,
                                              point_to_triangles, triangle_to_points, unoccluded_factors)
-from blockray.host_driver.scene import Scene
+
+from scenes import closed_box, make_scene, rectangle
 
 
 # ---------------------------------------------------------------------------- mesh builders
-
-def rectangle(origin, u, v, nu, nv):
-    """Triangles (2 nu nv, 3, 3) of the parallelogram origin + [0,1] u + [0,1] v; normal along u x v."""
-    origin, u, v = (np.asarray(x, dtype=np.float64) for x in (origin, u, v))
-    a = np.arange(nu + 1) / nu
-    b = np.arange(nv + 1) / nv
-    P = origin + a[:, None, None] * u + b[None, :, None] * v
-    tris = []
-    for i in range(nu):
-        for j in range(nv):
-            tris.append([P[i, j], P[i + 1, j], P[i + 1, j + 1]])
-            tris.append([P[i, j], P[i + 1, j + 1], P[i, j + 1]])
-    return np.array(tris)
-
-
-def make_scene(triangles, reflectance=0.5, emission=0.0, groups=None, name="test"):
-    """A Scene from a triangle soup (M, 3, 3); reflectance/emission broadcast to (M, 3)."""
-    T = np.asarray(triangles, dtype=np.float64)
-    M = len(T)
-    return Scene(name=name, vertices=T.reshape(-1, 3), triangles=np.arange(3 * M).reshape(M, 3),
-                 reflectance=np.broadcast_to(np.asarray(reflectance, float), (M, 3)).copy(),
-                 emission=np.broadcast_to(np.asarray(emission, float), (M, 3)).copy(),
-                 group=np.zeros(M, dtype=np.int64) if groups is None else np.asarray(groups),
-                 group_names=["all"])
-
-
-def closed_box(n, size=1.0):
-    """The six faces of a cube [0, size]^3, each n x n cells of 2 triangles, normals inward.
-    Returns (triangles (12 n^2, 3, 3), face index per triangle)."""
-    s = size
-    X, Y, Z = np.eye(3) * s
-    O = np.zeros(3)
-    faces = [rectangle(O, X, Y, n, n),          # z = 0, normal +z
-             rectangle(Z, Y, X, n, n),          # z = s, normal -z
-             rectangle(O, Z, X, n, n),          # y = 0, normal +y
-             rectangle(Y, X, Z, n, n),          # y = s, normal -y
-             rectangle(O, Y, Z, n, n),          # x = 0, normal +x
-             rectangle(X, Z, Y, n, n)]          # x = s, normal -x
-    return np.concatenate(faces), np.repeat(np.arange(6), 2 * n * n)
-
 
 def area_average_factor(receiver, shooter):
     """Patch-set to patch-set factor: area-weighted mean over receiver patches of the point factor

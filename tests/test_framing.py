@@ -19,7 +19,8 @@ from blockray.host_driver.render import render
 from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
 
-import test_rtl_board
+import clirun
+from scenes import RTL_PARAMS, room_obj, room_scene
 
 
 def _bitwise_crc32(data):
@@ -245,29 +246,16 @@ RENDER = ["--max-edge", "1.5", "--board", "model-link", "--rows", "2", "--cols",
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    path = test_rtl_board.room_obj(tmp_path_factory.mktemp("framing_room"))
+    path = room_obj(tmp_path_factory.mktemp("framing_room"))
     out = path.parent / "clean.csv"
     assert main(["render", str(path), *RENDER, "--patches", str(out)]) == 0
     return path, out.read_bytes()
 
 
-def faulty_render(room, tmp_path, args, rate, seed):
-    """Render ``room`` (its OBJ path and fault-free CSV) with ``args`` at ``rate`` faults per byte:
-    the CSV must be the fault-free one byte for byte; returns the report's ``link_integrity``."""
-    path, clean = room
-    csv, report = tmp_path / "p.csv", tmp_path / "r.json"
-    assert main(["render", str(path), *args, "--patches", str(csv), "--report", str(report),
-                 "--link-faults", str(rate), "--link-seed", str(seed)]) == 0
-    integrity = json.loads(report.read_text())["link_integrity"]
-    print("rate", rate, "seed", seed, integrity)
-    assert csv.read_bytes() == clean
-    return integrity
-
-
 #: seeds for which the small room's ~30 kB of link traffic meets faults even at 1e-5 (seed 24: two)
 @pytest.mark.parametrize("rate,seed", [(1e-5, 24), (1e-4, 4), (1e-3, 5), (1e-3, 6)])
 def test_render_with_link_faults_is_byte_identical(room, tmp_path, rate, seed):
-    integrity = faulty_render(room, tmp_path, RENDER, rate, seed)
+    integrity = clirun.faulty_render(room, tmp_path, RENDER, rate, seed)
     # faults were injected, and corrected by resending
     assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
     assert integrity["frames_resent"] > 0 and integrity["errors"] > 0
@@ -306,7 +294,7 @@ def test_a_corrupted_result_tag_on_an_unframed_link_is_one_error(room):
     """Without framing (a board on the old serial link) a corrupted result header is a
     TransportError naming the board, not a ValueError."""
     path, _ = room
-    scene = test_rtl_board.room_scene(path.parent, 1.5)
-    board = BoardDriver(test_rtl_board.PARAMS, bits=10, transport=lambda p, b: _Flipper(p))
+    scene = room_scene(path.parent, 1.5)
+    board = BoardDriver(RTL_PARAMS, bits=10, transport=lambda p, b: _Flipper(p))
     with pytest.raises(TransportError, match=r"board 0 \(the link\): a corrupted result: result tag 3"):
-        render(scene, board=board, params=test_rtl_board.PARAMS, bits=10, samples=4, max_shots=1, voxels=3)
+        render(scene, board=board, params=RTL_PARAMS, bits=10, samples=4, max_shots=1, voxels=3)

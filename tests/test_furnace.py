@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from blockray.host_driver.formfactor import form_factor_matrix
-from test_formfactor import closed_box, make_scene
+from scenes import closed_box, make_scene
 
 RHO, E = 0.5, 1.0
 

@@ -14,7 +14,7 @@ from blockray.host_driver.board import BlockRay
 from blockray.host_driver.golden import GoldenBoard
 from blockray.samples import SampleScheme
 
-from test_formfactor import make_scene, rectangle
+from scenes import make_scene, rectangle
 
 
 def one_voxel(n):
@@ -321,7 +321,7 @@ def test_tiny_facing_triangles_beside_a_huge_one():
     rho = np.array([[0.5, 0.4, 0.3], [0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     E = np.array([[0, 0, 0], [1.0, 2.0, 3.0], [0, 0, 0]])
     scene = make_scene(tris, reflectance=rho, emission=E)
-    result = render(scene, board="golden", tolerance=1e-9)
+    result = render(scene, backend="golden", tolerance=1e-9)
     F = pair_factors(hi[None], lo[None])[0] / scene.areas[0]
     print(f"receiver B = {result.radiosity[0]}, F = {F:.6f}")
     assert F > 0.5

@@ -23,76 +23,11 @@ from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.render import render
 from blockray.host_driver.scene import COORDINATE_LIMIT
 
+from clirun import assert_one_line_error, cli
+from scenes import BOX, BOX_MTL, write
+
 TRI = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
 
-# An open box: floor, two walls and a light under the top; a few patches, some occlusion.
-BOX = """\
-mtllib box.mtl
-o floor
-usemtl white
-v 0 0 0
-v 1 0 0
-v 1 0 1
-v 0 0 1
-f 1 4 3 2
-o left
-usemtl red
-v 0 0 0
-v 0 1 0
-v 0 1 1
-v 0 0 1
-f 5 8 7 6
-o back
-usemtl white
-v 0 0 1
-v 1 0 1
-v 1 1 1
-v 0 1 1
-f 9 12 11 10
-o blocker
-usemtl white
-v 0.3 0.4 0.3
-v 0.7 0.4 0.3
-v 0.7 0.4 0.7
-v 0.3 0.4 0.7
-f 13 14 15 16
-o light
-usemtl lamp
-v 0.3 0.95 0.3
-v 0.7 0.95 0.3
-v 0.7 0.95 0.7
-v 0.3 0.95 0.7
-f 17 18 19 20
-"""
-BOX_MTL = """\
-newmtl white
-Kd 0.7 0.7 0.7
-newmtl red
-Kd 0.6 0.1 0.1
-newmtl lamp
-Kd 0.2 0.2 0.2
-Ke 10 10 10
-"""
-
-
-def write(folder, obj, mtl=None, name="s", mtl_name=None):
-    folder.mkdir(parents=True, exist_ok=True)
-    if mtl is not None:
-        (folder / (mtl_name or f"{name}.mtl")).write_text(mtl)
-    path = folder / f"{name}.obj"
-    path.write_text(obj)
-    return path
-
-
-def cli(capsys, argv):
-    """Exit status and stderr of ``blockray argv``; the error part must be one line."""
-    code = main([str(a) for a in argv])
-    err = capsys.readouterr().err
-    if code == 2:
-        errors = [line for line in err.splitlines() if line.startswith("blockray: error: ")]
-        assert len(errors) == 1, err
-        assert all(line.startswith("blockray: ") for line in err.splitlines()), err
-    return code, err
 
 
 def subprocess_cli(argv, timeout=60):
@@ -102,15 +37,6 @@ def subprocess_cli(argv, timeout=60):
     result = subprocess.run([sys.executable, "-m", "blockray.cli", *map(str, argv)], capture_output=True,
                             text=True, timeout=timeout)
     return result.returncode, result.stderr, time.perf_counter() - start
-
-
-def assert_one_line_error(code, err, *needles):
-    assert code == 2, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.startswith("blockray: error: ")]
-    assert len(lines) == 1, err
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture
@@ -239,9 +165,9 @@ def _scaled_box(tmp_path, scale, name):
 def test_scene_at_the_ends_of_the_range_renders_as_at_unit_scale(tmp_path, scale, board):
     """Radiosity does not depend on the scene's scale: each board gives the unit box's answer at
     the largest and smallest accepted scales (not inf areas and a NaN residual)."""
-    unit = render(load_obj(_scaled_box(tmp_path, 1.0, "unit"), max_edge=0.7), board=board,
+    unit = render(load_obj(_scaled_box(tmp_path, 1.0, "unit"), max_edge=0.7), backend=board,
                   solver="jacobi", voxels=3)
-    scaled = render(load_obj(_scaled_box(tmp_path, scale, "scaled"), max_edge=0.7 * scale), board=board,
+    scaled = render(load_obj(_scaled_box(tmp_path, scale, "scaled"), max_edge=0.7 * scale), backend=board,
                     solver="jacobi", voxels=3)
     assert np.isfinite(scaled.report["residual"]) and scaled.report["rays"] == unit.report["rays"] > 0
     assert np.count_nonzero(unit.radiosity[:, 0] > 0) > len(unit.radiosity) // 2   # lit, not all zero

@@ -15,8 +15,9 @@ from blockray.host_driver.objload import load_obj
 from blockray.host_driver.output import write_patches_csv, write_report_json
 from blockray.host_driver.render import render
 
-from test_formfactor import closed_box, make_scene
-from test_hostile_input import BOX, BOX_MTL, assert_one_line_error, cli, write
+from scenes import closed_box, make_scene
+from clirun import assert_one_line_error, cli
+from scenes import BOX, BOX_MTL, write
 
 SOLVERS = ["progressive", "jacobi", "gauss-seidel"]
 
@@ -64,7 +65,7 @@ def test_correct_render_passes_and_reports_row_sums_and_balance(tmp_path, capsys
 def test_closed_box_balance_is_zero_and_a_dark_channel_is_null(box):
     scene, _ = box
     scene.emission[:, 2] = 0.0                  # nothing emits blue
-    result = render(scene, board="golden", solver="jacobi", tolerance=1e-10)
+    result = render(scene, backend="golden", solver="jacobi", tolerance=1e-10)
     r, g, b = result.report["absorbed_balance"]
     print(f"closed box: absorbed / emitted - 1 = {r}, {g}; blue {b}")
     assert abs(r) < 1e-3 and abs(g) < 1e-3 and b is None

@@ -16,7 +16,7 @@ from blockray.samples import SampleScheme
 from blockray.sim import kernel
 from blockray.sim.model import ModelBoard
 
-from test_model import random_blocks, random_scene, BoxGrid
+from board_scenes import BoxGrid, random_blocks, scattered_scene as random_scene
 
 SEED = 1313
 
@@ -179,7 +179,7 @@ def test_stats_of_a_batch_equal_the_blocks_one_by_one():
 def test_render_does_not_depend_on_the_thread_count(parallel_always):
     from blockray.host_driver import builtin
     scene = builtin.load("cornell")
-    runs = [render(scene, board="model", max_shots=6, threads=n) for n in thread_counts()]
+    runs = [render(scene, backend="model", max_shots=6, threads=n) for n in thread_counts()]
     for r in runs[1:]:
         np.testing.assert_array_equal(r.radiosity, runs[0].radiosity)
         for key in ("rays", "blocks", "tests", "board_cycles", "tests_issued_per_board", "traversal_stats"):

@@ -6,7 +6,6 @@ import pytest
 from blockray.errors import CapacityError, ParameterError
 from blockray.exact import blocked_reference, blocked_block
 from blockray.host_driver.board import BlockRay
-from blockray.host_driver.scene import Scene
 from blockray.params import BoardParams
 from blockray.records import patch_layout, unpack_array
 from blockray.samples import SampleScheme
@@ -16,52 +15,8 @@ from blockray.protocol import (BeginBlock, EndBlock, LoadReceiver, LoadShooter, 
 from blockray.sim.model import BoardModel, ModelBoard, result_word
 from blockray.timing import BoardTiming
 
-
-def make_scene(vertices, triangles, name="t"):
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    n = len(t)
-    return Scene(name, v, t, np.full((n, 3), 0.5), np.zeros((n, 3)), np.zeros(n, dtype=np.int64))
-
-
-def random_scene(seed, n=30):
-    rng = np.random.default_rng(seed)
-    print(f"seed={seed}")
-    centres = rng.random((n, 1, 3)) * 8
-    v = centres + (rng.random((n, 3, 3)) - 0.5) * 3
-    return make_scene(v.reshape(-1, 3), np.arange(3 * n))
-
-
-class BoxGrid:
-    """Test grid: a patch is registered in every voxel its bounding box (plus margin) overlaps."""
-
-    def __init__(self, patch_vertices, v, margin=0.0):
-        lo = patch_vertices.reshape(-1, 3).min(axis=0)
-        hi = patch_vertices.reshape(-1, 3).max(axis=0)
-        size = (hi - lo) / v
-        lists = [[] for _ in range(v ** 3)]
-        for i, tri in enumerate(patch_vertices):
-            a = np.clip(((tri.min(axis=0) - margin - lo) // size).astype(int), 0, v - 1)
-            b = np.clip(((tri.max(axis=0) + margin - lo) // size).astype(int), 0, v - 1)
-            for ix in range(a[0], b[0] + 1):
-                for iy in range(a[1], b[1] + 1):
-                    for iz in range(a[2], b[2] + 1):
-                        lists[(ix * v + iy) * v + iz].append(i)
-        self.voxel_patches = [np.array(x, dtype=np.int64) for x in lists]
-        self.count = np.array([len(x) for x in lists])
-
-
-def random_blocks(rng, scene, samples, params, nblocks, nvox):
-    blocks = []
-    for _ in range(nblocks):
-        Rb = int(rng.integers(1, params.rows + 1))
-        Sb = int(rng.integers(1, params.cols + 1))
-        blocks.append(BlockRay(
-            shooter_patch=rng.integers(0, scene.patches, Sb),
-            shooter_sample=rng.integers(0, samples.count, Sb),
-            receiver_patch=rng.integers(0, scene.patches, Rb),
-            voxels=rng.choice(nvox, int(rng.integers(0, nvox + 1)), replace=False)))
-    return blocks
+from board_scenes import BoxGrid, random_blocks, scattered_scene as random_scene
+from scenes import mesh_scene as make_scene
 
 
 def setup_board(seed=0, v=3, params=None, bits=None, samples=SampleScheme(8), partition="deal"):

@@ -13,7 +13,7 @@ from blockray.host_driver.builtin import load_scene
 def closes(monkeypatch):
     """The boards built during the test, each with the number of times it was closed."""
     built = []
-    make = backends.make_board
+    make = backends.build_board
 
     def counting(*args, **kw):
         board = make(*args, **kw)
@@ -26,8 +26,8 @@ def closes(monkeypatch):
         board.close = counted
         built.append(entry)
         return board
-    monkeypatch.setattr(renders, "make_board", counting)
-    monkeypatch.setattr(backends, "make_board", counting)
+    monkeypatch.setattr(renders, "build_board", counting)
+    monkeypatch.setattr(backends, "build_board", counting)
     return built
 
 
@@ -43,10 +43,10 @@ def test_render_closes_its_board(monkeypatch, closes, ending):
         return fraction(*args, **kw)
     monkeypatch.setattr(renders, "visible_fraction", failing)
     if ending == "success":
-        renders.render(scene, board="model-link", max_shots=4, samples=2)
+        renders.render(scene, backend="model-link", max_shots=4, samples=2)
     else:
         with pytest.raises(SolveError if ending == "error" else KeyboardInterrupt):
-            renders.render(scene, board="model-link", max_shots=4, samples=2)
+            renders.render(scene, backend="model-link", max_shots=4, samples=2)
     assert len(closes) == 1 and closes[0]["closed"] >= 1
     assert closes[0]["board"].transports == []          # its links, open since load(), were closed
 

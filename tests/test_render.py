@@ -10,48 +10,7 @@ from blockray.cli import main
 from blockray.host_driver.objload import load_obj
 from blockray.host_driver.render import render
 
-
-def box_faces(lo, hi, inward):
-    """Six quads of an axis-aligned box, oriented so normals point in (inward) or out."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    c = (lo + hi) / 2
-    faces = []
-    for axis in range(3):
-        for side in (lo, hi):
-            u, w = [a for a in range(3) if a != axis]
-            quad = []
-            for du, dw in ((0, 0), (1, 0), (1, 1), (0, 1)):
-                p = np.empty(3)
-                p[axis] = side[axis]
-                p[u] = (lo, hi)[du][u]
-                p[w] = (lo, hi)[dw][w]
-                quad.append(p)
-            n = np.cross(quad[1] - quad[0], quad[2] - quad[0])
-            towards_centre = np.dot(n, c - quad[0]) > 0
-            if towards_centre != inward:
-                quad = quad[::-1]
-            faces.append(quad)
-    return faces
-
-
-def write_obj(tmp_path, objects, *, name="scene"):
-    """objects: list of (group, material, faces); materials: dict name -> (Kd, Ke)."""
-    lines, mtl, nv = [f"mtllib {name}.mtl"], [], 0
-    mats = {}
-    for group, (mat, kd, ke), faces in objects:
-        mats[mat] = (kd, ke)
-        lines += [f"o {group}", f"usemtl {mat}"]
-        for quad in faces:
-            for p in quad:
-                lines.append("v " + " ".join(repr(float(x)) for x in p))
-            lines.append("f " + " ".join(str(nv + k + 1) for k in range(len(quad))))
-            nv += len(quad)
-    for mat, (kd, ke) in mats.items():
-        mtl += [f"newmtl {mat}", "Kd " + " ".join(map(str, kd)), "Ke " + " ".join(map(str, ke))]
-    (tmp_path / f"{name}.mtl").write_text("\n".join(mtl) + "\n")
-    path = tmp_path / f"{name}.obj"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+from scenes import box_faces, write_obj
 
 
 RHO, E = 0.5, 1.0
@@ -67,7 +26,7 @@ def closed_box(tmp_path):
 @pytest.mark.parametrize("solver", ["progressive", "gauss-seidel"])
 def test_closed_box_uniform_emission(closed_box, board, solver):
     # Sum_j F_ij = 1 in a closed enclosure, so B = E + rho B: B = E / (1 - rho) on every patch.
-    res = render(closed_box, board=board, solver=solver, tolerance=1e-5, voxels=3)
+    res = render(closed_box, backend=board, solver=solver, tolerance=1e-5, voxels=3)
     expect = E / (1 - RHO)
     err = np.abs(res.radiosity / expect - 1)
     print(f"{board} {solver}: max relative error {err.max():.2e} over {closed_box.patches} patches")
@@ -85,7 +44,7 @@ def test_energy_balance_with_occluder(tmp_path):
                                 ("light", ("lamp", (RHO,) * 3, (E,) * 3), light),
                                 ("block", ("white", (RHO,) * 3, (0,) * 3), inner)])
     scene = load_obj(path, max_edge=0.5)
-    res = render(scene, board="model", tolerance=1e-4, voxels=4)
+    res = render(scene, backend="model", tolerance=1e-4, voxels=4)
     A = scene.areas[:, None]
     lhs = (A * res.radiosity).sum(0)
     rhs = (A * scene.emission).sum(0) / (1 - RHO)
@@ -174,7 +133,7 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
     scene = _occluded_room(tmp_path)
     runs = {}
     for traversal, packing in (("block", "voxel"), ("block", "fill"), ("ray", "voxel")):
-        res = render(scene, board="model", voxels=4, max_shots=6, traversal=traversal, packing=packing)
+        res = render(scene, backend="model", voxels=4, max_shots=6, traversal=traversal, packing=packing)
         runs[traversal, packing] = res
     base = runs["block", "voxel"]
     assert base.report["blocks"] > 0 and base.report["rays"] > 0
@@ -208,11 +167,11 @@ def test_gathering_render_returns_the_factors_progressive_refinement_shoots(tmp_
     # column the one a progressive render shoots, so both solves reproduce the renders to the bit.
     from blockray.host_driver import solver as solvers
     scene = _occluded_room(tmp_path)
-    gathered = render(scene, board="model", voxels=4, solver="jacobi", tolerance=1e-8)
+    gathered = render(scene, backend="model", voxels=4, solver="jacobi", tolerance=1e-8)
     F = gathered.factors
     assert F.shape == (scene.patches, scene.patches) and np.count_nonzero(F == 0) < F.size
     assert np.array_equal(solvers.jacobi(scene, F, tolerance=1e-8).B, gathered.radiosity)
-    shot = render(scene, board="model", voxels=4, max_shots=12)
+    shot = render(scene, backend="model", voxels=4, max_shots=12)
     assert shot.factors is None
     again = solvers.progressive_refinement(scene, lambda i: F[:, i], max_shots=12)
     assert np.array_equal(again.B, shot.radiosity)
@@ -254,8 +213,8 @@ def test_model_within_1e_4_of_golden(scene):
     and benchmarks/bench_render.py measure it (per channel printed; room: 10 min of golden)."""
     from blockray.host_driver import builtin
     scene = builtin.load(scene)
-    golden = render(scene, board="golden").radiosity
-    model = render(scene, board="model").radiosity
+    golden = render(scene, backend="golden").radiosity
+    model = render(scene, backend="model").radiosity
     per_channel = np.sqrt(((model - golden) ** 2).mean(axis=0) / (golden ** 2).mean(axis=0))
     rms = np.sqrt(((model - golden) ** 2).mean() / (golden ** 2).mean())
     print(f"{scene.name}: model vs golden RMS relative {rms:.3e}, per channel {per_channel}")

@@ -18,7 +18,6 @@ from blockray.cli import main
 from blockray.errors import CapacityError
 from blockray.host_driver.backends import make_board
 from blockray.host_driver.driver import BoardDriver, blocked_bits
-from blockray.host_driver.objload import load_obj
 from blockray.host_driver.render import Visibility, render
 from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
@@ -29,37 +28,21 @@ from blockray.samples import SampleScheme
 from blockray.sim.drive import HostTiming
 from blockray.sim.model import ModelBoard
 
-from test_render import box_faces, write_obj
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
 
-PARAMS = BoardParams(rows=2, cols=2, boards=2)
-BITS = 10
 #: the counters the RTL must reproduce exactly (ModelBoard.counters keys)
 COUNTER_KEYS = ("board_cycles", "tests_issued", "tests_useful", "tests", "utilization",
                 "board_cycles_per_board", "tests_issued_per_board", "tests_useful_per_board",
                 "utilization_per_board", "load_cycles_per_board", "blocks", "rays", "bits")
 
 
-def room_obj(tmp_path):
-    """A closed room with one emitting wall and a box that casts shadows: its OBJ file."""
-    room = box_faces((0, 0, 0), (2, 2, 2), True)
-    light, walls = room[3:4], room[:3] + room[4:]
-    inner = box_faces((0.6, 0.0, 0.6), (1.4, 0.8, 1.4), False)
-    return write_obj(tmp_path, [("walls", ("white", (0.5,) * 3, (0,) * 3), walls),
-                                ("light", ("lamp", (0.5,) * 3, (1,) * 3), light),
-                                ("block", ("white", (0.5,) * 3, (0,) * 3), inner)], name="room")
-
-
-def room_scene(tmp_path, max_edge):
-    return load_obj(room_obj(tmp_path), max_edge=max_edge)
-
-
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return room_scene(tmp_path_factory.mktemp("rtl_scene"), 1.5)
+def scene(rtl_room):
+    return rtl_room
 
 
 def _render(scene, board, vcd=None):
-    return render(scene, board=board, params=PARAMS, bits=None if board == "golden" else BITS,
+    return render(scene, backend=board, params=PARAMS, bits=None if board == "golden" else BITS,
                   samples=4, max_shots=2, voxels=3, vcd=vcd)
 
 
@@ -244,7 +227,7 @@ def test_cli_render_verilator(tmp_path, capsys):
 @pytest.mark.cocotb
 def test_verilator_vcd(scene, tmp_path):
     vcd = tmp_path / "board.vcd"
-    render(scene, board="verilator", params=PARAMS, bits=BITS, samples=4, max_shots=1, voxels=3, vcd=vcd)
+    render(scene, backend="verilator", params=PARAMS, bits=BITS, samples=4, max_shots=1, voxels=3, vcd=vcd)
     for path in (vcd, tmp_path / "board.vcd.1"):         # one waveform per simulator process (board)
         text = path.read_text()
         assert "i_bytes__valid" in text and "\n#1" in text

@@ -110,14 +110,14 @@ def small_cornell():
 @pytest.fixture(scope="module")
 def one_set(small_cornell):
     """The reference: one set, in this process, no cluster."""
-    return render(small_cornell, board="model", solver="jacobi", tolerance=1e-4, sets=1)
+    return render(small_cornell, backend="model", solver="jacobi", tolerance=1e-4, sets=1)
 
 
 @pytest.fixture(scope="module")
 def tiny_cornell():
     """70 patches and their one-set reference: for the runs that check only the answer."""
     scene = load_scene("cornell", max_edge=400)
-    return scene, render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=1)
+    return scene, render(scene, backend="model", solver="jacobi", tolerance=1e-4, sets=1)
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +132,7 @@ def cluster():
 
 def test_render_sets_same_visibility_less_machine_time(small_cornell, one_set, cluster):
     one = one_set
-    three = render(small_cornell, board="model", solver="jacobi", tolerance=1e-4, sets=3,
+    three = render(small_cornell, backend="model", solver="jacobi", tolerance=1e-4, sets=3,
                    scheduler=cluster.scheduler_address)
     # the same rays with the same exact results, so the same F and (Jacobi) the same radiosity
     np.testing.assert_array_equal(one.radiosity, three.radiosity)
@@ -157,7 +157,7 @@ def test_render_sets_same_visibility_less_machine_time(small_cornell, one_set, c
     assert run["exchanged_bytes"] == sweeps * (2 + 1) * small_cornell.patches * 3 * 8
     assert len(run["workers"]) == 2 and {s["worker"] for s in per_set} <= {w["address"] for w in run["workers"]}
     assert len(run["cast_seconds_per_set"]) == 3
-    gs = render(small_cornell, board="model", solver="gauss-seidel", tolerance=1e-4, sets=3,
+    gs = render(small_cornell, backend="model", solver="gauss-seidel", tolerance=1e-4, sets=3,
                 scheduler=cluster.scheduler_address)
     assert gs.report["residual"] < 1e-4 and gs.report["sets"] == 3
     assert gs.report["cluster"]["exchanged_bytes"] == (gs.report["iterations"] + 1) * (
@@ -169,7 +169,7 @@ def test_render_sets_same_visibility_less_machine_time(small_cornell, one_set, c
 def test_render_sets_on_its_own_local_cluster(tiny_cornell):
     """Without --scheduler blockray starts a LocalCluster on 127.0.0.1 and closes it."""
     scene, one = tiny_cornell
-    two = render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=2)
+    two = render(scene, backend="model", solver="jacobi", tolerance=1e-4, sets=2)
     np.testing.assert_array_equal(one.radiosity, two.radiosity)
     # the largest row sum and gain, from the sets' shares of every shooter's sums (issue 34)
     sets, whole = two.report["visible_row_sum"], one.report["visible_row_sum"]
@@ -235,7 +235,7 @@ def test_worker_killed_while_casting(tiny_cornell, cluster):
 
     def run():
         try:
-            out["result"] = render(scene, board="model", solver="jacobi", tolerance=1e-4, sets=2,
+            out["result"] = render(scene, backend="model", solver="jacobi", tolerance=1e-4, sets=2,
                                    scheduler=cluster.scheduler_address)
         except BaseException as e:              # re-raised below, in the test's thread
             out["error"] = e

@@ -1,18 +1,26 @@
 """The serial transport without hardware: a missing port and a silent board fail in seconds with
 one line (exit 2 from the CLI); over a pseudo-terminal, the board's half of the framed link
-exchanges bytes with the transport, and its counters are read over it."""
+exchanges bytes with the transport, and its counters are read over it; the registry's ulx3s
+board over a pty answered by the model."""
 
 import os
 import random
+import select
 import threading
 import time
 import tty
 
+import numpy as np
 import pytest
 
 from blockray.cli import main
 from blockray.framing import BOARD_LINK, Endpoint
+from blockray.host_driver.backends import build_board
+from blockray.host_driver.builtin import load_scene
+from blockray.host_driver.options import RenderOptions
+from blockray.host_driver.render import render
 from blockray.host_driver.serial_link import SerialTransport
+from blockray.params import BoardParams
 from blockray.host_driver.transport import TransportError
 
 
@@ -69,11 +77,16 @@ class PtyBoard(threading.Thread):
     def run(self):
         try:
             while not self.stop:
+                if not select.select([self.fd], [], [], 0.05)[0]:
+                    continue
                 data = os.read(self.fd, self.rng.randint(1, 300))
-                self.endpoint.submit(bytes(b ^ 0x5A for b in self.endpoint.receive(data)))
+                self.endpoint.submit(self.core(self.endpoint.receive(data)))
                 os.write(self.fd, self.endpoint.output())
         except OSError:         # the test closed the pty
             pass
+
+    def core(self, commands):
+        return bytes(b ^ 0x5A for b in commands)
 
 
 def test_framed_link_over_a_pty(pty_pair):
@@ -97,3 +110,55 @@ def test_framed_link_over_a_pty(pty_pair):
     # the board's counters came over the link: each send's frames (of at most 246 bytes) accepted once
     assert stats["board"]["frames_accepted"] == stats["host"]["frames_sent"] == 6 * -(-500 // 246)
     assert stats["board"]["errors"] == stats["host"]["errors"] == 0
+
+
+class ModelPtyBoard(PtyBoard):
+    """A ULX3S on the master side of a pty, answered by the bit-exact model built for ``params``
+    (the bitstream's configuration) behind the board's half of the framed link."""
+
+    def __init__(self, fd, params):
+        from blockray.host_driver.simulated import ModelTransport
+        super().__init__(fd, seed=0)
+        self.model = ModelTransport(params)
+
+    def core(self, commands):
+        return self.model.run(commands, whole=False)
+
+
+@pytest.fixture
+def ulx3s_on_a_pty(pty_pair, monkeypatch):
+    """A board built as its bitstream (B = 14, its own memories) on a pty."""
+    master, name = pty_pair
+    tty.setraw(master)
+    built = BoardParams(rows=2, cols=2, boards=1, bits=14, patch_depth=20000, voxel_depth=4096)
+    board = ModelPtyBoard(master, built)
+    board.start()
+    yield name, built
+    board.stop = True
+    board.join(timeout=5)
+
+
+def test_ulx3s_board_from_the_registry_takes_its_configuration_from_identify(ulx3s_on_a_pty):
+    """``--board ulx3s`` is built by the registry over the serial port: the host is told R, S and
+    P only, the board's IDENTIFY gives B and the memories; the render equals the model's."""
+    name, built = ulx3s_on_a_pty
+    scene = load_scene("cornell")
+    run = dict(rows=2, cols=2, boards=1, samples=4, max_shots=2, voxels=4)
+    options = RenderOptions.of(backend="ulx3s", port=name, **run)
+    with build_board(options.board) as board:
+        assert board.params == built                   # from IDENTIFY, before anything is uploaded
+        real = render(scene, board, options)
+    model = render(scene, backend="model", bits=14, **run)
+    assert np.array_equal(real.radiosity, model.radiosity)
+    for key in ("bits", "tests", "tests_issued", "board_cycles", "board_cycles_per_board", "rays", "blocks"):
+        assert real.report[key] == model.report[key], key
+    assert real.report["board"] == "ulx3s" and real.report["bits"] == 14
+    assert real.report["driver"]["params"]["patch_depth"] == 20000
+
+
+def test_ulx3s_board_refuses_another_configuration(ulx3s_on_a_pty, capsys):
+    name, _ = ulx3s_on_a_pty
+    code = main(["render", "cornell", "--board", "ulx3s", "--port", name, "--boards", "1", "--rows", "2",
+                 "--cols", "2", "--bits", "16", "--max-shots", "1", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == ["blockray: error: board 0 was built for another configuration: bits 14 (host 16)"]

@@ -7,7 +7,7 @@ from blockray.host_driver.formfactor import form_factor_matrix
 from blockray.host_driver.solver import (ambient, gauss_seidel, jacobi, progressive_refinement,
                                          residual)
 
-from test_formfactor import closed_box, make_scene
+from scenes import closed_box, make_scene
 
 RHO = np.array([0.5, 0.3, 0.7])          # per channel, uniform over patches
 E0 = np.array([1.0, 2.0, 0.5])

@@ -21,7 +21,7 @@ COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "tests", "blocks", "
 
 
 def _compare(scene, params, bits, **kw):
-    model = render(scene, board="model", params=params, bits=bits, **kw)
+    model = render(scene, backend="model", params=params, bits=bits, **kw)
     board = BoardDriver(params, bits=bits, name="ulx3s-sim", transport=ulx3s_sim_transport)
     sim = render(scene, board=board, params=params, bits=bits, **kw)
     assert np.array_equal(model.radiosity, sim.radiosity)
@@ -52,7 +52,7 @@ RENDER = ["--max-edge", "1.5", "--board", "ulx3s-sim", "--rows", "2", "--cols", 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     """The small room and its CSV from --board model (which ulx3s-sim equals, test above)."""
-    from test_rtl_board import room_obj
+    from scenes import room_obj
     path = room_obj(tmp_path_factory.mktemp("ulx3s_faults"))
     out = path.parent / "model.csv"
     assert main(["render", str(path), *RENDER, "--board", "model", "--patches", str(out)]) == 0
@@ -60,7 +60,7 @@ def room(tmp_path_factory):
 
 
 def _faulty_render(room, tmp_path, rate, seed):
-    from test_framing import faulty_render
+    from clirun import faulty_render
     return faulty_render(room, tmp_path, RENDER, rate, seed)
 
 

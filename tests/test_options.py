@@ -1,0 +1,97 @@
+"""The render configuration (host_driver/options.py): one frozen object built from flat names or
+the command line, each bad value refused with the parameter (and on the command line the
+option) that set it, before any scene is read."""
+
+import dataclasses
+
+import pytest
+
+from blockray.cli import build_parser, main
+from blockray.errors import ParameterError
+from blockray.filtered import FilterFormat
+from blockray.host_driver.options import RenderOptions
+from blockray.params import BoardParams
+
+
+def test_flat_names_go_to_their_groups():
+    o = RenderOptions.of(backend="golden", rows=4, boards=2, samples=4, voxels=5, traversal="ray",
+                         solver="jacobi", tolerance=1e-5, max_iterations=7, sets=2, threads=3)
+    assert o.board.backend == "golden"
+    assert o.board.params == BoardParams(rows=4, cols=8, boards=2)
+    assert o.board.bits is None and o.board.partition == "deal" and o.board.cell == "exact"
+    assert (o.ray.samples.count, o.ray.voxels, o.ray.traversal, o.ray.packing) == (4, 5, "ray", "voxel")
+    assert (o.solve.solver, o.solve.tolerance, o.solve.max_iterations, o.solve.max_shots) == ("jacobi", 1e-5, 7, None)
+    assert (o.run.sets, o.run.threads, o.run.distributed) == (2, 3, True)
+
+
+def test_frozen_and_no_unknown_names():
+    o = RenderOptions.of()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        o.solve.solver = "jacobi"
+    with pytest.raises(TypeError, match="unknown option 'max_shot'"):
+        RenderOptions.of(max_shot=3)
+
+
+@pytest.mark.parametrize("flat, parameter", [
+    (dict(solver="newton"), "solver"),
+    (dict(tolerance=0), "tolerance"),
+    (dict(tolerance=float("nan")), "tolerance"),
+    (dict(max_shots=0), "max_shots"),
+    (dict(closure="always"), "closure"),
+    (dict(voxels=257), "voxels"),
+    (dict(traversal="walk"), "traversal"),
+    (dict(samples=65), None),                                  # SampleScheme's own message
+    (dict(bits=21), "bits"),
+    (dict(bits=3), "bits"),
+    (dict(backend="golden", bits=10), "bits"),
+    (dict(backend="golden", partition="patch"), "partition"),
+    (dict(backend="model", vcd="w.vcd"), "vcd"),
+    (dict(backend="golden", cell="filtered"), "cell"),
+    (dict(filter_format=FilterFormat(8, 8)), "filter_bits"),
+    (dict(backend="no-such-board"), "board"),
+    (dict(rows=0), "rows"),
+    (dict(sets=2), "sets"),                                    # progressive cannot run on sets
+    (dict(sets=2, solver="jacobi", closure="symmetric"), "closure"),
+    (dict(sets=2, solver="jacobi", cell="filtered"), "cell"),
+    (dict(scheduler="tcp://127.0.0.1:1", workers=2), "workers"),
+    (dict(baud=0), "baud"),
+])
+def test_bad_values_name_their_parameter(flat, parameter):
+    with pytest.raises(ParameterError) as e:
+        RenderOptions.of(**flat)
+    assert e.value.parameter == parameter, e.value
+
+
+def test_from_args_is_of_with_the_options_names():
+    args = build_parser().parse_args(["render", "cornell", "--board", "model-link", "--rows", "4", "--cols", "2",
+                                      "--bits", "12", "--partition", "patch", "--samples", "4", "--voxels", "6",
+                                      "--packing", "fill", "--solver", "gauss-seidel", "--tolerance", "1e-4",
+                                      "--cell", "filtered", "--filter-bits", "13:18", "--link-faults", "0.01",
+                                      "--link-seed", "5"])
+    got = RenderOptions.from_args(args)
+    assert got.board.faults.rate == 0.01 and got.board.faults.seed == 5
+    want = RenderOptions.of(backend="model-link", rows=4, cols=2, bits=12, partition="patch", samples=4, voxels=6,
+                            packing="fill", solver="gauss-seidel", tolerance=1e-4, cell="filtered",
+                            filter_format=FilterFormat(13, 18), faults=got.board.faults)
+    assert got == want
+
+
+def test_render_takes_options_or_names_not_both():
+    from blockray.host_driver.render import render
+    with pytest.raises(TypeError, match="not both"):
+        render(None, options=RenderOptions.of(), solver="jacobi")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--bits", "3"], "--bits must be an integer from 4 to 20"),
+    (["--board", "golden", "--bits", "10"], "--bits applies to boards that quantise the scene"),
+    (["--board", "golden", "--partition", "patch"], "--partition applies to the hardware's boards"),
+    (["--filter-bits", "9"], "--filter-bits sets the filtered cell's format; it needs cell filtered, not 'exact'"),
+    (["--sets", "2"], "--sets: host + board sets solve by gathering"),
+    (["--rows", "65"], "--rows: array of 65 x 8 processors"),
+])
+def test_cli_names_the_option_before_reading_the_scene(argv, message, tmp_path, capsys):
+    missing = tmp_path / "not-there.obj"            # the options are refused before the scene is read
+    assert main(["render", str(missing), "--quiet"] + argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"blockray: error: {message}"), err
