@@ -21,7 +21,8 @@ def test_echo_through_the_simulated_uart():
     print("seed", seed)
     rng = random.Random(seed)
     data = bytes(rng.randrange(256) for _ in range(900))
-    with UartSimTransport(EchoCore(repeat=2), faults=LinkFaults(2e-3, seed), name="blockray_uart_echo") as link:
+    with UartSimTransport(EchoCore(repeat=2), faults=LinkFaults(2e-3, seed), name="blockray_uart_echo",
+                          timeout=2.0) as link:
         link.send(data[:150])
         assert link.recv(100) == echo(data[:50], 2)
         link.reset()                                    # the rest of the first part is lost
