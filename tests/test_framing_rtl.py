@@ -14,13 +14,14 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
-from blockray.framing import Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
+from blockray.framing import STATUS, Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
 from blockray.host_driver.framed import FaultInjector
 from blockray.rtl.framing import FramedBridge, FrameReceiver
 
 
 def _stream(seed, rate):
-    """Frames of a host (some resent, some out of order), garbage between them, faults."""
+    """Frames of a host (some resent, some out of order), garbage, acknowledgements, status
+    requests and status frames between them, faults."""
     rng = random.Random(seed)
     host = Endpoint(LinkConfig(payload=40, window=6))
     host.submit(bytes(rng.randrange(256) for _ in range(1500)))
@@ -35,7 +36,9 @@ def _stream(seed, rate):
             wire += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 30)))
         if rng.random() < 0.05:
             wire += bytes(rng.randrange(1, 256) for _ in range(300)) + b"\x00"      # overlong
-        wire += encode_frame(Frame(rng.randrange(2), rng.randrange(256), rng.randrange(256)))  # a pure ack
+        wire += encode_frame(Frame(rng.randrange(4), rng.randrange(256), rng.randrange(256)))  # an ack or status request
+        if rng.random() < 0.2:          # a status frame numbered as the next data frame: never data
+            wire += encode_frame(Frame(STATUS | rng.randrange(2), host.next, rng.randrange(256), bytes(6)))
         host.receive(encode_frame(Frame(0, 0, host.next)))        # acknowledge all: go on
     return FaultInjector(rate, np.random.default_rng(seed))(bytes(wire))
 
