@@ -36,3 +36,26 @@ def faulty_render(room, tmp_path, args, rate, seed):
     print("rate", rate, "seed", seed, integrity)
     assert csv.read_bytes() == clean
     return integrity
+
+
+def room_render(folder, args, *extra):
+    """The small room of tests/scenes.py in ``folder`` and its CSV rendered with ``args``
+    (then ``extra``): ``(path, csv bytes)``, the ``room`` of :func:`faulty_render`."""
+    from scenes import room_obj
+    path = room_obj(folder)
+    out = path.parent / "clean.csv"
+    assert main(["render", str(path), *args, *extra, "--patches", str(out)]) == 0
+    return path, out.read_bytes()
+
+
+def hopeless_render(capsys, room, tmp_path, args, where):
+    """At 0.05 faults per byte the render ends with exit 2 and one error line naming ``where``
+    (after the scene's quantisation warning, if any), no traceback and no CSV."""
+    path, _ = room
+    csv = tmp_path / "p.csv"
+    assert main(["render", str(path), *args, "--patches", str(csv), "--link-faults", "0.05"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    err = [line for line in lines if not line.startswith("blockray: warning:")]
+    assert len(err) == 1 and f"{where}: the link failed" in err[0] and "last fault: " in err[0], lines
+    assert not any("Traceback" in line for line in lines)
+    assert not csv.exists()

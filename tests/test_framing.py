@@ -20,7 +20,7 @@ from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
 
 import clirun
-from scenes import RTL_PARAMS, room_obj, room_scene
+from scenes import RTL_PARAMS, room_scene
 
 
 def _bitwise_crc32(data):
@@ -246,10 +246,7 @@ RENDER = ["--max-edge", "1.5", "--board", "model-link", "--rows", "2", "--cols",
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    path = room_obj(tmp_path_factory.mktemp("framing_room"))
-    out = path.parent / "clean.csv"
-    assert main(["render", str(path), *RENDER, "--patches", str(out)]) == 0
-    return path, out.read_bytes()
+    return clirun.room_render(tmp_path_factory.mktemp("framing_room"), RENDER)
 
 
 #: seeds for which the small room's ~30 kB of link traffic meets faults even at 1e-5 (seed 24: two)
@@ -262,15 +259,7 @@ def test_render_with_link_faults_is_byte_identical(room, tmp_path, rate, seed):
 
 
 def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
-    path, _ = room
-    csv = tmp_path / "p.csv"
-    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--link-faults", "0.05"]) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    # the scene's quantisation warning may come first; the failure itself is one error line
-    err = [line for line in lines if not line.startswith("blockray: warning:")]
-    assert len(err) == 1 and "model-link board 0: the link failed" in err[0]
-    assert not any("Traceback" in line for line in lines)
-    assert not csv.exists()
+    clirun.hopeless_render(capsys, room, tmp_path, RENDER, "model-link board 0")
 
 
 def test_link_faults_need_a_framed_board(room, capsys):

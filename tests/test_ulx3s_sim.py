@@ -8,7 +8,7 @@ too (byte-identical CSVs), and a hopeless fault rate ends with one error line, e
 import numpy as np
 import pytest
 
-from blockray.cli import main
+import clirun
 from blockray.host_driver.driver import BoardDriver
 from blockray.host_driver.render import render
 from blockray.host_driver.ulx3s import ulx3s_sim_transport
@@ -52,16 +52,11 @@ RENDER = ["--max-edge", "1.5", "--board", "ulx3s-sim", "--rows", "2", "--cols", 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     """The small room and its CSV from --board model (which ulx3s-sim equals, test above)."""
-    from scenes import room_obj
-    path = room_obj(tmp_path_factory.mktemp("ulx3s_faults"))
-    out = path.parent / "model.csv"
-    assert main(["render", str(path), *RENDER, "--board", "model", "--patches", str(out)]) == 0
-    return path, out.read_bytes()
+    return clirun.room_render(tmp_path_factory.mktemp("ulx3s_faults"), RENDER, "--board", "model")
 
 
 def _faulty_render(room, tmp_path, rate, seed):
-    from clirun import faulty_render
-    return faulty_render(room, tmp_path, RENDER, rate, seed)
+    return clirun.faulty_render(room, tmp_path, RENDER, rate, seed)
 
 
 @pytest.mark.slow
@@ -83,12 +78,5 @@ def test_render_at_low_fault_rates_is_byte_identical(room, tmp_path, rate, seed)
 
 @pytest.mark.slow
 def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
-    """About 90 s: a minute of time-outs without progress before the link is given up."""
-    path, _ = room
-    csv = tmp_path / "p.csv"
-    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--link-faults", "0.05"]) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    err = [line for line in lines if not line.startswith("blockray: warning:")]
-    assert len(err) == 1 and "the simulated board 0: " in err[0] and "last fault: " in err[0], lines
-    assert not any("Traceback" in line for line in lines)
-    assert not csv.exists()
+    """About 3 minutes: 12 time-outs of 10 s without progress before the link is given up."""
+    clirun.hopeless_render(capsys, room, tmp_path, RENDER, "the simulated board 0")
