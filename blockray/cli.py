@@ -85,7 +85,7 @@ def _add_board_options(p):
                         "on each stream (--board amaranth)")
     g.add_argument("--link-faults", type=float, default=None, metavar="RATE",
                    help="flip, drop or duplicate each byte on every board's link, both ways, with probability "
-                        "RATE (--board model-link; faults are resent, or end the run naming the link)")
+                        "RATE (--board model-link, ulx3s-sim or ulx3s; faults are resent, or end the run naming the link)")
     g.add_argument("--link-seed", type=int, default=0, metavar="N",
                    help="seed of the simulated host's timing and of --link-faults")
 
@@ -289,7 +289,7 @@ def _add_fabric_option(p):
 
 
 def _add_cell_option(p, render=False):
-    p.add_argument("--cell", default="exact", metavar="exact|filtered",
+    p.add_argument("--cell", default="exact", metavar="exact|filtered|lean",
                    help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
                         "tests to an exact unit shared by the array" +
                         ("; --board model, model-link, amaranth, verilator)" if render else ")"))
