@@ -1,26 +1,31 @@
-"""Radiosity through the simulated RTL board under Verilator: simulation speed and render wall time.
+"""Radiosity through the simulated RTL board: the native Verilator harness, the cocotb route and
+the bit-exact model side by side on the same batches, and full renders.
 
-    python benchmarks/bench_rtl_render.py [--shooters 20]          # simulated cycles per second
-    python benchmarks/bench_rtl_render.py --full [--report r.json] # + a complete cornell render
+    python benchmarks/bench_rtl_render.py [--shooters 20]                 # speed, three routes
+    python benchmarks/bench_rtl_render.py --full [--scene cornell]        # + full renders: native, model
 
-Part 1 builds (or reuses, cached by content) the Verilator simulation of P = 8 boards of 8 x 8
-processors at the Cornell box's B (sim/rtl_harness.py), loads the Cornell partition and sends the
-renderer's block rays of ``--shooters`` shooter columns (all their receivers, one batch per
-shooter as the renderer does) through :class:`blockray.host_driver.driver.BoardDriver` over one
-:class:`~blockray.host_driver.simulated.VerilatorTransport` per board. It checks the
-blocked bits and the board cycles against the bit-exact model and prints
+Part 1 loads the Cornell box on P = 8 boards of 8 x 8 processors at its B and sends the
+renderer's block rays of ``--shooters`` shooter columns (one batch per shooter, as the renderer
+does) through three boards:
 
-* simulated clock cycles per second while the simulator runs (all P boards advance together in
-  each clock cycle) and the same counted in board cycles (sum over the P boards);
-* the host-side overhead per batch (encoding, command file, result log, decoding);
-* the bytes per ray on one board's link.
+* ``native``: ``--board verilator``, the BoardDriver over one
+  :class:`~blockray.host_driver.native.NativeTransport` per board (the C++ loop, sim/native/);
+* ``cocotb``: the BoardDriver over one :class:`~blockray.host_driver.simulated.VerilatorTransport`
+  per board (one Verilator process per board under cocotb, sim/rtl_harness.py);
+* ``model``: :class:`~blockray.sim.model.ModelBoard`.
 
-Part 2 (``--full``) renders the whole ``cornell`` scene with ``--board verilator`` (the CLI's
-defaults: progressive refinement to tolerance 1e-3) and prints its wall time and phases.
+Every route's blocked bits and board cycles are checked against the model. It prints per route
+the build (cached or not), the set-up (start + memory load), the wall time of the batches, the
+simulated clock cycles per second (all P boards advance together; max over the boards) and the
+board cycles per second (the model's ``board_cycles_per_board`` summed over the P boards).
+
+Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
+with ``--board verilator`` and ``--board model``, checks that the radiosity and every counter are
+equal and prints both wall times and the native board cycles per second.
 """
 
 import argparse
-import json
+import os
 import platform
 import time
 
@@ -28,87 +33,106 @@ import numpy as np
 
 from blockray.host_driver import builtin
 from blockray.host_driver.backends import make_board
+from blockray.host_driver.driver import BoardDriver
 from blockray.host_driver.render import Visibility, render
 from blockray.host_driver.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard
 
+COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "board_cycles_per_board", "load_cycles_per_board",
+            "tests_useful_per_board", "blocks", "rays")
 
-def speed(shooters):
+
+def _boards(params):
+    from blockray.host_driver.simulated import VerilatorTransport
+    return {"native": lambda: make_board("verilator", params),
+            "cocotb": lambda: BoardDriver(params, name="verilator-cocotb",
+                                          transport=lambda p, b: VerilatorTransport(p)),
+            "model": lambda: ModelBoard(params)}
+
+
+def speed(shooters, routes):
     scene = builtin.load("cornell")
     samples = SampleScheme(8)
     params = BoardParams()
     voxels = default_voxels(scene.patches, parallelism=1)
-    t0 = time.perf_counter()
-    board = make_board("verilator", params)
-    board.prepare(scene, samples)
-    grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
-    board.load(grid)
-    setup = time.perf_counter() - t0
-    model = ModelBoard(params)
-    model.prepare(scene, samples)
-    model.load(grid)
-    vis = Visibility(scene, model, grid, samples, rows=params.rows, cols=params.cols)
+    reference = ModelBoard(params)
+    reference.prepare(scene, samples)
+    grid = VoxelGrid(scene.patch_vertices, voxels, margin=reference.margin)
+    reference.load(grid)
+    vis = Visibility(scene, reference, grid, samples, rows=params.rows, cols=params.cols)
     rng = np.random.default_rng(1)
     columns = [vis._blocks_for(int(i), np.arange(scene.patches))
                for i in rng.choice(scene.patches, shooters, replace=False)]
-    trs = board.transports
-    c0, s0 = max(t.cycles for t in trs), sum(t.simulator_seconds for t in trs)
-    t0 = time.perf_counter()
-    bits = [board.run(blocks) for blocks in columns]
-    wall = time.perf_counter() - t0
-    # the simulators run concurrently; collecting from each in turn, the summed waits are the wall time
-    cycles, sim_seconds = max(t.cycles for t in trs) - c0, sum(t.simulator_seconds for t in trs) - s0
-    expect = [model.run(blocks) for blocks in columns]
-    assert all((g == e).all() for gs, es in zip(bits, expect) for g, e in zip(gs, es)), "bits differ from the model"
-    rc, mc = board.counters(), model.counters()
-    assert rc["board_cycles"] == mc["board_cycles"] and rc["board_cycles_per_board"] == mc["board_cycles_per_board"]
+    expect = [reference.run(blocks) for blocks in columns]
+    mc = reference.counters()
     board_cycles = sum(mc["board_cycles_per_board"])
-    build = trs[0].build
-    link = rc["link"]
-    board.close()
-    nblocks = sum(len(b) for b in columns)
-    print(f"machine: {platform.machine()}, python {platform.python_version()}")
-    print(f"cornell: {scene.patches} patches, {voxels}^3 voxels, B = {board.params.bits}; simulated memories "
-          f"patch_depth {board.board_params.patch_depth}, voxel_depth {board.board_params.voxel_depth}")
-    print(f"harness: {params.boards} boards x {params.rows} x {params.cols}; Verilator build "
-          f"{build.seconds:.0f} s (cached: {build.cached}); setup incl. build, start and memory load {setup:.1f} s")
-    print(f"{shooters} shooter columns, {nblocks} block rays, {cycles} clock cycles "
-          f"({rc['board_cycles']} board cycles, max over boards per block)")
-    print(f"simulator: {cycles / sim_seconds:,.0f} clock cycles/s ({board_cycles / sim_seconds:,.0f} board cycles/s "
-          f"summed over the {params.boards} boards) in {sim_seconds:.2f} s")
-    print(f"end to end through the host: {cycles / wall:,.0f} clock cycles/s; host overhead "
-          f"{(wall - sim_seconds) / shooters * 1e3:.1f} ms per batch")
-    print(f"link: {link['bytes_per_ray']:.2f} bytes per ray per board")
-    return cycles / sim_seconds
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}, "
+          f"load average {os.getloadavg()[0]:.1f} at the start")
+    print(f"cornell: {scene.patches} patches, B = {reference.params.bits}, {params.boards} boards x {params.rows} x "
+          f"{params.cols}; {shooters} shooter columns, {sum(len(b) for b in columns)} block rays, "
+          f"{mc['board_cycles']} board cycles ({board_cycles} summed over the boards)")
+    print(f"{'route':8} {'build s':>8} {'setup s':>8} {'batches s':>10} {'clock cycles/s':>15} {'board cycles/s':>15}")
+    for name in routes:
+        t0 = time.perf_counter()
+        board = _boards(params)[name]()
+        board.prepare(scene, samples)
+        board.load(VoxelGrid(scene.patch_vertices, voxels, margin=board.margin))
+        setup = time.perf_counter() - t0
+        trs = getattr(board, "transports", [])
+        c0 = max((t.cycles for t in trs), default=0)
+        t0 = time.perf_counter()
+        bits = [board.run(blocks) for blocks in columns]
+        wall = time.perf_counter() - t0
+        cycles = max((t.cycles for t in trs), default=0) - c0
+        rc = board.counters()
+        build = trs[0].build if trs else None
+        board.close()
+        assert all((g == e).all() for gs, es in zip(bits, expect) for g, e in zip(gs, es)), f"{name}: bits differ"
+        for key in COUNTERS:
+            assert rc[key] == mc[key], f"{name}: {key} {rc[key]} != model {mc[key]}"
+        built = "-" if build is None else f"{build.seconds:.0f}{' (cached)' if build.cached else ''}"
+        clock = f"{cycles / wall:,.0f}" if trs else "-"
+        print(f"{name:8} {built:>8} {setup:8.1f} {wall:10.2f} {clock:>15} {board_cycles / wall:15,.0f}", flush=True)
 
 
-def full(report_path):
-    scene = builtin.load("cornell")
-    t0 = time.perf_counter()
-    res = render(scene, backend="verilator", params=BoardParams())
-    wall = time.perf_counter() - t0
-    r = res.report
-    print(f"cornell --board verilator: {wall:.0f} s wall; {r['columns_cast']} columns, {r['blocks']} blocks, "
-          f"board_cycles {r['board_cycles']}, simulated clock cycles "
-          f"{max(t['simulated_clock_cycles'] for t in r['driver']['transports'])}, simulator "
-          f"{sum(t['simulator_seconds'] for t in r['driver']['transports']):.0f} s; phases " +
-          ", ".join(f"{k} {v:.0f} s" for k, v in r["seconds"].items()))
-    if report_path:
-        with open(report_path, "w") as f:
-            json.dump(r, f, indent=1, default=float)
+def full(scene_name):
+    scene = builtin.load(scene_name)
+    runs = {}
+    for board in ("verilator", "model"):
+        t0 = time.perf_counter()
+        runs[board] = render(scene, backend=board, params=BoardParams())
+        runs[board + " wall"] = time.perf_counter() - t0
+    v, m = runs["verilator"], runs["model"]
+    assert np.array_equal(v.radiosity, m.radiosity), "radiosity differs from the model"
+    for key in COUNTERS + ("utilization", "shots", "residual"):
+        assert v.report[key] == m.report[key], f"{key}: {v.report[key]} != model {m.report[key]}"
+    r = v.report
+    transports = r["driver"]["transports"]
+    clock = max(t["simulated_clock_cycles"] for t in transports)
+    phases = ", ".join(f"{k} {s:.0f} s" for k, s in r["seconds"].items())
+    print(f"{scene_name} ({scene.patches} patches) --board verilator: {runs['verilator wall']:.0f} s wall "
+          f"(phases {phases}); --board model: {runs['model wall']:.0f} s; radiosity and counters equal")
+    print(f"  board_cycles {r['board_cycles']} ({sum(r['board_cycles_per_board'])} summed over the boards), "
+          f"simulated clock cycles {clock} per board (max), {r['shots']} shots, {r['blocks']} blocks")
+    board = r["seconds"]["board"]
+    print(f"  {sum(r['board_cycles_per_board']) / board:,.0f} board cycles/s summed over the boards, "
+          f"{clock / board:,.0f} clock cycles/s per board, over the report's board phase ({board:.0f} s)")
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shooters", type=int, default=20, help="shooter columns for the speed measurement")
-    ap.add_argument("--full", action="store_true", help="also render the whole cornell scene")
-    ap.add_argument("--report", help="--full: write the render's report here")
+    ap.add_argument("--routes", default="native,cocotb,model", help="comma-separated: native, cocotb, model")
+    ap.add_argument("--full", action="store_true", help="also render the whole scene, native and model")
+    ap.add_argument("--scene", default="cornell", help="--full: the built-in scene")
+    ap.add_argument("--no-speed", action="store_true", help="skip part 1")
     args = ap.parse_args()
-    speed(args.shooters)
+    if not args.no_speed:
+        speed(args.shooters, args.routes.split(","))
     if args.full:
-        full(args.report)
+        full(args.scene)
 
 
 if __name__ == "__main__":

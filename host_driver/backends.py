@@ -139,15 +139,19 @@ def _driven(name, open_transport):
     return factory
 
 
+def _timing(host, b):
+    idle, backpressure, seed = host or (None, None, 0)
+    return {"idle": idle, "backpressure": backpressure, "seed": seed * 1000 + b}
+
+
 def _amaranth(p, b, *, vcd, host, **cell):
     from .simulated import AmaranthTransport
-    idle, backpressure, seed = host or (None, None, 0)
-    return AmaranthTransport(p, vcd=vcd, idle=idle, backpressure=backpressure, seed=seed * 1000 + b, **cell)
+    return AmaranthTransport(p, vcd=vcd, **_timing(host, b), **cell)
 
 
 def _verilator(p, b, *, vcd, host, **cell):
-    from .simulated import VerilatorTransport
-    return VerilatorTransport(p, vcd=vcd, **cell)
+    from .native import NativeTransport
+    return NativeTransport(p, vcd=vcd, **_timing(host, b), **cell)
 
 
 def _model_link(p, b, *, vcd, host, faults=None, **cell):
@@ -166,8 +170,8 @@ register(Backend("model-link", "the host driver and the board's framed byte link
                  faults=True))
 register(Backend("amaranth", "the board's RTL in the Amaranth simulator: small scenes, debugging",
                  _driven("amaranth", _amaranth), waveform=True, host_timing=True, cells=_CELLS))
-register(Backend("verilator", "the board's Verilog under Verilator + cocotb; builds once per design, cached",
-                 _driven("verilator", _verilator), waveform=True, cells=_CELLS))
+register(Backend("verilator", "the board's Verilog under Verilator, clocked by a native C++ loop; builds once per "
+                 "design, cached", _driven("verilator", _verilator), waveform=True, host_timing=True, cells=_CELLS))
 
 
 def _ulx3s_sim(p, b, *, vcd, host, faults=None):

@@ -28,7 +28,7 @@ from blockray.samples import SampleScheme
 from blockray.sim.drive import HostTiming
 from blockray.sim.model import ModelBoard
 
-from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_scene
 
 #: the counters the RTL must reproduce exactly (ModelBoard.counters keys)
 COUNTER_KEYS = ("board_cycles", "tests_issued", "tests_useful", "tests", "utilization",
@@ -100,7 +100,7 @@ def _blocks(scene, board, shooters):
 
 
 @pytest.mark.cocotb
-@pytest.mark.parametrize("backend", ["amaranth", "verilator"])
+@pytest.mark.parametrize("backend", ["amaranth", "verilator", "verilator-cocotb"])
 def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     seed = 11
     print(f"seed={seed}")
@@ -111,11 +111,15 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     # the same two batches as the RTL board below: each batch pays its last END_BLOCK's drain
     expect = model.run(blocks[:len(blocks) // 2]) + model.run(blocks[len(blocks) // 2:])
     host = (HostTiming(0.2, burst=0.003, burst_length=(30, 200)),
-            HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend == "amaranth" else None
-    board = make_board(backend, PARAMS, bits=BITS, host=host)
+            HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend != "verilator-cocotb" else None
+    if backend == "verilator-cocotb":          # the cocotb route (host_driver/simulated.py)
+        from blockray.host_driver.simulated import VerilatorTransport
+        board = BoardDriver(PARAMS, bits=BITS, transport=lambda p, b: VerilatorTransport(p))
+    else:
+        board = make_board(backend, PARAMS, bits=BITS, host=host)
     try:
         assert len(_blocks(scene, board, shooters)) == len(blocks)
-        if backend == "verilator":
+        if backend == "verilator-cocotb":
             for t in board.transports:
                 t.depth = 37                   # the host splits batches anywhere: same results
         # two calls: the counters carry over between batches

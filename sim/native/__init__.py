@@ -1,0 +1,245 @@
+"""The native harness: one board's Verilog and a C++ main loop (sim/native/harness.cpp) built by
+Verilator into a shared library, called through ctypes with whole buffers of bytes.
+
+:func:`build_native` converts the board (:class:`~blockray.rtl.core.BoardCore`, or any top with
+a command byte stream in and a result byte stream out: :class:`Ports`) to Verilog and builds it
+with ``harness.cpp`` (``verilator --cc --exe --build``, linked ``-shared``), cached by content
+like every Verilator build (:func:`~blockray.sim.cocotb_support.cached_build`): the key hashes the
+Verilog, ``harness.cpp``, the port configuration, the build arguments, the Verilator version and
+the C++ compiler's version line. :class:`NativeBoard` is one board in that library: ``run``
+queues command bytes and clocks the board in C++ until it sent the result bytes asked for,
+under the host timing of :mod:`blockray.sim.drive` (the same stalls from the same seed, cycle for
+cycle as :class:`~blockray.host_driver.simulated.AmaranthTransport`). Only the top's ports are visible to the harness (no ``--public-flat-rw``).
+"""
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+from ... import hdl
+from ...errors import BlockrayError
+from ..cocotb_support import cached_build, verilator_env
+from ..drive import HostTiming
+
+HERE = Path(__file__).resolve().parent
+
+__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
+           "NativeBoard", "seed_words"]
+
+#: Verilator's arguments (measured: docs/rtl-render.md)
+BUILD_ARGS = ("-O3", "--x-assign", "fast", "--x-initial", "fast", "-Wno-fatal", "-Wno-lint", "-Wno-style")
+#: the C++ compiler's optimisation of the model and the loop
+CXXFLAGS = ("-O3",)
+LIBRARY = "libblockray_native.so"
+#: Verilator's run-time objects, the same for every design: compiled by the first build (a good
+#: part of a build's time) and reused by the later ones from ``native_runtime-KEY`` in the cache
+RUNTIME = ("verilated.o", "verilated_threads.o")
+TOP = "board"
+
+
+class NativeBuildError(BlockrayError):
+    """The native harness cannot be built (no C++ compiler or make, or the build failed)."""
+
+
+class NativeRunError(BlockrayError):
+    """The board in the native harness stopped answering."""
+
+
+@dataclass(frozen=True)
+class Ports:
+    """The top module's clock, reset and byte-stream ports (Verilog names)."""
+    clk: str = "clk"
+    rst: str = "rst"
+    i_valid: str = "i_bytes__valid"
+    i_ready: str = "i_bytes__ready"
+    i_payload: str = "i_bytes__payload"
+    o_valid: str = "o_bytes__valid"
+    o_ready: str = "o_bytes__ready"
+    o_payload: str = "o_bytes__payload"
+
+    def header(self, trace):
+        names = {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
+                 "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
+                 "O_PAYLOAD": self.o_payload}
+        lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}"]
+        # Verilator's C++ names: the second underscore of a double one is escaped
+        lines += [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]
+        return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class NativeBuild:
+    """A built native harness: the shared ``library``, its ``build_dir``, ``trace`` (built with
+    ``--trace``), the build's wall time ``seconds`` (~0 when ``cached``)."""
+    library: Path
+    build_dir: Path
+    trace: bool
+    seconds: float
+    cached: bool
+
+
+def compiler_version():
+    """The C++ compiler's version line; :class:`NativeBuildError` if it or make is missing."""
+    cxx = os.environ.get("CXX", "g++")
+    for tool in (cxx, "make"):
+        if shutil.which(tool) is None:
+            raise NativeBuildError(f"the native Verilator harness needs {tool!r} on PATH (a C++ compiler and make); "
+                                   f"install them (e.g. apt-get install g++ make) or use --board model")
+    try:
+        return subprocess.run([cxx, "--version"], capture_output=True, text=True, check=True).stdout.splitlines()[0]
+    except (OSError, subprocess.CalledProcessError, IndexError) as e:
+        raise NativeBuildError(f"the C++ compiler {cxx!r} does not run: {e}") from None
+
+
+def _makeflags(cxxflags):
+    """verilated.mk's variables: ``cxxflags`` for the model's fast code and the harness (the slow,
+    run-once code stays unoptimised); no precompiled header (generating the two 70 MB headers
+    costs more than they save on a model of a few files: the rule that makes them only
+    preprocesses, and nothing includes them)."""
+    return " ".join([f"OPT_FAST={' '.join(cxxflags)}", "CFG_CXXFLAGS_PCH=-E", "VK_PCH_I_FAST=", "VK_PCH_I_SLOW="])
+
+
+def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUILD_ARGS, cxxflags=CXXFLAGS,
+                 jobs=2, cache=None):
+    """Build ``component``'s Verilog (module ``board``) with the native harness into a shared
+    library, reusing an earlier build of the same content. ``name`` names the cache directory.
+    Returns a :class:`NativeBuild`; raises :class:`NativeBuildError` (one line naming the log)."""
+    try:
+        verilator = verilator_env()
+    except BlockrayError as e:
+        raise NativeBuildError(str(e)) from None
+    compiler = compiler_version()
+    files = {f"{TOP}.v": hdl.convert(component, name=TOP, emit_src=False),
+             "harness.cpp": (HERE / "harness.cpp").read_text(),
+             "native_config.h": ports.header(trace)}
+    args = tuple(build_args) + (("--trace",) if trace else ())
+
+    def build(staging, sources):
+        print(f"blockray: building the native Verilator harness {name} (once per design; cached in "
+              f"{staging.parent})", file=sys.stderr)
+        cmd = [verilator, "--cc", "--exe", "--build", "-j", str(jobs), "--Mdir", str(staging / "obj"),
+               "--top-module", TOP, *args, "-CFLAGS", f"-fPIC -I{staging}", "-LDFLAGS", "-shared -Wl,-Bsymbolic",
+               "-o", str(staging / LIBRARY), str(staging / f"{TOP}.v"), str(staging / "harness.cpp")]
+        runtime = staging.parent / ("native_runtime-" + hashlib.sha256(
+            repr((metadata.version("verilator"), compiler, bool(trace))).encode()).hexdigest()[:16])
+        (staging / "obj").mkdir()
+        for obj in RUNTIME:
+            if (runtime / obj).exists():
+                shutil.copy(runtime / obj, staging / "obj" / obj)     # newer than its source: make keeps it
+        log = staging / "build.log"
+        with open(log, "w") as f:
+            f.write(" ".join(cmd) + "\n")
+            f.flush()
+            done = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=staging,
+                                  env={**os.environ, "MAKEFLAGS": _makeflags(cxxflags)})
+        if done.returncode != 0 or not (staging / LIBRARY).exists():
+            raise NativeBuildError(f"the Verilator build of the native harness {name} failed "
+                                   f"(status {done.returncode}); see {log}")
+        if not runtime.exists():
+            part = runtime.with_name(f"{runtime.name}.tmp{os.getpid()}")
+            part.mkdir(parents=True, exist_ok=True)
+            for obj in RUNTIME:
+                shutil.copy(staging / "obj" / obj, part / obj)
+            try:
+                part.rename(runtime)
+            except OSError:                 # another build stored them first
+                shutil.rmtree(part, ignore_errors=True)
+
+    build_dir, seconds, cached = cached_build(name=name, toplevel=LIBRARY, files=files,
+                                              build_args=args + ("MAKEFLAGS", _makeflags(cxxflags)), build=build,
+                                              cache=cache, key_extra=(compiler,))
+    return NativeBuild(build_dir / LIBRARY, build_dir, bool(trace), seconds, cached)
+
+
+_libraries = {}
+_lock = threading.Lock()
+
+
+def _library(path):
+    with _lock:
+        if path not in _libraries:
+            lib = ctypes.CDLL(str(path))
+            u32p, u8p, size = ctypes.POINTER(ctypes.c_uint32), ctypes.POINTER(ctypes.c_uint8), ctypes.c_size_t
+            d, u32 = ctypes.c_double, ctypes.c_uint32
+            lib.br_open.argtypes = [u32p, size, d, d, u32, u32, d, d, u32, u32, ctypes.c_char_p]
+            lib.br_open.restype = ctypes.c_void_p
+            lib.br_close.argtypes = [ctypes.c_void_p]
+            lib.br_close.restype = None
+            lib.br_reset.argtypes = [ctypes.c_void_p]
+            lib.br_reset.restype = None
+            lib.br_cycles.argtypes = [ctypes.c_void_p]
+            lib.br_cycles.restype = ctypes.c_uint64
+            lib.br_run.argtypes = [ctypes.c_void_p, ctypes.c_char_p, size, u8p, size, size, ctypes.c_uint64,
+                                   ctypes.POINTER(size)]
+            lib.br_run.restype = ctypes.c_int
+            _libraries[path] = lib
+        return _libraries[path]
+
+
+def seed_words(seed):
+    """``random.Random(seed)``'s key: the 32-bit words of ``abs(seed)``, least significant first."""
+    n = abs(int(seed))
+    return [(n >> (32 * i)) & 0xFFFF_FFFF for i in range(max(1, (n.bit_length() + 31) // 32))]
+
+
+class NativeBoard:
+    """One board in a native harness library. ``idle`` / ``backpressure``:
+    :class:`~blockray.sim.drive.HostTiming` of the host on the command and result streams, drawn
+    from ``random.Random(seed)`` as :class:`~blockray.sim.drive.StreamHost` does; ``vcd``: a
+    waveform file (a ``trace`` build). ``patience``: clock cycles without a byte moving, with no
+    command byte left to offer, before :meth:`run` gives up.
+
+    The Verilated model is not thread-safe: call every method from one thread."""
+
+    CHUNK = 1 << 16
+
+    def __init__(self, build, *, idle=HostTiming(), backpressure=HostTiming(), seed=0, vcd=None, patience=1 << 16):
+        if vcd is not None and not build.trace:
+            raise ValueError("a waveform needs a build with trace=True")
+        self._lib = _library(build.library)
+        key = seed_words(seed)
+        self.patience = patience
+        self._h = self._lib.br_open((ctypes.c_uint32 * len(key))(*key), len(key),
+                                    idle.rate, idle.burst, *idle.burst_length,
+                                    backpressure.rate, backpressure.burst, *backpressure.burst_length,
+                                    None if vcd is None else str(vcd).encode())
+
+    @property
+    def cycles(self):
+        """Clock cycles since the board was opened."""
+        return self._lib.br_cycles(self._h)
+
+    def run(self, commands, want):
+        """Queue ``commands`` and clock the board until it sent ``want`` result bytes (command
+        bytes it has not taken by then stay queued); returns them."""
+        out = bytearray()
+        got = ctypes.c_size_t()
+        data = bytes(commands)
+        while True:
+            size = max(want - len(out), 0) + self.CHUNK
+            buf = bytearray(size)
+            status = self._lib.br_run(self._h, data, len(data), (ctypes.c_uint8 * size).from_buffer(buf), size,
+                                      max(want - len(out), 0), self.patience, ctypes.byref(got))
+            out += memoryview(buf)[:got.value]
+            data = b""
+            if status == 0:
+                return bytes(out)
+            if status == 2:
+                raise NativeRunError(f"the native simulated board sent {len(out)} of {want} result bytes and then "
+                                     f"nothing for {self.patience} cycles")
+
+    def reset(self):
+        """The board's reset for one clock cycle; queued command bytes are dropped."""
+        self._lib.br_reset(self._h)
+
+    def close(self):
+        if self._h:
+            self._lib.br_close(self._h)
+            self._h = None

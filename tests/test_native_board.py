@@ -1,0 +1,148 @@
+"""The native Verilator harness (sim/native/, host_driver/native.py): the board's Verilog clocked
+by a C++ loop, the transport of ``--board verilator``.
+
+* RTL = model, bit for bit and cycle for cycle (every counter of the report, the board's cycle
+  counters included) on a room of 480 patches (its first shooters; to convergence ``-m slow``);
+* the host timing (idle, back-pressure, bursts) is sim/drive.py's from the same seed: the native
+  board and the Amaranth simulator driven by StreamHost run the same number of clock cycles and
+  answer the same bytes (the oracle shares no code with the C++ loop);
+* a missing compiler and a failed build are one-line errors (exit 2 from the CLI);
+* cornell through the native harness equals the model (``-m slow``).
+
+The RTL boards are a 2 x 2 array, P = 2, B = 10 (tests/test_rtl_board.py's); the build of the
+native harness is cached by content (docs/rtl-render.md, "Build").
+"""
+
+import random
+
+import numpy as np
+import pytest
+
+from blockray.cli import main
+from blockray.host_driver import builtin
+from blockray.host_driver.backends import make_board
+from blockray.host_driver.render import render
+from blockray.params import BoardParams
+from blockray.sim.drive import HostTiming
+from blockray.sim.native import NativeBuildError, Ports, build_native
+
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_obj, room_scene
+from test_rtl_board import COUNTER_KEYS, _blocks
+
+
+#: shooters of the room rendered in the default suite (to convergence: 2255, 17.8 M board cycles)
+SHOTS = 20
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    return room_scene(tmp_path_factory.mktemp("native_room"), 0.5)
+
+
+def _same_render(got, model):
+    assert np.array_equal(got.radiosity, model.radiosity), "radiosity differs from the model"
+    for key in COUNTER_KEYS:
+        assert got.report[key] == model.report[key], f"{key}: RTL {got.report[key]}, model {model.report[key]}"
+
+
+@pytest.mark.cocotb
+def test_a_room_of_a_few_hundred_patches_renders_as_the_model(room):
+    kw = dict(params=PARAMS, bits=BITS, samples=4, voxels=4, max_shots=SHOTS)
+    model = render(room, backend="model", **kw)
+    got = render(room, backend="verilator", **kw)
+    print(f"{room.patches} patches, {model.report['shots']} shots, {model.report['blocks']} blocks, "
+          f"{model.report['board_cycles']} board cycles")
+    assert room.patches >= 200 and model.report["shots"] == SHOTS
+    _same_render(got, model)
+    transports = got.report["driver"]["transports"]
+    assert got.report["driver"]["backend"] == "verilator"
+    # every board cycle the model counts was clocked through the C++ loop
+    for b, t in enumerate(transports):
+        assert t["simulated_clock_cycles"] >= (model.report["board_cycles_per_board"][b]
+                                               + model.report["load_cycles_per_board"][b])
+
+
+@pytest.mark.slow
+@pytest.mark.cocotb
+def test_the_room_to_convergence_renders_as_the_model(room):
+    kw = dict(params=PARAMS, bits=BITS, samples=4, voxels=4)
+    model = render(room, backend="model", **kw)
+    _same_render(render(room, backend="verilator", **kw), model)
+    assert model.report["shots"] > room.patches
+
+
+@pytest.mark.cocotb
+def test_host_timing_is_the_drive_loops_cycle_for_cycle(scene_small):
+    seed = random.Random().randrange(1 << 40)
+    print(f"seed={seed}")
+    host = (HostTiming(0.3, burst=0.004, burst_length=(16, 120)),
+            HostTiming(0.25, burst=0.004, burst_length=(16, 120)), seed)
+    runs = {}
+    shooters = np.random.default_rng(seed).choice(scene_small.patches, 2, replace=False)
+    for backend in ("amaranth", "verilator"):
+        board = make_board(backend, PARAMS, bits=BITS, host=host)
+        try:
+            blocks = _blocks(scene_small, board, shooters)[:16]          # the Amaranth simulator is slow
+            bits = board.run(blocks[:len(blocks) // 2]) + board.run(blocks[len(blocks) // 2:])
+            runs[backend] = (bits, board.counters(), [t.stats()["simulated_clock_cycles"] for t in board.transports])
+        finally:
+            board.close()
+    (abits, acounters, acycles), (nbits, ncounters, ncycles) = runs["amaranth"], runs["verilator"]
+    assert len(abits) == len(nbits) > 0 and all((a == n).all() for a, n in zip(abits, nbits))
+    for key in COUNTER_KEYS:
+        assert ncounters[key] == acounters[key], f"{key}: native {ncounters[key]}, amaranth {acounters[key]}"
+    # the stalls made the clock run longer than the board's own cycles, by the same count on both
+    assert ncycles == acycles, f"clock cycles: native {ncycles}, amaranth {acycles}"
+    assert min(acycles) > max(acounters["board_cycles_per_board"]) + max(acounters["load_cycles_per_board"])
+
+
+@pytest.fixture(scope="module")
+def scene_small(rtl_room):
+    return rtl_room
+
+
+def test_a_missing_compiler_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-g++"))
+    monkeypatch.setenv("BLOCKRAY_CACHE_DIR", str(tmp_path / "cache"))
+    code = main(["render", str(room_obj(tmp_path)), "--board", "verilator", "--rows", "2", "--cols", "2",
+                 "--boards", "2", "--max-shots", "1", "--quiet"])
+    lines = [line for line in capsys.readouterr().err.splitlines() if "warning:" not in line]
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("blockray: error:") and "no-such-g++" in lines[0] and "C++ compiler" in lines[0]
+
+
+@pytest.mark.slow
+def test_a_failed_build_is_a_one_line_error_naming_its_log(tmp_path):
+    from amaranth.hdl import Module
+    from amaranth.lib import stream, wiring
+    from amaranth.lib.fifo import SyncFIFOBuffered
+    from amaranth.lib.wiring import In, Out
+
+    class Echo(wiring.Component):
+        """A byte FIFO between two byte streams: the harness's ports, clocked."""
+        i_bytes: In(stream.Signature(8))
+        o_bytes: Out(stream.Signature(8))
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.fifo = fifo = SyncFIFOBuffered(width=8, depth=4)
+            wiring.connect(m, wiring.flipped(self.i_bytes), fifo.w_stream)
+            wiring.connect(m, fifo.r_stream, wiring.flipped(self.o_bytes))
+            return m
+
+    with pytest.raises(NativeBuildError) as e:
+        build_native(Echo(), name="echo", ports=Ports(i_valid="no_such_port"), cache=tmp_path)
+    message = str(e.value)
+    assert len(message.splitlines()) == 1 and "failed" in message
+    log = message.rsplit("see ", 1)[1]
+    assert "no_such_port" in open(log).read()
+
+
+@pytest.mark.slow
+@pytest.mark.cocotb
+def test_cornell_renders_as_the_model():
+    scene = builtin.load("cornell")
+    model = render(scene, backend="model", params=BoardParams())
+    got = render(scene, backend="verilator", params=BoardParams())
+    _same_render(got, model)
+    assert got.report["board_cycles"] == model.report["board_cycles"] > 10 ** 6
