@@ -58,8 +58,8 @@ def check_cell(cell, filter_format=None):
     if cell not in CELLS:
         raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
     if filter_format is not None and cell != "filtered":
-        raise ParameterError(f"filter_bits sets the filtered cell's format; it needs cell filtered, not {cell!r}",
-                             parameter="filter_bits")
+        raise ParameterError(f"filter_bits sets the filtered cell's format; it needs the filtered cell (--cell "
+                             f"filtered), not {cell!r}", parameter="filter_bits")
     return cell
 
 
