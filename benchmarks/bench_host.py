@@ -113,23 +113,6 @@ def traverse_only(scene, board, batches, voxels, threads):
     return round(cpu / sum(b.rays for b, _ in batches) * 1e6, 4)
 
 
-def embree(scene, P, Q):
-    from embreex import rtcore_scene as rtcs
-    from embreex.mesh_construction import TriangleMesh
-    c0 = time.process_time()
-    es = rtcs.EmbreeScene()
-    TriangleMesh(es, scene.patch_vertices.astype(np.float32))
-    eps = 1e-4
-    d = (Q - P).astype(np.float32)
-    origin = (P + eps * (Q - P)).astype(np.float32)
-    dist = np.full(len(P), 1 - 2 * eps, np.float32)
-    es.run(origin[:1], d[:1], dists=dist[:1], query="OCCLUDED")     # BVH built at the first query
-    build = time.process_time() - c0
-    t1, c1 = time.perf_counter(), time.process_time()
-    hit = es.run(origin, d, dists=dist, query="OCCLUDED") >= 0
-    return hit, time.perf_counter() - t1, time.process_time() - c1, build
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenes", nargs="*", default=["cornell", "room"])
@@ -175,7 +158,8 @@ def main(argv=None):
         row["render_rays_per_cpu_s"] = round(rays / r["cpu_seconds"]["total"])      # the whole render
         try:
             P, Q, bits = queries(scene, board, batches, args.embree_rays)
-            hit, e_wall, e_cpu, build = embree(scene, P, Q)
+            from blockray.host_driver.peer import embree_occluded
+            hit, e_wall, e_cpu, build = embree_occluded(scene, P, Q)
             row["embree"] = {"rays": len(P), "cpu_us_per_ray": round(e_cpu / len(P) * 1e6, 4),
                              "wall_us_per_ray": round(e_wall / len(P) * 1e6, 4), "build_cpu_s": round(build, 3),
                              "agreement_with_model": round(float((hit == bits).mean()), 5)}

@@ -15,6 +15,11 @@ parallelism^0.6-0.7, figure 2; 0.12 us per ray at P = R = S = 8 on its 3013-patc
 ``--voxels``: an integer (every configuration on the same grid), ``default`` (the renderer's
 default, the cost model at parallelism 1) or ``hw`` (the cost model's optimum for each
 configuration's P R S, as the paper chooses v).
+
+``--plot DIR`` also draws the two figures (matplotlib, the ``[plot]`` extra): ``DIR/paper-fig2.png``,
+board time per ray against P R S beside the paper's cost model (eq. 5 with t_I0 / (P R S)) for the
+same v, and ``DIR/paper-fig4.png``, the board's and the host's time per ray against P R S beside the
+paper's machine (0.12 us per ray at P = R = S = 8, 34 us for its host alone).
 """
 
 import argparse
@@ -53,6 +58,7 @@ def main(argv=None):
     ap.add_argument("--bits", type=int, default=None)
     ap.add_argument("--clock", type=float, default=95.0, help="MHz for the second time column")
     ap.add_argument("--partition", default="deal", choices=["deal", "patch"])
+    ap.add_argument("--plot", metavar="DIR", help="write paper-fig2.png and paper-fig4.png into DIR")
     args = ap.parse_args(argv)
     scene = load_scene(args.scene)
     print_run_header()
@@ -95,6 +101,45 @@ def main(argv=None):
         y = np.log([w["cycles_per_ray"] for w in rows])
         slope = np.polyfit(x, y, 1)[0]
         print(f"\nfit: board cycles per ray ~ (P R S)^{slope:.3f}  (the paper: time ~ parallelism^-0.6 to -0.7)")
+        if args.plot:
+            plot(rows, slope, args.plot, f"{args.scene}, {scene.patches} patches, --max-shots {args.max_shots}")
+
+
+#: the paper's machine (figure 4): time per ray at P = R = S = 8 and on its host alone, us
+PAPER_US_PER_RAY, PAPER_HOST_US_PER_RAY = 0.12, 34.0
+
+
+def plot(rows, slope, folder, what):
+    import os
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    os.makedirs(folder, exist_ok=True)
+    prs = [w["PRS"] for w in rows]
+
+    def figure(name, title, draw):
+        fig, ax = plt.subplots(figsize=(6.5, 4.5))
+        ax.plot(prs, [w["us_per_ray_50MHz"] for w in rows], "o-", label=draw(ax))
+        ax.set(xscale="log", yscale="log", xlabel="parallelism P x R x S", ylabel="time per ray (us)",
+               title=f"{title}\n{what}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(os.path.join(folder, name), dpi=120)
+        plt.close(fig)
+
+    def fig2(ax):
+        ax.plot(prs, [w["paper_model_us_per_ray"] for w in rows], "s--", label="paper's cost model, eq. 5, same v")
+        return f"blockray board at 50 MHz (slope {slope:.2f})"
+
+    def fig4(ax):
+        ax.plot(prs, [w["traverse_s_per_ray"] * 1e6 for w in rows], "^-", label="blockray host traversal (this machine)")
+        ax.plot([512], [PAPER_US_PER_RAY], "r*", markersize=12, label="paper: 8 x 8 x 8, 0.12 us")
+        ax.axhline(PAPER_HOST_US_PER_RAY, color="gray", ls=":", label="paper: host alone, 34 us")
+        return "blockray board at 50 MHz"
+
+    figure("paper-fig2.png", "Figure 2: time per ray against parallelism", fig2)
+    figure("paper-fig4.png", "Figure 4: the machine's time per ray", fig4)
 
 
 if __name__ == "__main__":

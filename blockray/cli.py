@@ -461,6 +461,49 @@ def _cmd_bitstream(args):
     return 0
 
 
+def _sweep_parser(sub):
+    from .host_driver.sweep import RECIPES, SETTINGS
+    p = sub.add_parser("sweep", help="render a scene over a grid of settings: time against error",
+                       description="Render SCENE at every combination of the --vary settings (each point an "
+                                   "ordinary `blockray render`) and measure each point's cost and its error "
+                                   "against a reference; writes OUT/sweep.csv, OUT/sweep.json and "
+                                   "OUT/pareto.png (docs/speed-vs-error.md). Points already in OUT are reused.")
+    p.add_argument("scene", help="built-in scene name (cornell, room) or path to an .obj file")
+    p.add_argument("--vary", action="append", default=[], metavar="NAME=V1,V2,...",
+                   help=f"a setting and its values (repeat for a grid); NAME one of {', '.join(SETTINGS)}")
+    p.add_argument("--fix", action="append", default=[], metavar="NAME=V",
+                   help="a setting held at one value for every point and the reference (e.g. max-shots=200)")
+    p.add_argument("--reference", default="golden", metavar="RECIPE|CSV",
+                   help="what the error is measured against: a recipe ("
+                        + "; ".join(f"{n}: " + ", ".join(f"{k} {v}" for k, v in r.items()) for n, r in RECIPES.items())
+                        + ") rendered once into OUT/reference, or a --patches CSV of an earlier render")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder of the points and the tables")
+    p.add_argument("--fmax", type=_positive_float, default=50.0, metavar="MHZ",
+                   help="board clock for the projected board time (default 50, the paper's)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.set_defaults(func=_cmd_sweep)
+
+
+def _cmd_sweep(args):
+    from .errors import ParameterError
+    from .paths import check_output_dir
+    from .host_driver.sweep import parse_vary, run_sweep
+    grid = parse_vary(args.vary)
+    fixed = parse_vary(args.fix, "--fix") if args.fix else {}
+    if any(len(v) != 1 for v in fixed.values()):
+        raise ParameterError("--fix takes one value per setting (NAME=V)")
+    check_output_dir(args.out, "--out")
+    echo = (lambda text: None) if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
+    rows = run_sweep(args.scene, grid, reference=args.reference, fixed={k: v[0] for k, v in fixed.items()},
+                     out=args.out, fmax=args.fmax, progress=not args.quiet and sys.stderr.isatty(), echo=echo)
+    failed = [r for r in rows if r["status"] != "ok"]
+    echo(f"{len(rows) - len(failed)} of {len(rows)} points in {args.out}/sweep.csv")
+    if failed:
+        raise ParameterError(f"{len(failed)} of {len(rows)} points failed; the first, {failed[0]['command']}: "
+                             f"{failed[0]['status'].removeprefix('failed: ')}")
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="blockray", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -468,6 +511,7 @@ def build_parser():
     _verilog_parser(sub)
     _synth_parser(sub)
     _bitstream_parser(sub)
+    _sweep_parser(sub)
     return parser
 
 

@@ -4,7 +4,7 @@ Every ``import`` and ``from ... import`` of the package's sources is read with :
 (including imports inside functions: a lazy import is still a dependency), resolved to a
 ``blockray.*`` module, and checked against the layers:
 
-    blockray (shared base)  <  rtl  <  synth, sim  <  host_driver  <  cli (blockray/cli.py)
+    blockray (shared base)  <  rtl  <  synth, sim  <  host_driver  <  cli (blockray/cli.py)  <  __main__
 
 A module may import its own package and the packages of lower layers only; synth and sim, on the
 same layer, may not import each other. Module-level cycles are refused everywhere.
@@ -19,7 +19,8 @@ FOLDERS = {"blockray": "blockray", "rtl": "blockray.rtl", "sim": "blockray.sim",
            "host_driver": "blockray.host_driver", "synth": "blockray.synth"}
 #: package (or top module) -> layer
 LAYERS = {"blockray": 0, "blockray.rtl": 1, "blockray.synth": 2, "blockray.sim": 2,
-          "blockray.host_driver": 3, "blockray.cli": 4}
+          "blockray.host_driver": 3, "blockray.cli": 4,
+          "blockray.__main__": 5}     # python -m blockray: the entry point above the CLI
 #: known violations, each with the issue that removes it (the test fails once it is gone, so the
 #: entry is deleted with the fix)
 KNOWN = {}
