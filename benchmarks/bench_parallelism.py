@@ -129,7 +129,7 @@ def plot(rows, slope, folder, what):
         plt.close(fig)
 
     def fig2(ax):
-        ax.plot(prs, [w["paper_model_us_per_ray"] for w in rows], "s--", label="paper's cost model, eq. 5, same v")
+        ax.plot(prs, [w["paper_model_us_per_ray"] for w in rows], "s--", label="paper's eq. 5: board and host traversal (1995 constants), same v")
         return f"blockray board at 50 MHz (slope {slope:.2f})"
 
     def fig4(ax):
