@@ -5,6 +5,7 @@
     python benchmarks/bench_synth.py --only array         # largest R x S array on the 85k at B = 16
     python benchmarks/bench_synth.py --only array --fabric-units shooter   # column units on LUTs
     python benchmarks/bench_synth.py --only board         # the 8 x 8 board, Yosys only (~27 min)
+    python benchmarks/bench_synth.py --only cells         # 2 x 2 and 4 x 4 arrays, exact / filtered / lean, Yosys only
 
 Each run is ``blockray.synth.nextpnr.synth_report`` (the same as ``blockray synth``: the ECP5
 netlist, every product a registered MULT18X18D); the JSON reports go to ``--out`` (default
@@ -80,13 +81,23 @@ def largest_array(out, args):
     return None
 
 
+def cells(out, args):
+    """Yosys counts (no place and route) of the 2 x 2 and 4 x 4 arrays of each cell at ``--bits``,
+    side by side in one run: exact, filtered (default format) and lean (9 x 9 bits)."""
+    for rows, cols in ((2, 2), (4, 4)):
+        for cell in ("exact", "filtered", "lean"):
+            run(f"array-{rows}x{cols}-B{args.bits}-{cell}-yosys", "array",
+                BoardParams(rows=rows, cols=cols, bits=args.bits), out, device=args.device, place=False,
+                cell=cell, fabric_units=args.fabric_units)
+
+
 def board(out, args):
     run("board-8x8-B16", "board", BoardParams(), out, device=args.device, place=False)
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--only", choices=["processor", "array", "board"], action="append")
+    p.add_argument("--only", choices=["processor", "array", "cells", "board"], action="append")
     p.add_argument("--out", default="synth-reports", help="directory for the JSON reports and tool files")
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"])
     p.add_argument("--freq", type=float, default=100.0)
@@ -108,6 +119,8 @@ def main(argv=None):
         processors(out, args)
     if "array" in todo:
         largest_array(out, args)
+    if "cells" in todo:
+        cells(out, args)
     if "board" in todo:
         board(out, args)
     return 0

@@ -289,7 +289,7 @@ def _add_fabric_option(p):
 
 
 def _add_cell_option(p, render=False):
-    p.add_argument("--cell", default="exact", metavar="exact|filtered",
+    p.add_argument("--cell", default="exact", metavar="exact|filtered|lean",
                    help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
                         "tests to an exact unit shared by the array" +
                         ("; --board model, model-link, amaranth, verilator)" if render else ")"))

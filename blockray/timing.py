@@ -88,7 +88,7 @@ class BoardTiming:
         data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
         array's credits run out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
         """
-        if check_cell(cell) == "filtered":
+        if check_cell(cell) != "exact":          # filtered, lean: the same datapath and hand-off
             return cls(processor_latency=FILTERED_LATENCY, memory_latency=memory_latency)
         return cls(processor_latency=UNIT_LATENCY + CELL_LATENCY, memory_latency=memory_latency)
 

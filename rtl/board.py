@@ -81,6 +81,9 @@ class BoardTop(wiring.Component):
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
         self._cell = check_cell(cell)
+        if cell == "lean":      # LeanArray needs the patch memory's second read port (docs/processor.md)
+            raise ParameterError("the lean cell has no board yet (its array and model do: --board model, "
+                                 "blockray synth array --cell lean)", parameter="cell")
         self._filter_format = filter_format if filter_format is not None else default_format(params.bits)
         self._depth = depth if depth is not None else FilteredArray.default_depth(MemoryController.latency)
         self._params = params

@@ -402,11 +402,9 @@ class ArrayResolve(wiring.Component):
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
         self._bits, self._rows, self._cols, self._depth = bits, rows, cols, _check_depth(depth)
-        self._exact_unit = exact_unit or (lambda: Processor(bits, unit="exact"))
+        self._exact_unit = exact_unit or self._default_exact_unit
         self._mark_shape = mark_shape
-        self._terms = data.StructLayout({
-            "shooters": data.ArrayLayout(shooter_terms_layout(bits), cols),
-            "receivers": data.ArrayLayout(receiver_terms_layout(bits), rows)})
+        self._terms = self._terms_layout()
         item = array_item_layout(rows, cols, mark_shape)
         RS = rows * cols
         self._queued = data.StructLayout({"undecided": unsigned(RS), "terms": self._terms})
@@ -415,14 +413,41 @@ class ArrayResolve(wiring.Component):
         self.head = Signal(self._queued, name="head")
         self.started, self.remaining = Signal(name="started"), Signal(RS, name="remaining")
         self.gathered = Signal(RS, name="gathered")
-        self.which = [Signal(RS, name=f"which_{n + 1}") for n in range(Processor.latency)]
-        self.final = [Signal(name=f"final_{n + 1}") for n in range(Processor.latency)]
+        self.which = [Signal(RS, name=f"which_{n + 1}") for n in range(self.exact_latency)]
+        self.final = [Signal(name=f"final_{n + 1}") for n in range(self.exact_latency)]
         super().__init__({
             "i": In(stream.Signature(data.StructLayout({
                 "item": item, "undecided": unsigned(rows * cols), "terms": self._terms}), always_ready=True)),
             "o": Out(stream.Signature(data.StructLayout({
                 "item": item, "blocked": unsigned(rows * cols)}), always_ready=True)),
         })
+
+    #: the exact unit's latency (valid in, result_valid out)
+    exact_latency = Processor.latency
+
+    def _default_exact_unit(self):
+        return Processor(self._bits, unit="exact")
+
+    def _terms_layout(self):
+        """What a record with undecided tests takes into the queue beside them: the exact terms
+        of every column and row."""
+        return data.StructLayout({
+            "shooters": data.ArrayLayout(shooter_terms_layout(self._bits), self._cols),
+            "receivers": data.ArrayLayout(receiver_terms_layout(self._bits), self._rows)})
+
+    def _feed(self, m, exact, terms, onehot, valid):
+        """Give the exact unit the test ``onehot`` of the queue head (``terms``) when ``valid``:
+        its column's and row's exact terms."""
+        R, S = self._rows, self._cols
+        shooter, receiver = Signal(shooter_terms_layout(self._bits)), Signal(receiver_terms_layout(self._bits))
+        m.d.comb += [
+            shooter.eq(sum_or(Mux(sum_or(onehot[r * S + s] for r in range(R)), terms.shooters[s].as_value(), 0)
+                              for s in range(S))),
+            receiver.eq(sum_or(Mux(sum_or(onehot[r * S + s] for s in range(S)), terms.receivers[r].as_value(), 0)
+                               for r in range(R))),
+            exact.shooter.eq(shooter), exact.receiver.eq(receiver),
+            exact.valid.eq(valid), exact.first.eq(1),
+        ]
 
     def elaborate(self, platform):
         m = Module()
@@ -455,15 +480,7 @@ class ArrayResolve(wiring.Component):
         ]
         with m.If(queue.r_rdy):
             m.d.sync += [remaining.eq(current & ~onehot), started.eq(~last)]
-        shooter, receiver = Signal(shooter_terms_layout(self._bits)), Signal(receiver_terms_layout(self._bits))
-        m.d.comb += [
-            shooter.eq(sum_or(Mux(sum_or(onehot[r * S + s] for r in range(R)), head.terms.shooters[s].as_value(), 0)
-                              for s in range(S))),
-            receiver.eq(sum_or(Mux(sum_or(onehot[r * S + s] for s in range(S)), head.terms.receivers[r].as_value(), 0)
-                               for r in range(R))),
-            exact.shooter.eq(shooter), exact.receiver.eq(receiver),
-            exact.valid.eq(queue.r_rdy), exact.first.eq(1),
-        ]
+        self._feed(m, exact, head.terms, onehot, queue.r_rdy)
 
         # the answers: gathered per record, pushed with its last test's answer
         which = _delay_through(m, onehot, self.which)
@@ -524,7 +541,12 @@ class FilteredArray(_FilteredCells, wiring.Component):
             "delivered": Out(1),
             "mark_out": Out(1),
             "mark_data_out": Out(mark_shape),
+            **self._extra_members(),
         })
+
+    def _extra_members(self):
+        """Ports a subclass adds after these."""
+        return {}
 
     @classmethod
     def default_depth(cls, extra_latency=0):
@@ -542,6 +564,19 @@ class FilteredArray(_FilteredCells, wiring.Component):
                      filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
         return filt
 
+    def _resolve(self):
+        """The hand-off with the array's exact unit."""
+        return ArrayResolve(self._bits, self._rows, self._cols, self._mark_shape, self._depth)
+
+    def _queue_terms(self, m, hand, shooters, receivers):
+        """The ``terms`` of a record at the hand-off: the exact terms of every column and row,
+        which wait for the cells' decisions in one memory, not in flip-flop chains (a 2 x 2
+        array's chains were half its flip-flops)."""
+        terms = Signal.like(hand.terms)
+        m.d.comb += [terms.shooters[s].eq(shooters[s].exact) for s in range(self._cols)]
+        m.d.comb += [terms.receivers[r].eq(receivers[r].exact) for r in range(self._rows)]
+        m.d.comb += hand.terms.eq(_delay_memory(m, terms, _Filter.latency + FilteredProcessor.latency, "terms"))
+
     def elaborate(self, platform):
         m = Module()
         B, R, S, fmt = self._bits, self._rows, self._cols, self._fmt
@@ -549,7 +584,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
         receivers = [self._edge_unit(m, f"receiver_{r}", ReceiverUnit, ReceiverFilter, self.receivers[r])
                      for r in range(R)]
 
-        m.submodules.resolve = resolve = ArrayResolve(B, R, S, self._mark_shape, self._depth)
+        m.submodules.resolve = resolve = self._resolve()
         hand = resolve.i.payload
         L = self.latency
         valid = _delay(m, self.valid, L, "valid")
@@ -566,12 +601,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
                 ]
                 blocked.append(cell.blocked)
                 undecided.append(~cell.decided & row_mask[r] & col_mask[s])
-        # the exact terms wait for the cells' decisions in one memory, not in flip-flop chains
-        # (a 2 x 2 array's chains were half its flip-flops)
-        terms = Signal.like(hand.terms)
-        m.d.comb += [terms.shooters[s].eq(shooters[s].exact) for s in range(S)]
-        m.d.comb += [terms.receivers[r].eq(receivers[r].exact) for r in range(R)]
-        m.d.comb += hand.terms.eq(_delay_memory(m, terms, _Filter.latency + FilteredProcessor.latency, "terms"))
+        self._queue_terms(m, hand, shooters, receivers)
         mark = _delay(m, self.mark, L, "mark")
         m.d.comb += [
             hand.undecided.eq(Mux(valid, Cat(*undecided), 0)),

@@ -296,8 +296,9 @@ class _TermsUnit(wiring.Component):
 
     latency = 4
 
-    def __init__(self, bits):
+    def __init__(self, bits, *, unit=None):
         self._bits = check_bits(bits)
+        self._unit = unit or self.unit        # the fabric_units key of its products (rtl/platform.py)
         super().__init__({
             "point": In(point_layout(bits)),
             "patch": In(patch_layout(bits)),
@@ -328,6 +329,7 @@ class ShooterUnit(_TermsUnit):
     """
 
     terms_layout = staticmethod(shooter_terms_layout)
+    unit = "shooter"
 
     def elaborate(self, platform):
         m = Module()
@@ -338,7 +340,7 @@ class ShooterUnit(_TermsUnit):
             for c in _AXES:
                 m.d.comb += d0[k][c].eq(self.point[c] - self.patch[vertex][c])
 
-        platform = product_platform(platform, "shooter")
+        platform = product_platform(platform, self._unit)
         sums3 = _dot_sums(m, [(d0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pp", platform)
         d3 = [_delay(m, d0[k], 3, f"d{k}") for k in range(3)]
 
@@ -365,6 +367,7 @@ class ReceiverUnit(_TermsUnit):
     """
 
     terms_layout = staticmethod(receiver_terms_layout)
+    unit = "receiver"
 
     def elaborate(self, platform):
         m = Module()
@@ -381,7 +384,7 @@ class ReceiverUnit(_TermsUnit):
                 ]
 
         # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}: products exact in 2B+2 bits
-        platform = product_platform(platform, "receiver")
+        platform = product_platform(platform, self._unit)
         plus2, minus2 = [], []
         for k in range(3):
             for i, c in enumerate(_AXES):

@@ -160,16 +160,17 @@ def _fifo_step(buf, k, head, n, rdy, rdata, w_en, w_data, r_en):
 
 
 @njit(cache=True)
-def board_clock(kinds, undecided, depth):
+def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_handoff=ISSUE_TO_HANDOFF):
     """The filtered board's cycles when the host keeps the command stream full: every cycle is a
     board cycle, a step of the current command or one lost waiting for the array's credits.
 
     ``kinds`` (N,): the commands' steps in order (STEP_*), ``undecided`` (N,): a record's tests
     the exact unit must decide. Mirrors, cycle by cycle, the board's credits (items issued and
-    not delivered < ``depth``), the 14 cycles from issue to the array's hand-off
-    (:data:`ISSUE_TO_HANDOFF`) and :class:`blockray.rtl.filtered.ArrayResolve`: its three
-    ``SyncFIFOBuffered`` (0 pending, 1 queue, 2 answers), the server (the queue head's
-    undecided tests one per cycle into the exact unit) and the exact Processor (EXACT_LATENCY).
+    not delivered < ``depth``), the ``issue_to_handoff`` cycles from issue to the array's hand-off
+    (:data:`ISSUE_TO_HANDOFF` on the board) and :class:`blockray.rtl.filtered.ArrayResolve`: its
+    three ``SyncFIFOBuffered`` (0 pending, 1 queue, 2 answers), the server (the queue head's
+    undecided tests one per cycle into the exact unit) and the exact unit (``exact_latency``: the
+    filtered array's Processor, :data:`EXACT_LATENCY`; the lean array's, 9).
     Returns ``lost`` (N,): the cycles lost before each step, and ``marks``: the cycle (counted
     from the first step) each marker left the array.
     """
@@ -180,8 +181,8 @@ def board_clock(kinds, undecided, depth):
     buf = np.zeros((3, depth), np.int64)
     head, n = np.zeros(3, np.int64), np.zeros(3, np.int64)
     rdy, rdata = np.zeros(3, np.bool_), np.zeros(3, np.int64)
-    line = np.full(ISSUE_TO_HANDOFF, _NONE, np.int64)          # issue -> hand-off input
-    exact = np.full(EXACT_LATENCY, -1, np.int64)                # `last` of each test fed, -1 none
+    line = np.full(issue_to_handoff, _NONE, np.int64)          # issue -> hand-off input
+    exact = np.full(exact_latency, -1, np.int64)                # `last` of each test fed, -1 none
     pos = epos = 0
     started, remaining = False, 0
     inside = cycle = 0
@@ -202,7 +203,7 @@ def board_clock(kinds, undecided, depth):
                     item = _MARK
         entering = line[pos]
         line[pos] = item
-        pos = (pos + 1) % ISSUE_TO_HANDOFF
+        pos = (pos + 1) % issue_to_handoff
         # the server and the pending head, from this cycle's registers
         feeding = rdy[1]
         last = False
@@ -218,7 +219,7 @@ def board_clock(kinds, undecided, depth):
         # the clock edge
         leaving = exact[epos]
         exact[epos] = (1 if last else 0) if feeding else -1
-        epos = (epos + 1) % EXACT_LATENCY
+        epos = (epos + 1) % exact_latency
         _fifo_step(buf, 0, head, n, rdy, rdata, entering != _NONE, entering, deliver)
         _fifo_step(buf, 1, head, n, rdy, rdata, entering > 0, entering, feeding and last)
         _fifo_step(buf, 2, head, n, rdy, rdata, leaving == 1, 1, deliver and needs)

@@ -37,9 +37,23 @@ from ..params import BoardParams
 from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKind
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
-from ..filtered import check_cell, default_format, filtered_block
+from ..filtered import check_cell, default_format, filtered_block, lean_format
 from . import kernel
-from .filtered_model import STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
+from .filtered_model import (EXACT_LATENCY, STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock,
+                             default_array_depth)
+from .lean_model import LEAN_EXACT_LATENCY, default_lean_depth
+
+#: the shared exact unit's latency of each cell with a hand-off (filtered: a Processor; lean: LeanExact)
+_EXACT_LATENCY = {"filtered": EXACT_LATENCY, "lean": LEAN_EXACT_LATENCY}
+
+
+def _default_format(cell, bits):
+    return lean_format(bits) if cell == "lean" else default_format(bits)
+
+
+def _array_depth(cell):
+    """The board's array credits of the filtered or lean cell."""
+    return default_lean_depth() if cell == "lean" else default_array_depth()
 
 __all__ = ["ExecResult", "BoardModel", "ModelBoard", "QuantisationWarning", "result_word"]
 
@@ -81,10 +95,10 @@ class BoardModel:
     def __init__(self, params, timing=None, *, cell="exact", filter_format=None, depth=None):
         self.params = params
         self.cell = check_cell(cell)
-        if cell == "filtered":
-            self.filter_format = filter_format or default_format(params.bits)
-            self.depth = depth or default_array_depth()
-            self.timing = timing or BoardTiming.for_cell("filtered")
+        if cell != "exact":             # filtered or lean: the same hand-off, its exact unit's latency
+            self.filter_format = filter_format or _default_format(cell, params.bits)
+            self.depth = depth or _array_depth(cell)
+            self.timing = timing or BoardTiming.for_cell(cell)
         else:
             self.timing = timing or BoardTiming.for_cell()
         self.layout = patch_layout(params.bits)
@@ -120,7 +134,7 @@ class BoardModel:
         p, t = self.params, self.timing
         R, S = p.rows, p.cols
         res = ExecResult()
-        filtered = self.cell == "filtered"
+        filtered = self.cell != "exact"
         kinds, undecided, ends = [], [], []          # the filtered board's steps; each command's last
         for cmd in commands:
             op = cmd.op
@@ -201,7 +215,7 @@ class BoardModel:
         command's start and in each READ_COUNTERS snapshot (its own wait included: it precedes
         the snapshot)."""
         lost, res.marks = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
-                                      self.depth)
+                                      self.depth, _EXACT_LATENCY[self.cell])
         before = np.concatenate([[0], np.cumsum(lost)])
         snapshots = iter(res.counters)
         begin = 0
@@ -250,7 +264,7 @@ class ModelBoard(CountingBoard):
         self.bits = bits
         self.cell = check_cell(cell)
         self._filter_format = filter_format
-        self.depth = depth or default_array_depth()
+        self.depth = depth or _array_depth(self.cell)
         self.partition = check_partition(partition)
         self.max_error = max_error
         self._timing = timing
@@ -264,8 +278,8 @@ class ModelBoard(CountingBoard):
 
     def prepare(self, scene, samples):
         q = self._quantise(scene, samples)
-        if self.cell == "filtered":
-            self.filter_format = self._filter_format or default_format(q.bits)
+        if self.cell != "exact":
+            self.filter_format = self._filter_format or _default_format(self.cell, q.bits)
         self.memories = None
 
     def load(self, grid):
@@ -299,7 +313,7 @@ class ModelBoard(CountingBoard):
             batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, batch.ray_off)
         cycles = self.timing.blocks_cycles(Rb, Sb, streamed)
-        if self.cell == "filtered":
+        if self.cell != "exact":
             self._add_filtered_batch(batch, cycles)
         else:
             # cycles and counters depend on the records streamed only, never on the tests' results
@@ -323,7 +337,7 @@ class ModelBoard(CountingBoard):
             self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off)
         total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
         for b, steps in enumerate(step_off[-1]):
-            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth)
+            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth, _EXACT_LATENCY[self.cell])
             total[b] += lost.sum()
             finish[b] = marks[-1] + 1 if len(marks) else 0
         self._add_batch(total, finish=finish)

@@ -37,6 +37,7 @@ from ..atomic import write_file
 from ..errors import ParameterError
 from ..link import DEFAULT_BAUD
 from ..params import BoardParams
+from ..paths import check_output_file
 from ..records import patch_layout
 from .nextpnr import (DEVICES, PACKAGE, ROUTER, _cells_resources, _machine, _run, _tail, _workdir,
                       _versions, dsp_estimate, nextpnr_command, run_nextpnr)
@@ -228,10 +229,9 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
     out = Path(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(out, "ab"):
-            pass
     except OSError as e:
         raise ParameterError(f"{out}: cannot write there: {e.strerror}", parameter="out") from None
+    check_output_file(out, "--out")         # creates nothing: a failed build leaves no empty .bit
     with _workdir(workdir) as tmp:
         return _build(params, out, platform, core, tmp, estimate, freq=freq, baud=baud,
                       tools={"seed": seed, "router": router, "threads": threads})

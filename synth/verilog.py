@@ -14,7 +14,10 @@ Units (``UNITS``):
 ``cell`` (``CELLS``, ``--cell``): ``exact`` (default) builds the above; ``filtered`` builds the
 filtered cell of :mod:`blockray.rtl.filtered` (``processor``: :class:`FilteredIntersector`,
 ``cell``: :class:`FilteredProcessor`, ``array``: :class:`FilteredArray` with its shared exact
-unit, ``board``: ``BoardTop(cell="filtered")``; default format d_k exact and w_k at 18 bits).
+unit, ``board``: ``BoardTop(cell="filtered")``; default format d_k exact and w_k at 18 bits);
+``lean`` the lean cell of :mod:`blockray.rtl.lean` (``array``: :class:`LeanArray` with its
+shared exact unit and end-point memory, its patch memory's read port a top-level port;
+``processor``: the 1 x 1 LeanArray; ``cell``: the filtered cell at the lean format, 9 x 9 bits).
 
     text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
     text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
@@ -68,6 +71,19 @@ def _check_unit(unit):
     return unit
 
 
+#: units built with the lean cell (rtl/lean.py): the R x S array (``processor``: its 1 x 1) and the cell
+LEAN_UNITS = ("processor", "cell", "array")
+
+
+def _lean_unit(unit, params, fmt):
+    from ..rtl.filtered import FilteredProcessor
+    from ..rtl.lean import LeanArray, lean_format
+    if unit == "cell":
+        return FilteredProcessor(fmt if fmt is not None else lean_format(params.bits))
+    rows, cols = (1, 1) if unit == "processor" else (params.rows, params.cols)
+    return LeanArray(params.bits, rows, cols, fmt=fmt, address_bits=max(1, (params.patch_depth - 1).bit_length()))
+
+
 def _filtered_unit(unit, params, fmt):
     from ..rtl.filtered import FilteredArray, FilteredIntersector, FilteredProcessor
     if unit == "processor":
@@ -89,8 +105,14 @@ def build_unit(unit, params=None, cell="exact", filter_format=None):
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
-    if check_cell(cell, filter_format) == "filtered":
+    cell = check_cell(cell, filter_format)
+    if cell == "lean" and unit not in LEAN_UNITS:
+        raise ParameterError(f"the lean cell is built for units {', '.join(LEAN_UNITS)}, not {unit!r}",
+                             parameter="cell")
+    if cell == "filtered":
         return _filtered_unit(unit, params, filter_format)
+    if cell == "lean":
+        return _lean_unit(unit, params, filter_format)
     if unit == "processor":
         from ..rtl.processor import Intersector
         return Intersector(params.bits)

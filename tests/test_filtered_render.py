@@ -64,7 +64,7 @@ def test_cell_errors_name_the_option(capsys):
     assert main(["render", "cornell", "--cell", "fast"]) == 2
     assert "cell" in capsys.readouterr().err
     assert main(["render", "cornell", "--filter-bits", "9"]) == 2
-    assert "--cell filtered" in capsys.readouterr().err
+    assert "needs cell filtered or lean" in capsys.readouterr().err
 
 
 @pytest.mark.cocotb

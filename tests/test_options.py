@@ -86,7 +86,7 @@ def test_render_takes_options_or_names_not_both():
     (["--bits", "3"], "--bits must be an integer from 4 to 20"),
     (["--board", "golden", "--bits", "10"], "--bits applies to boards that quantise the scene"),
     (["--board", "golden", "--partition", "patch"], "--partition applies to the hardware's boards"),
-    (["--filter-bits", "9"], "--filter-bits sets the filtered cell's format; it needs the filtered cell (--cell filtered), not 'exact'"),
+    (["--filter-bits", "9"], "--filter-bits sets the filter's format; it needs cell filtered or lean, not 'exact'"),
     (["--sets", "2"], "--sets: host + board sets solve by gathering"),
     (["--rows", "65"], "--rows: array of 65 x 8 processors"),
 ])

@@ -260,3 +260,13 @@ def test_worker_killed_while_casting(tiny_cornell, cluster):
     np.testing.assert_array_equal(one.radiosity, result.radiosity)
     # the killed worker's set was cast again elsewhere (a restarted worker has a new address)
     assert victim not in {s["worker"] for s in result.report["set_counters"]}
+
+
+def test_quiet_silences_dask(tmp_path):
+    """--quiet: nothing on stderr, Dask's INFO lines included (the local cluster's start and close)."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-m", "blockray.cli", "render", "cornell", "--max-edge", "1000",
+                           "--solver", "jacobi", "--sets", "2", "--workers", "1", "--quiet",
+                           "--patches", str(tmp_path / "p.csv")], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and done.stderr == "", done.stderr

@@ -1,0 +1,181 @@
+"""The lean processor cell: the filter and nothing else in the cells; undecided tests leave as tags.
+
+The R x S array of :class:`LeanArray` is the filtered array's datapath (docs/processor.md,
+"The lean cell"): the column and row units compute the shared terms once per record and ray,
+exactly (:class:`~blockray.rtl.processor.ShooterUnit`, :class:`~blockray.rtl.processor.ReceiverUnit`)
+and rounded for the filter (:class:`~blockray.rtl.filtered.ShooterFilter`,
+:class:`~blockray.rtl.filtered.ReceiverFilter`: mantissas and the certificate sums Pd, Nd, Pw,
+Nw of every row and column); a cell (:class:`~blockray.rtl.filtered.FilteredProcessor`) holds
+only the narrow products, the two threshold adders and the comparisons. What differs is the
+hand-off: no exact term waits or travels. A record with undecided tests enters the queue as a
+*tag* (its undecided mask, the record's patch ``address`` and its ``slot`` in the end-point
+memory), and the shared exact unit (:class:`LeanExact`) recomputes each undecided test from the
+patch memory (a second read port, ``patch_read``) and the test's shooter and receiver points,
+which every record writes into the end-point memory (one entry per record in flight) as it
+enters the array.
+
+    LeanArray(bits, rows, cols, fmt=None, depth=None)     the ports of FilteredArray, and
+        address     In: the record's address in the patch memory (with ``valid``)
+        patch_read  a read port of the patch memory (registered read, one cycle)
+"""
+
+from amaranth.hdl import Module, Mux, Signal, unsigned
+from amaranth.lib import data, wiring
+from amaranth.lib.memory import Memory, ReadPort
+from amaranth.lib.wiring import In, Out
+
+from ..errors import ParameterError
+from ..filtered import lean_format
+from ..records import patch_layout, point_layout
+from .filtered import ArrayResolve, FilteredArray, sum_or
+from .processor import Processor, ReceiverUnit, ShooterUnit, _delay
+
+__all__ = ["LeanExact", "LeanResolve", "LeanArray", "lean_format", "tag_layout", "DEFAULT_ADDRESS_BITS"]
+
+#: patch memory address width of a stand-alone array (the board's is its memory's)
+DEFAULT_ADDRESS_BITS = 12
+
+
+def endpoints_layout(bits, rows, cols):
+    """One end-point memory entry: the S shooter points and the R receiver points of a record."""
+    point = point_layout(bits)
+    return data.StructLayout({"shooters": data.ArrayLayout(point, cols),
+                              "receivers": data.ArrayLayout(point, rows)})
+
+
+def tag_layout(address_bits, slots):
+    """What a record with undecided tests queues beside its undecided mask: its patch address
+    and its end-point memory slot."""
+    return data.StructLayout({"address": unsigned(address_bits), "slot": range(slots)})
+
+
+class LeanExact(wiring.Component):
+    """The lean array's shared exact unit: one undecided test per cycle, recomputed from its tag.
+
+    Cycle 0: ``valid``, ``which`` (the test's bit r * S + s, one-hot) and ``terms`` (its tag:
+    patch ``address``, end-point ``slot``); the patch memory (``patch_read``) and the end-point
+    memory (``points_read``) are read at the tag's addresses. Cycle 1: P_s and Q_r picked from
+    the entry by ``which`` enter a ShooterUnit and a ReceiverUnit with the patch; cycle 5 their
+    terms enter an exact Processor; ``blocked`` with ``result_valid`` in cycle :attr:`latency`
+    = 1 + 4 + 4 = 9. ``first`` is accepted and ignored (the hand-off's exact-unit ports). All its
+    products answer to the fabric-units key ``exact`` (``--fabric-units exact``: on LUTs).
+    """
+
+    latency = 1 + ShooterUnit.latency + Processor.latency
+
+    def __init__(self, bits, rows, cols, address_bits, slots):
+        self._bits, self._rows, self._cols = bits, rows, cols
+        self._entry = endpoints_layout(bits, rows, cols)
+        super().__init__({
+            "valid": In(1), "first": In(1),
+            "which": In(rows * cols),
+            "terms": In(tag_layout(address_bits, slots)),
+            "patch_read": In(ReadPort.Signature(addr_width=address_bits, shape=patch_layout(bits))),
+            "points_read": In(ReadPort.Signature(addr_width=max(1, (slots - 1).bit_length()), shape=self._entry)),
+            "blocked": Out(1), "result_valid": Out(1),
+        })
+
+    def elaborate(self, platform):
+        m = Module()
+        B, R, S = self._bits, self._rows, self._cols
+        m.submodules.shooter = shooter = ShooterUnit(B, unit="exact")
+        m.submodules.receiver = receiver = ReceiverUnit(B, unit="exact")
+        m.submodules.cell = cell = Processor(B, unit="exact")
+        m.d.comb += [
+            self.patch_read.addr.eq(self.terms.address), self.patch_read.en.eq(1),
+            self.points_read.addr.eq(self.terms.slot), self.points_read.en.eq(1),
+        ]
+        valid1 = _delay(m, self.valid, 1, "valid")
+        which1 = _delay(m, self.which, 1, "which")
+        entry = self._entry(self.points_read.data)
+        point = point_layout(B)
+        p, q = Signal(point), Signal(point)
+        m.d.comb += [
+            p.eq(sum_or(Mux(sum_or(which1[r * S + s] for r in range(R)), entry.shooters[s].as_value(), 0)
+                        for s in range(S))),
+            q.eq(sum_or(Mux(sum_or(which1[r * S + s] for s in range(S)), entry.receivers[r].as_value(), 0)
+                        for r in range(R))),
+            shooter.point.eq(p), shooter.patch.eq(self.patch_read.data), shooter.valid.eq(valid1),
+            receiver.point.eq(q), receiver.patch.eq(self.patch_read.data), receiver.valid.eq(valid1),
+            cell.shooter.eq(shooter.terms), cell.receiver.eq(receiver.terms),
+            cell.valid.eq(shooter.terms_valid), cell.first.eq(1),
+            self.blocked.eq(cell.blocked), self.result_valid.eq(cell.result_valid),
+        ]
+        return m
+
+
+class LeanResolve(ArrayResolve):
+    """The lean array's in-order hand-off: :class:`~blockray.rtl.filtered.ArrayResolve` with a
+    record's tag (:func:`tag_layout`) queued in place of exact terms, and :class:`LeanExact`
+    (latency 9) as the exact unit, which ``exact_unit`` gives (its owner wires its read ports)."""
+
+    exact_latency = LeanExact.latency
+
+    def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit, address_bits):
+        self._address_bits = address_bits
+        super().__init__(bits, rows, cols, mark_shape, depth, exact_unit=exact_unit)
+
+    def _terms_layout(self):
+        return tag_layout(self._address_bits, self._depth)
+
+    def _feed(self, m, exact, terms, onehot, valid):
+        m.d.comb += [exact.which.eq(onehot), exact.terms.eq(terms), exact.valid.eq(valid), exact.first.eq(1)]
+
+
+class LeanArray(FilteredArray):
+    """R x S lean cells: :class:`~blockray.rtl.filtered.FilteredArray`'s ports and cycle
+    contract (the hand-off's exact unit takes 9 cycles, not 4), plus ``address`` (the record's
+    patch address, sampled with ``valid``) and ``patch_read`` (a registered read port of the
+    patch memory the records come from, for the exact unit). The owner keeps at most
+    :attr:`depth` items inside (credits) and must not overwrite a patch whose record is inside.
+
+    The end-point memory has :attr:`depth` entries: every record writes its S + R points at the
+    next slot (mod depth) as it enters; with at most depth items inside, a record's entry stays
+    until it is delivered. Default filter :func:`lean_format`; default depth
+    :meth:`default_depth` (the filtered array's, plus the exact unit's 9 cycles and 4: a record
+    with undecided tests every few records costs no cycle)."""
+
+    def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1),
+                 address_bits=DEFAULT_ADDRESS_BITS):
+        self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
+        if isinstance(address_bits, bool) or not isinstance(address_bits, int) or not 1 <= address_bits <= 24:
+            raise ParameterError(f"address_bits must be an integer from 1 to 24, not {address_bits!r}",
+                                 parameter="address_bits")
+        self._address_bits = address_bits
+        super().__init__(bits, rows, cols, fmt=fmt if fmt is not None else lean_format(bits),
+                         depth=depth if depth is not None else self.default_depth(), mark_shape=mark_shape)
+        self._MustUse__silence = False
+
+    def _extra_members(self):
+        return {"address": In(self._address_bits),
+                "patch_read": In(ReadPort.Signature(addr_width=self._address_bits, shape=patch_layout(self._bits)))}
+
+    @classmethod
+    def default_depth(cls, extra_latency=0):
+        return FilteredArray.default_depth(extra_latency) + LeanExact.latency + 4
+
+    def _resolve(self):
+        # made here, so that _queue_terms can wire its read ports to the memories
+        self.exact = exact = LeanExact(self._bits, self._rows, self._cols, self._address_bits, self._depth)
+        return LeanResolve(self._bits, self._rows, self._cols, self._mark_shape, self._depth,
+                           exact_unit=lambda: exact, address_bits=self._address_bits)
+
+    def _queue_terms(self, m, hand, shooters, receivers):
+        R, S, depth = self._rows, self._cols, self._depth
+        entry = Signal(endpoints_layout(self._bits, R, S))
+        m.d.comb += [entry.shooters[s].eq(self.shooters[s]) for s in range(S)]
+        m.d.comb += [entry.receivers[r].eq(self.receivers[r]) for r in range(R)]
+        m.submodules.endpoints = endpoints = Memory(shape=entry.shape(), depth=depth, init=[])
+        write, read = endpoints.write_port(), endpoints.read_port()
+        slot = Signal(range(depth), name="slot")
+        with m.If(self.valid):
+            m.d.sync += slot.eq(Mux(slot == depth - 1, 0, slot + 1))
+        m.d.comb += [write.addr.eq(slot), write.data.eq(entry), write.en.eq(self.valid)]
+        exact = self.exact
+        m.d.comb += [read.addr.eq(exact.points_read.addr), read.en.eq(exact.points_read.en),
+                     exact.points_read.data.eq(read.data)]
+        m.d.comb += [self.patch_read.addr.eq(exact.patch_read.addr), self.patch_read.en.eq(exact.patch_read.en),
+                     exact.patch_read.data.eq(self.patch_read.data)]
+        L = self.latency
+        m.d.comb += [hand.terms.slot.eq(_delay(m, slot, L, "slot")),
+                     hand.terms.address.eq(_delay(m, self.address, L, "address"))]

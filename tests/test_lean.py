@@ -1,0 +1,259 @@
+"""The lean array (rtl/lean.py) and its cycle model (sim/lean_model.py).
+
+The model's bits against the independent orient3d predicate (``blocked_reference``) on the
+processor vectors and on a small scene; the RTL against the model in Amaranth's simulator with
+zero tolerance: every marker's cycle and the accumulators' bits when it leaves, and the cycle
+every step is presented under the model's credits.
+"""
+
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+from amaranth.sim import Simulator
+
+from blockray.errors import ParameterError
+from blockray.exact import blocked_block, blocked_reference, patch_normals
+from blockray.filtered import FilterFormat, lean_format
+from blockray.host_driver.render import render
+from blockray.params import BoardParams
+from blockray.records import pack_array, patch_columns, patch_layout
+from blockray.rtl.board import BoardTop
+from blockray.rtl.lean import LeanArray, LeanExact
+from blockray.sim.cocotb_support import build_verilator, run_cocotb
+from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
+
+from board_scenes import crossing_patches, random_points
+from lean_bench import LeanBench, StepDriver
+from processor_vectors import hard_cases, random_tests
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
+
+
+def _reference(P, Q, V):
+    return np.array([blocked_reference(*(tuple(int(c) for c in x) for x in (p, q, v[0], v[1], v[2])))
+                     for p, q, v in zip(P, Q, V)], dtype=bool)
+
+
+def _single_tests(tests, first_mark=True):
+    """Each test a 1 x 1 record with its own patch (address = its index), a marker after it."""
+    steps = []
+    for i in range(len(tests)):
+        steps.append(Record(i, True, tests.P[i:i + 1], tests.Q[i:i + 1], np.ones(1, bool), np.ones(1, bool)))
+        if first_mark:
+            steps.append(Mark())
+    return steps
+
+
+def test_model_constants_are_the_rtls():
+    assert LEAN_EXACT_LATENCY == LeanExact.latency == 9
+    assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 31
+    assert default_lean_depth() == LeanArray.default_depth(2) == 33       # behind the board's memory
+
+
+@pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4))])
+def test_model_bits_equal_the_reference_on_processor_vectors(bits, fmt):
+    """Every delivered bit of the model (filter where decided, exact unit where not) equals the
+    independent orient3d predicate, on hard cases and random blocks, one test per record."""
+    seed = 3000 + bits
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    hard = hard_cases(bits)
+    tests = hard[rng.permutation(len(hard))[:1500]] + random_tests(bits, 800, rng)
+    model = LeanArrayModel(bits, 1, 1, fmt=fmt)
+    trace = model.run(_single_tests(tests), tests.V, tests.n)
+    got = np.array([h[0, 0] for h in trace.hits])
+    want = _reference(tests.P, tests.Q, tests.V)
+    assert (got == want).all(), np.flatnonzero(got != want)[:10]
+    assert trace.undecided.sum() > 0                     # the exact unit's path is exercised
+    print("undecided", int(trace.undecided.sum()), "of", len(tests), "cycles", trace.cycles)
+
+
+def _scene_blocks(rng, bits, rows, cols, blocks, patches):
+    """Random blocks of the board's kind: points, crossing-heavy patches, some records gapped."""
+    out = []
+    for _ in range(blocks):
+        P, Q = random_points(rng, bits, cols), random_points(rng, bits, rows)
+        V = crossing_patches(rng, bits, P, Q, int(rng.integers(1, patches)))
+        out.append((P, Q, V))
+    return out
+
+
+def _steps(rng, blocks, rows, cols, gap=0.2, partial=True):
+    """Steps of ``blocks`` (P, Q, V of each) with patch addresses into the concatenated V; a
+    marker after each block; random gaps; a partial block's row and column masks."""
+    steps, Vs = [], []
+    for P, Q, V in blocks:
+        row_mask, col_mask = np.ones(rows, bool), np.ones(cols, bool)
+        if partial and rng.random() < 0.3:
+            row_mask[rng.integers(rows)] = False
+            col_mask[rng.integers(cols)] = False
+        for i in range(len(V)):
+            while rng.random() < gap:
+                steps.append(Gap())
+            steps.append(Record(len(Vs), i == 0, P, Q, row_mask, col_mask))
+            Vs.append(V[i])
+        steps.append(Mark())
+    V = np.array(Vs, dtype=np.int64)
+    return steps, V, patch_normals(V)
+
+
+def test_model_on_a_small_scene_equals_the_exact_blocks():
+    """2 x 3 array, 3 x 3-bit filter (many undecided), 30 blocks: the OR at each marker equals
+    blocked_block's OR over the block, where the rows and columns are loaded."""
+    seed = 3101
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    bits, rows, cols = 10, 2, 3
+    blocks = _scene_blocks(rng, bits, rows, cols, 30, 10)
+    steps, V, n = _steps(rng, blocks, rows, cols)
+    trace = LeanArrayModel(bits, rows, cols, fmt=FilterFormat(3, 3)).run(steps, V, n)
+    records = [s for s in steps if isinstance(s, Record)]
+    k = 0
+    for b, (P, Q, Vb) in enumerate(blocks):
+        mask = records[k].row_mask[:, None] & records[k].col_mask[None, :]
+        want = blocked_block(P, Q, Vb, patch_normals(Vb)).any(axis=2)
+        assert ((trace.hits[b] & mask) == (want & mask)).all(), b
+        k += len(Vb)
+    assert trace.undecided.sum() > 20
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
+
+
+def _run_rtl(bits, rows, cols, fmt, depth, steps, V, n):
+    """The RTL in the Amaranth simulator under the owner's credits (tests/lean_bench.py): the
+    cycle each step is presented, each marker's cycle and ``hit`` then."""
+    words = pack_array(patch_layout(bits), patch_columns(V, n))
+    bench = LeanBench(bits, rows, cols, fmt, depth, words)
+    driver = StepDriver(steps, words, bits, rows, cols, depth)
+    sim = Simulator(bench)
+    sim.add_clock(1e-8)
+
+    async def drive(ctx):
+        limit = 60 * len(steps) + 500
+        while not driver.done and driver.t < limit:
+            for name, value in driver.inputs().items():
+                port = getattr(bench, name)
+                ctx.set(port.as_value() if hasattr(port, "as_value") else port, value)
+            driver.observe(ctx.get(bench.delivered), ctx.get(bench.mark_out), ctx.get(bench.hit))
+            await ctx.tick()
+        assert driver.done, "the array stopped delivering"
+
+    sim.add_testbench(drive)
+    sim.run()
+    return np.array(driver.presented), np.array(driver.marks), driver.hits
+
+
+def _word(bits_rs):
+    return int(sum(1 << int(i) for i in np.flatnonzero(np.asarray(bits_rs).ravel())))
+
+
+def _run_verilator(bits, rows, cols, fmt, depth, steps, V, n, tmp_path):
+    """The Verilog of the same bench under cocotb + Verilator (tests/cocotb_lean.py)."""
+    words = pack_array(patch_layout(bits), patch_columns(V, n))
+    build = build_verilator(LeanBench(bits, rows, cols, fmt, depth, words), name=f"lean_bench_{rows}x{cols}")
+    print(f"verilator build: {'cached' if build.cached else f'{build.seconds:.1f} s'}")
+    (tmp_path / "steps.pkl").write_bytes(pickle.dumps((steps, words, bits, rows, cols, depth)))
+    out = tmp_path / "out.json"
+    run_cocotb(build, "cocotb_lean", module_dir=Path(__file__).parent, test_dir=tmp_path,
+               env={"BLOCKRAY_STEPS": str(tmp_path / "steps.pkl"), "BLOCKRAY_OUT": str(out)})
+    got = json.loads(out.read_text())
+    return np.array(got["presented"]), np.array(got["marks"]), got["hits"]
+
+
+def _compare(bits, rows, cols, fmt, depth, steps, V, n, run=_run_rtl):
+    model = LeanArrayModel(bits, rows, cols, fmt=fmt, depth=depth)
+    trace = model.run(steps, V, n)
+    presented, marks, hits = run(bits, rows, cols, model.fmt, model.depth, steps, V, n)
+    assert (presented == trace.cycle).all(), np.flatnonzero(presented != trace.cycle)[:5]
+    assert list(marks) == list(trace.marks)
+    masks = []
+    for s in steps:
+        if isinstance(s, Record):
+            mask = _word(s.row_mask[:, None] & s.col_mask[None, :])
+        elif isinstance(s, Mark):
+            masks.append(mask)
+    got = [h & m for h, m in zip(hits, masks)]
+    want = [_word(h) & m for h, m in zip(trace.hits, masks)]
+    assert got == want, [k for k, (a, b) in enumerate(zip(got, want)) if a != b][:5]
+    return trace
+
+
+@pytest.mark.parametrize("bits,fmt,depth,count", [(6, FilterFormat(3, 3), None, 160), (16, None, None, 160),
+                                                   (16, FilterFormat(3, 4), 5, 120)])
+def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
+    """1 x 1 lean array, one test per record and a marker after each: cycles and bits equal the
+    model's, zero tolerance (hard cases and random tests)."""
+    seed = 3200 + bits + (depth or 0)
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    hard = hard_cases(bits)
+    tests = hard[rng.permutation(len(hard))[:count]] + random_tests(bits, count // 2, rng)
+    trace = _compare(bits, 1, 1, fmt, depth, _single_tests(tests), tests.V, tests.n)
+    assert trace.undecided.sum() > 0
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
+
+
+@pytest.mark.parametrize("bits,rows,cols,fmt,depth,seed", [(8, 2, 2, FilterFormat(3, 3), None, 3301),
+                                                           (8, 2, 3, FilterFormat(3, 3), 6, 3302),
+                                                           (12, 2, 2, None, None, 3303)])
+def test_rtl_equals_model_on_blocks(bits, rows, cols, fmt, depth, seed):
+    """R x S lean arrays on random blocks with gaps, partial blocks and markers: cycles and the
+    accumulators' bits at every marker equal the model's (and the small depth loses cycles to
+    the credits)."""
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    blocks = _scene_blocks(rng, bits, rows, cols, 8, 8)
+    steps, V, n = _steps(rng, blocks, rows, cols)
+    trace = _compare(bits, rows, cols, fmt, depth, steps, V, n)
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
+
+
+def test_parameters_are_checked():
+    with pytest.raises(ParameterError, match="address_bits"):
+        LeanArray(8, 2, 2, address_bits=0)
+    with pytest.raises(ValueError, match="depth"):
+        LeanArray(8, 2, 2, depth=2)
+    assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
+
+
+def test_model_board_lean_equals_exact(rtl_room):
+    """The model board with the lean cell (``--cell lean --board model``) and behind the byte
+    link: radiosity and tests equal the exact cell's; at 3 x 3 bits the broadcast stalls for the
+    shared exact unit, and the model behind the link counts the same per-board cycles."""
+    def run(board, **cell):
+        return render(rtl_room, backend=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
+
+    exact = run("model")
+    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3))
+    assert np.array_equal(lean.radiosity, exact.radiosity)
+    for key in ("tests_issued", "tests_useful", "blocks", "rays"):
+        assert lean.report[key] == exact.report[key], key
+    assert (np.array(lean.report["board_cycles_per_board"]) > np.array(exact.report["board_cycles_per_board"])).all()
+    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3))
+    assert np.array_equal(link.radiosity, lean.radiosity)
+    for key in ("board_cycles_per_board", "tests_issued_per_board"):
+        assert link.report[key] == lean.report[key], key
+    print("board_cycles exact", exact.report["board_cycles"], "lean 3x3", lean.report["board_cycles"])
+
+
+def test_the_lean_board_is_refused_with_one_line():
+    with pytest.raises(ParameterError, match="lean cell has no board"):
+        BoardTop(BoardParams(bits=8, rows=2, cols=2), cell="lean")
+
+
+@pytest.mark.slow           # a Verilator build of minutes
+@pytest.mark.cocotb
+def test_verilator_equals_model_on_blocks(tmp_path):
+    """The Verilog 2 x 2 lean array under cocotb + Verilator, B = 12, 3 x 3 bits (many tests to
+    the exact unit), random blocks with gaps, partial masks and markers: the cycle every step is
+    presented, every marker's cycle and ``hit`` equal the model's."""
+    seed = 3401
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    bits, rows, cols = 12, 2, 2
+    steps, V, n = _steps(rng, _scene_blocks(rng, bits, rows, cols, 40, 10), rows, cols)
+    trace = _compare(bits, rows, cols, FilterFormat(3, 3), None, steps, V, n,
+                     run=lambda *a: _run_verilator(*a, tmp_path))
+    assert trace.undecided.sum() > 50
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
