@@ -28,7 +28,7 @@ from blockray.samples import SampleScheme
 from blockray.sim.drive import HostTiming
 from blockray.sim.model import ModelBoard
 
-from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
+from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_scene
 
 #: the counters the RTL must reproduce exactly (ModelBoard.counters keys)
 COUNTER_KEYS = ("board_cycles", "tests_issued", "tests_useful", "tests", "utilization",
