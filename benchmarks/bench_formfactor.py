@@ -9,6 +9,7 @@
     python benchmarks/bench_formfactor.py versus cornell room   # against an earlier formfactor.py: speed, radiosity
     python benchmarks/bench_formfactor.py unresolved cornell room   # pairs no route certifies
     python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
+    python benchmarks/bench_formfactor.py estimators # energy balance of an occluded box per visibility estimator
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
@@ -337,6 +338,158 @@ def end_points(args):
               f"mean {x.mean():+.2e}, min {x.min():+.2e}, max {x.max():+.2e}", flush=True)
 
 
+def _sub_centroids(T, levels):
+    """Centroids of the 4^levels congruent sub-triangles of each triangle: (N, 4^levels, 3)."""
+    tris = T[:, None]
+    for _ in range(levels):
+        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
+    return tris.mean(axis=2)
+
+
+def _kernel(p, n_p, q, n_q):
+    """Point-to-point kernel cos cos / r^2 (up to 1/pi), each cosine clipped at 0 (broadcasts)."""
+    d = q - p
+    r2 = (d * d).sum(-1)
+    return np.maximum((d * n_p).sum(-1), 0) * np.maximum(-(d * n_q).sum(-1), 0) / np.maximum(r2, 1e-300) ** 2
+
+
+def _on_lattice(T, y, D):
+    """Integer barycentric weights (M, 3), summing to D, of a point of the 1/D lattice of
+    triangle T[m] near y[m] (y on the triangle), every weight at least 1: an exact rational point
+    strictly inside the triangle (a point on an edge would be blocked by the neighbour across it)."""
+    e1, e2, d = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0], y - T[:, 0]
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    r1, r2 = (d * e1).sum(1), (d * e2).sum(1)
+    det = g11 * g22 - g12 ** 2
+    u = np.clip(np.rint((g22 * r1 - g12 * r2) / det * D), 1, D - 2).astype(np.int64)
+    v = np.clip(np.rint((g11 * r2 - g12 * r1) / det * D), 1, D - 2).astype(np.int64)
+    v = np.minimum(v, D - 1 - u)
+    return np.stack([D - u - v, u, v], axis=1)
+
+
+ESTIMATORS = {
+    "centroid": "the render's: rays from i's K samples to j's centroid (reverse rays where it is behind i)",
+    "pair-centroid": "one end point per pair: j's centroid weighted by the kernel summed over i",
+    "sample-centroid": "one end point per ray: j's kernel-weighted centroid seen from that sample",
+    "sample-centroid/21": "the same on the nearest point of j's 1/21 barycentric lattice (the board's D)",
+    "KxK": "K x K rays to j's K sample points, each weighted by the point-to-point kernel",
+    "cell-centroids": "4 end points per pair: each quarter of j's kernel-weighted centroid, weighted by its kernel mass",
+    "KxK-sum": "K x K rays to j's K sample points, j's weighted by the kernel summed over i, i's by their point factor",
+    "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
+}
+
+
+def estimators(args):
+    """Energy balance of an occluded closed scene with each visibility estimator of ESTIMATORS:
+    the exact factor F_ji times a weighted clear fraction (weights: each shooter sample's point
+    factor to j, formfactor.sample_weights; KxK: the point-to-point kernel), rays decided by the
+    exact predicate over every patch (exact_float.blocked_rays), Jacobi to 1e-9."""
+    from blockray.exact_float import blocked_rays
+    from blockray.host_driver.solver import jacobi
+    from blockray.samples import SampleScheme
+    if args.scene == "block":
+        from test_energy_closure import _box_with_block
+        scene = _box_with_block()
+    elif args.scene == "slab":
+        from test_contact import closed_box_with_slab
+        from blockray.host_driver.contact import split_contacts
+        scene = split_contacts(closed_box_with_slab())[0]
+    else:
+        scene = next(s for name, s in closed_scenes() if name.startswith(args.scene))
+    K, levels = args.samples, 3
+    samples = SampleScheme(K)
+    W = np.asarray(samples.weights, dtype=np.int64)
+    V, A, nrm, N = scene.patch_vertices, scene.areas, scene.normals, scene.patches
+    X, SP, SPi = samples.points(V), _sub_centroids(V, levels), _sub_centroids(V, args.shooter_levels)
+    fine = 3 * 2 ** 24                                   # end points exact on j's plane, about 1e-7 of it off y
+
+    def clear(i, P_w, j, Q_w):
+        """(len(Q_w), len(P_w)) clear bits: from i's points P_w to j's points Q_w (barycentric)."""
+        return ~blocked_rays(np.repeat(V[i][None], len(P_w), axis=0), P_w, np.repeat(V[j][None], len(Q_w), axis=0),
+                             Q_w, V)
+
+    F = np.zeros((N, N))
+    for i in range(N):
+        F[:, i] = ff.unoccluded_factors(scene, i)
+    print(f"{scene.name}: {N} patches, K = {K}; exact factors done", flush=True)
+    out = {e: np.zeros((N, N)) for e in args.which}
+    for i in range(N):
+        J = np.flatnonzero(F[:, i] > 0)
+        if not len(J):
+            continue
+        w = ff.pair_sample_weights(scene, samples, np.full(len(J), i), J)                      # (J, K)
+        front = ff.centroid_in_front(scene, i, J)
+        for e in args.which:
+            bits = np.zeros((len(J), K))
+            weights = w
+            if e == "centroid":
+                for m, j in enumerate(J):
+                    if front[m]:
+                        bits[m] = clear(i, W, j, [[1, 1, 1]])[0]
+                weights = w.copy()
+                for m in np.flatnonzero(~front):                                             # reverse rays
+                    j = J[m]
+                    bits[m] = clear(j, W, i, [[1, 1, 1]])[0]
+                    weights[m] = ff.pair_sample_weights(scene, samples, [j], [i])[0]
+            elif e.startswith("pair-centroid"):
+                g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                # (a pair whose kernel vanishes at every cubature point keeps j's centroid)
+                total = g.sum(1)[:, None]
+                y = np.where(total > 0, (g[..., None] * SP[J]).sum(1) / np.where(total > 0, total, 1), SP[J].mean(1))
+                y = _on_lattice(V[J], y, int(e.split("/")[1]) if "/" in e else fine)
+                for m in range(len(J)):
+                    bits[m] = clear(i, W, J[m], y[m][None])[0]
+            elif e.startswith("sample-centroid"):
+                g = _kernel(X[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None])     # (J, K, M)
+                total = g.sum(2)[..., None]
+                y = np.where(total > 0, (g[..., None] * SP[J][:, None]).sum(2) / np.where(total > 0, total, 1),
+                             SP[J].mean(1)[:, None])
+                y = _on_lattice(np.repeat(V[J], K, axis=0), y.reshape(-1, 3),
+                                21 if e.endswith("/21") else fine).reshape(len(J), K, 3)
+                for m in range(len(J)):
+                    for k in range(K):
+                        bits[m, k] = clear(i, W[k:k + 1], J[m], y[m, k][None])[0, 0]
+            elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
+                g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
+                v = np.zeros(len(J))
+                for m in range(len(J)):
+                    mass = np.array([g[m, cell == q].sum() for q in range(4)])
+                    y = np.array([(g[m, cell == q, None] * SP[J[m], cell == q]).sum(0) / mass[q] if mass[q] > 0
+                                  else SP[J[m], cell == q].mean(0) for q in range(4)])
+                    b = clear(i, W, J[m], _on_lattice(np.repeat(V[J[m]][None], 4, axis=0), y, fine))   # (4, K)
+                    weight = w[m][None, :] * mass[:, None]
+                    v[m] = (weight * b).sum() / weight.sum() if weight.sum() > 0 else b.mean()
+                out[e][J, i] = F[J, i] * v
+                continue
+            elif e.startswith("KxK"):
+                Y = X[J]
+                g = _kernel(X[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None])       # (J, K, K)
+                if e == "KxK-area":         # j's points in front of i's plane, equally
+                    ahead = np.array([ff.samples_in_front(scene, samples, j, [i])[0] for j in J], dtype=float)
+                    g = w[:, :, None] * ahead[:, None, :]
+                elif e == "KxK-sum":        # j's points by the kernel summed over i
+                    u = _kernel(SPi[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None]).sum(axis=1)
+                    g = w[:, :, None] * u[:, None, :]
+                v = np.zeros(len(J))
+                for m in range(len(J)):
+                    b = clear(i, W, J[m], W).T                                                   # (K, K)
+                    v[m] = (g[m] * b).sum() / g[m].sum() if g[m].sum() > 0 else b.mean()
+                out[e][J, i] = F[J, i] * v
+                continue
+            total = weights.sum(1)
+            v = np.where(total > 0, (weights * bits).sum(1) / np.where(total > 0, total, 1), bits.mean(1))
+            out[e][J, i] = F[J, i] * v
+    for e in args.which:
+        sums = (A[:, None] * out[e]).sum(axis=0) / A - 1
+        B = jacobi(scene, out[e], tolerance=1e-9, max_iterations=5000).B
+        bal = absorbed_balance(scene, B)
+        print(f"| {e} | {', '.join(f'{100 * b:+.3f}%' for b in bal)} | {np.average(sums, weights=A):+.2e} "
+              f"({sums.min():+.2e}, {sums.max():+.2e}) |", flush=True)
+
+
 def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
@@ -595,6 +748,14 @@ def main(argv=None):
     ch.add_argument("new", help="radiosity compared with it")
     en = sub.add_parser("ends")
     en.add_argument("--samples", type=int, default=8)
+    es = sub.add_parser("estimators")
+    es.add_argument("--scene", default="block", help="block (a cube in a box, 60 patches), slab (a slab on a box's "
+                    "floor, cut along its contact lines) or a closed_scenes prefix")
+    es.add_argument("--samples", type=int, default=8)
+    es.add_argument("--which", nargs="+", default=list(ESTIMATORS),
+                    help=f"of {', '.join(ESTIMATORS)}; pair-centroid/N: on j's 1/N barycentric lattice")
+    es.add_argument("--shooter-levels", type=int, default=3,
+                    help="pair-centroid: the kernel summed over 4^L points of the shooter (and 64 of j)")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
@@ -617,7 +778,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
-     "versus": versus, "unresolved": unresolved, "closure": closure, "boards": boards, "change": change, "ends": end_points}[args.what](args)
+     "versus": versus, "unresolved": unresolved, "closure": closure, "boards": boards, "change": change, "ends": end_points,
+     "estimators": estimators}[args.what](args)
 
 
 if __name__ == "__main__":

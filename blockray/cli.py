@@ -85,7 +85,7 @@ def _add_board_options(p):
                         "on each stream (--board amaranth)")
     g.add_argument("--link-faults", type=float, default=None, metavar="RATE",
                    help="flip, drop or duplicate each byte on every board's link, both ways, with probability "
-                        "RATE (--board model-link; faults are resent, or end the run naming the link)")
+                        "RATE (--board model-link, ulx3s-sim or ulx3s; faults are resent, or end the run naming the link)")
     g.add_argument("--link-seed", type=int, default=0, metavar="N",
                    help="seed of the simulated host's timing and of --link-faults")
 

@@ -7,7 +7,10 @@ A frame before stuffing (docs/board-protocol.md, "Link integrity")::
     flags (1) | seq (1) | ack (1) | len (1) | payload (len bytes) | CRC-32 (4, little-endian)
 
 ``flags`` bit 0 (:data:`RESEND`): "resend everything from ``ack`` on" (a NAK, or the host's poll
-after a time-out). ``seq``: the frame's number (mod 256) if it carries a payload; a frame with
+after a time-out; a side asked to resend answers at least with an acknowledgement, so a poll
+always gets an answer). ``flags`` bit 1 (:data:`STATUS`): a link-status frame, never data: with
+``len == 0`` it asks the other side for its counters, with a payload it carries them
+(:data:`STATUS_FIELDS`, 2 bytes each, little-endian, mod 65536). ``seq``: the frame's number (mod 256) if it carries a payload; a frame with
 ``len == 0`` is a pure acknowledgement and takes no number. ``ack``: the next frame number the
 sender expects from the other side (cumulative). The CRC (CRC-32/ISO-HDLC, ``zlib.crc32``) covers
 the first four fields and the payload. On the wire the frame is COBS-stuffed (no zero bytes)
@@ -26,11 +29,14 @@ from dataclasses import dataclass
 
 from cobs import cobs
 
-__all__ = ["RESEND", "HEADER_BYTES", "CRC_BYTES", "MAX_PAYLOAD", "DELIMITER", "crc32", "encode_frame",
+__all__ = ["RESEND", "STATUS", "STATUS_FIELDS", "HEADER_BYTES", "CRC_BYTES", "MAX_PAYLOAD", "DELIMITER", "crc32", "encode_frame",
            "parse_frame", "Frame", "FrameError", "FrameSplitter", "Endpoint", "wire_frame_bytes", "LinkConfig",
            "HOST_LINK", "BOARD_LINK"]
 
 RESEND = 0x01
+STATUS = 0x02
+#: a status frame's payload: these counts of the side that sends it, 2 bytes each
+STATUS_FIELDS = ("frames_resent", "errors", "frames_accepted")
 HEADER_BYTES = 4
 CRC_BYTES = 4
 #: a frame's payload at most: header + payload + CRC = 254 bytes, so COBS adds exactly one byte
@@ -172,6 +178,9 @@ class Endpoint:
         self._ask_resend = False        # our next frame asks the other side to resend
         self._nak_sent = False
         self._ack_due = False
+        self._status_due = False        # the other side asked for our counters
+        self._ask_status = False        # our next frame asks the other side for its counters
+        self.peer_status = None         # the other side's counters (STATUS_FIELDS), when they came
         self.counts = {"frames_sent": 0, "frames_resent": 0, "frames_accepted": 0, "naks_sent": 0,
                        "crc": 0, "length": 0, "stuffing": 0, "short": 0, "garbage_bytes": 0,
                        "out_of_order": 0, "discarded": 0, "duplicate": 0,
@@ -205,7 +214,9 @@ class Endpoint:
                 self._nak()
                 continue
             self._take_ack(frame)
-            if frame.payload:
+            if frame.flags & STATUS:
+                self._take_status(frame)
+            elif frame.payload:
                 out += self._take_data(frame)
         return bytes(out)
 
@@ -216,8 +227,26 @@ class Endpoint:
                 self._unacked.popleft()
             self.base = frame.ack
         if frame.flags & RESEND:
-            self._resend = True
+            self._resend = self._ack_due = True
             self.last_fault = "the other side asked for a resend (it received a corrupted frame or missed one)"
+
+    def _take_status(self, frame):
+        if not frame.payload:
+            self._status_due = True
+        elif len(frame.payload) == 2 * len(STATUS_FIELDS):
+            p = frame.payload
+            self.peer_status = {k: int.from_bytes(p[2 * i:2 * i + 2], "little") for i, k in enumerate(STATUS_FIELDS)}
+
+    def status(self):
+        """Our counters as a status frame carries them (:data:`STATUS_FIELDS`, mod 65536)."""
+        c = self.counts
+        values = (c["frames_resent"], self.faults(), c["frames_accepted"])
+        return b"".join((v & 0xFFFF).to_bytes(2, "little") for v in values)
+
+    def request_status(self):
+        """Ask the other side for its counters (they come as :attr:`peer_status`)."""
+        self._ask_status = True
+        self.peer_status = None
 
     def _take_data(self, frame):
         gap = _ahead(frame.seq, self.expect)
@@ -263,12 +292,18 @@ class Endpoint:
             out += self._frame(self.next, payload)
             self.next = (self.next + 1) % _SEQ
             self.counts["frames_sent"] += 1
+        if self._status_due:
+            out += self._frame(self.next, self.status(), STATUS)
+            self._status_due = False
+        if self._ask_status:
+            out += self._frame(self.next, b"", STATUS)
+            self._ask_status = False
         if not out and (self._ack_due or self._ask_resend):
             out += self._frame(self.next, b"")
         return bytes(out)
 
-    def _frame(self, seq, payload):
-        flags = RESEND if self._ask_resend else 0
+    def _frame(self, seq, payload, flags=0):
+        flags |= RESEND if self._ask_resend else 0
         self._ask_resend = self._ack_due = False
         return encode_frame(Frame(flags, seq, self.expect, payload))
 

@@ -170,20 +170,20 @@ register(Backend("verilator", "the board's Verilog under Verilator + cocotb; bui
                  _driven("verilator", _verilator), waveform=True, cells=_CELLS))
 
 
-def _ulx3s_sim(p, b, *, vcd, host):
+def _ulx3s_sim(p, b, *, vcd, host, faults=None):
     from .ulx3s import ulx3s_sim_transport
-    return ulx3s_sim_transport(p, b, vcd=vcd, host=host)
+    return ulx3s_sim_transport(p, b, vcd=vcd, host=host, faults=faults)
 
 
-def _ulx3s(params, *, bits, partition, vcd, host, port=(), baud=None):
+def _ulx3s(params, *, bits, partition, vcd, host, port=(), baud=None, faults=None):
     from .ulx3s import ulx3s_board
-    return ulx3s_board(params, port, baud=baud, bits=bits, partition=partition)
+    return ulx3s_board(params, port, baud=baud, bits=bits, partition=partition, faults=faults)
 
 
-register(Backend("ulx3s-sim", "the ULX3S top level, UART included, under Verilator (bit-identical to model)",
-                 _driven("ulx3s-sim", _ulx3s_sim)))
+register(Backend("ulx3s-sim", "the ULX3S top level, UART and framed link included, under Verilator "
+                 "(bit-identical to model; --link-faults)", _driven("ulx3s-sim", _ulx3s_sim), faults=True))
 register(Backend("ulx3s", "a ULX3S-85F board on a serial port (--port, --baud; docs/ulx3s.md)", _ulx3s,
-                 serial=True))
+                 serial=True, faults=True))
 
 
 def help_text():

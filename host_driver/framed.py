@@ -4,16 +4,21 @@ and a transport that injects faults.
 * :class:`FramedTransport`: a :class:`~blockray.host_driver.transport.Transport` that carries
   the core's bytes in numbered, CRC-checked frames over a raw byte ``pipe`` and resends what was
   lost or corrupted. A fault is corrected, or, after ``max_retries`` rounds without progress,
-  ends the run with one :class:`TransportError` naming the link and the last fault seen.
+  ends the run with one :class:`TransportError` naming the link and the last fault seen. It
+  reads the board's own counters (frames resent, errors, frames accepted) with a status frame.
+  Over a serial port (a ULX3S, :mod:`~blockray.host_driver.serial_link`) and the simulated one
+  (``ulx3s-sim``, :mod:`~blockray.host_driver.uart_sim`) the pipe's ``reset()`` is a break, which
+  resets the board's link and core.
 * :class:`ModelBoardLink`: the pipe to the bit-exact model behind the board's half of the
   framing (an :class:`~blockray.framing.Endpoint`, as the RTL is to be): ``--board model-link``.
 * :class:`FaultyPipe`: flips, drops and duplicates bytes of a pipe in both directions at a rate
   per byte, seeded (``--link-faults RATE --link-seed N``).
 
 A pipe has ``write(data)``, ``read(timeout) -> bytes`` (what arrived within ``timeout``
-seconds; empty: a time-out) and ``reset()``.
+seconds; empty: a time-out) and ``reset()``; optionally ``stats()`` and ``close()``.
 """
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,8 +90,13 @@ class FaultyPipe:
     def reset(self):
         self.pipe.reset()
 
+    def close(self):
+        if hasattr(self.pipe, "close"):
+            self.pipe.close()
+
     def stats(self):
-        return {**self.pipe.stats(), "injected": {"to_board": dict(self.outgoing.counts),
+        pipe = self.pipe.stats() if hasattr(self.pipe, "stats") else {}
+        return {**pipe, "injected": {"to_board": dict(self.outgoing.counts),
                                                   "from_board": dict(self.incoming.counts)}}
 
 
@@ -113,22 +123,33 @@ class ModelBoardLink:
         self.endpoint.reset()
 
     def stats(self):
+        """The model's own counts (the host reads the same over the link, as ``board``)."""
         e = self.endpoint
-        return {"board": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts}}
+        return {"board_model": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts}}
+
+
+#: the longest time-out, in units of FramedTransport's ``timeout``
+_MAX_BACKOFF = 16
 
 
 class FramedTransport(Transport):
     """The core's bytes over ``pipe`` in frames (see the module docstring). ``where`` names the
     link in errors; ``timeout``: seconds of silence before a resend (a board answers within a
-    USB round trip, a few ms); ``max_retries``: resends in
-    a row without progress (no frame acknowledged or accepted) before the link is given up."""
+    USB round trip, a few ms), doubled after each time-out up to 16 times, halved after progress
+    (so a window still in transit is not resent over and over); ``max_retries``: the link is given up after ``max_retries`` time-outs
+    worth of time without progress (no frame acknowledged or accepted);
+    ``answer_timeout``: if given, every :meth:`reset` waits at most this long for the board's
+    answer to a status frame (a board that does not answer is one :class:`TransportError`)."""
 
-    def __init__(self, pipe, *, where, config=HOST_LINK, timeout=0.05, max_retries=32):
+    def __init__(self, pipe, *, where, config=HOST_LINK, timeout=0.05, max_retries=32, answer_timeout=None):
         super().__init__()
         self.pipe, self.where, self.timeout, self.max_retries = pipe, where, timeout, max_retries
+        self.answer_timeout = answer_timeout
         self.endpoint = Endpoint(config)
         self._results = bytearray()
         self._resets = 0
+        self._failed = False
+        self._wait = 1          # the time-out in units of ``timeout``: doubled on a time-out, halved on progress
         self.wire_sent = self.wire_received = 0     # bytes on the wire, frames and resends included
 
     def send(self, data):
@@ -144,52 +165,91 @@ class FramedTransport(Transport):
     def recv(self, count, *, timeout=None):
         e = self.endpoint
         silence = self.timeout if timeout is None else timeout
-        stuck, mark = 0, None
+        mark, since = None, time.monotonic()
         while len(self._results) < count:
             self._flush()
-            data = self.pipe.read(silence)
+            data = self.pipe.read(self._wait * silence)
             self.wire_received += len(data)
             if data:
                 self._results += e.receive(data)
             now = (e.base, e.expect)
             if now != mark:
-                stuck, mark = 0, now
+                mark, since = now, time.monotonic()
+                self._wait = max(1, self._wait // 2)
                 continue
-            stuck += 1
-            if stuck > self.max_retries:
-                raise TransportError(self._failure(count))
-            if not data:
+            if time.monotonic() - since > self.max_retries * silence:
+                self._failed = True
+                raise TransportError(self._failure(count, silence))
+            if not data:        # a time-out: resend, and wait longer next time (the window may be in transit)
                 e.rewind()
+                self._wait = min(2 * self._wait, _MAX_BACKOFF)
         self._flush()                               # acknowledge what came
         out = bytes(self._results[:count])
         del self._results[:count]
         return out
 
-    def _failure(self, count):
+    def _failure(self, count, silence):
         fault = (self.endpoint.last_fault or "no answer from the board").replace("the other side", "the board")
-        return (f"{self.where}: the link failed: {self.max_retries} resends without progress, "
+        return (f"{self.where}: the link failed: no progress in {self.max_retries} time-outs of {silence:g} s, "
                 f"{len(self._results)} of {count} result bytes received (last fault: {fault})")
 
     def reset(self):
+        """Reset the pipe (and with it the board's link), number frames from 0 again; with an
+        ``answer_timeout``, check the board answers."""
         self.pipe.reset()
         self.endpoint.reset()
         self._results.clear()
         self._resets += 1
+        self._failed = False
+        if self.answer_timeout is not None and self.board_status(self.answer_timeout) is None:
+            self._failed = True
+            raise TransportError(f"{self.where}: no answer from the board within {self.answer_timeout:g} s of a "
+                                 f"reset (is the bitstream loaded, at this baud rate?)")
+
+    def board_status(self, seconds):
+        """The board's counters (:data:`~blockray.framing.STATUS_FIELDS`, mod 65536) from a status
+        frame, asked again each ``timeout`` without an answer; None if none came in ``seconds``."""
+        e = self.endpoint
+        e.request_status()
+        deadline = time.monotonic() + seconds
+        while True:
+            self._flush()
+            data = self.pipe.read(max(0.0, min(self.timeout, deadline - time.monotonic())))
+            self.wire_received += len(data)
+            if data:
+                self._results += e.receive(data)
+            if e.peer_status is not None:
+                return e.peer_status
+            if time.monotonic() >= deadline:
+                return None
+            if not data:                    # the request or its answer was lost: ask again
+                e.request_status()
+
+    def close(self):
+        if hasattr(self.pipe, "close"):
+            self.pipe.close()
 
     def stats(self):
+        """The pipe's, the host's frame counts, the board's (read over the link; absent once the
+        link has failed) and the wire bytes."""
         e = self.endpoint
         pipe = self.pipe.stats() if hasattr(self.pipe, "stats") else {}
-        return {**pipe, "host": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts},
-                "resets": self._resets, "wire_bytes_sent": self.wire_sent, "wire_bytes_received": self.wire_received}
+        out = {**pipe, "host": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts}}
+        board = None if self._failed else self.board_status(max(1.0, self.max_retries * self.timeout))
+        if board is not None:
+            out["board"] = board
+        return {**out, "resets": self._resets, "wire_bytes_sent": self.wire_sent,
+                "wire_bytes_received": self.wire_received}
 
 
 def integrity_report(stats):
     """The report's ``link_integrity`` from the transports' ``stats()``: frames resent and errors
-    seen (host and board sides) and the faults injected; None if no link is framed."""
+    seen, both sides together and the board's alone (``board_*``: the board's own counters, read
+    over the link), and the faults injected; None if no link is framed."""
     stats = [s for s in stats if "host" in s]
     if not stats:
         return None
-    out = {"frames_sent": 0, "frames_resent": 0, "errors": 0}
+    out = {"frames_sent": 0, "frames_resent": 0, "errors": 0, "board_frames_resent": 0, "board_errors": 0}
     for s in stats:
         out["frames_sent"] += s["host"]["frames_sent"]
         for key in ("wire_bytes_sent", "wire_bytes_received"):
@@ -197,6 +257,8 @@ def integrity_report(stats):
         for side in ("host", "board"):
             for key in ("frames_resent", "errors"):
                 out[key] += s.get(side, {}).get(key, 0)
+        for key in ("frames_resent", "errors"):
+            out[f"board_{key}"] += s.get("board", {}).get(key, 0)
         for counts in s.get("injected", {}).values():
             for kind, n in counts.items():
                 out[f"injected_{kind}"] = out.get(f"injected_{kind}", 0) + n

@@ -22,14 +22,15 @@ CAPACITY_HINT = ("rebuild the bitstream with larger memories (blockray bitstream
                  "(--max-edge)")
 
 
-def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal", open_link=None):
+def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal", open_link=None, faults=None):
     """The host driver over ULX3S boards, one behind each of ``ports`` (``params.boards`` of them).
 
     Every link is opened and reset first, then every board is asked for its configuration
     (IDENTIFY): the boards' memories and, unless ``bits`` asks for a B, their B are what board 0
     answers; R and S are ``params``' (the driver checks every board against the whole
     configuration before it uploads). ``open_link(port, baud=)``: the transport of one port
-    (default :func:`ulx3s_transport`)."""
+    (default :func:`ulx3s_transport`; with ``faults``, a
+    :class:`~blockray.host_driver.framed.LinkFaults`, it gets ``faults=`` and ``board=`` too)."""
     from .driver import BoardDriver
     open_link = open_link or ulx3s_transport
     ports = (ports,) if isinstance(ports, str) else tuple(ports or ())
@@ -41,8 +42,8 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal"
                              f"{len(ports)}", parameter="boards")
     links = []
     try:
-        for port in ports:
-            links.append(open_link(port, baud=baud))
+        for b, port in enumerate(ports):
+            links.append(open_link(port, baud=baud, **({} if faults is None else {"faults": faults, "board": b})))
         built = BoardDriver.identities_of(links, BoardProtocol(params))[0]
     except BaseException:
         for link in links:
@@ -54,17 +55,19 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal"
                        transport=lambda p, b: links[b])
 
 
-def ulx3s_transport(port, *, baud=DEFAULT_BAUD):
-    """Board behind serial ``port`` (a real ULX3S running ``blockray bitstream``'s bitstream)."""
-    return SerialTransport(port, baud=baud)
+def ulx3s_transport(port, *, baud=DEFAULT_BAUD, faults=None, board=0):
+    """Board behind serial ``port`` (a real ULX3S running ``blockray bitstream``'s bitstream), over
+    the framed link; ``faults``: a :class:`~blockray.host_driver.framed.LinkFaults` to inject."""
+    return SerialTransport(port, baud=baud, faults=faults, board=board)
 
 
-def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, fifo_depth=2048, result_depth=512):
-    """The board core for ``params`` behind the UART link under Verilator (bit time
-    ``SIM_DIVISOR`` cycles). ``vcd``/``host`` are not supported (the link sets the host's timing)."""
+def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, faults=None, fifo_depth=2048):
+    """The board core for ``params`` behind the UART and the framed link under Verilator (bit
+    time ``SIM_DIVISOR`` cycles); ``faults``: as :func:`ulx3s_transport`. ``vcd``/``host`` are not
+    supported (the link sets the host's timing)."""
     from ..errors import ParameterError
     from ..rtl.core import BoardCore
     if vcd is not None or host is not None:
         raise ParameterError("--board ulx3s-sim: the UART sets the host's timing; no --vcd or --host-timing")
-    return UartSimTransport(BoardCore(params), divisor=SIM_DIVISOR, fifo_depth=fifo_depth,
-                            result_depth=result_depth, name="blockray_ulx3s_sim")
+    return UartSimTransport(BoardCore(params), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
+                            board=board, name="blockray_ulx3s_sim")

@@ -25,24 +25,29 @@ host's window, 8 frames of 256 wire bytes, is the FIFO's 2048 bytes).
 
 import operator
 
-from amaranth.hdl import Array, Module, Mux, Signal
+from amaranth.hdl import Array, Cat, Module, Mux, Signal
 from amaranth.lib import crc, stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
-from ..framing import CRC_BYTES, FrameSplitter, HEADER_BYTES
+from ..framing import CRC_BYTES, FrameSplitter, HEADER_BYTES, RESEND, STATUS, STATUS_FIELDS
 
-__all__ = ["LinkStatus", "FrameReceiver", "FrameSender", "FramedBridge"]
+__all__ = ["LinkStatus", "FrameReceiver", "FrameSender", "FramedBridge", "COMMAND_DEPTH", "FRAME_MEMORY"]
 
 _BODY_MAX = FrameSplitter.limit - 1     # header + payload + CRC: 254 bytes, one COBS block
-_COMMAND_DEPTH = 512                    # accepted payload bytes waiting for the core: two frames
+#: accepted payload bytes waiting for the core: two frames
+COMMAND_DEPTH = 512
+#: the receiver's frame memory and the sender's stuffed frame, in bytes
+FRAME_MEMORY = 256
 
 #: what the receiver tells the sender: the next number it accepts (the sender's ``ack``) and, as
 #: one-cycle strobes, a good frame (``peer``: its ``peer_ack`` and RESEND flag), an
-#: acknowledgement owed, a NAK owed
+#: acknowledgement owed, a NAK owed, a status frame asked for
 LinkStatus = wiring.Signature({"expect": Out(8), "peer": Out(1), "peer_ack": Out(8), "peer_resend": Out(1),
-                               "ack_due": Out(1), "nak": Out(1)})
+                               "ack_due": Out(1), "nak": Out(1), "status_due": Out(1)})
+#: a status frame's payload bytes (STATUS_FIELDS, 2 bytes each)
+_STATUS_BYTES = 2 * len(STATUS_FIELDS)
 
 
 class FrameReceiver(wiring.Component):
@@ -140,7 +145,8 @@ class FrameReceiver(wiring.Component):
                         m.d.comb += [put.eq(1), put_data.eq(byte)]
                         m.d.sync += code_left.eq(code_left - 1)
             with m.State("Check"):
-                self._check(m, raw <= raw_max, count, code_left, check, seq, length, nak_sent, addr, left, raise_nak)
+                self._check(m, raw <= raw_max, count, code_left, check, flags, seq, length, nak_sent, addr, left,
+                            raise_nak)
                 restart()
             with m.State("Emit"):
                 m.d.comb += self.payload.valid.eq(1)
@@ -150,7 +156,7 @@ class FrameReceiver(wiring.Component):
                         m.next = "Collect"
         return m
 
-    def _check(self, m, fits, count, code_left, check, seq, length, nak_sent, addr, left, raise_nak):
+    def _check(self, m, fits, count, code_left, check, flags, seq, length, nak_sent, addr, left, raise_nak):
         """The frame is complete: accept it, acknowledge a duplicate, or ask for a resend."""
         good = Signal()
         m.d.comb += good.eq(fits & (code_left == 0) & (count >= HEADER_BYTES + CRC_BYTES)
@@ -163,7 +169,9 @@ class FrameReceiver(wiring.Component):
             raise_nak()
         with m.Else():
             m.d.comb += self.status.peer.eq(1)
-            with m.If(length == 0):
+            with m.If(flags[1]):                                # STATUS: never data
+                m.d.comb += self.status.status_due.eq(length == 0)
+            with m.Elif(length == 0):
                 pass                                            # a pure acknowledgement
             with m.Elif((gap == 0) & (length > self.space)):
                 pass            # no room behind: not accepted, so never blocking the acknowledgements behind it
@@ -188,15 +196,18 @@ class FrameSender(wiring.Component):
 
     Ports: ``results`` (In, from the core; taken while the open frame has room and the window a
     free slot), ``wire`` (Out, stuffed bytes to the UART), ``status`` (In, :data:`LinkStatus`,
-    from a :class:`FrameReceiver`), ``resent`` (frames sent again).
+    from a :class:`FrameReceiver`), ``resent`` (frames sent again), ``report`` (the counters a
+    status frame carries, :data:`~blockray.framing.STATUS_FIELDS` from bit 0 up, 16 bits each).
     A frame leaves when the transmitter is free, in :meth:`Endpoint.output`'s order: the
     unacknowledged frames again after a RESEND, else the open frame if it holds a byte, else a
-    pure acknowledgement (or NAK) if one is due."""
+    status frame if one was asked for, else a pure acknowledgement (or NAK) if one is due. A
+    RESEND asks for an acknowledgement too, so the host's poll is always answered."""
 
     results: In(stream.Signature(8))
     wire: Out(stream.Signature(8))
     status: In(LinkStatus)
     resent: Out(16)
+    report: In(16 * len(STATUS_FIELDS))
 
     def __init__(self, *, payload=128, window=4):
         for name, value, low, high in (("payload", payload, 1, _BODY_MAX - HEADER_BYTES - CRC_BYTES - 1),
@@ -211,7 +222,7 @@ class FrameSender(wiring.Component):
         m = Module()
         P, W = self._payload, self._window
         m.submodules.replay = replay = Memory(shape=8, depth=P * W, init=[])
-        m.submodules.encoded = encoded = Memory(shape=8, depth=256, init=[])
+        m.submodules.encoded = encoded = Memory(shape=8, depth=FRAME_MEMORY, init=[])
         m.submodules.crc = check = crc.catalog.CRC32_ETHERNET(data_width=8).create()
         fill_w, replay_r = replay.write_port(), replay.read_port(domain="comb")
         enc_w, enc_r = encoded.write_port(), encoded.read_port(domain="comb")
@@ -225,6 +236,7 @@ class FrameSender(wiring.Component):
         m.d.comb += open_slot.eq(nxt % W)
         open_len = lens[open_slot]
         resend, ask_resend, ack_owed = Signal(), Signal(), Signal()
+        self._status_owed = Signal()
 
         # the core's bytes fill the open frame while the window has its slot
         fill = Signal()
@@ -250,11 +262,13 @@ class FrameSender(wiring.Component):
                 with m.If((k - base)[:slot_bits] % W < acked):
                     m.d.sync += lens[k].eq(0)
         with m.If(self.status.peer & self.status.peer_resend):
-            m.d.sync += resend.eq(1)
+            m.d.sync += [resend.eq(1), ack_owed.eq(1)]
         with m.If(self.status.nak):
             m.d.sync += ask_resend.eq(1)
         with m.If(self.status.ack_due):
             m.d.sync += ack_owed.eq(1)
+        with m.If(self.status.status_due):
+            m.d.sync += self._status_owed.eq(1)
 
     def _frames(self, m, P, W, lens, base, nxt, in_flight, open_len, resend, ask_resend, ack_owed,
                 replay_r, enc_w, enc_r, check):
@@ -262,6 +276,8 @@ class FrameSender(wiring.Component):
         block's code byte), send it and its delimiter."""
         cursor, resending, seq, length = Signal(8), Signal(), Signal(8), Signal(8)
         flags, ack = Signal(8), Signal(8)
+        is_status, report = Signal(), Signal.like(self.report)
+        status_owed = self._status_owed
         idx = Signal(9)                         # body byte being built
         wp, code_pos, rd = Signal(8), Signal(8), Signal(8)
         body = Signal(8)
@@ -270,7 +286,7 @@ class FrameSender(wiring.Component):
             with m.State("Choose"):
                 off = Signal(8)
                 m.d.comb += off.eq(cursor - base)
-                start = Signal()
+                start, report_start = Signal(), Signal()
                 with m.If(resend):
                     m.d.sync += [cursor.eq(base), resending.eq(1), resend.eq(0)]
                 with m.Elif(resending & (off >= 128)):          # acknowledged meanwhile
@@ -285,11 +301,15 @@ class FrameSender(wiring.Component):
                     m.d.sync += [seq.eq(nxt), nxt.eq(nxt + 1), length.eq(open_len + (self.results.valid &
                                                                                         self.results.ready))]
                     m.d.comb += start.eq(1)
+                with m.Elif(status_owed):
+                    m.d.sync += [seq.eq(nxt), length.eq(_STATUS_BYTES), status_owed.eq(0), report.eq(self.report)]
+                    m.d.comb += [start.eq(1), report_start.eq(1)]
                 with m.Elif(ack_owed | ask_resend):
                     m.d.sync += [seq.eq(nxt), length.eq(0)]
                     m.d.comb += start.eq(1)
                 with m.If(start):
-                    m.d.sync += [flags.eq(ask_resend), ack.eq(self.status.expect), ask_resend.eq(0),
+                    m.d.sync += [flags.eq(Mux(ask_resend, RESEND, 0) | Mux(report_start, STATUS, 0)),
+                                 is_status.eq(report_start), ack.eq(self.status.expect), ask_resend.eq(0),
                                  ack_owed.eq(0),
                                  idx.eq(0), wp.eq(1), code_pos.eq(0)]
                     m.next = "Build"
@@ -300,7 +320,9 @@ class FrameSender(wiring.Component):
                             m.d.comb += body.eq(field)
                     with m.Default():
                         m.d.comb += replay_r.addr.eq((seq % W) * P + idx - HEADER_BYTES)
-                        with m.If(idx < crc_at):
+                        with m.If((idx < crc_at) & is_status):
+                            m.d.comb += body.eq(report.word_select((idx - HEADER_BYTES)[:3], 8))
+                        with m.Elif(idx < crc_at):
                             m.d.comb += body.eq(replay_r.data)
                         with m.Else():
                             m.d.comb += body.eq(check.crc.word_select((idx - crc_at)[:2], 8))
@@ -330,13 +352,13 @@ class FrameSender(wiring.Component):
 
 
 class FramedBridge(wiring.Component):
-    """The framed link between the UART's byte streams and the core (in place of
-    :class:`~blockray.rtl.link.LinkBridge`'s credits): ``rx_bytes`` -> receive FIFO of
+    """The framed link between the UART's byte streams and the core: ``rx_bytes`` -> receive FIFO of
     ``fifo_depth`` bytes -> :class:`FrameReceiver` -> ``commands``; ``results`` ->
     :class:`FrameSender` -> ``tx_bytes``. No credits: the host's window (8 frames of 256 wire
     bytes) fits the FIFO, so a UART byte never finds it full (``overrun`` shows if one did).
     Accepted payloads wait for the core in a 512-byte command FIFO; a frame that does not fit it
-    is not accepted (resent later), so the receiver never stalls on a busy core."""
+    is not accepted (resent later), so the receiver never stalls on a busy core. A status frame
+    reports the sender's frames resent and the receiver's errors and frames accepted."""
 
     rx_bytes: In(stream.Signature(8))
     commands: Out(stream.Signature(8))
@@ -357,9 +379,9 @@ class FramedBridge(wiring.Component):
         from amaranth.lib.fifo import SyncFIFOBuffered
         m = Module()
         m.submodules.fifo = fifo = SyncFIFOBuffered(width=8, depth=self._fifo_depth)
-        m.submodules.commands = cmd = SyncFIFOBuffered(width=8, depth=_COMMAND_DEPTH)
+        m.submodules.commands = cmd = SyncFIFOBuffered(width=8, depth=COMMAND_DEPTH)
         m.submodules.receiver = rx = self.receiver
-        free = _COMMAND_DEPTH - cmd.level
+        free = COMMAND_DEPTH - cmd.level
         m.d.comb += rx.space.eq(Mux(free > 255, 255, free))
         m.submodules.sender = tx = self.sender
         m.d.comb += [fifo.w_data.eq(self.rx_bytes.payload), fifo.w_en.eq(self.rx_bytes.valid),
@@ -372,4 +394,5 @@ class FramedBridge(wiring.Component):
         wiring.connect(m, core=wiring.flipped(self.results), sender=tx.results)
         wiring.connect(m, sender=tx.wire, uart=wiring.flipped(self.tx_bytes))
         wiring.connect(m, receiver=rx.status, sender=tx.status)
+        m.d.comb += tx.report.eq(Cat(tx.resent, rx.errors, rx.frames))      # STATUS_FIELDS' order
         return m

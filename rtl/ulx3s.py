@@ -5,14 +5,14 @@
     clk25 pin -> EHXPLLL -> sync clock ------------------------------+
                     | LOCK                                           |
                     +-> ResetSynchronizer -> sync reset              v
-    FT231X TXD -> uart.rx --> SerialLink(core) (UART, FIFOs, credits, the core) --> uart.tx -> FT231X RXD
+    FT231X TXD -> uart.rx --> SerialLink(core) (UART, framed link, the core) --> uart.tx -> FT231X RXD
 
 The board clock comes from the 25 MHz oscillator through one ECP5 PLL (:class:`PLLConfig`; the
 divisors are computed by ``ecppll`` in :mod:`blockray.synth.bitstream`), and the ``sync`` domain
 is held in reset until the PLL locks (:class:`amaranth.lib.cdc.ResetSynchronizer`: asserted at
 once, released in step with the clock). The host link is :class:`~blockray.rtl.link.SerialLink`
 on the FT231X's UART pins (3 Mbaud at most). LED 0 shows the PLL locked, LED 1 a link reset
-(the host's break), LED 2 the ``rx`` line's activity.
+(the host's break), LED 2 the ``rx`` line's activity, LED 3 a receive FIFO overrun.
 """
 
 from dataclasses import dataclass
@@ -42,12 +42,12 @@ class PLLConfig:
 class ULX3STop(Elaboratable):
     """The ULX3S top level around ``core`` (any component with ``i_bytes``/``o_bytes`` byte
     streams). ``pll``: a :class:`PLLConfig` from the 25 MHz oscillator; ``divisor``: UART bit
-    time in board clock cycles; ``fifo_depth`` / ``result_depth``: the link's FIFOs. Elaborate
-    with an amaranth-boards ULX3S platform."""
+    time in board clock cycles; ``fifo_depth``, ``payload``, ``window``: the framed link's
+    (:class:`~blockray.rtl.link.SerialLink`). Elaborate with an amaranth-boards ULX3S platform."""
 
-    def __init__(self, core, *, pll, divisor, fifo_depth=2048, result_depth=512):
+    def __init__(self, core, *, pll, divisor, fifo_depth=2048, payload=128, window=4):
         self.pll = pll
-        self.link = SerialLink(core, divisor=divisor, fifo_depth=fifo_depth, result_depth=result_depth)
+        self.link = SerialLink(core, divisor=divisor, fifo_depth=fifo_depth, payload=payload, window=window)
 
     def elaborate(self, platform):
         m = Module()
@@ -74,6 +74,7 @@ class ULX3STop(Elaboratable):
         m.submodules.link = link = self.link
         uart = platform.request("uart", 0)
         m.d.comb += [link.rx.eq(uart.rx.i), uart.tx.o.eq(link.tx)]
-        leds = [platform.request("led", n) for n in range(3)]
-        m.d.comb += [leds[0].o.eq(locked), leds[1].o.eq(link.link_reset), leds[2].o.eq(~uart.rx.i)]
+        leds = [platform.request("led", n) for n in range(4)]
+        m.d.comb += [leds[0].o.eq(locked), leds[1].o.eq(link.link_reset), leds[2].o.eq(~uart.rx.i),
+                     leds[3].o.eq(link.overrun)]
         return m

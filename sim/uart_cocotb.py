@@ -1,7 +1,7 @@
 """cocotb side of the simulated real board (``--board ulx3s-sim``): a virtual serial port.
 
 The simulation is the board's top level at its pins (:class:`blockray.rtl.link.SerialLink`: UART,
-FIFOs, credits, the core). One cocotb test connects to the host on
+framed link, the core). One cocotb test connects to the host on
 ``127.0.0.1:$BLOCKRAY_UART_PORT`` and plays the USB-serial bridge: bytes from the host are driven
 on ``rx`` as 8N1 frames of ``$BLOCKRAY_UART_DIVISOR`` clock cycles per bit, frames seen on ``tx``
 are decoded in the middle of each bit and sent to the host. Host to simulator messages: a type

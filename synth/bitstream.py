@@ -66,8 +66,10 @@ DEFAULT_PATCH_DEPTH, DEFAULT_VOXEL_DEPTH = 2048, 512
 MAX_BAUD_ERROR = 0.02
 OSCILLATOR_MHZ = 25.0
 SPEED = "6"
-#: the link's FIFOs (command bytes the host may have in flight; result bytes queued)
-FIFO_DEPTH, RESULT_DEPTH = 2048, 512
+#: the link's receive FIFO (the host's window of wire bytes in flight) and the board's frames
+#: (result bytes per frame, frames unacknowledged: the replay memory)
+FIFO_DEPTH = 2048
+FRAME_PAYLOAD, FRAME_WINDOW = 128, 4
 
 #: DP16KD aspect ratios (depth, width)
 _DP16KD = ((16384, 1), (8192, 2), (4096, 4), (2048, 9), (1024, 18), (512, 36))
@@ -79,10 +81,13 @@ def _blocks(depth, width):
 
 
 def bram_estimate(params, *, core="board"):
-    """Block RAMs of the board's memories and the link's FIFOs: ``{name: blocks}``. The patch
+    """Block RAMs of the board's memories and the framed link's: ``{name: blocks}``. The patch
     memory holds a patch record per word; a voxel-table entry is a start address and a count
-    into it (two patch-memory addresses)."""
-    out = {"command_fifo": _blocks(FIFO_DEPTH - 1, 8), "result_fifo": _blocks(RESULT_DEPTH - 1, 8)}
+    into it (two patch-memory addresses). The link: the receive FIFO and the accepted payloads'
+    command FIFO (its frame memories, 256 to 512 bytes, are distributed RAM: Yosys maps them to
+    DPR16X4, docs/ulx3s.md)."""
+    from ..rtl.framing import COMMAND_DEPTH
+    out = {"receive_fifo": _blocks(FIFO_DEPTH - 1, 8), "command_fifo": _blocks(COMMAND_DEPTH - 1, 8)}
     if core == "board":
         address = max(1, params.patch_depth.bit_length())
         out["patch_memory"] = _blocks(params.patch_depth, patch_layout(params.bits).size)
@@ -247,7 +252,8 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
     pll = pll_config(freq, tmp)
     divisor = divisor_for(pll.f_out_mhz, baud)
     core = _core(core_name, params)
-    top = ULX3STop(core, pll=pll, divisor=divisor, fifo_depth=FIFO_DEPTH, result_depth=RESULT_DEPTH)
+    top = ULX3STop(core, pll=pll, divisor=divisor, fifo_depth=FIFO_DEPTH, payload=FRAME_PAYLOAD,
+                   window=FRAME_WINDOW)
     platform = _platform(platform_name)
     name = "blockray_ulx3s"
     plan = platform.build(top, name=name, do_build=False,
@@ -260,7 +266,7 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
         if core_name == "board" else {},
         "clock": {"target_mhz": float(freq), "pll_mhz": pll.f_out_mhz, "pll": pll.__dict__},
         "uart": {"baud": baud, "divisor": divisor, "actual_baud": round(pll.f_out_mhz * 1e6 / divisor),
-                 "fifo_depth": FIFO_DEPTH, "result_depth": RESULT_DEPTH},
+                 "fifo_depth": FIFO_DEPTH, "frame_payload": FRAME_PAYLOAD, "frame_window": FRAME_WINDOW},
         "estimate": estimate, "tools": _versions(), "machine": _machine(), "seconds": seconds,
     }
 

@@ -195,7 +195,9 @@ def test_builtin_room_covered_areas():
     sconces (0.4 x 0.12) + 2 bookshelf sides (0.03 x 1.8) + 5 shelves (1.14 x 0.03) = 0.423 m^2; the
     right wall 3 sconces + the sofa back (0.85 x 2.2) and arms (2 x 0.6 x 0.2) = 2.254; the floor 4 table
     legs (0.06^2), 16 chair legs (0.04^2), 2 shelf sides (0.03 x 0.35), the sofa (0.7 x 2.2 + 0.2 x 2.2
-    + 2 x 0.9 x 0.2) and the low table's foot (0.54 x 0.94) = 2.9086."""
+    + 2 x 0.9 x 0.2) and the low table's foot (0.54 x 0.94) = 2.9086; the bookshelf the ends of its
+    5 shelves on its 2 sides (0.03 x 0.35 each) and the shelf under each of its 4 closed books (0.25
+    x 0.25) = 0.355."""
     full = load_scene("room", max_edge=1e9, contact=False)
     cut = load_scene("room", max_edge=1e9)
     lost = {}
@@ -205,6 +207,7 @@ def test_builtin_room_covered_areas():
     assert lost["back_wall"] == pytest.approx(0.423, abs=1e-9)
     assert lost["right_wall"] == pytest.approx(2.254, abs=1e-9)
     assert lost["floor"] == pytest.approx(2.9086, abs=1e-9)
+    assert lost["bookshelf"] == pytest.approx(0.355, abs=1e-9)
     assert max(abs(lost[g]) for g in ("front_wall", "left_wall", "ceiling")) < 1e-12
     assert cut.contact["patches_split"] > 0 and full.contact is None
 

@@ -138,6 +138,10 @@ def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
     off = render(scene, backend="golden", tolerance=1e-10)
     assert "closure" not in off.report
     assert np.allclose(_balance(scene, off.radiosity), c["absorbed_balance_raw"], atol=1e-7)
+    # from rays alone the occluded box is off by the visibility estimate's bias: measured -0.375%,
+    # -0.260%, -0.560%, not the 0.05% goal (docs/formfactors.md, "The raw visibility estimate's
+    # bias"); a bound just above it catches anything that makes it worse
+    assert np.abs(_balance(scene, off.radiosity)).max() < 6e-3
 
 
 def test_closure_needs_one_host():

@@ -13,13 +13,14 @@ import pytest
 from blockray.cli import main
 from blockray.framing import (MAX_PAYLOAD, RESEND, Endpoint, Frame, FrameError, FrameSplitter, LinkConfig, crc32,
                               encode_frame, parse_frame, wire_frame_bytes)
-from blockray.host_driver.framed import FaultInjector, FramedTransport, LinkFaults
+from blockray.host_driver.framed import FaultInjector, FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.driver import BoardDriver
 from blockray.host_driver.render import render
 from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
 
-from scenes import RTL_PARAMS, room_obj, room_scene
+import clirun
+from scenes import RTL_PARAMS, room_scene
 
 
 def _bitwise_crc32(data):
@@ -182,6 +183,43 @@ def test_fault_injector_is_seeded_and_counts():
         LinkFaults(1.5)
 
 
+def test_the_board_counters_read_over_the_link_are_the_boards():
+    """A model board's own counts, and the same counts as the host reads them in a status frame."""
+    seed = 12
+    print("seed", seed)
+    faults = LinkFaults(2e-3, seed)
+    pipe = FaultyPipe(_Mirror(), faults.injector(0, 0), faults.injector(0, 1))
+    link = FramedTransport(pipe, where="test", answer_timeout=5.0)
+    link.reset()
+    data = bytes(random.Random(seed).randrange(256) for _ in range(20000))
+    link.send(data)
+    assert link.recv(len(data)) == bytes(b ^ 0xFF for b in data)
+    pipe.outgoing.rate = pipe.incoming.rate = 0          # the counters' exchange itself unharmed
+    stats = link.stats()
+    own = stats["board_model"]
+    assert sum(pipe.outgoing.counts.values()) > 0 and own["errors"] > 0 and own["frames_resent"] > 0
+    assert stats["board"] == {k: own[k] for k in ("frames_resent", "errors", "frames_accepted")}
+
+
+class _Mirror(ModelBoardLink):
+    """The board's half of the link in front of a core that inverts every byte."""
+
+    def __init__(self):
+        super().__init__(core=None)
+        self._out = bytearray()
+
+    def write(self, data):
+        self._out += bytes(b ^ 0xFF for b in self.endpoint.receive(data))
+
+    def read(self, timeout):
+        self.endpoint.submit(bytes(self._out))
+        self._out.clear()
+        return self.endpoint.output()
+
+    def reset(self):
+        self.endpoint.reset()
+
+
 class _Silent:
     def write(self, data):
         pass
@@ -194,9 +232,9 @@ class _Silent:
 
 
 def test_a_silent_board_fails_naming_the_link():
-    link = FramedTransport(_Silent(), where="--port /dev/ttyFAKE", timeout=0, max_retries=5)
+    link = FramedTransport(_Silent(), where="--port /dev/ttyFAKE", timeout=0.01, max_retries=5)
     link.send(b"\x07")
-    with pytest.raises(TransportError, match=r"^--port /dev/ttyFAKE: the link failed: 5 resends.*no answer"):
+    with pytest.raises(TransportError, match=r"^--port /dev/ttyFAKE: the link failed: no progress in 5 time-outs.*no answer"):
         link.recv(1)
 
 
@@ -208,43 +246,27 @@ RENDER = ["--max-edge", "1.5", "--board", "model-link", "--rows", "2", "--cols",
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    path = room_obj(tmp_path_factory.mktemp("framing_room"))
-    out = path.parent / "clean.csv"
-    assert main(["render", str(path), *RENDER, "--patches", str(out)]) == 0
-    return path, out.read_bytes()
+    return clirun.room_render(tmp_path_factory.mktemp("framing_room"), RENDER)
 
 
 #: seeds for which the small room's ~30 kB of link traffic meets faults even at 1e-5 (seed 24: two)
 @pytest.mark.parametrize("rate,seed", [(1e-5, 24), (1e-4, 4), (1e-3, 5), (1e-3, 6)])
 def test_render_with_link_faults_is_byte_identical(room, tmp_path, rate, seed):
-    path, clean = room
-    csv, report = tmp_path / "p.csv", tmp_path / "r.json"
-    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--report", str(report),
-                 "--link-faults", str(rate), "--link-seed", str(seed)]) == 0
-    integrity = json.loads(report.read_text())["link_integrity"]
-    print("rate", rate, "seed", seed, integrity)
-    assert csv.read_bytes() == clean
+    integrity = clirun.faulty_render(room, tmp_path, RENDER, rate, seed)
     # faults were injected, and corrected by resending
     assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
     assert integrity["frames_resent"] > 0 and integrity["errors"] > 0
 
 
 def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
-    path, _ = room
-    csv = tmp_path / "p.csv"
-    assert main(["render", str(path), *RENDER, "--patches", str(csv), "--link-faults", "0.05"]) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    # the scene's quantisation warning may come first; the failure itself is one error line
-    err = [line for line in lines if not line.startswith("blockray: warning:")]
-    assert len(err) == 1 and "model-link board 0: the link failed" in err[0]
-    assert not any("Traceback" in line for line in lines)
-    assert not csv.exists()
+    clirun.hopeless_render(capsys, room, tmp_path, RENDER, "model-link board 0")
 
 
 def test_link_faults_need_a_framed_board(room, capsys):
     path, _ = room
     assert main(["render", str(path), *RENDER[:2], "--board", "model", "--link-faults", "1e-3", "--quiet"]) == 2
-    assert "--link-faults needs a board with a framed link (--board model-link)" in capsys.readouterr().err
+    assert ("--link-faults needs a board with a framed link (--board model-link or ulx3s-sim or ulx3s)"
+            in capsys.readouterr().err)
 
 
 class _Flipper(ModelTransport):

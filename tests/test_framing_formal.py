@@ -9,8 +9,8 @@ frame with a payload byte is accepted and emitted within them, a cover shows):
 
 * **a corrupted frame is never executed**: the receiver accepts a frame exactly when the
   reference does (stuffing complete, at most 255 stuffed bytes, 8 to 254 decoded bytes, CRC
-  residue, length field = payload size, next sequence number), and no payload byte leaves before
-  the frame is accepted;
+  residue, length field = payload size, not a status frame, next sequence number), and no
+  payload byte leaves before the frame is accepted;
 * **no frame accepted twice or out of order**: each accepted frame carries the number of frames
   accepted before it (mod 256), and ``expect`` is that count;
 * the first payload byte out is the decoded byte at the payload's start.
@@ -52,7 +52,7 @@ class ReceiverSpec(Elaboratable):
 
         # the reference: COBS-decode the wire bytes, count them, CRC them, keep the header
         raw, count, code, zero = Signal(9), Signal(9), Signal(8), Signal()
-        seq, length, first = Signal(8), Signal(8), Signal(8)
+        flags, seq, length, first = Signal(8), Signal(8), Signal(8), Signal(8)
         out, out_byte = Signal(), Signal(8)
         m.d.comb += [ref_crc.data.eq(out_byte), ref_crc.valid.eq(out)]
         with m.If(take & (byte != 0)):
@@ -65,7 +65,7 @@ class ReceiverSpec(Elaboratable):
                 m.d.sync += code.eq(code - 1)
         with m.If(out):
             m.d.sync += count.eq(count + (count != 511))
-            for k, field in ((1, seq), (3, length), (4, first)):
+            for k, field in ((0, flags), (1, seq), (3, length), (4, first)):
                 with m.If(count == k):
                     m.d.sync += field.eq(out_byte)
 
@@ -77,7 +77,7 @@ class ReceiverSpec(Elaboratable):
         m.d.sync += [verdict.eq(0), verdict_due.eq(delimiter)]
         with m.If(delimiter):
             good = ((raw <= MAX_BODY + 1) & (code == 0) & (count >= 8) & (count <= MAX_BODY) & ref_crc.match_detected
-                    & (length == count - 8) & (length != 0) & ((seq == accepted) | ~self.check_seq))
+                    & (length == count - 8) & (length != 0) & ~flags[1] & ((seq == accepted) | ~self.check_seq))
             m.d.sync += [verdict.eq(good), verdict_first.eq(first), raw.eq(0), count.eq(0), code.eq(0), zero.eq(0)]
         m.d.comb += ref_crc.start.eq(verdict_due)      # the next CRC starts after the verdict (no byte comes then)
         m.d.comb += Assert(dut.accept == verdict)

@@ -14,13 +14,14 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
-from blockray.framing import Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
+from blockray.framing import STATUS, Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
 from blockray.host_driver.framed import FaultInjector
 from blockray.rtl.framing import FramedBridge, FrameReceiver
 
 
 def _stream(seed, rate):
-    """Frames of a host (some resent, some out of order), garbage between them, faults."""
+    """Frames of a host (some resent, some out of order), garbage, acknowledgements, status
+    requests and status frames between them, faults."""
     rng = random.Random(seed)
     host = Endpoint(LinkConfig(payload=40, window=6))
     host.submit(bytes(rng.randrange(256) for _ in range(1500)))
@@ -35,7 +36,9 @@ def _stream(seed, rate):
             wire += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 30)))
         if rng.random() < 0.05:
             wire += bytes(rng.randrange(1, 256) for _ in range(300)) + b"\x00"      # overlong
-        wire += encode_frame(Frame(rng.randrange(2), rng.randrange(256), rng.randrange(256)))  # a pure ack
+        wire += encode_frame(Frame(rng.randrange(4), rng.randrange(256), rng.randrange(256)))  # an ack or status request
+        if rng.random() < 0.2:          # a status frame numbered as the next data frame: never data
+            wire += encode_frame(Frame(STATUS | rng.randrange(2), host.next, rng.randrange(256), bytes(6)))
         host.receive(encode_frame(Frame(0, 0, host.next)))        # acknowledge all: go on
     return FaultInjector(rate, np.random.default_rng(seed))(bytes(wire))
 
@@ -125,7 +128,8 @@ class _Loopback(wiring.Component):
 def test_framed_bridge_against_the_host(rate):
     """The host's Endpoint (HOST_LINK-sized window, short frames) sends through the bridge to a
     looping core; what comes back, through the board's FrameSender, is exactly what was sent,
-    with faults both ways. The host resends after 400 silent cycles; the UART never overruns."""
+    with faults both ways. The host resends after 400 silent cycles; the UART never overruns. At
+    the end the board's counters come in a status frame."""
     seed = random.randrange(2**32)
     print("seed", seed, "rate", rate)
     rng = random.Random(seed)
@@ -140,7 +144,7 @@ def test_framed_bridge_against_the_host(rate):
     got = bytearray()
 
     async def bench(ctx):
-        queue, silent = bytearray(), 0
+        queue, silent, asked = bytearray(), 0, False
         ctx.set(dut.tx_bytes.ready, 1)
         for cycle in range(150000):
             if not queue:
@@ -159,10 +163,21 @@ def test_framed_bridge_against_the_host(rate):
                 host.rewind()
                 silent = 0
             if len(got) >= len(data) and not host.pending:
-                break
+                if host.peer_status is not None:
+                    break
+                if not asked:                       # then the board's counters, in a status frame
+                    host.request_status()
+                    down.rate = up.rate = 0
+                    asked = True
             await ctx.tick()
         assert not ctx.get(dut.bridge.overrun)
 
     sim.add_testbench(bench)
     sim.run()
     assert bytes(got) == data
+    # every new frame the host sent was accepted once; without faults nothing was resent or wrong
+    board = host.peer_status
+    print("board", board, "host", host.counts)
+    assert board["frames_accepted"] == host.counts["frames_sent"]
+    if rate == 0:
+        assert board["errors"] == board["frames_resent"] == 0

@@ -1,17 +1,20 @@
 """The serial transport without hardware: a missing port and a silent board fail in seconds with
-one line (exit 2 from the CLI); over a pseudo-terminal, a board written here from the link's
-framing definition (credits, frames) exchanges bytes with the transport."""
+one line (exit 2 from the CLI); over a pseudo-terminal, the board's half of the framed link
+exchanges bytes with the transport, and its counters are read over it; the registry's ulx3s
+board over a pty answered by the model."""
 
 import os
 import random
 import select
 import threading
 import time
+import tty
 
 import numpy as np
 import pytest
 
 from blockray.cli import main
+from blockray.framing import BOARD_LINK, Endpoint
 from blockray.host_driver.backends import build_board
 from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.options import RenderOptions
@@ -61,123 +64,74 @@ def test_cli_render_needs_a_port(capsys):
 
 
 class PtyBoard(threading.Thread):
-    """A board on the master side of a pty, from the framing definition: ``depth`` credits
-    granted once ``released`` is set (the host ended its break), every command byte b answered with the
-    result b ^ 0x5A in frames of random length, a grant per few bytes taken. Records whether the
-    host ever sent beyond its credits."""
+    """A board on the master side of a pty: the board's half of the framed link (an
+    :class:`~blockray.framing.Endpoint` with the board's frame sizes) in front of a core that
+    answers every command byte b with b ^ 0x5A; the pty's bytes are read in random pieces."""
 
-    def __init__(self, fd, *, depth, seed):
+    def __init__(self, fd, *, seed):
         super().__init__(daemon=True)
-        self.fd, self.depth, self.rng = fd, depth, random.Random(seed)
-        self.released = threading.Event()      # a pty carries no break: the test's transport says
-        self.overrun = False
-        self.received = 0
+        self.fd, self.rng = fd, random.Random(seed)
+        self.endpoint = Endpoint(BOARD_LINK)
         self.stop = False
 
     def run(self):
         try:
-            self._serve()
+            while not self.stop:
+                if not select.select([self.fd], [], [], 0.05)[0]:
+                    continue
+                data = os.read(self.fd, self.rng.randint(1, 300))
+                self.endpoint.submit(self.core(self.endpoint.receive(data)))
+                os.write(self.fd, self.endpoint.output())
         except OSError:         # the test closed the pty
             pass
 
-    def _serve(self):
-        self.released.wait()
-        os.write(self.fd, bytes([0x80 | (self.depth - 1)]))
-        owed, granted, pending = 0, self.depth, bytearray()
-        while not self.stop:
-            if not select.select([self.fd], [], [], 0.05)[0]:
-                continue            # (a read would hold the thread past the test, on a reused fd)
-            data = os.read(self.fd, 64)
-            self.received += len(data)
-            if self.received > granted:
-                self.overrun = True
-            pending += bytes(b ^ 0x5A for b in data)
-            owed += len(data)
-            out = bytearray()
-            while pending:
-                n = min(len(pending), self.rng.randint(1, 128))
-                out.append(n - 1)
-                out += pending[:n]
-                del pending[:n]
-            if owed >= self.rng.randint(1, self.depth):
-                out.append(0x80 | (owed - 1))
-                granted += owed
-                owed = 0
-            os.write(self.fd, bytes(out))
-            if owed:                # grant the rest soon, so the host is never left waiting
-                time.sleep(0.01)
-                os.write(self.fd, bytes([0x80 | (owed - 1)]))
-                granted += owed
-                owed = 0
+    def core(self, commands):
+        return bytes(b ^ 0x5A for b in commands)
 
 
-def test_credits_and_frames_over_a_pty(pty_pair):
+def test_framed_link_over_a_pty(pty_pair):
     seed = 7
     print("seed", seed)
     master, name = pty_pair
-    board = PtyBoard(master, depth=16, seed=seed)
+    tty.setraw(master)
+    board = PtyBoard(master, seed=seed)
     board.start()
     rng = random.Random(seed)
-    data = bytes(rng.randrange(256) for _ in range(600))
-
-    class Transport(SerialTransport):
-        def _set_break(self, on):
-            super()._set_break(on)
-            if not on:
-                board.released.set()
-
-    with Transport(name, answer_timeout=5.0, timeout=5.0) as link:
+    data = bytes(rng.randrange(256) for _ in range(3000))
+    with SerialTransport(name, answer_timeout=5.0) as link:
         got = bytearray()
-        for i in range(0, len(data), 50):
-            link.send(data[i:i + 50])
-            got += link.recv(rng.randint(0, 50 + i - len(got)))
+        for i in range(0, len(data), 500):
+            link.send(data[i:i + 500])
+            got += link.recv(rng.randint(0, 500 + i - len(got)))
         got += link.recv(len(data) - len(got))
         stats = link.stats()
     board.stop = True
-    board.join(timeout=5)
     assert bytes(got) == bytes(b ^ 0x5A for b in data)
-    assert not board.overrun and stats["bytes_sent"] == len(data)
+    # the board's counters came over the link: each send's frames (of at most 246 bytes) accepted once
+    assert stats["board"]["frames_accepted"] == stats["host"]["frames_sent"] == 6 * -(-500 // 246)
+    assert stats["board"]["errors"] == stats["host"]["errors"] == 0
 
 
 class ModelPtyBoard(PtyBoard):
     """A ULX3S on the master side of a pty, answered by the bit-exact model built for ``params``
-    (the bitstream's configuration): once ``released`` (the host ended its reset break) it grants
-    ``depth`` credits; it runs the commands through the model as they come, sends their results in
-    frames and grants back a credit for every command byte taken."""
+    (the bitstream's configuration) behind the board's half of the framed link."""
 
-    def __init__(self, fd, params, *, depth=64):
+    def __init__(self, fd, params):
         from blockray.host_driver.simulated import ModelTransport
-        super().__init__(fd, depth=depth, seed=0)
+        super().__init__(fd, seed=0)
         self.model = ModelTransport(params)
 
-    def _serve(self):
-        from blockray.link import frame_results, grant_header
-        self.released.wait()
-        os.write(self.fd, bytes([grant_header(self.depth)]))
-        while not self.stop:
-            if not select.select([self.fd], [], [], 0.05)[0]:
-                continue
-            data = os.read(self.fd, 4096)
-            out = bytearray(frame_results(self.model.run(data, whole=False)))
-            for k in range(0, len(data), 128):
-                out.append(grant_header(min(128, len(data) - k)))
-            os.write(self.fd, bytes(out))
+    def core(self, commands):
+        return self.model.run(commands, whole=False)
 
 
 @pytest.fixture
 def ulx3s_on_a_pty(pty_pair, monkeypatch):
-    """A board built as its bitstream (B = 14, its own memories) on a pty; the serial transport's
-    reset releases it."""
+    """A board built as its bitstream (B = 14, its own memories) on a pty."""
     master, name = pty_pair
+    tty.setraw(master)
     built = BoardParams(rows=2, cols=2, boards=1, bits=14, patch_depth=20000, voxel_depth=4096)
     board = ModelPtyBoard(master, built)
-    unbreak = SerialTransport._set_break
-
-    def set_break(self, on):
-        unbreak(self, on)
-        if not on:
-            board.released.set()
-    monkeypatch.setattr(SerialTransport, "_set_break", set_break)
     board.start()
     yield name, built
     board.stop = True

@@ -1,11 +1,13 @@
 """The simulated real board's link under Verilator (cocotb): the same top as on the ULX3S
-(SerialLink: UART, FIFOs, credits) with the link's test core, driven through the same host code
-as a real board (CreditedLink) over the simulated UART pins, with a reset (break) mid-way."""
+(SerialLink: UART, framed link) with the link's test core, driven through the same host code as
+a real board (FramedTransport) over the simulated UART pins, with a reset (break) mid-way and
+faults injected both ways; the board's own counters read over the link."""
 
 import random
 
 import pytest
 
+from blockray.host_driver.framed import LinkFaults
 from blockray.host_driver.uart_sim import UartSimTransport
 from blockray.rtl.link import EchoCore
 
@@ -18,18 +20,25 @@ def test_echo_through_the_simulated_uart():
     seed = 21
     print("seed", seed)
     rng = random.Random(seed)
-    data = bytes(rng.randrange(256) for _ in range(400))
-    with UartSimTransport(EchoCore(repeat=2), fifo_depth=16, result_depth=16, name="blockray_uart_echo") as link:
-        assert link.credits == 16                       # all the FIFO's credits, granted after the reset
+    data = bytes(rng.randrange(256) for _ in range(900))
+    with UartSimTransport(EchoCore(repeat=2), faults=LinkFaults(2e-3, seed), name="blockray_uart_echo",
+                          timeout=2.0) as link:
         link.send(data[:150])
         assert link.recv(100) == echo(data[:50], 2)
         link.reset()                                    # the rest of the first part is lost
-        assert link.credits == 16
+        assert link.endpoint.next == 0
         got = bytearray()
-        for i in range(0, 400, 40):
-            link.send(data[i:i + 40])
-            got += link.recv(rng.randint(0, 2 * (i + 40) - len(got)))
+        for i in range(0, len(data), 300):
+            link.send(data[i:i + 300])
+            got += link.recv(rng.randint(0, 2 * (i + 300) - len(got)))
         got += link.recv(2 * len(data) - len(got))
         stats = link.stats()
+    print(stats)
     assert bytes(got) == echo(data, 2)
-    assert stats["bytes_sent"] == 550 and stats["resets"] == 2
+    assert stats["resets"] == 2
+    injected = stats["injected"]
+    assert sum(injected["to_board"].values()) > 0 and sum(injected["from_board"].values()) > 0
+    # the board's counters, read over the link: it saw the faults sent to it and resent frames
+    board = stats["board"]
+    assert board["errors"] > 0 and board["frames_resent"] > 0
+    assert board["frames_accepted"] >= -(-len(data) // 254)
