@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from test_board_cocotb import build_board, cornell_partition, cornell_runs, run_batch  # noqa: E402
+from board_cocotb_runs import build_board, cornell_partition, cornell_runs, run_batch  # noqa: E402
 
 
 def main():

@@ -24,7 +24,7 @@ from .options import SOLVERS, RenderOptions
 from .. import threads as host_threads
 from . import closure as closures, formfactor, solver as solvers
 from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
-from .visibility import PACKINGS, TRAVERSALS, Phases, Visibility, _morton, visible_fraction
+from .visibility import TRAVERSALS, Phases, Visibility, _morton, visible_fraction
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
 __all__ = ["RenderResult", "RenderOptions", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]

@@ -32,7 +32,6 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
-from ..errors import ParameterError
 from ..params import Widths, check_bits
 from ..records import patch_layout, point_layout, vector_layout
 from .platform import product_platform

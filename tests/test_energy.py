@@ -56,11 +56,11 @@ def test_closed_scene_render_balance(prefix):
     scene = _scene(prefix)
     result = render(scene, backend="golden", tolerance=1e-6, closure="enforce")
     c = result.report["closure"]
-    balance = balance(scene, result.radiosity)
-    print(f"{scene.name} ({scene.patches} patches): absorbed / emitted - 1 = {balance}; raw factors "
+    got = balance(scene, result.radiosity)
+    print(f"{scene.name} ({scene.patches} patches): absorbed / emitted - 1 = {got}; raw factors "
           f"{c['absorbed_balance_raw']} (summation rule {c['raw_imbalance_from_closure']}, reciprocity "
           f"{c['raw_imbalance_from_reciprocity']}); scale max |d - 1| = {c['scale_max_change']:.2e}")
-    assert np.abs(balance).max() < BALANCE
+    assert np.abs(got).max() < BALANCE
     raw_parts = np.add(c["raw_imbalance_from_closure"], c["raw_imbalance_from_reciprocity"])
     # the split adds up, but for the unshot energy of progressive refinement (tolerance 1e-6 of
     # the three channels' emitted power: 7e-6 of the empty box's dim blue channel)

@@ -94,7 +94,7 @@ def test_model_board_equals_command_streams(fmt):
     BoardModel(cell="filtered"): bits, cycles per board and the batch's finish; its bits equal
     the exact cell's."""
     from blockray.samples import SampleScheme
-    from test_model import BoxGrid, random_blocks, random_scene
+    from board_scenes import BoxGrid, random_blocks, scattered_scene as random_scene
 
     samples = SampleScheme(8)
     scene = random_scene(5)

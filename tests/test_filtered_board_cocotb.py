@@ -18,7 +18,7 @@ from blockray.protocol import BoardProtocol
 from blockray.sim.model import BoardModel
 
 from board_host import check_run
-from test_board_cocotb import BUILD_ARGS, cornell_partition, cornell_runs, run_batch
+from board_cocotb_runs import BUILD_ARGS, cornell_partition, cornell_runs, run_batch
 from board_scenes import make_batch
 
 pytestmark = pytest.mark.cocotb

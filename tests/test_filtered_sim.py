@@ -20,7 +20,7 @@ from blockray.rtl.processor import ReceiverUnit, ShooterUnit, _crossing
 from blockray.records import patch_layout, point_layout
 
 from processor_vectors import hard_cases, random_tests
-from test_processor_sim import check_results, run_intersector
+from processor_run import check_results, run_intersector
 
 SEED = 16016
 

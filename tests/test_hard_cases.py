@@ -347,7 +347,7 @@ def float_blocked(P, Q, V):
 
 def test_float_agreement_by_bits_is_measured():
     from blockray.fixedpoint import quantise
-    from test_model import random_scene
+    from board_scenes import scattered_scene as random_scene
     scene = random_scene(12, n=40)
     samples = SampleScheme(8)
     fP = samples.points(scene.patch_vertices).reshape(-1, 3)

@@ -31,7 +31,7 @@ def _compare(scene, params, bits, **kw):
 
 
 def test_small_scene_equals_the_model(tmp_path):
-    from test_rtl_board import room_scene
+    from scenes import room_scene
     scene = room_scene(tmp_path, 1.5)
     sim = _compare(scene, BoardParams(rows=2, cols=2, boards=1), 10, samples=4, max_shots=2, voxels=3)
     assert sim.report["rays"] > 0
