@@ -77,12 +77,12 @@ def _add_board_options(p):
                         "or verilator only (verilator builds a traced simulation); use it on a short run "
                         "(e.g. --max-shots 1)")
     g.add_argument("--link-idle", type=float, default=0.0, metavar="P",
-                   help="simulated host idles on the command bytes with probability P per cycle (--board amaranth)")
+                   help="simulated host idles on the command bytes with probability P per cycle (--board amaranth, verilator)")
     g.add_argument("--link-backpressure", type=float, default=0.0, metavar="P",
-                   help="simulated host refuses a result byte with probability P per cycle (--board amaranth)")
+                   help="simulated host refuses a result byte with probability P per cycle (--board amaranth, verilator)")
     g.add_argument("--link-bursts", type=float, default=0.0, metavar="P",
                    help="with probability P per cycle the simulated host starts a long stall (16 to 256 cycles) "
-                        "on each stream (--board amaranth)")
+                        "on each stream (--board amaranth, verilator)")
     g.add_argument("--link-faults", type=float, default=None, metavar="RATE",
                    help="flip, drop or duplicate each byte on every board's link, both ways, with probability "
                         "RATE (--board model-link, ulx3s-sim or ulx3s; faults are resent, or end the run naming the link)")
