@@ -114,7 +114,8 @@ def test_intersector_ecp5_verilator_full(ecp5_build, tmp_path):
 
 
 @pytest.mark.parametrize("units", [
-    ("shooter",),
+    # 150 s of Verilator build and vectors: slow (the all-DSP netlist's vectors run in the default suite)
+    pytest.param(("shooter",), marks=pytest.mark.slow),
     # both array-edge units (not FABRIC_UNITS: since 'cell' joined it, that is every product in LUTs)
     pytest.param(("shooter", "receiver"), marks=pytest.mark.slow),
 ])
