@@ -7,15 +7,13 @@ its peer, a plain ``numpy.savez`` over the same file (no fsync, no rename), in o
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _run_header import print_run_header                      # noqa: E402
-from blockray.host_driver.checkpoint import FILE, Checkpoint  # noqa: E402
+from _run_header import print_run_header
+from blockray.host_driver.checkpoint import FILE, Checkpoint
 
 
 def main():

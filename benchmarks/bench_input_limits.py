@@ -23,12 +23,11 @@ import tracemalloc
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _run_header import print_run_header                      # noqa: E402
+from _run_header import print_run_header
 
-from blockray.host_driver import builtin                        # noqa: E402
-from blockray.host_driver.image import render_image            # noqa: E402
-from blockray.host_driver.objload import subdivide, subdivision_lower_bound   # noqa: E402
+from blockray.host_driver import builtin
+from blockray.host_driver.image import render_image
+from blockray.host_driver.objload import subdivide, subdivision_lower_bound
 
 
 def image_memory(sizes=(512, 1024)):

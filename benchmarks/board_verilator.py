@@ -12,13 +12,10 @@ cocotb-driven simulation, not for Verilator alone. Results are checked against t
 
 import argparse
 import platform
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from board_cocotb_runs import build_board, cornell_partition, cornell_runs, run_batch  # noqa: E402
+import _shared  # noqa: F401  (tests/ on the path: the cocotb harness)
+from board_cocotb_runs import build_board, cornell_partition, cornell_runs, run_batch
 
 
 def main():

@@ -10,7 +10,6 @@ import argparse
 import json
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -40,7 +39,6 @@ def main():
         stats_file = Path(tmp, "stats.json")
         env = {"BLOCKRAY_BITS": str(args.bits), "BLOCKRAY_SEED": str(args.seed),
                "BLOCKRAY_VECTORS": str(args.vectors), "BLOCKRAY_STATS": str(stats_file)}
-        sys.path.insert(0, str(ROOT / "tests"))
         t = time.perf_counter()
         run_cocotb(build, "cocotb_processor", module_dir=ROOT / "tests", env=env, test_dir=Path(tmp, "run"))
         wall = time.perf_counter() - t

@@ -1,15 +1,39 @@
 """Scenes and mesh builders the tests share (imported as ``scenes``; fixtures built from them are
 in tests/conftest.py)."""
 
+import itertools
+
 import numpy as np
 
-from blockray.host_driver.objload import load_obj
+from blockray.host_driver.builtin import CAMERAS, DEFAULT_MAX_EDGE, path
+from blockray.host_driver.objload import load_obj, subdivide
+from blockray.host_driver.render import Visibility
 from blockray.host_driver.scene import Scene
+from blockray.host_driver.voxel import VoxelGrid
 from blockray.params import BoardParams
+from blockray.samples import SampleScheme
 
 #: the RTL back-ends' small machine: a 2 x 2 array, P = 2, B = 10 (tests/test_rtl_board.py)
-RTL_PARAMS = BoardParams(rows=2, cols=2, boards=2)
-RTL_BITS = 10
+RTL_PARAMS = BoardParams(rows=2, cols=2, boards=2, bits=10)
+RTL_BITS = RTL_PARAMS.bits
+
+#: the counters the RTL must reproduce exactly (ModelBoard.counters keys)
+COUNTER_KEYS = ("board_cycles", "tests_issued", "tests_useful", "tests", "utilization",
+                "board_cycles_per_board", "tests_issued_per_board", "tests_useful_per_board",
+                "utilization_per_board", "load_cycles_per_board", "blocks", "rays", "bits")
+
+
+def shooter_blocks(scene, board, shooters):
+    """The block rays of ``shooters`` to every patch, on ``board`` prepared and loaded with the
+    scene (4 samples, 3^3 voxels, the RTL machine's array)."""
+    board.prepare(scene, SampleScheme(4))
+    grid = VoxelGrid(scene.patch_vertices, 3, margin=board.margin)
+    board.load(grid)
+    vis = Visibility(scene, board, grid, SampleScheme(4), rows=RTL_PARAMS.rows, cols=RTL_PARAMS.cols)
+    blocks = []
+    for i in shooters:
+        blocks += vis._blocks_for(i, np.arange(scene.patches))
+    return blocks
 
 
 def mesh_scene(vertices, triangles, name="t"):
@@ -181,3 +205,135 @@ def write(folder, obj, mtl=None, name="s", mtl_name=None):
     path = folder / f"{name}.obj"
     path.write_text(obj)
     return path
+
+
+# ---------------------------------------------------------------------------- closed scenes (energy balance)
+
+def prism(footprint, height, bottom=False, open_side=None):
+    """A closed prism standing on z = footprint's z: sides and top face outwards (counter-clockwise
+    footprint seen from +z), bottom face optional, side ``open_side`` (a -> a+1) left out."""
+    F = np.asarray(footprint, dtype=np.float64)
+    up = np.array([0.0, 0.0, height])
+    tris = []
+    for k, (a, b) in enumerate(zip(F, np.roll(F, -1, axis=0))):
+        if k != open_side:
+            tris += [[a, b, b + up], [a, b + up, a + up]]
+    tris += [[F[0] + up, F[k] + up, F[k + 1] + up] for k in range(1, len(F) - 1)]
+    if bottom:
+        tris += [[F[0], F[k + 1], F[k]] for k in range(1, len(F) - 1)]
+    return np.array(tris)
+
+
+def rect(x0, y0, x1, y1, z=0.0):
+    return [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
+
+
+def box_with_block():
+    """A closed box of 48 triangles with a closed cube of 12 triangles floating inside."""
+    box, face = closed_box(2)
+    cube, _ = closed_box(1, size=0.3)
+    cube = cube[:, ::-1] + 0.35                                          # normals outward
+    tris = np.concatenate([box, cube])
+    E = np.zeros((len(tris), 3))
+    E[:len(box)][face == 1] = [1.0, 2.0, 0.5]
+    R = np.full((len(tris), 3), [0.5, 0.3, 0.7])
+    R[len(box):] = [0.8, 0.6, 0.2]
+    return make_scene(tris, reflectance=R, emission=E)
+
+
+def closed_box_with_slab(n=3):
+    """The unit cube (inward faces, n x n cells a face) with a 0.3 x 0.2 x 0.02 slab on its floor (low,
+    so that it shadows little and the balance shows the covered part's loss, not the visibility's
+    error), lit by the middle ceiling cell."""
+    box, face = closed_box(n)
+    slab = prism(rect(0.35, 0.4, 0.65, 0.6), 0.02)
+    tris = np.concatenate([box, slab])
+    E = np.zeros((len(tris), 3))
+    ceiling = np.flatnonzero(face == 1)
+    E[ceiling[len(ceiling) // 2 - 1:len(ceiling) // 2 + 1]] = [1.0, 2.0, 0.5]
+    R = np.full((len(tris), 3), [0.5, 0.3, 0.7])
+    R[len(box):] = [0.8, 0.6, 0.2]
+    return make_scene(tris, reflectance=R, emission=E, name="closed box with slab")
+
+
+def icosphere(levels, centre, radius):
+    """Outward-facing icosphere of 20 * 4^levels triangles."""
+    phi = (1 + 5 ** 0.5) / 2
+    pts = np.array([p for s1 in (-1, 1) for s2 in (-1, 1)
+                    for p in ((0, s1, s2 * phi), (s1, s2 * phi, 0), (s2 * phi, 0, s1))], float)
+    faces = [f for f in itertools.combinations(range(12), 3)
+             if all(abs(np.linalg.norm(pts[i] - pts[j]) - 2) < 1e-9 for i, j in itertools.combinations(f, 2))]
+    tris = pts[np.array(faces)]
+    for _ in range(levels):
+        a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tris = np.concatenate([np.stack(x, 1) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])])
+    tris = tris / np.linalg.norm(tris, axis=2, keepdims=True)
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    flip = (n * tris.mean(axis=1)).sum(axis=1) < 0
+    tris[flip] = tris[flip][:, ::-1]
+    return tris * radius + centre
+
+
+def closed_scenes():
+    """(name, scene) of the closed scenes whose energy balance the tests and
+    benchmarks/bench_formfactor.py check."""
+    rho = [0.5, 0.3, 0.7]
+    box, face = closed_box(4)
+    E = np.zeros((len(box), 3))
+    E[0] = [1, 2, 0.5]
+    yield "empty closed box (192 triangles, one emitting corner triangle)", make_scene(box, reflectance=rho, emission=E)
+    sphere = icosphere(2, np.array([0.5, 0.45, 0.5]), 0.25)
+    tris = np.concatenate([box, sphere])
+    E = np.zeros((len(tris), 3))
+    E[:len(box)][face == 1] = [1, 2, 0.5]
+    R = np.full((len(tris), 3), rho)
+    R[len(box):] = [0.8, 0.6, 0.2]
+    yield (f"icosphere of {len(sphere)} triangles in a closed box ({len(tris)} triangles, lit ceiling)",
+           make_scene(tris, reflectance=R, emission=E))
+    yield "cornell closed (a front wall fitted to the opening, no floor under the blocks)", closed_cornell()
+
+
+def closed_cornell(max_edge=None):
+    """cornell closed patch by patch: its open side gets a wall fitted to the opening (the red wall
+    is slanted, so the opening is a trapezoid, not the bounding box's face), and the floor leaves
+    out the blocks' footprints (the published floor runs under the blocks, where a patch sees
+    nothing). Triangulated with earcut, then subdivided like the built-in (``max_edge``, default
+    the built-in's)."""
+    import mapbox_earcut
+    raw = load_obj(path("cornell"), name="cornell")
+    V, T = raw.vertices, raw.triangles
+    names = list(raw.group_names)
+    floor = names.index("floor")
+    keep = raw.group != floor
+    on_floor = lambda g: np.unique(T[raw.group == names.index(g)].ravel())
+    bottom = [v[np.abs(V[v, 1]) == 0] for v in (on_floor("short_block"), on_floor("tall_block"))]
+    outline = np.unique(T[raw.group == floor].ravel())
+    rings = [_ring(V[outline])] + [_ring(V[b]) for b in bottom]
+    xz = np.concatenate(rings)[:, [0, 2]]
+    tri = mapbox_earcut.triangulate_float64(xz, np.cumsum([len(r) for r in rings]).astype(np.uint32))
+    floor_v = np.concatenate(rings)
+    tri = tri.reshape(-1, 3)
+    up = np.cross(floor_v[tri[:, 1]] - floor_v[tri[:, 0]], floor_v[tri[:, 2]] - floor_v[tri[:, 0]])[:, 1] > 0
+    tri[~up] = tri[~up][:, ::-1]                          # the floor faces into the box (+y)
+    front = np.array([[0, 0, 0], [V[:, 0][(V[:, 1] == 0) & (V[:, 2] == 0)].max(), 0, 0],
+                      [V[:, 0][(V[:, 1] == V[:, 1].max()) & (V[:, 2] == 0)].max(), V[:, 1].max(), 0],
+                      [0, V[:, 1].max(), 0]])
+    front_tri = np.array([[0, 1, 2], [0, 2, 3]])          # facing +z, into the box
+    k, m = len(V), len(floor_v)
+    vertices = np.concatenate([V, floor_v, front])
+    triangles = np.concatenate([T[keep], k + tri, k + m + front_tri])
+    white = raw.reflectance[raw.group == floor][0]
+    refl = np.concatenate([raw.reflectance[keep], np.repeat([white], len(tri) + 2, axis=0)])
+    emis = np.concatenate([raw.emission[keep], np.zeros((len(tri) + 2, 3))])
+    group = np.concatenate([raw.group[keep], np.full(len(tri), floor), np.full(2, len(names))])
+    closed = Scene(name="cornell-closed", vertices=vertices, triangles=triangles, reflectance=refl,
+                   emission=emis, group=group, group_names=names + ["front wall"],
+                   camera=CAMERAS["cornell"], source="builtin:cornell, closed")
+    return subdivide(closed, DEFAULT_MAX_EDGE["cornell"] if max_edge is None else max_edge)
+
+
+def _ring(points):
+    """The corners of a convex polygon on the floor, in order round its centre (x, z plane)."""
+    c = points.mean(axis=0)
+    return points[np.argsort(np.arctan2(points[:, 2] - c[2], points[:, 0] - c[0]))]

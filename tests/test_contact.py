@@ -12,28 +12,9 @@ from blockray.host_driver.builtin import load_scene
 from blockray.host_driver.contact import rounding, split_contacts
 from blockray.host_driver.render import render
 
-from scenes import balance, closed_box, make_scene, rectangle
+from scenes import balance, closed_box_with_slab, make_scene, prism, rect, rectangle
 
 FLOOR = rectangle((0, 0, 0), (1, 0, 0), (0, 1, 0), 1, 1)          # unit square, z = 0, normal +z
-
-
-def prism(footprint, height, bottom=False, open_side=None):
-    """A closed prism standing on z = footprint's z: sides and top face outwards (counter-clockwise
-    footprint seen from +z), bottom face optional, side ``open_side`` (a -> a+1) left out."""
-    F = np.asarray(footprint, dtype=np.float64)
-    up = np.array([0.0, 0.0, height])
-    tris = []
-    for k, (a, b) in enumerate(zip(F, np.roll(F, -1, axis=0))):
-        if k != open_side:
-            tris += [[a, b, b + up], [a, b + up, a + up]]
-    tris += [[F[0] + up, F[k] + up, F[k + 1] + up] for k in range(1, len(F) - 1)]
-    if bottom:
-        tris += [[F[0], F[k + 1], F[k]] for k in range(1, len(F) - 1)]
-    return np.array(tris)
-
-
-def rect(x0, y0, x1, y1, z=0.0):
-    return [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
 
 
 def shoelace(F):
@@ -210,21 +191,6 @@ def test_builtin_room_covered_areas():
     assert lost["bookshelf"] == pytest.approx(0.355, abs=1e-9)
     assert max(abs(lost[g]) for g in ("front_wall", "left_wall", "ceiling")) < 1e-12
     assert cut.contact["patches_split"] > 0 and full.contact is None
-
-
-def closed_box_with_slab(n=3):
-    """The unit cube (inward faces, n x n cells a face) with a 0.3 x 0.2 x 0.02 slab on its floor (low,
-    so that it shadows little and the balance shows the covered part's loss, not the visibility's
-    error), lit by the middle ceiling cell."""
-    box, face = closed_box(n)
-    slab = prism(rect(0.35, 0.4, 0.65, 0.6), 0.02)
-    tris = np.concatenate([box, slab])
-    E = np.zeros((len(tris), 3))
-    ceiling = np.flatnonzero(face == 1)
-    E[ceiling[len(ceiling) // 2 - 1:len(ceiling) // 2 + 1]] = [1.0, 2.0, 0.5]
-    R = np.full((len(tris), 3), [0.5, 0.3, 0.7])
-    R[len(box):] = [0.8, 0.6, 0.2]
-    return make_scene(tris, reflectance=R, emission=E, name="closed box with slab")
 
 
 def test_energy_balance_better_with_the_split():

@@ -1,25 +1,19 @@
 """Energy balance of closed scenes: absorbed power sum (1 - rho) H A, with H = (B - E) / rho the
 incident flux, equals emitted power sum E A within 0.05% per channel (issue 17).
 
-The scenes are built in benchmarks/bench_formfactor.py (``closed_scenes``), which also prints the
-table in docs/formfactors.md.
+The scenes are built in tests/scenes.py (``closed_scenes``); benchmarks/bench_formfactor.py prints
+the table in docs/formfactors.md from the same scenes.
 """
-
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+from blockray.host_driver.closure import absorbed_balance
+from blockray.host_driver.formfactor import form_factor_matrix
+from blockray.host_driver.render import render
+from blockray.host_driver.solver import jacobi
 
-from bench_formfactor import closed_scenes                              # noqa: E402
-from blockray.host_driver.closure import absorbed_balance                # noqa: E402
-from blockray.host_driver.formfactor import form_factor_matrix          # noqa: E402
-from blockray.host_driver.render import render                          # noqa: E402
-from blockray.host_driver.solver import jacobi                          # noqa: E402
-
-from scenes import balance, make_scene                                  # noqa: E402
+from scenes import balance, closed_scenes, make_scene
 
 BALANCE = 5e-4
 

@@ -21,7 +21,7 @@ import numpy as np
 from hypothesis import HealthCheck, Phase, assume, given, seed, settings, strategies as st
 
 from blockray.host_driver.formfactor import FAR_TARGET, METHODS, pair_factors
-from test_formfactor import clip_front, contour_oracle
+from oracles import clip_front, contour_oracle
 
 SEED = int(os.environ.get("BLOCKRAY_FF_SEED", "34"))
 EXAMPLES = int(os.environ.get("BLOCKRAY_FF_EXAMPLES", "8"))

@@ -162,7 +162,8 @@ def test_first_shot_from_a_square_light():
     """D.3 diagnostic: after the light's shots, B_j = rho_j E_L F_{j -> L}, with F from the
     closed form for a differential element under a rectangle (four corner rectangles)."""
     from blockray.host_driver.formfactor import unoccluded_factors
-    from test_formfactor import corner_closed_form, rectangle
+    from oracles import corner_closed_form
+    from scenes import rectangle
 
     c = 0.8
     light = rectangle([0, 0, c], [0, 1, 0], [1, 0, 0], 1, 1)            # unit square, normal -z

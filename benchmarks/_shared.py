@@ -1,0 +1,10 @@
+"""The benchmarks measure what the tests check, on the tests' own scenes, oracles and cocotb
+harness (tests/scenes.py, tests/oracles.py, tests/board_cocotb_runs.py): importing this module puts
+tests/ on the path, for the benchmarks only. No test imports a benchmark."""
+
+import sys
+from pathlib import Path
+
+TESTS = str(Path(__file__).resolve().parent.parent / "tests")
+if TESTS not in sys.path:
+    sys.path.append(TESTS)
