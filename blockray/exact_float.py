@@ -36,7 +36,7 @@ from numba import njit
 
 from .errors import ParameterError
 
-__all__ = ["check_exact_range", "plane_signs", "blocked_rays", "orient_sign", "LOW", "HIGH"]
+__all__ = ["check_exact_range", "plane_signs", "blocked_rays", "LOW", "HIGH"]
 
 U = 2.0 ** -53
 #: magnitudes of nonzero coordinates for which the exact stage is exact
@@ -327,9 +327,3 @@ def blocked_rays(P_of, P_weights, Q_of, Q_weights, triangles, counters=None):
     if len(PE) and len(QE) and len(T):
         _blocked_rays(PE, PW, QE, QW, T, out, c)
     return out
-
-
-def orient_sign(a, b, c, d):
-    """Exact sign of orient3d(a, b, c, d) = det[a - d; b - d; c - d] for float points (3,)."""
-    rows = [np.asarray(x, dtype=np.float64) for x in (a, b, c, d)]
-    return int(_exact_sign(_rows_of(rows[0]), _UNIT, _rows_of(rows[1]), _UNIT, _rows_of(rows[2]), _UNIT, rows[3]))

@@ -43,8 +43,7 @@ from .records import pack, patch_layout, point_layout, unpack
 __all__ = ["Op", "POINTS_PER_LOAD", "MAGIC", "VERSION", "ResultKind", "COUNTERS", "COUNTER_WIDTH",
            "IDENTITY_FIELDS", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
            "LoadShooter", "LoadPoints", "Voxel", "EndBlock", "ReadCounters", "Identify", "COMMANDS",
-           "BoardProtocol", "BoardResult", "ResultReader", "fit_params", "check_capacity", "RESULT_OPS",
-           "MEMORY_OPS", "result_producers", "replay_after_reset", "ReplayingHost", "describe"]
+           "BoardProtocol", "BoardResult", "ResultReader", "fit_params", "check_capacity", "describe"]
 
 
 class Op(enum.IntEnum):
@@ -488,97 +487,6 @@ def check_capacity(params, *, records, voxels):
                             f"partition do not fit patch_depth {params.patch_depth}")
     if voxels > params.voxel_depth:
         raise CapacityError(f"voxel table: {voxels} voxels do not fit voxel_depth {params.voxel_depth}")
-
-
-# -- host side: ordering and replay after a reset ---------------------------------------------------
-
-#: commands that put a result record on the result stream (one each, in command order)
-RESULT_OPS = (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY)
-#: commands whose effect (board memory) outlives a block
-MEMORY_OPS = (Op.WRITE_PATCH, Op.WRITE_VOXEL)
-
-
-def result_producers(commands):
-    """Indices of the commands that produce a result, in the order their results arrive."""
-    return [i for i, c in enumerate(commands) if c.op in RESULT_OPS]
-
-
-def replay_after_reset(commands, answered):
-    """What the host sends after a board reset, given that the results of the first ``answered``
-    result-producing commands of ``commands`` have been received.
-
-    A reset loses board memory, the block in progress, every queued command and every result not
-    yet received. The host replays from the start of the block holding the first unanswered
-    result (or from just after the last answered one), preceded by every memory write before that
-    point. Returns a list of ``(original index, command)``; results of replayed commands that were
-    already answered (a READ_COUNTERS inside the replayed block) must be dropped by the host, so
-    it receives every result exactly once and in order (:class:`ReplayingHost` does this).
-    """
-    producers = result_producers(commands)
-    if not 0 <= answered <= len(producers):
-        raise ValueError(f"{answered} results answered, but the stream has {len(producers)}")
-    restart = producers[answered] if answered < len(producers) else (
-        producers[-1] + 1 if producers else 0)
-    # back to the BEGIN_BLOCK of the block that is open at `restart`, if any
-    for i in range(min(restart, len(commands)) - 1, -1, -1):
-        op = commands[i].op
-        if op is Op.END_BLOCK:
-            break
-        if op is Op.BEGIN_BLOCK:
-            restart = i
-            break
-    replay = [(i, c) for i, c in enumerate(commands[:restart]) if c.op in MEMORY_OPS]
-    replay += [(i, c) for i, c in enumerate(commands) if i >= restart]
-    return replay
-
-
-class ReplayingHost:
-    """Host bookkeeping for one board's batch across resets: which commands to send next and which
-    received results to keep.
-
-    ``pending()`` gives the ``(original index, command)`` list to send (the whole batch at first,
-    a replay after :meth:`reset`); :meth:`receive` takes results in arrival order and keeps each
-    original result exactly once. ``results`` maps original command index -> result.
-    """
-
-    def __init__(self, commands):
-        self.commands = list(commands)
-        self.producers = result_producers(self.commands)
-        self.results = {}
-        self.resets = 0
-        self._stream = list(enumerate(self.commands))
-        self._expect = [i for i, c in self._stream if c.op in RESULT_OPS]
-
-    def pending(self):
-        return list(self._stream)
-
-    def receive(self, word):
-        """A result arrived. Returns the original command index it answers (or None if it
-        duplicates one already kept)."""
-        if not self._expect:
-            raise AssertionError("a result arrived that no command asked for")
-        index = self._expect.pop(0)
-        if index in self.results:
-            return None
-        self.results[index] = word
-        return index
-
-    @property
-    def answered(self):
-        n = 0
-        while n < len(self.producers) and self.producers[n] in self.results:
-            n += 1
-        return n
-
-    @property
-    def done(self):
-        return len(self.results) == len(self.producers)
-
-    def reset(self):
-        """The board was reset: plan the replay."""
-        self.resets += 1
-        self._stream = replay_after_reset(self.commands, self.answered)
-        self._expect = [i for i, c in self._stream if c.op in RESULT_OPS]
 
 
 # -- documentation ------------------------------------------------------------------------------

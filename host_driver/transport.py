@@ -45,7 +45,7 @@ class Transport(ABC):
     @abstractmethod
     def reset(self):
         """Reset the board. Queued commands, commands in the board and results not yet received
-        are lost, and so is the board's memory (the host reloads; protocol.ReplayingHost)."""
+        are lost, and so is the board's memory (whoever resets it reloads it)."""
 
     def expect(self, count: int):
         """Hint: the next :meth:`recv` calls will ask for ``count`` bytes in all (a simulation

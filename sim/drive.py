@@ -10,8 +10,8 @@ handles, ``RisingEdge``) each need only those few lines of glue (:func:`amaranth
 Host timing: :class:`Stalls` says in which cycles the host does not offer a command item (idle)
 or does not take a result item (back-pressure): per-cycle coin flips with probability ``rate``
 and **bursts**, long stalls of ``burst_length`` cycles starting with probability ``burst``. Reset
-and replay are above this level (:class:`blockray.protocol.ReplayingHost`): after a reset the host
-calls :meth:`StreamHost.reset` and sends the replay.
+and replay are above this level (the board tests' ``ReplayingHost``, tests/board_host.py): after a
+reset the host calls :meth:`StreamHost.reset` and sends the replay.
 
 The items are whatever the stream carries: bytes for :class:`~blockray.rtl.core.BoardCore`,
 command records (ints) for :class:`~blockray.rtl.board.BoardTop`.

@@ -4,7 +4,7 @@ The pytest side pickles a list of **runs** into ``$BOARD_BATCH``; each run is on
 (``commands``), a seed for the random host timing, the probabilities of an idle command-byte cycle
 and of a back-pressured result-byte cycle, an optional probability of bursts (long stalls on both
 streams), and an optional cycle at which the host resets the board in the middle of the batch (it
-then replays, :class:`blockray.protocol.ReplayingHost`). Every run starts with a reset.
+then replays, ``ReplayingHost`` of tests/board_host.py). Every run starts with a reset.
 
 The parts are kept apart as in cocotb's examples/matrix_multiplier: :class:`LinkDriver` drives
 the command bytes and the result ``ready`` (the shared drive loop,

@@ -16,15 +16,15 @@ from amaranth.sim import Simulator
 from blockray.errors import CapacityError, ParameterError
 from blockray.params import BoardParams
 from blockray.protocol import (BeginBlock, BoardProtocol, BoardResult, EndBlock, Identify, LoadPoints, LoadReceiver,
-                               LoadShooter, Op, ReadCounters, ReplayingHost, ResultKind, Voxel, WritePatch,
-                               WriteVoxel, check_capacity, fit_params, replay_after_reset)
+                               LoadShooter, Op, ReadCounters, ResultKind, Voxel, WritePatch, WriteVoxel,
+                               check_capacity, fit_params)
 from blockray.rtl.board import BoardTop
 from blockray.rtl.core import BoardCore
 from blockray.sim.drive import HostTiming, amaranth_cycle
 from blockray.sim.model import result_word
 from blockray.timing import BoardTiming
 
-from board_host import BatchRun, check_run
+from board_host import BatchRun, ReplayingHost, check_run, replay_after_reset
 from board_scenes import crossing_patches, load_commands, make_batch, random_memory, random_points
 
 
