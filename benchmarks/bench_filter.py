@@ -114,9 +114,9 @@ def part_rate(scene_name, max_shots, bits, formats):
     from blockray.host_driver.render import render
     from blockray.params import BoardParams
     scene = load_scene(scene_name)
-    board = _filter_board(formats)(BoardParams(), bits=bits)
+    board = _filter_board(formats)(BoardParams(bits=bits))
     t0 = time.perf_counter()
-    result = render(scene, board=board, params=BoardParams(), max_shots=max_shots)
+    result = render(scene, board=board, params=BoardParams(bits=bits), max_shots=max_shots)
     r = result.report
     print(f"rate: {scene_name}, {r['patches']} patches, B = {board.quantised.bits}, {r['shots']} shots, "
           f"{r['blocks']} blocks, {r['tests']} tests (model tests_useful), {time.perf_counter() - t0:.0f} s")

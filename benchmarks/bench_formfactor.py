@@ -41,21 +41,20 @@ H = (B - E) / rho, against emitted power sum E A, per channel.
 """
 
 import argparse
-import math
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+import _shared  # noqa: F401  (tests/ on the path: the tests' scenes and oracles)
+from _run_header import print_run_header
+from blockray.host_driver import formfactor as ff
+from blockray.host_driver.closure import absorbed_balance
+from blockray.host_driver.render import render
 
-from _run_header import print_run_header                                   # noqa: E402
-from blockray.host_driver import formfactor as ff                            # noqa: E402
-from blockray.host_driver.closure import absorbed_balance                    # noqa: E402
-from blockray.host_driver.render import render                               # noqa: E402
+from oracles import clip_front, contour_oracle, far_pair, random_pair
+from scenes import box_with_block, closed_box_with_slab, closed_scenes
 
-KINDS = {  # name: (generator kind for test_formfactor.random_pair, distance for test_formfactor.far_pair)
+KINDS = {  # name: (generator kind for oracles.random_pair, distance for oracles.far_pair)
     "shared edge": ("edge", None), "shared vertex": ("vertex", None), "near (0.05 apart)": ("near", None),
     "general (~2 apart)": ("general", None), "D/L ~ 5": ("far", 5), "D/L ~ 20": ("far", 20),
     "D/L ~ 60": ("far", 60), "D/L ~ 200": ("far", 200),
@@ -80,7 +79,6 @@ def forced(Ti, Tj):
 
 
 def table(args):
-    from test_formfactor import contour_oracle, far_pair, random_pair
     from pyviewfactor.pvf_integrators import compute_viewfactor_sa30
     rng = np.random.default_rng(args.seed)
     print(f"seed={args.seed}, {args.pairs} pairs per kind")
@@ -104,93 +102,6 @@ def table(args):
               + ", ".join(f"{k} {v}" for k, v in picks.items()) + " |", flush=True)
 
 
-
-
-def icosphere(levels, centre, radius):
-    """Outward-facing icosphere of 20 * 4^levels triangles."""
-    import itertools
-    phi = (1 + 5 ** 0.5) / 2
-    pts = np.array([p for s1 in (-1, 1) for s2 in (-1, 1)
-                    for p in ((0, s1, s2 * phi), (s1, s2 * phi, 0), (s2 * phi, 0, s1))], float)
-    faces = [f for f in itertools.combinations(range(12), 3)
-             if all(abs(np.linalg.norm(pts[i] - pts[j]) - 2) < 1e-9 for i, j in itertools.combinations(f, 2))]
-    tris = pts[np.array(faces)]
-    for _ in range(levels):
-        a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 1) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])])
-    tris = tris / np.linalg.norm(tris, axis=2, keepdims=True)
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    flip = (n * tris.mean(axis=1)).sum(axis=1) < 0
-    tris[flip] = tris[flip][:, ::-1]
-    return tris * radius + centre
-
-
-def closed_scenes():
-    from test_formfactor import closed_box, make_scene
-    from blockray.host_driver.builtin import load_scene
-    rho = [0.5, 0.3, 0.7]
-    box, face = closed_box(4)
-    E = np.zeros((len(box), 3))
-    E[0] = [1, 2, 0.5]
-    yield "empty closed box (192 triangles, one emitting corner triangle)", make_scene(box, reflectance=rho, emission=E)
-    sphere = icosphere(2, np.array([0.5, 0.45, 0.5]), 0.25)
-    tris = np.concatenate([box, sphere])
-    E = np.zeros((len(tris), 3))
-    E[:len(box)][face == 1] = [1, 2, 0.5]
-    R = np.full((len(tris), 3), rho)
-    R[len(box):] = [0.8, 0.6, 0.2]
-    yield (f"icosphere of {len(sphere)} triangles in a closed box ({len(tris)} triangles, lit ceiling)",
-           make_scene(tris, reflectance=R, emission=E))
-    yield "cornell closed (a front wall fitted to the opening, no floor under the blocks)", closed_cornell()
-
-
-def closed_cornell(scene=None, max_edge=None):
-    """cornell closed patch by patch: its open side gets a wall fitted to the opening (the red wall
-    is slanted, so the opening is a trapezoid, not the bounding box's face), and the floor leaves
-    out the blocks' footprints (the published floor runs under the blocks, where a patch sees
-    nothing). Triangulated with earcut, then subdivided like the built-in (``max_edge``, default
-    the built-in's). ``scene`` is ignored (kept for the callers that pass the loaded cornell)."""
-    import mapbox_earcut
-    from blockray.host_driver.builtin import CAMERAS, DEFAULT_MAX_EDGE, path
-    from blockray.host_driver.objload import load_obj, subdivide
-    from blockray.host_driver.scene import Scene
-    raw = load_obj(path("cornell"), name="cornell")
-    V, T = raw.vertices, raw.triangles
-    names = list(raw.group_names)
-    floor = names.index("floor")
-    keep = raw.group != floor
-    on_floor = lambda g: np.unique(T[raw.group == names.index(g)].ravel())
-    bottom = [v[np.abs(V[v, 1]) == 0] for v in (on_floor("short_block"), on_floor("tall_block"))]
-    outline = np.unique(T[raw.group == floor].ravel())
-    rings = [_ring(V[outline])] + [_ring(V[b]) for b in bottom]
-    xz = np.concatenate(rings)[:, [0, 2]]
-    tri = mapbox_earcut.triangulate_float64(xz, np.cumsum([len(r) for r in rings]).astype(np.uint32))
-    floor_v = np.concatenate(rings)
-    tri = tri.reshape(-1, 3)
-    up = np.cross(floor_v[tri[:, 1]] - floor_v[tri[:, 0]], floor_v[tri[:, 2]] - floor_v[tri[:, 0]])[:, 1] > 0
-    tri[~up] = tri[~up][:, ::-1]                          # the floor faces into the box (+y)
-    front = np.array([[0, 0, 0], [V[:, 0][(V[:, 1] == 0) & (V[:, 2] == 0)].max(), 0, 0],
-                      [V[:, 0][(V[:, 1] == V[:, 1].max()) & (V[:, 2] == 0)].max(), V[:, 1].max(), 0],
-                      [0, V[:, 1].max(), 0]])
-    front_tri = np.array([[0, 1, 2], [0, 2, 3]])          # facing +z, into the box
-    k, m = len(V), len(floor_v)
-    vertices = np.concatenate([V, floor_v, front])
-    triangles = np.concatenate([T[keep], k + tri, k + m + front_tri])
-    white = raw.reflectance[raw.group == floor][0]
-    refl = np.concatenate([raw.reflectance[keep], np.repeat([white], len(tri) + 2, axis=0)])
-    emis = np.concatenate([raw.emission[keep], np.zeros((len(tri) + 2, 3))])
-    group = np.concatenate([raw.group[keep], np.full(len(tri), floor), np.full(2, len(names))])
-    closed = Scene(name="cornell-closed", vertices=vertices, triangles=triangles, reflectance=refl,
-                   emission=emis, group=group, group_names=names + ["front wall"],
-                   camera=CAMERAS["cornell"], source="builtin:cornell, closed")
-    return subdivide(closed, DEFAULT_MAX_EDGE["cornell"] if max_edge is None else max_edge)
-
-
-def _ring(points):
-    """The corners of a convex polygon on the floor, in order round its centre (x, z plane)."""
-    c = points.mean(axis=0)
-    return points[np.argsort(np.arctan2(points[:, 2] - c[2], points[:, 0] - c[0]))]
 
 
 def energy(args):
@@ -237,7 +148,7 @@ def boards(args):
     from blockray.samples import SampleScheme
     from blockray import threads
     scene = load_scene(args.scene)
-    samples, p = SampleScheme(8), BoardParams()
+    samples, p = SampleScheme(8), BoardParams(bits=None)
     rng = np.random.default_rng(args.seed)
     shooters = rng.choice(scene.patches, args.shooters + 1, replace=False)
     print(f"scene {scene.name}, {args.shooters} shooters (seed {args.seed}), {args.rounds} rounds, 1 thread")
@@ -390,10 +301,8 @@ def estimators(args):
     from blockray.host_driver.solver import jacobi
     from blockray.samples import SampleScheme
     if args.scene == "block":
-        from test_energy_closure import _box_with_block
-        scene = _box_with_block()
+        scene = box_with_block()
     elif args.scene == "slab":
-        from test_contact import closed_box_with_slab
         from blockray.host_driver.contact import split_contacts
         scene = split_contacts(closed_box_with_slab())[0]
     else:
@@ -505,7 +414,7 @@ def row_sums(args):
         board.prepare(scene, samples)
         grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=board.margin)
         board.load(grid)
-        p = BoardParams()
+        p = BoardParams(bits=None)
         vis = Visibility(scene, board, grid, samples, rows=p.rows, cols=p.cols)
         rows = []
         for i in range(0, 192, 6):                          # every 6th triangle of the box
@@ -575,7 +484,6 @@ def by_method(S, R):
 
 
 def grazing(args):
-    from test_formfactor import clip_front, contour_oracle
     from blockray.host_driver.builtin import load_scene
     scene = load_scene("cornell")
     V = scene.patch_vertices
@@ -630,7 +538,6 @@ def _every_step_pairs(scene, step):
 def trigger(args):
     """The closed form's actual error (mpmath) against its estimate u S / F on pairs that trigger
     the recomputation (64 u S > FAR_TARGET F)."""
-    from test_formfactor import clip_front, contour_oracle
     from blockray.host_driver.builtin import load_scene
     V = load_scene("cornell").patch_vertices
     I, J = _every_step_pairs(load_scene("cornell"), 8)
@@ -703,7 +610,6 @@ def unresolved(args):
     """The pairs of every 8th shooter that no route certifies within FAR_TARGET (method
     "unresolved"): how many, their largest F, and the worst four against the mpmath oracle."""
     from blockray.host_driver.builtin import load_scene
-    from test_formfactor import clip_front, contour_oracle
     for name in args.scenes:
         scene = load_scene(name)
         V, A = scene.patch_vertices, scene.areas

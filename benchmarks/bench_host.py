@@ -35,7 +35,7 @@ PHASES = ("formfactor", "commands", "traverse", "board", "solve")
 
 def recorded_render(scene, max_shots, threads, stats_fraction):
     """A model-board render that keeps every batch of block rays and its bits."""
-    board = make_board("model", BoardParams())
+    board = make_board("model", BoardParams(bits=None))
     batches = []
     run = board.run
 

@@ -37,7 +37,7 @@ from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard
 from blockray.timing import load_commands_needed
 
-SHAPES = {"8x8x8": BoardParams(), "2x2x1": BoardParams(rows=2, cols=2, boards=1)}
+SHAPES = {"8x8x8": BoardParams(bits=None), "2x2x1": BoardParams(rows=2, cols=2, boards=1, bits=None)}
 
 
 def measure(scene_name, shape, shooters, seed):

@@ -31,14 +31,9 @@ from blockray.samples import SampleScheme
 from blockray.protocol import BeginBlock, EndBlock, LoadReceiver, LoadShooter, Voxel
 from blockray.sim.model import BoardModel, ModelBoard
 from blockray.host_driver.board import BlockRay
-from blockray.host_driver.scene import Scene
 
-
-def make_scene(vertices, triangles, name="bench"):
-    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    n = len(t)
-    return Scene(name, np.asarray(vertices, dtype=np.float64), t, np.full((n, 3), 0.5),
-                 np.zeros((n, 3)), np.zeros(n, dtype=np.int64))
+import _shared  # noqa: F401  (tests/ on the path: the tests' scenes)
+from scenes import mesh_scene
 
 
 # -- query batches: (P (S,3), Q (R,3), V (N,3,3), bits) ------------------------------------------
@@ -49,7 +44,7 @@ def batch_scene(rng):
     n = 24
     centres = rng.random((n, 1, 3)) * 10
     v = centres + (rng.random((n, 3, 3)) - 0.5) * rng.choice([0.05, 1, 4])
-    scene = make_scene(v.reshape(-1, 3), np.arange(3 * n))
+    scene = mesh_scene(v.reshape(-1, 3), np.arange(3 * n), name="bench")
     s = SampleScheme(8)
     bits = int(rng.integers(s.denominator.bit_length() + 1, 21))
     q = quantise(scene, s, bits)
@@ -164,14 +159,14 @@ def part_exact(queries, seed):
 def random_scene(rng, n):
     centres = rng.random((n, 1, 3)) * 10
     v = centres + (rng.random((n, 3, 3)) - 0.5) * 2
-    return make_scene(v.reshape(-1, 3), np.arange(3 * n))
+    return mesh_scene(v.reshape(-1, 3), np.arange(3 * n), name="bench")
 
 
 def part_throughput(seed, patches=2000, blocks=300):
     rng = np.random.default_rng(seed)
     scene = random_scene(rng, patches)
     samples = SampleScheme(8)
-    board = ModelBoard(BoardParams(), bits=16)
+    board = ModelBoard(BoardParams(bits=16))
     board.prepare(scene, samples)
 
     # every patch in one voxel: the array streams all of them for every block
@@ -258,7 +253,7 @@ def part_render(scene_name, max_shots, bits_range=range(10, 21)):
     print("   B  radiosity RMS rel error  max rel error  tests/s (board phase)  utilization")
     for bits in bits_range:
         t0 = time.perf_counter()
-        r = render(scene, board=ModelBoard(BoardParams(), bits=bits), max_shots=max_shots)
+        r = render(scene, board=ModelBoard(BoardParams(bits=bits)), max_shots=max_shots)
         rep = r.report
         m = r.radiosity
         rms = float(np.sqrt(np.mean((m - g) ** 2)) / np.sqrt(np.mean(g ** 2)))

@@ -34,25 +34,22 @@ at 1e-7, near misses only at the scale of the model's quantisation.
 
 import argparse
 import dataclasses
-import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _run_header import print_run_header          # noqa: E402
-from bench_formfactor import change_stats          # noqa: E402
+from _run_header import print_run_header
+from bench_formfactor import change_stats
 
-from blockray.params import BoardParams             # noqa: E402
-from blockray.samples import SampleScheme           # noqa: E402
-from blockray.host_driver import formfactor, solver as solvers      # noqa: E402
-from blockray.host_driver.backends import make_board               # noqa: E402
-from blockray.host_driver.board import BlockBits    # noqa: E402
-from blockray.host_driver.builtin import load_scene                # noqa: E402
-from blockray.host_driver.output import write_patches_csv          # noqa: E402
-from blockray.host_driver.render import render      # noqa: E402
-from blockray.host_driver.visibility import Visibility, _clear_bits  # noqa: E402
-from blockray.host_driver.voxel import VoxelGrid, default_voxels     # noqa: E402
+from blockray.params import BoardParams
+from blockray.samples import SampleScheme
+from blockray.host_driver import formfactor, solver as solvers
+from blockray.host_driver.backends import make_board
+from blockray.host_driver.board import BlockBits
+from blockray.host_driver.builtin import load_scene
+from blockray.host_driver.output import write_patches_csv
+from blockray.host_driver.render import render
+from blockray.host_driver.visibility import Visibility, _clear_bits
+from blockray.host_driver.voxel import VoxelGrid, default_voxels
 
 SAMPLES = SampleScheme(8)
 
@@ -111,7 +108,7 @@ def split(args):
 
 def _visibility(scene, board, bits=None):
     params = BoardParams()
-    b = make_board(board, params, bits=bits)
+    b = make_board(board, params.with_(bits=bits))
     b.prepare(scene, SAMPLES)
     grid = VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=b.margin)
     b.load(grid)

@@ -55,7 +55,7 @@ def _boards(params):
 def speed(shooters, routes):
     scene = builtin.load("cornell")
     samples = SampleScheme(8)
-    params = BoardParams()
+    params = BoardParams(bits=None)
     voxels = default_voxels(scene.patches, parallelism=1)
     reference = ModelBoard(params)
     reference.prepare(scene, samples)
@@ -102,7 +102,7 @@ def full(scene_name):
     runs = {}
     for board in ("verilator", "model"):
         t0 = time.perf_counter()
-        runs[board] = render(scene, backend=board, params=BoardParams())
+        runs[board] = render(scene, backend=board, params=BoardParams(bits=None))
         runs[board + " wall"] = time.perf_counter() - t0
     v, m = runs["verilator"], runs["model"]
     assert np.array_equal(v.radiosity, m.radiosity), "radiosity differs from the model"

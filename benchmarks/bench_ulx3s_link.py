@@ -71,7 +71,7 @@ def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS, fa
     them (:class:`~blockray.host_driver.framed.LinkFaults`), else the credited link's figures."""
     scene = builtin.load(scene_name)
     samples = SampleScheme(8)
-    params = BoardParams(rows=rows, cols=cols, boards=1)
+    params = BoardParams(rows=rows, cols=cols, boards=1, bits=None)
     links, outer = [], []
 
     def transport(p, b):

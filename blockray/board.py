@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ParameterError
+from .errors import ParameterError, option
 from .fixedpoint import resolve_bits
 from .memory import QuantisationWarning, ranges
 from .timing import BoardTiming
@@ -172,16 +172,22 @@ class Board(ABC):
 class CountingBoard(Board):
     """A board of ``params.boards`` boards that keeps the machine's counters the same way,
     whoever computes them (the bit-exact model, or the host driver from the boards' own counter
-    snapshots): see :meth:`counters`. Subclasses set ``params``, ``bits``, ``max_error``,
-    ``cell``, ``load_cycles``, prepare with :meth:`_quantise` and call :meth:`_add_batch` per
-    batch of blocks."""
+    snapshots): see :meth:`counters`. Subclasses set ``params`` (``params.bits``: the B asked
+    for, None: chosen for the scene), ``max_error``, ``cell``, ``load_cycles``, prepare with
+    :meth:`_quantise` and call :meth:`_add_batch` per batch of blocks."""
+
+    def _take(self, params):
+        """Build for ``params``; ``params.bits`` is the B every :meth:`_quantise` asks for (None:
+        chosen for each scene)."""
+        self.params, self._asked_bits = params, params.bits
 
     def _quantise(self, scene, samples):
         """What every quantising board's ``prepare`` does: the scene on the B-bit grid (B, asked
-        for as ``bits`` or chosen for the scene, is resolved here, once, and carried by the
-        quantised scene and ``params`` from here on), the grid's margin, the cell's timing (a
+        for as ``params.bits`` or chosen for the scene, is resolved here, once, and carried by the
+        quantised scene and ``params`` from here on; a board prepared again asks for the B of
+        its params as given), the grid's margin, the cell's timing (a
         ``_timing`` given at construction wins) and fresh counters. Returns the quantised scene."""
-        q = resolve_bits(scene, samples, self.bits, max_error=self.max_error)
+        q = resolve_bits(scene, samples, self._asked_bits, max_error=self.max_error)
         if len(q.collapsed) or len(q.degenerate):
             # reported, not ignored: such patches never block and vertices merged at this grid
             warnings.warn(
@@ -200,7 +206,7 @@ class CountingBoard(Board):
         Rb, Sb = len(block.receiver_patch), len(block.shooter_patch)
         if Rb > p.rows or Sb > p.cols:
             raise ParameterError(f"block of {Rb} receivers x {Sb} shooter points exceeds the "
-                                 f"{p.rows} x {p.cols} array (--rows/--cols); the host must split it")
+                                 f"{p.rows} x {p.cols} array ({option('rows')}/{option('cols')}); the host must split it")
         return Rb, Sb
 
     def _add_batch(self, batch, finish=None):

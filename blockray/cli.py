@@ -90,20 +90,31 @@ def _add_board_options(p):
                    help="seed of the simulated host's timing and of --link-faults")
 
 
+#: parameters whose command-line option is not ``--name`` (``d_bits``, ``w_bits``: the filter
+#: format's widths; ``host``: the simulated host's link timing; ``max_triangles``: LoadLimits')
+_OPTIONS = {"backend": "--board", "d_bits": "--filter-bits", "w_bits": "--filter-bits",
+            "host": "--link-idle / --link-backpressure / --link-bursts", "max_triangles": "--max-patches"}
+
+
+def _option(parameter):
+    """The command-line option that sets ``parameter`` (``fabric_units`` -> ``--fabric-units``)."""
+    return _OPTIONS.get(parameter) or "--" + parameter.replace("_", "-")
+
+
 def _naming_option(run):
-    """``run()``; a ParameterError about one parameter is raised again naming its option
-    (``fabric_units`` -> ``--fabric-units: ...``; ``d_bits``/``w_bits`` -> ``--filter-bits``)."""
-    from .errors import ParameterError
+    """``run()``; a ParameterError about one parameter that does not name it with
+    :func:`~blockray.errors.option` is raised again naming its option (``bits must be ...`` ->
+    ``--bits must be ...``; otherwise ``--fabric-units: ...``)."""
+    from .errors import ParameterError, option
     try:
         return run()
     except ParameterError as e:
-        if e.parameter is None or str(e).startswith("--"):
+        message = e.spelled(option)
+        if e.parameter is None or message != str(e) or message.startswith("--"):
             raise
-        option = "--" + ("filter_bits" if e.parameter in ("d_bits", "w_bits") else e.parameter).replace("_", "-")
-        message = str(e)
         if message.startswith(f"{e.parameter} "):          # "bits must be ..." -> "--bits must be ..."
-            raise ParameterError(option + message[len(e.parameter):], parameter=e.parameter) from None
-        raise ParameterError(f"{option}: {message}", parameter=e.parameter) from None
+            raise ParameterError(option(e.parameter) + message[len(e.parameter):], parameter=e.parameter) from None
+        raise ParameterError(f"{option(e.parameter)}: {message}", parameter=e.parameter) from None
 
 
 def _board_params(**values):
@@ -527,7 +538,7 @@ def main(argv=None):
         with sigterm_raises():
             return args.func(args)
     except BlockrayError as e:
-        print(f"blockray: error: {e}", file=sys.stderr)
+        print(f"blockray: error: {e.spelled(_option)}", file=sys.stderr)
         return 2
     except MemoryError:                 # e.g. under a memory ulimit (ulimit -v)
         print("blockray: error: out of memory; raise the memory limit (ulimit -v) or make the scene or design "

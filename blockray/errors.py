@@ -10,8 +10,36 @@ def printable(text, limit=None):
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
+#: brackets a parameter's name in a message (:func:`option`); never in text shown through
+#: :func:`printable`, which escapes control characters
+_OPTION = "\x1f"
+
+
+def option(name):
+    """The parameter ``name`` inside an error's message. A library caller reads ``name`` (the
+    parameter of the function or options object it set); the CLI prints the command-line option
+    that sets it (``--name``; blockray/cli.py spells the exceptions)."""
+    return f"{_OPTION}{name}{_OPTION}"
+
+
+def spell(text, name):
+    """``text`` with each :func:`option` in it written as ``name(parameter)``."""
+    parts = str(text).split(_OPTION)
+    return "".join(name(part) if k % 2 else part for k, part in enumerate(parts))
+
+
 class BlockrayError(Exception):
-    """Base class of every error caused by bad input or impossible parameters."""
+    """Base class of every error caused by bad input or impossible parameters. The message (the
+    first argument, kept as given so it survives pickling to and from a cluster's workers) may
+    name parameters with :func:`option`; ``str()`` shows their names, :meth:`spelled` any other
+    spelling."""
+
+    def __str__(self):
+        return spell(super().__str__(), str)
+
+    def spelled(self, name):
+        """The message with each parameter written as ``name(parameter)``."""
+        return spell(super().__str__(), name)
 
 
 class SceneError(BlockrayError):

@@ -18,7 +18,7 @@ registration is on exactly one board, so the OR of the boards' words is the same
 
 import numpy as np
 
-from .errors import CapacityError, ParameterError
+from .errors import CapacityError, ParameterError, option
 from .protocol import POINTS_PER_LOAD, BeginBlock, EndBlock, LoadPoints, Voxel, WritePatch, WriteVoxel
 from .records import pack_array, patch_columns, patch_layout
 
@@ -55,7 +55,7 @@ def ranges(starts, counts):
 def check_partition(partition):
     """``partition`` if it names one of :data:`PARTITIONS`, else ParameterError."""
     if partition not in PARTITIONS:
-        raise ParameterError(f"--partition must be one of {', '.join(PARTITIONS)}, not {partition!r}",
+        raise ParameterError(f"{option('partition')} must be one of {', '.join(PARTITIONS)}, not {partition!r}",
                              parameter="partition")
     return partition
 
@@ -114,7 +114,7 @@ class BoardMemories:
         vox, pat, nvox = registration(grid)
         if nvox > params.voxel_depth:
             raise CapacityError(f"voxel table: {nvox} voxels do not fit the board's voxel_depth "
-                                f"{params.voxel_depth}; use --voxels {_cube_root_floor(params.voxel_depth)} or fewer")
+                                f"{params.voxel_depth}; use {option('voxels')} {_cube_root_floor(params.voxel_depth)} or fewer")
         self.nvox = nvox
         self.memories = []
         owner = partition_records(vox, pat, params.boards, partition)
@@ -124,7 +124,7 @@ class BoardMemories:
             if len(rec) > params.patch_depth:
                 raise CapacityError(
                     f"patch memory of board {b}: {len(rec)} patch records (registrations) do not fit "
-                    f"patch_depth {params.patch_depth}; use more --boards or fewer --voxels (each voxel a patch "
+                    f"patch_depth {params.patch_depth}; use more {option('boards')} or fewer {option('voxels')} (each voxel a patch "
                     f"touches costs a record)")
             count = np.bincount(vox[mine], minlength=nvox).astype(np.int64)
             start = np.cumsum(count) - count

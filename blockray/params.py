@@ -60,7 +60,8 @@ class BoardParams:
     rows         R: receivers per block (rows of the processor array)
     cols         S: shooter sample points per block (columns of the processor array)
     boards       P: boards, each holding a disjoint partition of the patches
-    bits         B: coordinate bits of the quantised scene
+    bits         B: coordinate bits of the quantised scene; None: chosen for the scene when a
+                 board quantises it (its params carry the B it chose from then on)
     patch_depth  words of patch memory per board (one word = one patch record; a patch
                  registered in k voxels takes k words)
     voxel_depth  entries of the voxel table per board (at least v**3)
@@ -69,26 +70,32 @@ class BoardParams:
     rows: int = 8
     cols: int = 8
     boards: int = 8
-    bits: int = 16
+    bits: int | None = 16
     patch_depth: int = 1 << 14
     voxel_depth: int = 1 << 15
 
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.name == "bits":               # None, or B by its own rule below
+                continue
             if isinstance(value, bool) or not isinstance(value, int):
                 raise ParameterError(f"board parameter {f.name} must be an integer, not {value!r}",
                                      parameter=f.name)
             if value < 1:
                 raise ParameterError(f"board parameter {f.name} must be at least 1, not {value}",
                                      parameter=f.name)
-        check_bits(self.bits)
+        if self.bits is not None:
+            check_bits(self.bits)
         if self.rows > 64 or self.cols > 64:
             raise ParameterError(f"array of {self.rows} x {self.cols} processors: rows and cols must be at most 64",
                                  parameter="rows" if self.rows > 64 else "cols")
 
     @property
     def widths(self):
+        if self.bits is None:
+            raise ParameterError("bits: B is chosen for a scene when a board quantises it; the widths need "
+                                 "it resolved", parameter="bits")
         return Widths(self.bits)
 
     @property

@@ -18,7 +18,7 @@ from contextlib import contextmanager
 
 import numba
 
-from .errors import ParameterError
+from .errors import ParameterError, option
 
 __all__ = ["available", "get", "set_threads", "using", "parallel", "PARALLEL_MIN_RAYS"]
 
@@ -49,7 +49,7 @@ def get():
 def set_threads(n):
     """Use ``n`` threads (1 .. :func:`available`) in the kernels called from this thread."""
     if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= available():
-        raise ParameterError(f"--threads must be an integer from 1 to {available()} (this machine's cores), "
+        raise ParameterError(f"{option('threads')} must be an integer from 1 to {available()} (this machine's cores), "
                              f"not {n!r}", parameter="threads")
     numba.set_num_threads(n)
 

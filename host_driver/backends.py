@@ -1,7 +1,7 @@
 """The board back-ends by name: one registry for ``render.make_board`` and the CLI's ``--board``
 (its choices and help text come from here).
 
-A back-end is a factory ``(params, *, bits, partition, vcd, host) -> Board`` (and ``port``,
+A back-end is a factory ``(params, *, partition, vcd, host) -> Board`` (and ``port``,
 ``baud`` for a board on serial ports). The driven ones are a
 :class:`~blockray.host_driver.driver.BoardDriver` over one transport per board
 (host_driver/simulated.py); the real ULX3S (``ulx3s``, host_driver/ulx3s.py) is the driver over
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Callable
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 from ..filtered import CELLS as _CELLS, check_cell
 from ..link import DEFAULT_BAUD
 from ..memory import check_partition
@@ -54,17 +54,17 @@ def backend(name):
     try:
         return BACKENDS[name]
     except KeyError:
-        raise ParameterError(f"--board must be one of {', '.join(BACKENDS)}, not {name!r}",
+        raise ParameterError(f"{option('backend')} must be one of {', '.join(BACKENDS)}, not {name!r}",
                              parameter="board") from None
 
 
-def make_board(name, params=None, *, bits=None, partition="deal", cell="exact", filter_format=None, vcd=None,
+def make_board(name, params=None, *, partition="deal", cell="exact", filter_format=None, vcd=None,
                host=None, faults=None, port=(), baud=DEFAULT_BAUD):
-    """Build back-end ``name`` for ``params`` (default :class:`~blockray.params.BoardParams`); the
-    keywords are the fields of :class:`~blockray.host_driver.options.BoardOptions` (see
-    :func:`build_board`)."""
+    """Build back-end ``name`` for ``params`` (default :class:`~blockray.params.BoardParams` with
+    B chosen per scene); the keywords are the fields of
+    :class:`~blockray.host_driver.options.BoardOptions` (see :func:`build_board`)."""
     from ..params import BoardParams
-    board = SimpleNamespace(backend=name, params=params or BoardParams(), bits=bits, partition=partition, cell=cell,
+    board = SimpleNamespace(backend=name, params=params or BoardParams(bits=None), partition=partition, cell=cell,
                             filter_format=filter_format, vcd=vcd, host=host, faults=faults, port=port, baud=baud)
     check_board(board)
     return build_board(board)
@@ -78,28 +78,31 @@ def check_board(options):
     check_partition(options.partition)
     if check_cell(cell, options.filter_format) not in entry.cells:
         able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
-        raise ParameterError(f"--cell {cell} needs a board built with that cell (--board {able}), not {name!r}",
+        raise ParameterError(f"{option('cell')} {cell} needs a board built with that cell ({option('backend')} {able}), "
+                             f"not {name!r}",
                              parameter="cell")
     if not entry.quantises and options.partition != "deal":
-        raise ParameterError("--partition applies to the hardware's boards; the golden board holds the whole scene",
+        raise ParameterError(f"{option('partition')} applies to the hardware's boards; the golden board holds the whole scene",
                              parameter="partition")
     if options.vcd is not None and not entry.waveform:
         able = " or ".join(n for n, b in BACKENDS.items() if b.waveform)
-        raise ParameterError(f"--vcd needs a simulated RTL board (--board {able}), not {name!r}", parameter="vcd")
+        raise ParameterError(f"{option('vcd')} needs a simulated RTL board ({option('backend')} {able}), not {name!r}",
+                             parameter="vcd")
     if options.host is not None and not entry.host_timing:
         able = " or ".join(n for n, b in BACKENDS.items() if b.host_timing)
-        raise ParameterError(f"--link-idle / --link-backpressure / --link-bursts need a board simulated cycle "
-                             f"by cycle (--board {able}), not {name!r}")
+        raise ParameterError(f"{option('host')} need a board simulated cycle by cycle ({option('backend')} {able}), "
+                             f"not {name!r}", parameter="host")
     if options.faults is not None and not entry.faults:
         able = " or ".join(n for n, b in BACKENDS.items() if b.faults)
-        raise ParameterError(f"--link-faults needs a board with a framed link (--board {able}), not {name!r}",
+        raise ParameterError(f"{option('link_faults')} needs a board with a framed link ({option('backend')} {able}), "
+                             f"not {name!r}",
                              parameter="link_faults")
 
 
 def build_board(options):
     """The board of a :class:`~blockray.host_driver.options.BoardOptions` (checked by
-    :func:`check_board` when the options were built). ``bits=None`` lets the board choose B for
-    the scene; ``vcd`` (a path) a waveform of a simulated board (board b > 0 writes ``FILE.b``);
+    :func:`check_board` when the options were built). ``params.bits=None`` lets the board choose
+    B for the scene; ``vcd`` (a path) a waveform of a simulated board (board b > 0 writes ``FILE.b``);
     ``host``: the host's timing on a simulated board's link: ``(idle, backpressure, seed)``, two
     :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor cell,
     ``"exact"`` or ``"filtered"`` (``filter_format``: its :class:`~blockray.filtered.FilterFormat`,
@@ -114,27 +117,27 @@ def build_board(options):
         extra.update(cell=o.cell, filter_format=o.filter_format)
     if entry.serial:
         extra.update(port=o.port, baud=o.baud)
-    return entry.factory(o.params, bits=o.bits, partition=o.partition, vcd=o.vcd, host=o.host, **extra)
+    return entry.factory(o.params, partition=o.partition, vcd=o.vcd, host=o.host, **extra)
 
 
 def _wave(vcd, b):
     return None if vcd is None else (str(vcd) if b == 0 else f"{vcd}.{b}")
 
 
-def _golden(params, *, bits, partition, vcd, host):
+def _golden(params, *, partition, vcd, host):
     from .golden import GoldenBoard
     return GoldenBoard()
 
 
-def _model(params, *, bits, partition, vcd, host, cell="exact", filter_format=None):
+def _model(params, *, partition, vcd, host, cell="exact", filter_format=None):
     from ..sim.model import ModelBoard
-    return ModelBoard(params, bits=bits, partition=partition, cell=cell, filter_format=filter_format)
+    return ModelBoard(params, partition=partition, cell=cell, filter_format=filter_format)
 
 
 def _driven(name, open_transport):
-    def factory(params, *, bits, partition, vcd, host, **cell):
+    def factory(params, *, partition, vcd, host, **cell):
         from .driver import BoardDriver
-        return BoardDriver(params, bits=bits, partition=partition, name=name, cell=cell.get("cell", "exact"),
+        return BoardDriver(params, partition=partition, name=name, cell=cell.get("cell", "exact"),
                            transport=lambda p, b: open_transport(p, b, vcd=_wave(vcd, b), host=host, **cell))
     return factory
 
@@ -179,9 +182,9 @@ def _ulx3s_sim(p, b, *, vcd, host, faults=None):
     return ulx3s_sim_transport(p, b, vcd=vcd, host=host, faults=faults)
 
 
-def _ulx3s(params, *, bits, partition, vcd, host, port=(), baud=None, faults=None):
+def _ulx3s(params, *, partition, vcd, host, port=(), baud=None, faults=None):
     from .ulx3s import ulx3s_board
-    return ulx3s_board(params, port, baud=baud, bits=bits, partition=partition, faults=faults)
+    return ulx3s_board(params, port, baud=baud, partition=partition, faults=faults)
 
 
 register(Backend("ulx3s-sim", "the ULX3S top level, UART and framed link included, under Verilator "

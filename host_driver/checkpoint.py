@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 from ..atomic import write_file
-from ..errors import ParameterError, ResourceError, printable
+from ..errors import ParameterError, ResourceError, option, printable
 
 __all__ = ["Checkpoint", "scene_hash", "FILE", "INTERVAL"]
 
@@ -78,14 +78,14 @@ class Checkpoint:
 
     def _load(self):
         path = self._path(self.resume_from)
-        shown = f"--resume {printable(self.resume_from, 200)}"
+        shown = f"{option('resume')} {printable(self.resume_from, 200)}"
         try:
             with np.load(path, allow_pickle=False) as data:
                 saved = {k: data[k] for k in data.files}
             meta = json.loads(str(saved.pop("meta")))
         except FileNotFoundError:
-            raise ParameterError(f"{shown}: no checkpoint there ({FILE}); a render writes one with --checkpoint",
-                                 parameter="resume") from None
+            raise ParameterError(f"{shown}: no checkpoint there ({FILE}); a render writes one with "
+                                 f"{option('checkpoint')}", parameter="resume") from None
         except (OSError, ValueError, KeyError) as e:
             raise ParameterError(f"{shown}: {FILE} is not a blockray checkpoint ({printable(e, 200)})",
                                  parameter="resume") from None
@@ -97,7 +97,7 @@ class Checkpoint:
                                  f"not {printable(self.meta['scene'], 100)!r}", parameter="resume")
         if meta.get("scene_hash") != self.meta["scene_hash"]:
             raise ParameterError(f"{shown}: the checkpoint's scene {printable(meta['scene'], 100)!r} has other "
-                                 f"contents (--max-edge, --contact or the file changed)", parameter="resume")
+                                 f"contents ({option('max_edge')}, {option('contact')} or the file changed)", parameter="resume")
         theirs, ours = meta.get("options", {}), self.meta["options"]
         for key in sorted(set(theirs) | set(ours)):
             if theirs.get(key) != ours.get(key):
@@ -119,7 +119,7 @@ class Checkpoint:
         try:
             os.makedirs(self.save_to, exist_ok=True)
         except OSError as e:
-            raise ResourceError(f"--checkpoint {printable(self.save_to, 200)}: cannot create it: "
+            raise ResourceError(f"{option('checkpoint')} {printable(self.save_to, 200)}: cannot create it: "
                                 f"{e.strerror or e}") from None
-        write_file(self._path(self.save_to), "--checkpoint", lambda f: np.savez(f, **arrays), binary=True)
+        write_file(self._path(self.save_to), option("checkpoint"), lambda f: np.savez(f, **arrays), binary=True)
         self._last = time.monotonic()

@@ -39,7 +39,7 @@ refuses a correction larger than ``max_correction``.
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 
 __all__ = ["MODES", "exchange_areas", "diagnose", "imbalance_terms", "enforce", "absorbed_balance"]
 
@@ -129,7 +129,7 @@ def enforce(scene, F, *, mode="enforce", max_correction=MAX_CORRECTION):
     (``info["isolated_patches"]`` counts them).
     """
     if mode not in MODES:
-        raise ParameterError(f"--closure must be one of {', '.join(MODES)}, not {mode!r}")
+        raise ParameterError(f"{option('closure')} must be one of {', '.join(MODES)}, not {mode!r}")
     F = np.asarray(F, dtype=np.float64)
     A = np.asarray(scene.areas, dtype=np.float64)
     info = {"mode": mode, "raw": diagnose(scene, F)}
@@ -144,7 +144,7 @@ def enforce(scene, F, *, mode="enforce", max_correction=MAX_CORRECTION):
         isolated = S.sum(axis=1) <= 0
         lost = np.flatnonzero(isolated & (np.asarray(scene.emission).sum(axis=1) > 0))
         if len(lost):
-            raise ParameterError(f"--closure enforce: patch {int(lost[0])} emits but exchanges light with no other "
+            raise ParameterError(f"{option('closure')} enforce: patch {int(lost[0])} emits but exchanges light with no other "
                                  f"patch; the scene is not closed", parameter="closure")
         info["isolated_patches"] = int(isolated.sum())
         d, iterations = _scale(S, A)
@@ -152,7 +152,7 @@ def enforce(scene, F, *, mode="enforce", max_correction=MAX_CORRECTION):
         info.update(scale_max_change=correction, scale_iterations=iterations,
                     scale_mean_change=float((A * (d - 1)).sum() / A.sum()))
         if correction > max_correction:
-            raise ParameterError(f"--closure enforce: the summation rule needs a scale change |d - 1| of {correction:.3g} on a patch "
+            raise ParameterError(f"{option('closure')} enforce: the summation rule needs a scale change |d - 1| of {correction:.3g} on a patch "
                                  f"(more than {max_correction:g}); the scene is not closed, or its visibility too "
                                  f"coarse to enforce", parameter="closure")
         S = d[:, None] * S * d[None, :]

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError, ResourceError
+from ..errors import ParameterError, ResourceError, option
 from . import formfactor, solver as solvers
 from .backends import make_board
 from .scaleout import assign_sets, receiver_work
@@ -106,13 +106,13 @@ def cluster_client(scheduler=None, *, workers=None, sets=1, echo=None):
 def _connect(scheduler):
     from dask.distributed import Client
     if not isinstance(scheduler, str) or not scheduler.strip():
-        raise ParameterError(f"--scheduler must be a scheduler address such as tcp://host:8786, not {scheduler!r}",
+        raise ParameterError(f"{option('scheduler')} must be a scheduler address such as tcp://host:8786, not {scheduler!r}",
                              parameter="scheduler")
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT)
     except (OSError, TimeoutError, ValueError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ParameterError(f"--scheduler {scheduler}: no Dask scheduler answered within {CONNECT_TIMEOUT} s "
+        raise ParameterError(f"{option('scheduler')} {scheduler}: no Dask scheduler answered within {CONNECT_TIMEOUT} s "
                              f"({reason})", parameter="scheduler") from None
 
 
@@ -120,8 +120,7 @@ def _connect(scheduler):
 class SetJob:
     """What every set's worker needs besides the scene, grid and assignment the cluster holds."""
     board: str
-    params: object             # BoardParams
-    bits: object               # the client's quantisation B (None: a board without one)
+    params: object             # BoardParams, with the B the client quantised to (None: a board without one)
     partition: str
     samples: object            # SampleScheme
     traversal: str
@@ -179,7 +178,7 @@ def cast_set(k, scene, grid, owner, job):
     if job.threads is not None:
         set_threads(min(job.threads, available()))
     own = np.flatnonzero(owner == k)
-    board = make_board(job.board, job.params, bits=job.bits, partition=job.partition)
+    board = make_board(job.board, job.params, partition=job.partition)
     try:
         phases = Phases()
         with phases.timed("prepare"):
@@ -272,8 +271,8 @@ def _hold(client, value):
 
 def _lost(client):
     address = getattr(client.scheduler, "address", None) or "its address"
-    return ResourceError(f"--sets: lost the Dask scheduler at {address} (resume from the last --checkpoint "
-                         f"with --resume)")
+    return ResourceError(f"{option('sets')}: lost the Dask scheduler at {address} (resume from the last "
+                         f"{option('checkpoint')} with {option('resume')})")
 
 
 def _call(client, method, *args):
@@ -312,8 +311,8 @@ def _results(client, futures, done=None):
         elif workerless is None:
             workerless = time.monotonic()
         elif time.monotonic() - workerless > WORKERLESS:
-            raise ResourceError(f"--sets: the Dask cluster has had no worker for {WORKERLESS} s (resume from the "
-                                f"last --checkpoint with --resume)")
+            raise ResourceError(f"{option('sets')}: the Dask cluster has had no worker for {WORKERLESS} s (resume "
+                                f"from the last {option('checkpoint')} with {option('resume')})")
         try:
             wait(futures, timeout=POLL)
         except TimeoutError:
@@ -323,7 +322,7 @@ def _results(client, futures, done=None):
     try:
         return client.gather(futures)
     except KilledWorker as e:
-        raise ResourceError(f"--sets: {e.args[0] if e.args else 'a task'}: every worker that ran it died") from None
+        raise ResourceError(f"{option('sets')}: {e.args[0] if e.args else 'a task'}: every worker that ran it died") from None
     except CancelledError:
         raise _lost(client) from None
 

@@ -20,7 +20,7 @@ From these the driver forms exactly the model's report (:class:`~blockray.board.
 import numpy as np
 
 from ..board import CountingBoard
-from ..errors import CapacityError, ParameterError
+from ..errors import CapacityError, ParameterError, option
 from ..fixedpoint import DEFAULT_MAX_ERROR
 from ..memory import BoardMemories, check_partition
 from ..params import BoardParams
@@ -59,17 +59,17 @@ class BoardDriver(CountingBoard):
     (:func:`~blockray.protocol.fit_params`, simulated boards built per scene); otherwise the
     boards are built for ``params`` as given (real hardware). Either way a scene that does not fit
     ``params``' memories raises :class:`CapacityError` before any transport opens (followed by
-    ``hint``, what to change, if given). ``bits``, ``max_error``, ``partition``: as
-    :class:`~blockray.sim.model.ModelBoard`.
+    ``hint``, what to change, if given). ``params.bits`` (None by default: chosen for the scene),
+    ``max_error``, ``partition``: as :class:`~blockray.sim.model.ModelBoard`.
     """
 
-    def __init__(self, params=None, *, transport, name="driver", bits=None, fit=True,
+    def __init__(self, params=None, *, transport, name="driver", fit=True,
                  max_error=DEFAULT_MAX_ERROR, partition="deal", cell="exact", hint=None):
-        self.params = params or BoardParams()
+        self._take(params or BoardParams(bits=None))
         self.hint = hint
         self.cell = cell
         self.name = name
-        self.bits, self.max_error, self.fit = bits, max_error, fit
+        self.max_error, self.fit = max_error, fit
         self.partition = check_partition(partition)
         self._open = transport
         self.transports = []
@@ -97,7 +97,7 @@ class BoardDriver(CountingBoard):
         except CapacityError as e:
             if self.hint is None:
                 raise
-            raise CapacityError(f"{e}; {self.hint}") from None
+            raise CapacityError(f"{e.spelled(option)}; {self.hint}") from None
         self.board_params = fit_params(p, records=mem.records, voxels=mem.nvox) if self.fit else p
         self.protocol = BoardProtocol(self.board_params)
         self._read_counters = self.protocol.encode(ReadCounters())

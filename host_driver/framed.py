@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 from ..framing import BOARD_LINK, HOST_LINK, Endpoint
 from .transport import Transport, TransportError
 
@@ -39,7 +39,7 @@ class LinkFaults:
 
     def __post_init__(self):
         if not 0 <= self.rate < 1:
-            raise ParameterError(f"--link-faults must be a rate per byte from 0 to below 1, not {self.rate}",
+            raise ParameterError(f"{option('link_faults')} must be a rate per byte from 0 to below 1, not {self.rate}",
                                  parameter="link_faults")
 
     def injector(self, board, direction):

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from blockray.atomic import write_file
-from blockray.errors import ParameterError
+from blockray.errors import ParameterError, option
 
 from .scene import Camera
 
@@ -36,12 +36,12 @@ BYTES_PER_PIXEL = 135
 MAX_PIXELS = 1 << 26
 
 
-def check_image_size(width, height, option="--size"):
-    """Raise :class:`ParameterError` (naming ``option``) for an image of more than
+def check_image_size(width, height):
+    """Raise :class:`ParameterError` (naming the ``size``) for an image of more than
     :data:`MAX_PIXELS` pixels: its buffers would not fit in memory."""
     pixels = int(width) * int(height)
     if pixels > MAX_PIXELS:
-        raise ParameterError(f"{option}: a {width} x {height} image needs about "
+        raise ParameterError(f"{option('size')}: a {width} x {height} image needs about "
                              f"{pixels * BYTES_PER_PIXEL / 2**30:.3g} GiB of memory; at most {MAX_PIXELS} "
                              f"pixels (8192 x 8192)")
 
@@ -220,4 +220,4 @@ def save_png(path, image, outputs=None):
     alone, or staged in the batch ``outputs``. A failed write raises ResourceError naming the file."""
     from PIL import Image
     picture = Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8), "RGB")
-    write_file(path, "--image", lambda f: picture.save(f, format="PNG"), binary=True, outputs=outputs)
+    write_file(path, option("image"), lambda f: picture.save(f, format="PNG"), binary=True, outputs=outputs)

@@ -58,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blockray.errors import ParameterError, SceneError, printable
+from blockray.errors import ParameterError, SceneError, option, printable
 
 from .scene import COORDINATE_LIMIT, Scene, check_range
 
@@ -483,9 +483,9 @@ def _check_max_edge(max_edge):
     try:
         value = float(max_edge)
     except (TypeError, ValueError):
-        raise ParameterError(f"--max-edge must be a positive number, not {max_edge!r}") from None
+        raise ParameterError(f"{option('max_edge')} must be a positive number, not {max_edge!r}") from None
     if not value > 0:                      # also rejects NaN
-        raise ParameterError(f"--max-edge must be a positive number, not {max_edge!r}")
+        raise ParameterError(f"{option('max_edge')} must be a positive number, not {max_edge!r}")
     return value
 
 
@@ -513,8 +513,8 @@ def _too_many(max_edge, count, max_triangles, at_least=True):
         shown = "more than 1e308"
     else:
         shown = f"at least {count:.3g}" if at_least else f"{count}"
-    return ParameterError(f"--max-edge {max_edge:g} would subdivide the scene into {shown} triangles, more than the limit of {max_triangles} (use a larger "
-                          f"--max-edge, or raise the limit with --max-patches)")
+    return ParameterError(f"{option('max_edge')} {max_edge:g} would subdivide the scene into {shown} triangles, more than the limit of {max_triangles} (use a larger "
+                          f"{option('max_edge')}, or raise the limit with {option('max_triangles')})")
 
 
 def subdivide(scene, max_edge, *, max_triangles=None):

@@ -9,17 +9,17 @@ names (the CLI's option names with ``_`` for ``-``), and :func:`~blockray.host_d
 takes it as a whole. A bad value raises :class:`~blockray.errors.ParameterError` naming its
 parameter (the CLI names the option that set it).
 
-B, the coordinate bits, is not resolved here: ``BoardOptions.bits`` is the B asked for (None:
-the board chooses it for the scene, or, a real board, the B its bitstream was built for); the
-board resolves it once, when it quantises the scene, and from there on the quantised scene and
-the board's :class:`~blockray.params.BoardParams` carry it.
+B, the coordinate bits, travels in the board's :class:`~blockray.params.BoardParams`
+(``BoardOptions.params.bits``): the B asked for, or None (the default here): the board chooses it
+for the scene (a real board: the B its bitstream was built for). The board resolves it once, when
+it quantises the scene; from there on the quantised scene and the board's params carry it.
 """
 
 import math
 from dataclasses import dataclass, field, fields
 
-from ..errors import ParameterError
-from ..params import BoardParams, check_bits
+from ..errors import ParameterError, option
+from ..params import BoardParams
 from ..samples import SampleScheme
 from ..link import DEFAULT_BAUD
 
@@ -43,14 +43,13 @@ def _integer(value):
 @dataclass(frozen=True)
 class BoardOptions:
     """The board: ``backend`` (a name of the registry, ``--board``), the machine's ``params``
-    (R, S, P; the memories of a board built per scene are fitted to it), ``bits`` (B asked for;
-    None: chosen per scene), ``partition``, the processor ``cell`` and its ``filter_format``,
+    (R, S, P and B, None by default: chosen per scene; the memories of a board built per scene
+    are fitted to it), ``partition``, the processor ``cell`` and its ``filter_format``,
     a waveform ``vcd``, the simulated host's ``host`` timing ``(idle, backpressure, seed)``,
     link ``faults`` (:class:`~blockray.host_driver.framed.LinkFaults`), and for a real board its
     serial ``port`` (one per board) and ``baud``."""
     backend: str = "model"
-    params: BoardParams = field(default_factory=BoardParams)
-    bits: int = None
+    params: BoardParams = field(default_factory=lambda: BoardParams(bits=None))
     partition: str = "deal"
     cell: str = "exact"
     filter_format: object = None
@@ -65,8 +64,7 @@ class BoardOptions:
         entry = backend(self.backend)
         if not isinstance(self.params, BoardParams):
             raise ParameterError(f"board params must be BoardParams, not {self.params!r}", parameter="params")
-        if self.bits is not None:
-            check_bits(self.bits)
+        if self.params.bits is not None:
             if not entry.quantises:
                 raise ParameterError(f"bits applies to boards that quantise the scene; the {self.backend} board "
                                      f"is float64", parameter="bits")
@@ -143,7 +141,8 @@ class SetOptions:
             if value is not None and (not _integer(value) or value < 1):
                 raise ParameterError(f"{name} must be a positive integer, not {value!r}", parameter=name)
         if self.scheduler is not None and self.workers is not None:
-            raise ParameterError("--workers sizes the local cluster; a cluster joined with --scheduler has its own "
+            raise ParameterError(f"{option('workers')} sizes the local cluster; a cluster joined with {option('scheduler')} "
+                                 "has its own "
                                  "workers", parameter="workers")
 
     @property
@@ -174,7 +173,7 @@ def host_timing(args):
         idle = HostTiming(rate=args.link_idle, burst=args.link_bursts)
         pressure = HostTiming(rate=args.link_backpressure, burst=args.link_bursts)
     except ValueError as e:
-        raise ParameterError(f"--link-*: {e}") from None
+        raise ParameterError(f"{option('host')}: {e}", parameter="host") from None
     return idle, pressure, args.link_seed
 
 
@@ -184,6 +183,9 @@ def _faults(args):
 
 
 _GROUPS = {"board": BoardOptions, "ray": RayOptions, "solve": SolveOptions, "run": SetOptions}
+
+#: what makes a render distributed (SetOptions.distributed), as an error names it
+_DISTRIBUTED = f"{option('sets')}, {option('scheduler')} or {option('workers')}"
 
 
 @dataclass(frozen=True)
@@ -199,37 +201,37 @@ class RenderOptions:
         if not self.run.distributed:
             return
         if s.closure != "off":
-            raise ParameterError("--closure needs the whole form-factor matrix on one host; it cannot be used with "
-                                 "--sets, --scheduler or --workers", parameter="closure")
+            raise ParameterError(f"{option('closure')} needs the whole form-factor matrix on one host; it cannot be used "
+                                 f"with {_DISTRIBUTED}", parameter="closure")
         if s.solver == "progressive":
-            raise ParameterError("--sets: host + board sets solve by gathering; use --solver jacobi or "
-                                 "gauss-seidel", parameter="sets")
+            raise ParameterError(f"{option('sets')}: host + board sets solve by gathering; use {option('solver')} jacobi "
+                                 "or gauss-seidel", parameter="sets")
         if b.vcd is not None:
-            raise ParameterError("--vcd traces one board's simulation; it cannot be used with --sets, "
-                                 "--scheduler or --workers", parameter="vcd")
+            raise ParameterError(f"{option('vcd')} traces one board's simulation; it cannot be used with {_DISTRIBUTED}",
+                                 parameter="vcd")
         if b.host is not None:
-            raise ParameterError("--link-idle / --link-backpressure / --link-bursts drive one simulated board; "
-                                 "they cannot be used with --sets, --scheduler or --workers", parameter="sets")
+            raise ParameterError(f"{option('host')} drive one simulated board; they cannot be used with {_DISTRIBUTED}",
+                                 parameter="host")
         if b.faults is not None:
-            raise ParameterError("--link-faults injects faults on one set's links; it cannot be used with --sets, "
-                                 "--scheduler or --workers", parameter="link_faults")
+            raise ParameterError(f"{option('link_faults')} injects faults on one set's links; it cannot be used with "
+                                 f"{_DISTRIBUTED}", parameter="link_faults")
         if b.cell != "exact":
-            raise ParameterError("--cell filtered runs one set (not with --sets, --scheduler or --workers)",
+            raise ParameterError(f"{option('cell')} filtered runs one set (not with {_DISTRIBUTED})",
                                  parameter="cell")
 
     @classmethod
     def of(cls, **flat):
-        """From the flat names of the groups' fields (``backend``, ``bits``, ``samples``,
-        ``solver``, ``sets``, ...); ``rows``, ``cols``, ``boards`` set the board's params."""
+        """From the flat names of the groups' fields (``backend``, ``samples``, ``solver``,
+        ``sets``, ...); ``rows``, ``cols``, ``boards``, ``bits`` set the board's params."""
         groups = {name: {} for name in _GROUPS}
         owner = {f.name: name for name, group in _GROUPS.items() for f in fields(group)}
-        array = {k: flat.pop(k) for k in ("rows", "cols", "boards") if k in flat}
+        array = {k: flat.pop(k) for k in ("rows", "cols", "boards", "bits") if k in flat}
         for key, value in flat.items():
             if key not in owner:
                 raise TypeError(f"RenderOptions.of() got an unknown option {key!r}")
             groups[owner[key]][key] = value
         if array:
-            params = groups["board"].get("params") or BoardParams()
+            params = groups["board"].get("params") or BoardParams(bits=None)
             groups["board"]["params"] = params.with_(**array)
         if groups["board"].get("params") is None:
             groups["board"].pop("params", None)
@@ -241,7 +243,7 @@ class RenderOptions:
         ``board``, ``filter_bits``, ``link_*`` as the options give them)."""
         flat = {f.name: getattr(args, f.name) for group in _GROUPS.values() for f in fields(group)
                 if hasattr(args, f.name)}
-        flat.update(backend=args.board, rows=args.rows, cols=args.cols, boards=args.boards,
+        flat.update(backend=args.board, rows=args.rows, cols=args.cols, boards=args.boards, bits=args.bits,
                     filter_format=filter_format(args.filter_bits), host=host_timing(args),
                     faults=None if args.link_faults is None else _faults(args))
         return cls.of(**flat)

@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from ..atomic import write_file
-from ..errors import SolveError, printable
+from ..errors import SolveError, option, printable
 
 __all__ = ["write_patches_csv", "write_report_json"]
 
@@ -22,7 +22,7 @@ def write_patches_csv(path, scene, radiosity, outputs=None):
     bad = np.flatnonzero(~np.isfinite(radiosity).all(axis=1))
     if len(bad):
         i = int(bad[0])
-        raise SolveError(f"--patches {printable(path, 200)}: patch {i}'s radiosity is {np.asarray(radiosity[i]).tolist()}; "
+        raise SolveError(f"{option('patches')} {printable(path, 200)}: patch {i}'s radiosity is {np.asarray(radiosity[i]).tolist()}; "
                          f"not written", patch=i)
 
     def write(f):
@@ -33,7 +33,7 @@ def write_patches_csv(path, scene, radiosity, outputs=None):
             g = scene.group_names[scene.group[i]] if scene.group_names else str(scene.group[i])
             w.writerow([i, g, repr(float(scene.areas[i])), *(repr(float(x)) for x in c[i]),
                         *(repr(float(x)) for x in radiosity[i])])
-    write_file(path, "--patches", write, outputs=outputs)
+    write_file(path, option("patches"), write, outputs=outputs)
 
 
 def _plain(x):
@@ -66,9 +66,9 @@ def write_report_json(path, report, outputs=None):
     plain = _plain(report)
     bad = _non_finite(plain)
     if bad:
-        raise SolveError(f"--report {printable(path, 200)}: {bad} is not a finite number; not written")
+        raise SolveError(f"{option('report')} {printable(path, 200)}: {bad} is not a finite number; not written")
 
     def write(f):
         json.dump(plain, f, indent=2, sort_keys=False, allow_nan=False)
         f.write("\n")
-    write_file(path, "--report", write, outputs=outputs)
+    write_file(path, option("report"), write, outputs=outputs)

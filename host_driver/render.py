@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 from .backends import build_board, make_board
 from .options import SOLVERS, RenderOptions
 from .. import threads as host_threads
@@ -83,10 +83,11 @@ def _resume(scene, board, options, params, checkpoint):
         return None
     b, ray, solve = options.board, options.ray, options.solve
     if solve.closure != "off":
-        raise ParameterError("--checkpoint / --resume: a --closure render solves twice from the whole matrix; "
+        raise ParameterError(f"{option('checkpoint')} / {option('resume')}: a {option('closure')} render solves twice "
+                             "from the whole matrix; "
                              "it is not checkpointed", parameter="closure")
     return checkpoint.bind(scene, {
-        "board": board.name, "bits": b.bits, "voxels": ray.voxels, "samples": ray.samples.count,
+        "board": board.name, "bits": b.params.bits, "voxels": ray.voxels, "samples": ray.samples.count,
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
@@ -98,7 +99,7 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
     params = getattr(board, "params", None) or b.params       # R, S, P of the board as built
     if options.run.distributed:
         if board.name != b.backend:
-            raise ParameterError(f"--sets: every set builds a {b.backend!r} board (options.board), not the "
+            raise ParameterError(f"{option('sets')}: every set builds a {b.backend!r} board (options.board), not the "
                                  f"{board.name!r} given", parameter="sets")
         check_sets(options.run.sets, scene.patches)
     samples = ray.samples
@@ -193,7 +194,7 @@ def _solve_closed(scene, shoot, solve, bar):
     ones, so that the report shows both energy balances side by side."""
     mode = solve.closure
     if 8 * scene.patches ** 2 > solvers.MAX_MATRIX_BYTES:
-        raise ParameterError(f"--closure {mode}: the form factors of {scene.patches} patches do not fit in "
+        raise ParameterError(f"{option('closure')} {mode}: the form factors of {scene.patches} patches do not fit in "
                              f"{solvers.MAX_MATRIX_BYTES / 2**30:g} GiB", parameter="closure")
     F, sums = _columns(scene, shoot, bar)
     t0 = time.perf_counter()
@@ -312,7 +313,7 @@ def _render_sets(run, grid, *, progress, echo):
     quantised = getattr(run.board, "quantised", None)       # None: a board that does not quantise
     with phases.timed("cluster"), cluster_client(sets.scheduler, workers=sets.workers, sets=sets.sets,
                                                  echo=echo) as (client, threads):
-        job = SetJob(board=b.backend, params=params, bits=None if quantised is None else quantised.bits,
+        job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
                      partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
                      stats_fraction=ray.stats_fraction, threads=threads)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,

@@ -17,7 +17,7 @@ Machine time: the sets run in parallel, so ``board_cycles`` is the slowest set's
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 
 __all__ = ["check_sets", "assign_sets", "receiver_work", "combine_counters", "exchange_bytes_per_sweep"]
 
@@ -29,9 +29,9 @@ def check_sets(sets, patches):
     """``sets`` if it is a positive integer no larger than the scene's ``patches``, else
     ParameterError (a set owns at least one patch)."""
     if isinstance(sets, bool) or not isinstance(sets, (int, np.integer)) or sets < 1:
-        raise ParameterError(f"--sets must be a positive integer, not {sets!r}", parameter="sets")
+        raise ParameterError(f"{option('sets')} must be a positive integer, not {sets!r}", parameter="sets")
     if sets > max(1, patches):
-        raise ParameterError(f"--sets {sets} exceeds the scene's {patches} patches (a set owns at least one)",
+        raise ParameterError(f"{option('sets')} {sets} exceeds the scene's {patches} patches (a set owns at least one)",
                              parameter="sets")
     return sets
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from blockray.errors import ParameterError, SolveError
+from blockray.errors import ParameterError, SolveError, option
 
 __all__ = ["RowSums", "GAIN_ALLOWANCE", "DIVERGED", "check_factors", "column_sums", "check_finite", "product", "gauss_seidel_sets", "set_gauss_seidel", "gauss_seidel_sweeps", "jacobi_sweeps", "SolveResult",
            "progressive_refinement", "jacobi", "gauss_seidel", "residual", "ambient", "MAX_MATRIX_BYTES",
@@ -49,9 +49,9 @@ def check_matrix_memory(patches, solver):
     form-factor matrix of more than :data:`MAX_MATRIX_BYTES` for ``patches`` patches."""
     need = 8 * patches * patches
     if solver != "progressive" and need > MAX_MATRIX_BYTES:
-        raise ParameterError(f"--solver {solver}: the form factors of {patches} patches need "
+        raise ParameterError(f"{option('solver')} {solver}: the form factors of {patches} patches need "
                              f"{need / 2**30:.3g} GiB, more than {MAX_MATRIX_BYTES / 2**30:g} GiB; use "
-                             f"--solver progressive or a larger --max-edge")
+                             f"{option('solver')} progressive or a larger {option('max_edge')}")
 
 
 #: A render refuses a shooter whose factors, after reflection, return more power than it sends:

@@ -29,7 +29,7 @@ from itertools import product
 import numpy as np
 
 from ..atomic import Outputs
-from ..errors import ParameterError, printable
+from ..errors import ParameterError, option, printable
 from ..params import MAX_BITS, MIN_BITS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
@@ -150,9 +150,9 @@ def read_patches(path):
         groups = np.array([r["group"] for r in rows])
         num = np.array([[float(r[k]) for k in ("area", "cx", "cy", "cz", "B_r", "B_g", "B_b")] for r in rows])
     except (OSError, KeyError, ValueError, csv.Error) as e:
-        raise ParameterError(f"--reference {printable(path, 200)}: not a blockray --patches CSV ({e})") from None
+        raise ParameterError(f"{option('reference')} {printable(path, 200)}: not a blockray {option('patches')} CSV ({e})") from None
     if len(rows) == 0 or not np.isfinite(num).all():
-        raise ParameterError(f"--reference {printable(path, 200)}: no patches, or a number that is not finite")
+        raise ParameterError(f"{option('reference')} {printable(path, 200)}: no patches, or a number that is not finite")
     return groups, num[:, 0], num[:, 1:4], num[:, 4:7]
 
 
@@ -276,7 +276,7 @@ def make_reference(scene, spec, fixed, out, echo):
     """``spec``: a recipe name (rendered into ``out/reference``, once) or a patches CSV."""
     if spec not in RECIPES:
         if not os.path.isfile(spec):
-            raise ParameterError(f"--reference {printable(spec, 200)}: neither a recipe ({', '.join(RECIPES)}) "
+            raise ParameterError(f"{option('reference')} {printable(spec, 200)}: neither a recipe ({', '.join(RECIPES)}) "
                                  f"nor a patches CSV file")
         return Reference(spec).load()
     recipe = {**fixed, **RECIPES[spec]}
@@ -286,7 +286,7 @@ def make_reference(scene, spec, fixed, out, echo):
     try:
         _run_render(scene, recipe, folder, echo)
     except ParameterError as e:
-        raise ParameterError(f"--reference {spec}: the reference render failed: {e}") from None
+        raise ParameterError(f"{option('reference')} {spec}: the reference render failed: {e.spelled(option)}") from None
     return Reference(os.path.join(folder, "patches.csv"), recipe,
                      " ".join(["blockray", "render", *render_args(scene, recipe)])).load()
 
@@ -353,7 +353,7 @@ def run_sweep(scene, grid, *, reference="golden", fixed=None, out="sweep", fmax=
     from .builtin import load_scene
     fixed = dict(fixed or {})
     if set(fixed) & set(grid):
-        raise ParameterError(f"--fix {', '.join(sorted(set(fixed) & set(grid)))}: also given to --vary")
+        raise ParameterError(f"{option('fix')} {', '.join(sorted(set(fixed) & set(grid)))}: also given to {option('vary')}")
     os.makedirs(out, exist_ok=True)
     ref = make_reference(scene, reference, fixed, out, echo)
     embree = embree_seconds_per_ray(load_scene(scene, max_edge=fixed.get("max-edge")))

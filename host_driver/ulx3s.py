@@ -9,8 +9,9 @@ board's back-end (``--board ulx3s``, registered in host_driver/backends.py) is
 fails there, in seconds) and takes the boards' memories and B from their IDENTIFY replies.
 """
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 from ..protocol import BoardProtocol
+from ..params import MIN_BITS
 from .serial_link import DEFAULT_BAUD, SerialTransport
 from .uart_sim import SIM_DIVISOR, UartSimTransport
 
@@ -22,11 +23,11 @@ CAPACITY_HINT = ("rebuild the bitstream with larger memories (blockray bitstream
                  "(--max-edge)")
 
 
-def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal", open_link=None, faults=None):
+def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link=None, faults=None):
     """The host driver over ULX3S boards, one behind each of ``ports`` (``params.boards`` of them).
 
     Every link is opened and reset first, then every board is asked for its configuration
-    (IDENTIFY): the boards' memories and, unless ``bits`` asks for a B, their B are what board 0
+    (IDENTIFY): the boards' memories and, unless ``params.bits`` asks for a B, their B are what board 0
     answers; R and S are ``params``' (the driver checks every board against the whole
     configuration before it uploads). ``open_link(port, baud=)``: the transport of one port
     (default :func:`ulx3s_transport`; with ``faults``, a
@@ -35,23 +36,25 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, bits=None, partition="deal"
     open_link = open_link or ulx3s_transport
     ports = (ports,) if isinstance(ports, str) else tuple(ports or ())
     if not ports:
-        raise ParameterError("--port: --board ulx3s needs the board's serial port, e.g. --port /dev/ttyUSB0",
+        raise ParameterError(f"{option('port')}: {option('backend')} ulx3s needs the board's serial port, e.g. "
+                             f"{option('port')} /dev/ttyUSB0",
                              parameter="port")
     if len(ports) != params.boards:
-        raise ParameterError(f"--boards: {params.boards} boards need {params.boards} ports, --port names "
+        raise ParameterError(f"{option('boards')}: {params.boards} boards need {params.boards} ports, {option('port')} names "
                              f"{len(ports)}", parameter="boards")
     links = []
     try:
         for b, port in enumerate(ports):
             links.append(open_link(port, baud=baud, **({} if faults is None else {"faults": faults, "board": b})))
-        built = BoardDriver.identities_of(links, BoardProtocol(params))[0]
+        # IDENTIFY's reply reads alike under any B: the protocol is built for one before B is known
+        built = BoardDriver.identities_of(links, BoardProtocol(params.with_(bits=params.bits or MIN_BITS)))[0]
     except BaseException:
         for link in links:
             link.close()
         raise
-    expect = params.with_(bits=bits or built["bits"], patch_depth=built["patch_depth"],
+    expect = params.with_(bits=params.bits or built["bits"], patch_depth=built["patch_depth"],
                           voxel_depth=built["voxel_depth"])
-    return BoardDriver(expect, bits=expect.bits, fit=False, name="ulx3s", partition=partition, hint=CAPACITY_HINT,
+    return BoardDriver(expect, fit=False, name="ulx3s", partition=partition, hint=CAPACITY_HINT,
                        transport=lambda p, b: links[b])
 
 
@@ -65,9 +68,9 @@ def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, faults=None, fi
     """The board core for ``params`` behind the UART and the framed link under Verilator (bit
     time ``SIM_DIVISOR`` cycles); ``faults``: as :func:`ulx3s_transport`. ``vcd``/``host`` are not
     supported (the link sets the host's timing)."""
-    from ..errors import ParameterError
     from ..rtl.core import BoardCore
     if vcd is not None or host is not None:
-        raise ParameterError("--board ulx3s-sim: the UART sets the host's timing; no --vcd or --host-timing")
+        raise ParameterError(f"{option('backend')} ulx3s-sim: the UART sets the host's timing; no {option('vcd')} "
+                             f"or {option('host')}")
     return UartSimTransport(BoardCore(params), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
                             board=board, name="blockray_ulx3s_sim")

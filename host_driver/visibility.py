@@ -7,7 +7,7 @@ import time
 import numpy as np
 from numba import njit
 
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 from . import formfactor
 from .board import BlockBatch, BlockBits, ranges
 
@@ -69,7 +69,7 @@ class Visibility:
     def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", packing="voxel",
                  phases=None, stats=None):
         if traversal not in TRAVERSALS:
-            raise ParameterError(f"--traversal must be one of {', '.join(TRAVERSALS)}, not {traversal!r}")
+            raise ParameterError(f"{option('traversal')} must be one of {', '.join(TRAVERSALS)}, not {traversal!r}")
         self.scene, self.board, self.grid, self.samples = scene, board, grid, samples
         self.rows, self.cols, self.traversal = rows, cols, traversal
         self.phases = phases or Phases()
@@ -80,7 +80,7 @@ class Visibility:
         self.end_voxel = grid.voxel_of(self.centroids)
         self.end_morton = _morton(grid.cell_of(self.centroids))
         if packing not in PACKINGS:
-            raise ParameterError(f"--packing must be one of {', '.join(PACKINGS)}, not {packing!r}")
+            raise ParameterError(f"{option('packing')} must be one of {', '.join(PACKINGS)}, not {packing!r}")
         self.packing = packing
         self.nonempty = grid.count > 0
         self.rays = 0

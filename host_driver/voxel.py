@@ -27,7 +27,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from blockray.errors import ParameterError
+from blockray.errors import ParameterError, option
 
 from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
 
@@ -73,7 +73,7 @@ class VoxelGrid:
         if not np.all(np.isfinite(tri)):
             raise ParameterError("voxel grid: vertices must be finite")
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= _MAX_VOXELS:
-            raise ParameterError(f"--voxels must be an integer from 1 to {_MAX_VOXELS}, not {v!r}")
+            raise ParameterError(f"{option('voxels')} must be an integer from 1 to {_MAX_VOXELS}, not {v!r}")
         margin = float(margin)
         if not (math.isfinite(margin) and margin >= 0):
             raise ParameterError(f"voxel grid: margin must be a finite number >= 0, not {margin!r}")

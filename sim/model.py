@@ -251,17 +251,17 @@ class BoardModel:
 class ModelBoard(CountingBoard):
     """P bit-exact boards behind the host's Board interface (``--board model``).
 
-    ``bits=None`` chooses B per scene (:func:`blockray.fixedpoint.choose_bits`); an int forces it
-    (``--bits``). ``params.bits`` is replaced by the B actually used. ``partition``: how the
+    ``params.bits=None`` (the default params') chooses B per scene
+    (:func:`blockray.fixedpoint.choose_bits`); an int forces it (``--bits``). Once the scene is
+    quantised, ``params.bits`` is the B used. ``partition``: how the
     patch records are spread over the P boards (:data:`PARTITIONS`, ``--partition``).
     """
 
     name = "model"
 
-    def __init__(self, params=None, *, bits=None, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal",
+    def __init__(self, params=None, *, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal",
                  cell="exact", filter_format=None, depth=None):
-        self.params = params or BoardParams()
-        self.bits = bits
+        self._take(params or BoardParams(bits=None))
         self.cell = check_cell(cell)
         self._filter_format = filter_format
         self.depth = depth or _array_depth(self.cell)

@@ -55,7 +55,7 @@ def cornell_partition(rows, cols, boards, bits, *, voxels=4, shooters=(5, 600), 
 
     scene = builtin.load("cornell")
     samples = SampleScheme(4)
-    model = ModelBoard(BoardParams(rows=rows, cols=cols, boards=boards), bits=bits)
+    model = ModelBoard(BoardParams(rows=rows, cols=cols, boards=boards, bits=bits))
     model.prepare(scene, samples)
     grid = VoxelGrid(scene.patch_vertices, voxels, margin=model.margin)
     model.load(grid)

@@ -8,7 +8,7 @@ code under test.
 import numpy as np
 import pytest
 
-from scenes import closed_box, make_scene
+from scenes import box_with_block, closed_box, make_scene
 from blockray.errors import ParameterError
 from blockray.host_driver import closure
 from blockray.host_driver.formfactor import form_factor_matrix
@@ -86,9 +86,9 @@ def test_open_scene_is_refused():
     scene, face = _box_scene()
     tris = scene.patch_vertices[face != 1]                               # no ceiling
     opened = make_scene(tris, reflectance=0.5, emission=1.0)
-    with pytest.raises(ParameterError, match="--closure enforce.*not closed"):
+    with pytest.raises(ParameterError, match="closure enforce.*not closed"):
         closure.enforce(opened, form_factor_matrix(opened))
-    with pytest.raises(ParameterError, match="--closure must be one of"):
+    with pytest.raises(ParameterError, match="closure must be one of"):
         closure.enforce(opened, form_factor_matrix(opened), mode="sinkhorn")
 
 
@@ -111,21 +111,8 @@ def test_isolated_patch_keeps_its_zero_row_unless_it_emits():
         closure.enforce(glowing, F)
 
 
-def _box_with_block():
-    """A closed box of 48 triangles with a closed cube of 12 triangles floating inside."""
-    box, face = closed_box(2)
-    cube, _ = closed_box(1, size=0.3)
-    cube = cube[:, ::-1] + 0.35                                          # normals outward
-    tris = np.concatenate([box, cube])
-    E = np.zeros((len(tris), 3))
-    E[:len(box)][face == 1] = [1.0, 2.0, 0.5]
-    R = np.full((len(tris), 3), [0.5, 0.3, 0.7])
-    R[len(box):] = [0.8, 0.6, 0.2]
-    return make_scene(tris, reflectance=R, emission=E)
-
-
 def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
-    scene = _box_with_block()
+    scene = box_with_block()
     res = render(scene, backend="golden", tolerance=1e-10, closure="enforce")
     c = res.report["closure"]
     fixed = _balance(scene, res.radiosity)
@@ -145,8 +132,8 @@ def test_render_with_enforcement_balances_and_reports_the_raw_imbalance():
 
 
 def test_closure_needs_one_host():
-    with pytest.raises(ParameterError, match="--closure"):
-        render(_box_with_block(), backend="golden", solver="jacobi", sets=2, closure="enforce")
+    with pytest.raises(ParameterError, match="closure needs the whole form-factor matrix on one host"):
+        render(box_with_block(), backend="golden", solver="jacobi", sets=2, closure="enforce")
 
 
 def test_cli_refuses_enforcement_on_an_open_scene(tmp_path, capsys):

@@ -100,7 +100,7 @@ def test_model_board_equals_command_streams(fmt):
     scene = random_scene(5)
     boards = {}
     for cell in ("exact", "filtered"):
-        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3), partition="deal", cell=cell, filter_format=fmt)
+        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3, bits=None), partition="deal", cell=cell, filter_format=fmt)
         board.prepare(scene, samples)
         grid = BoxGrid(scene.patch_vertices, 3, margin=board.margin)
         board.load(grid)

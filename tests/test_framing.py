@@ -4,7 +4,6 @@ over a faulty line, and renders through ``--board model-link --link-faults`` tha
 fault-free render byte for byte or end with exit 2 and one line. Seeded; the seeds are printed."""
 
 import binascii
-import json
 import random
 import zlib
 
@@ -33,9 +32,8 @@ def _bitwise_crc32(data):
     return crc ^ 0xFFFFFFFF
 
 
-def test_crc32_matches_known_implementations():
-    seed = random.randrange(2**32)
-    print("seed", seed)
+def test_crc32_matches_known_implementations(rng_seed):
+    seed = rng_seed
     rng = random.Random(seed)
     assert crc32(b"123456789") == 0xCBF43926            # the catalogue's check value
     for n in (0, 1, 2, 7, 64, 253, 1000):
@@ -67,9 +65,8 @@ def test_every_flip_drop_and_duplicate_of_a_frame_is_detected():
                     parse_frame(part)
 
 
-def test_resynchronises_after_garbage():
-    seed = random.randrange(2**32)
-    print("seed", seed)
+def test_resynchronises_after_garbage(rng_seed):
+    seed = rng_seed
     rng = random.Random(seed)
     frames = [Frame(0, k, 0, bytes([k + 1]) * 5) for k in range(20)]
     stream = bytearray()
@@ -155,9 +152,8 @@ def test_ack_and_resend_edge_cases():
 
 
 @pytest.mark.parametrize("rate", [1e-3, 1e-2, 3e-2])
-def test_endpoints_over_a_faulty_line_deliver_exactly(rate):
-    seed = random.randrange(2**32)
-    print("seed", seed, "rate", rate)
+def test_endpoints_over_a_faulty_line_deliver_exactly(rate, rng_seed):
+    seed = rng_seed
     rng = random.Random(seed)
     import numpy as np
     a, b = Endpoint(LinkConfig(payload=60, window=8)), Endpoint(LinkConfig(payload=60, window=8))
@@ -284,6 +280,6 @@ def test_a_corrupted_result_tag_on_an_unframed_link_is_one_error(room):
     TransportError naming the board, not a ValueError."""
     path, _ = room
     scene = room_scene(path.parent, 1.5)
-    board = BoardDriver(RTL_PARAMS, bits=10, transport=lambda p, b: _Flipper(p))
+    board = BoardDriver(RTL_PARAMS, transport=lambda p, b: _Flipper(p))
     with pytest.raises(TransportError, match=r"board 0 \(the link\): a corrupted result: result tag 3"):
         render(scene, board=board, params=RTL_PARAMS, bits=10, samples=4, max_shots=1, voxels=3)

@@ -113,7 +113,7 @@ def test_subdivision_stops_when_it_passes_the_limit():
     # the lower bound (~900 for max_edge 100) lets it start under a limit of 920; it gives 928
     scene = builtin.load("cornell", max_edge=1e9, contact=False)
     assert subdivision_lower_bound(scene, 100.0) < 920
-    with pytest.raises(ParameterError, match=r"--max-edge 100 would subdivide the scene into 9[0-9][0-9] "):
+    with pytest.raises(ParameterError, match=r"max_edge 100 would subdivide the scene into 9[0-9][0-9] "):
         subdivide(scene, 100.0, max_triangles=920)
 
 

@@ -74,7 +74,7 @@ def test_any_blocked_of_an_empty_block():
 def model_board(seed=5, v=3):
     samples = SampleScheme(8)
     scene = random_scene(seed, n=40)
-    board = ModelBoard(BoardParams(rows=8, cols=8, boards=3), bits=14)
+    board = ModelBoard(BoardParams(rows=8, cols=8, boards=3, bits=14))
     board.prepare(scene, samples)
     grid = BoxGrid(scene.patch_vertices, v, margin=board.margin)
     board.load(grid)

@@ -21,7 +21,7 @@ from scenes import mesh_scene as make_scene
 
 def setup_board(seed=0, v=3, params=None, bits=None, samples=SampleScheme(8), partition="deal"):
     scene = random_scene(seed)
-    board = ModelBoard(params or BoardParams(rows=4, cols=3, boards=3), bits=bits, partition=partition)
+    board = ModelBoard((params or BoardParams(rows=4, cols=3, boards=3)).with_(bits=bits), partition=partition)
     board.prepare(scene, samples)
     grid = BoxGrid(scene.patch_vertices, v, margin=board.margin)
     board.load(grid)
@@ -138,7 +138,7 @@ def test_cycle_counts_and_counters_by_hand():
 
     params = BoardParams(rows=4, cols=2, boards=2)
     timing = BoardTiming(processor_latency=5, memory_latency=2)
-    board = ModelBoard(params, bits=8, timing=timing, partition="patch")
+    board = ModelBoard(params.with_(bits=8), timing=timing, partition="patch")
     board.prepare(scene, SampleScheme(1))
     board.load(G())
     # receiver: centroid of patch 1 (z = 4); shooter: the sample of patch 0 (z = 0): crosses nothing
@@ -170,7 +170,7 @@ def test_blocking_across_boards_is_ored():
     class G:
         voxel_patches = [np.array([0, 1, 2])]
 
-    board = ModelBoard(BoardParams(rows=2, cols=2, boards=2), bits=10)
+    board = ModelBoard(BoardParams(rows=2, cols=2, boards=2, bits=10))
     board.prepare(scene, SampleScheme(4))
     board.load(G())
     blk = BlockRay(np.array([0, 0]), np.array([0, 3]), np.array([2]), np.array([0]))
@@ -182,11 +182,11 @@ def test_blocking_across_boards_is_ored():
 def test_capacity_errors_name_the_memory():
     scene = random_scene(6)
     grid = BoxGrid(scene.patch_vertices, 2)
-    board = ModelBoard(BoardParams(boards=2, patch_depth=8))
+    board = ModelBoard(BoardParams(boards=2, bits=None, patch_depth=8))
     board.prepare(scene, SampleScheme(8))
     with pytest.raises(CapacityError, match="patch memory.*patch_depth 8"):
         board.load(grid)
-    board = ModelBoard(BoardParams(boards=2, voxel_depth=7))
+    board = ModelBoard(BoardParams(boards=2, bits=None, voxel_depth=7))
     board.prepare(scene, SampleScheme(8))
     with pytest.raises(CapacityError, match="voxel table.*8 voxels.*voxel_depth 7"):
         board.load(grid)
@@ -195,7 +195,7 @@ def test_capacity_errors_name_the_memory():
 def test_block_larger_than_array_is_refused():
     scene, board, grid = setup_board(seed=7)
     blk = BlockRay(np.zeros(4, dtype=np.int64), np.arange(4), np.arange(2), np.array([0]))
-    with pytest.raises(ParameterError, match="--rows/--cols"):
+    with pytest.raises(ParameterError, match=r"\(rows/cols\)"):
         board.run([blk])      # 4 shooter points > 3 columns
 
 
@@ -233,7 +233,7 @@ def test_margin_keeps_host_voxel_traversal_conservative(bits):
     from blockray.host_driver.voxel import VoxelGrid
     samples = SampleScheme(8)
     scene = random_scene(10 + bits, n=60)
-    board = ModelBoard(BoardParams(rows=8, cols=8, boards=4), bits=bits)
+    board = ModelBoard(BoardParams(rows=8, cols=8, boards=4, bits=bits))
     board.prepare(scene, samples)
     grid = VoxelGrid(scene.patch_vertices, 24, margin=board.margin)
     board.load(grid)
@@ -285,7 +285,7 @@ def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
     (tmp_path / "s.obj").write_text("\n".join(obj) + "\n")
     scene = load_obj(tmp_path / "s.obj", max_edge=10.0)     # ~400 patches: the sliver is under 1%
     assert scene.patches > 100
-    board = ModelBoard(bits=10)
+    board = ModelBoard(BoardParams(bits=10))
     with pytest.warns(QuantisationWarning, match=r"1 patches degenerate"):
         board.prepare(scene, SampleScheme(4))
     assert len(board.quantised.degenerate) == 1

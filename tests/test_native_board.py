@@ -13,8 +13,6 @@ The RTL boards are a 2 x 2 array, P = 2, B = 10 (tests/test_rtl_board.py's); the
 native harness is cached by content (docs/rtl-render.md, "Build").
 """
 
-import random
-
 import numpy as np
 import pytest
 
@@ -26,8 +24,7 @@ from blockray.params import BoardParams
 from blockray.sim.drive import HostTiming
 from blockray.sim.native import NativeBuildError, Ports, build_native
 
-from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_obj, room_scene
-from test_rtl_board import COUNTER_KEYS, _blocks
+from scenes import COUNTER_KEYS, RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_obj, room_scene, shooter_blocks
 
 
 #: shooters of the room rendered in the default suite (to convergence: 2255, 17.8 M board cycles)
@@ -72,17 +69,16 @@ def test_the_room_to_convergence_renders_as_the_model(room):
 
 
 @pytest.mark.cocotb
-def test_host_timing_is_the_drive_loops_cycle_for_cycle(scene_small):
-    seed = random.Random().randrange(1 << 40)
-    print(f"seed={seed}")
+def test_host_timing_is_the_drive_loops_cycle_for_cycle(scene_small, rng_seed):
+    seed = rng_seed
     host = (HostTiming(0.3, burst=0.004, burst_length=(16, 120)),
             HostTiming(0.25, burst=0.004, burst_length=(16, 120)), seed)
     runs = {}
     shooters = np.random.default_rng(seed).choice(scene_small.patches, 2, replace=False)
     for backend in ("amaranth", "verilator"):
-        board = make_board(backend, PARAMS, bits=BITS, host=host)
+        board = make_board(backend, PARAMS, host=host)
         try:
-            blocks = _blocks(scene_small, board, shooters)[:16]          # the Amaranth simulator is slow
+            blocks = shooter_blocks(scene_small, board, shooters)[:16]          # the Amaranth simulator is slow
             bits = board.run(blocks[:len(blocks) // 2]) + board.run(blocks[len(blocks) // 2:])
             runs[backend] = (bits, board.counters(), [t.stats()["simulated_clock_cycles"] for t in board.transports])
         finally:
@@ -142,7 +138,7 @@ def test_a_failed_build_is_a_one_line_error_naming_its_log(tmp_path):
 @pytest.mark.cocotb
 def test_cornell_renders_as_the_model():
     scene = builtin.load("cornell")
-    model = render(scene, backend="model", params=BoardParams())
-    got = render(scene, backend="verilator", params=BoardParams())
+    model = render(scene, backend="model", params=BoardParams(bits=None))
+    got = render(scene, backend="verilator", params=BoardParams(bits=None))
     _same_render(got, model)
     assert got.report["board_cycles"] == model.report["board_cycles"] > 10 ** 6

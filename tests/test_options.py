@@ -6,10 +6,10 @@ import dataclasses
 
 import pytest
 
-from blockray.cli import build_parser, main
+from blockray.cli import _option, build_parser, main
 from blockray.errors import ParameterError
 from blockray.filtered import FilterFormat
-from blockray.host_driver.options import RenderOptions
+from blockray.host_driver.options import BoardOptions, RenderOptions
 from blockray.params import BoardParams
 
 
@@ -17,8 +17,8 @@ def test_flat_names_go_to_their_groups():
     o = RenderOptions.of(backend="golden", rows=4, boards=2, samples=4, voxels=5, traversal="ray",
                          solver="jacobi", tolerance=1e-5, max_iterations=7, sets=2, threads=3)
     assert o.board.backend == "golden"
-    assert o.board.params == BoardParams(rows=4, cols=8, boards=2)
-    assert o.board.bits is None and o.board.partition == "deal" and o.board.cell == "exact"
+    assert o.board.params == BoardParams(rows=4, cols=8, boards=2, bits=None)
+    assert o.board.partition == "deal" and o.board.cell == "exact"
     assert (o.ray.samples.count, o.ray.voxels, o.ray.traversal, o.ray.packing) == (4, 5, "ray", "voxel")
     assert (o.solve.solver, o.solve.tolerance, o.solve.max_iterations, o.solve.max_shots) == ("jacobi", 1e-5, 7, None)
     assert (o.run.sets, o.run.threads, o.run.distributed) == (2, 3, True)
@@ -95,3 +95,24 @@ def test_cli_names_the_option_before_reading_the_scene(argv, message, tmp_path, 
     assert main(["render", str(missing), "--quiet"] + argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"blockray: error: {message}"), err
+
+
+def test_a_message_names_parameters_to_a_library_caller_and_options_on_the_command_line(tmp_path, capsys):
+    """One error, two readers: ``str()`` names the parameters (what a library caller set), the CLI
+    the options; the spelling survives pickling (errors come back from a cluster's workers)."""
+    import pickle
+    with pytest.raises(ParameterError) as caught:
+        RenderOptions.of(solver="jacobi", sets=2, closure="enforce")
+    assert str(caught.value) == ("closure needs the whole form-factor matrix on one host; it cannot be used with "
+                                 "sets, scheduler or workers")
+    assert str(pickle.loads(pickle.dumps(caught.value))) == str(caught.value)
+    argv = ["render", str(tmp_path / "not-there.obj"), "--quiet", "--solver", "jacobi", "--sets", "2",
+            "--closure", "enforce"]
+    assert main(argv) == 2
+    assert capsys.readouterr().err == ("blockray: error: --closure needs the whole form-factor matrix on one host; it "
+                                       "cannot be used with --sets, --scheduler or --workers\n")
+    with pytest.raises(ParameterError) as caught:
+        BoardOptions(backend="golden", vcd="w.vcd")
+    assert str(caught.value).startswith("vcd needs a simulated RTL board (backend amaranth")
+    again = pickle.loads(pickle.dumps(caught.value))
+    assert again.spelled(_option).startswith("--vcd needs a simulated RTL board (--board amaranth")

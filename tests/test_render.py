@@ -202,7 +202,8 @@ def test_cli_board_choices_come_from_the_registry(capsys, monkeypatch):
     code, err = _run_cli(capsys, ["render", "cornell", "--board", "model", "--link-bursts", "0.01", "--quiet"])
     assert code == 2 and "--link-bursts need a board simulated cycle by cycle (--board amaranth or verilator)" in err
     code, err = _run_cli(capsys, ["render", "cornell", "--board", "amaranth", "--link-idle", "1.5", "--quiet"])
-    assert code == 2 and err.startswith("blockray: error: --link-*: host timing rate must be in [0, 1)")
+    assert code == 2 and err.startswith("blockray: error: --link-idle / --link-backpressure / --link-bursts: host timing rate must be in "
+                                  "[0, 1)")
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ from blockray.cli import main
 from blockray.errors import CapacityError
 from blockray.host_driver.backends import make_board
 from blockray.host_driver.driver import BoardDriver, blocked_bits
-from blockray.host_driver.render import Visibility, render
+from blockray.host_driver.render import render
 from blockray.host_driver.simulated import ModelTransport
 from blockray.host_driver.transport import TransportError
 from blockray.host_driver.voxel import VoxelGrid
@@ -28,13 +28,7 @@ from blockray.samples import SampleScheme
 from blockray.sim.drive import HostTiming
 from blockray.sim.model import ModelBoard
 
-from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_scene
-
-#: the counters the RTL must reproduce exactly (ModelBoard.counters keys)
-COUNTER_KEYS = ("board_cycles", "tests_issued", "tests_useful", "tests", "utilization",
-                "board_cycles_per_board", "tests_issued_per_board", "tests_useful_per_board",
-                "utilization_per_board", "load_cycles_per_board", "blocks", "rays", "bits")
-
+from scenes import COUNTER_KEYS, RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_scene, shooter_blocks
 
 @pytest.fixture(scope="module")
 def scene(rtl_room):
@@ -88,17 +82,6 @@ def test_every_backend_renders_the_small_scene(scene, renders):
     assert rel < 0.02
 
 
-def _blocks(scene, board, shooters):
-    board.prepare(scene, SampleScheme(4))
-    grid = VoxelGrid(scene.patch_vertices, 3, margin=board.margin)
-    board.load(grid)
-    vis = Visibility(scene, board, grid, SampleScheme(4), rows=PARAMS.rows, cols=PARAMS.cols)
-    blocks = []
-    for i in shooters:
-        blocks += vis._blocks_for(i, np.arange(scene.patches))
-    return blocks
-
-
 @pytest.mark.cocotb
 @pytest.mark.parametrize("backend", ["amaranth", "verilator", "verilator-cocotb"])
 def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
@@ -106,19 +89,19 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)
     shooters = rng.choice(scene.patches, 2, replace=False)
-    model = ModelBoard(PARAMS, bits=BITS)
-    blocks = _blocks(scene, model, shooters)
+    model = ModelBoard(PARAMS)
+    blocks = shooter_blocks(scene, model, shooters)
     # the same two batches as the RTL board below: each batch pays its last END_BLOCK's drain
     expect = model.run(blocks[:len(blocks) // 2]) + model.run(blocks[len(blocks) // 2:])
     host = (HostTiming(0.2, burst=0.003, burst_length=(30, 200)),
             HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend != "verilator-cocotb" else None
     if backend == "verilator-cocotb":          # the cocotb route (host_driver/simulated.py)
         from blockray.host_driver.simulated import VerilatorTransport
-        board = BoardDriver(PARAMS, bits=BITS, transport=lambda p, b: VerilatorTransport(p))
+        board = BoardDriver(PARAMS, transport=lambda p, b: VerilatorTransport(p))
     else:
-        board = make_board(backend, PARAMS, bits=BITS, host=host)
+        board = make_board(backend, PARAMS, host=host)
     try:
-        assert len(_blocks(scene, board, shooters)) == len(blocks)
+        assert len(shooter_blocks(scene, board, shooters)) == len(blocks)
         if backend == "verilator-cocotb":
             for t in board.transports:
                 t.depth = 37                   # the host splits batches anywhere: same results
@@ -139,7 +122,7 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
 def test_scene_that_does_not_fit_fails_before_simulation(scene):
     made = []
     small = PARAMS.with_(patch_depth=8)
-    board = BoardDriver(small, bits=BITS, transport=lambda *a: made.append(a))
+    board = BoardDriver(small, transport=lambda *a: made.append(a))
     board.prepare(scene, SampleScheme(4))
     grid = VoxelGrid(scene.patch_vertices, 3, margin=board.margin)
     with pytest.raises(CapacityError, match="patch_depth 8"):
@@ -189,7 +172,7 @@ def test_driver_checks_the_identity(scene, fields, error, match):
         opened.append(_Liar(params, **fields) if b == 1 else ModelTransport(params))
         return opened[-1]
 
-    board = BoardDriver(PARAMS, bits=BITS, transport=transport)
+    board = BoardDriver(PARAMS, transport=transport)
     board.prepare(scene, SampleScheme(4))
     with pytest.raises(error, match=match):
         board.load(VoxelGrid(scene.patch_vertices, 3, margin=board.margin))

@@ -98,7 +98,7 @@ def test_assign_sets():
     heavy[order[0]] = 1.0                  # all the weight on one patch: the others still get a patch each
     assert np.bincount(assign_sets(morton, 4, heavy)).min() >= 1
     for bad in (0, -1, 102, 2.5, True):
-        with pytest.raises(ParameterError, match="--sets"):
+        with pytest.raises(ParameterError, match="^sets "):
             assign_sets(morton, bad)
 
 

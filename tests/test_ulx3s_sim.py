@@ -22,7 +22,7 @@ COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "tests", "blocks", "
 
 def _compare(scene, params, bits, **kw):
     model = render(scene, backend="model", params=params, bits=bits, **kw)
-    board = BoardDriver(params, bits=bits, name="ulx3s-sim", transport=ulx3s_sim_transport)
+    board = BoardDriver(params.with_(bits=bits), name="ulx3s-sim", transport=ulx3s_sim_transport)
     sim = render(scene, board=board, params=params, bits=bits, **kw)
     assert np.array_equal(model.radiosity, sim.radiosity)
     for key in COUNTERS:

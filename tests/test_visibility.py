@@ -23,7 +23,7 @@ class Recording:
     """A model board that keeps every batch's bits."""
 
     def __init__(self):
-        self.board = make_board("model", BoardParams())
+        self.board = make_board("model", BoardParams(bits=None))
         self.bits = []
         run = self.board.run
 
