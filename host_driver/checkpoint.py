@@ -121,5 +121,5 @@ class Checkpoint:
         except OSError as e:
             raise ResourceError(f"{option('checkpoint')} {printable(self.save_to, 200)}: cannot create it: "
                                 f"{e.strerror or e}") from None
-        write_file(self._path(self.save_to), option("checkpoint"), lambda f: np.savez(f, **arrays), binary=True)
+        write_file(self._path(self.save_to), "--checkpoint", lambda f: np.savez(f, **arrays), binary=True)
         self._last = time.monotonic()

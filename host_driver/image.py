@@ -220,4 +220,4 @@ def save_png(path, image, outputs=None):
     alone, or staged in the batch ``outputs``. A failed write raises ResourceError naming the file."""
     from PIL import Image
     picture = Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8), "RGB")
-    write_file(path, option("image"), lambda f: picture.save(f, format="PNG"), binary=True, outputs=outputs)
+    write_file(path, "--image", lambda f: picture.save(f, format="PNG"), binary=True, outputs=outputs)

@@ -33,7 +33,7 @@ def write_patches_csv(path, scene, radiosity, outputs=None):
             g = scene.group_names[scene.group[i]] if scene.group_names else str(scene.group[i])
             w.writerow([i, g, repr(float(scene.areas[i])), *(repr(float(x)) for x in c[i]),
                         *(repr(float(x)) for x in radiosity[i])])
-    write_file(path, option("patches"), write, outputs=outputs)
+    write_file(path, "--patches", write, outputs=outputs)
 
 
 def _plain(x):
@@ -71,4 +71,4 @@ def write_report_json(path, report, outputs=None):
     def write(f):
         json.dump(plain, f, indent=2, sort_keys=False, allow_nan=False)
         f.write("\n")
-    write_file(path, option("report"), write, outputs=outputs)
+    write_file(path, "--report", write, outputs=outputs)

@@ -187,5 +187,5 @@ def test_bad_arguments(tmp_path):
         render_image(s, np.zeros((s.patches, 3)), width=0)
     with pytest.raises(ValueError, match="shape"):
         render_image(s, np.zeros((s.patches + 1, 3)))
-    with pytest.raises(ParameterError, match="^image "):
+    with pytest.raises(ParameterError, match="^--image "):
         save_png(tmp_path / "no" / "such" / "dir.png", np.zeros((4, 4, 3), np.uint8))
