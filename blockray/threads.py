@@ -14,13 +14,14 @@ thread per worker process.
 """
 
 import os
+import types
 from contextlib import contextmanager
 
 import numba
 
 from .errors import ParameterError, option
 
-__all__ = ["available", "get", "set_threads", "using", "parallel", "PARALLEL_MIN_RAYS"]
+__all__ = ["available", "get", "set_threads", "using", "parallel", "twins", "PARALLEL_MIN_RAYS"]
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER = "workqueue"
@@ -34,6 +35,18 @@ PARALLEL_MIN_RAYS = 1 << 14
 def parallel(rays):
     """Should a kernel run a batch of ``rays`` rays on the thread pool?"""
     return get() > 1 and rays >= PARALLEL_MIN_RAYS
+
+
+def twins(loop):
+    """``(on the pool, on the calling thread)``: the kernel ``loop`` (a ``prange`` loop over
+    independent chunks) compiled twice from its one definition, with ``parallel=True`` and
+    without (where ``prange`` is a plain range). :func:`parallel` picks one per batch. numba keys
+    its on-disk cache by a function's name and line, not by its options (numba issue 6845), so the
+    serial one is compiled from a copy of ``loop`` named ``<name>_serial``."""
+    serial = types.FunctionType(loop.__code__, loop.__globals__, loop.__name__ + "_serial", loop.__defaults__,
+                                loop.__closure__)
+    serial.__qualname__ = loop.__qualname__ + "_serial"
+    return numba.njit(cache=True, parallel=True)(loop), numba.njit(cache=True)(serial)
 
 
 def available():

@@ -1141,18 +1141,13 @@ def _weight_row(V, normals, points, weights, s, i, j, out, poly):
             out[k] = _lambert_normal(points[s], k, normals, s, V[j], poly)
 
 
-@njit(cache=True, parallel=True)
-def _weights_par(V, normals, points, weights, shooters, receivers, patch, out):
+def _weights(V, normals, points, weights, shooters, receivers, patch, out):
     for m in prange(len(shooters)):
         _weight_row(V, normals, points, weights, shooters[m], patch[shooters[m]], receivers[m], out[m],
                     np.empty((4, 3)))
 
 
-@njit(cache=True)
-def _weights_ser(V, normals, points, weights, shooters, receivers, patch, out):
-    poly = np.empty((4, 3))
-    for m in range(len(shooters)):
-        _weight_row(V, normals, points, weights, shooters[m], patch[shooters[m]], receivers[m], out[m], poly)
+_weights_par, _weights_ser = _threads.twins(_weights)
 
 
 def _sample_weights(V, normals, points, weights, shooters, receivers, patch):

@@ -29,7 +29,7 @@ from numba import njit, prange
 
 from blockray.errors import ParameterError, option
 
-from .. import threads as _threads  # noqa: F401  (chooses the threading layer before any kernel runs)
+from .. import threads as _threads  # (also chooses the threading layer before any kernel runs)
 
 __all__ = ["VoxelGrid", "TraversalStats", "default_voxels", "cost_model", "COST_MODEL"]
 
@@ -466,16 +466,12 @@ def _walk_chunk(c, P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, t
                                                       out, 0, src, cur, head)
 
 
-@njit(cache=True, parallel=True)
-def _walk_par(P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept):
+def _walk(P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept):
     for c in prange((len(P) + _CHUNK - 1) // _CHUNK):
         _walk_chunk(c, P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept)
 
 
-@njit(cache=True)
-def _walk_ser(P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept):
-    for c in range((len(P) + _CHUNK - 1) // _CHUNK):
-        _walk_chunk(c, P, Q, v, lo, s, m, count, nonempty_only, out, off, visited, tests, kept)
+_walk_par, _walk_ser = _threads.twins(_walk)
 
 
 def _walk_rays(P, Q, v, lo, s, m, count, nonempty_only, fill):
@@ -608,18 +604,13 @@ def _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, sl
                 o += _emit_slab(slabs[c, k0, k], v, count, nonempty_only, out, o)[2]
 
 
-@njit(cache=True, parallel=True)
-def _blocks_par(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, out, off):
+def _blocks(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, out, off):
     for c in prange(slabs.shape[0]):
         _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept,
                       out, off)
 
 
-@njit(cache=True)
-def _blocks_ser(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept, out, off):
-    for c in range(slabs.shape[0]):
-        _blocks_chunk(c, SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only, slabs, J, visited, tests, kept,
-                      out, off)
+_blocks_par, _blocks_ser = _threads.twins(_blocks)
 
 
 def _traverse_blocks(SP, s_off, EP, e_off, v, lo, s, m, count, nonempty_only):

@@ -29,7 +29,7 @@ results do not depend on the number of threads.
 import numpy as np
 from numba import njit, prange
 
-from .. import threads as _threads  # noqa: F401  (chooses the threading layer)
+from .. import threads as _threads  # (also chooses the threading layer)
 
 __all__ = ["any_blocked", "run_blocks", "filtered_steps"]
 
@@ -153,20 +153,14 @@ def _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, r
             bits[o + r * S + s] = hit[r, s]
 
 
-@njit(cache=True, parallel=True)
-def _run_par(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-             vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
+def _run(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
+         vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
     for b in prange(len(col_off) - 1):
         _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
                    vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed)
 
 
-@njit(cache=True)
-def _run_ser(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-             vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed):
-    for b in range(len(col_off) - 1):
-        _run_block(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-                   vox_off, voxels, start, count, V, n, ray_off, bits, records, streamed)
+_run_par, _run_ser = _threads.twins(_run)
 
 
 def run_blocks(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
