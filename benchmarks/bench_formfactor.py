@@ -340,12 +340,7 @@ def end_points(args):
 
 def _sub_centroids(T, levels):
     """Centroids of the 4^levels congruent sub-triangles of each triangle: (N, 4^levels, 3)."""
-    tris = T[:, None]
-    for _ in range(levels):
-        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
-    return tris.mean(axis=2)
+    return _sub_triangles(T, levels).mean(axis=2)
 
 
 def _kernel(p, n_p, q, n_q):
@@ -353,6 +348,29 @@ def _kernel(p, n_p, q, n_q):
     d = q - p
     r2 = (d * d).sum(-1)
     return np.maximum((d * n_p).sum(-1), 0) * np.maximum(-(d * n_q).sum(-1), 0) / np.maximum(r2, 1e-300) ** 2
+
+
+def _sub_triangles(T, levels):
+    """The 4^levels congruent sub-triangles of each triangle, in _sub_centroids' order: (N, 4^levels, 3, 3)."""
+    tris = T[:, None]
+    for _ in range(levels):
+        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
+    return tris
+
+
+def _draw(rng, T, g, levels):
+    """One random point per triangle T[m], drawn from the piecewise-constant density g[m] over its
+    4^levels sub-triangles (uniform inside the chosen one); uniform where g[m] vanishes."""
+    sub = _sub_triangles(T, levels)
+    M, C = g.shape
+    p = np.where(g.sum(1, keepdims=True) > 0, g, 1.0)
+    p = p / p.sum(1, keepdims=True)
+    c = (p.cumsum(1) < rng.random((M, 1))).sum(1).clip(0, C - 1)
+    t = sub[np.arange(M), c]
+    r1, r2 = np.sqrt(rng.random(M))[:, None], rng.random(M)[:, None]
+    return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
 
 
 def _on_lattice(T, y, D):
@@ -378,6 +396,7 @@ ESTIMATORS = {
     "cell-centroids": "4 end points per pair: each quarter of j's kernel-weighted centroid, weighted by its kernel mass",
     "KxK-sum": "K x K rays to j's K sample points, j's weighted by the kernel summed over i, i's by their point factor",
     "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
+    "pair-draw": "one end point per pair drawn at random from j's kernel density summed over i (seeded)",
 }
 
 
@@ -404,6 +423,8 @@ def estimators(args):
     V, A, nrm, N = scene.patch_vertices, scene.areas, scene.normals, scene.patches
     X, SP, SPi = samples.points(V), _sub_centroids(V, levels), _sub_centroids(V, args.shooter_levels)
     fine = 3 * 2 ** 24                                   # end points exact on j's plane, about 1e-7 of it off y
+    rng = np.random.default_rng(args.seed)
+    print(f"seed={args.seed}")
 
     def clear(i, P_w, j, Q_w):
         """(len(Q_w), len(P_w)) clear bits: from i's points P_w to j's points Q_w (barycentric)."""
@@ -451,6 +472,12 @@ def estimators(args):
                 for m in range(len(J)):
                     for k in range(K):
                         bits[m, k] = clear(i, W[k:k + 1], J[m], y[m, k][None])[0, 0]
+            elif e.startswith("pair-draw"):
+                g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                y = _draw(rng, V[J], g, levels)
+                y = _on_lattice(V[J], y, int(e.split("/")[1]) if "/" in e else fine)
+                for m in range(len(J)):
+                    bits[m] = clear(i, W, J[m], y[m][None])[0]
             elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
                 cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
@@ -754,6 +781,7 @@ def main(argv=None):
     es.add_argument("--samples", type=int, default=8)
     es.add_argument("--which", nargs="+", default=list(ESTIMATORS),
                     help=f"of {', '.join(ESTIMATORS)}; pair-centroid/N: on j's 1/N barycentric lattice")
+    es.add_argument("--seed", type=int, default=1, help="pair-draw's random end points")
     es.add_argument("--shooter-levels", type=int, default=3,
                     help="pair-centroid: the kernel summed over 4^L points of the shooter (and 64 of j)")
     r = sub.add_parser("rows")

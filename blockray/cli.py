@@ -165,6 +165,11 @@ def _render_parser(sub):
     p.add_argument("--packing", default="voxel", choices=["voxel", "fill"],
                    help="receivers of a block: those whose end points share a voxel (the paper; default) "
                         "or runs of R receivers in Z-order of their voxels (fills every array row)")
+    p.add_argument("--end-points", default="centroid", choices=["centroid", "kernel", "draw"],
+                   help="where each ray ends on its receiver: the centroid (the paper; default), the centroid "
+                        "weighted by the light the shooter sends (kernel), or a point drawn from that light per "
+                        "pair (draw; docs/formfactors.md)")
+    p.add_argument("--end-seed", type=int, default=0, metavar="N", help="seed of --end-points draw")
     p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel"])
     p.add_argument("--tolerance", type=_positive_float, default=1e-3,
                    help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
