@@ -10,6 +10,7 @@
     python benchmarks/bench_formfactor.py unresolved cornell room   # pairs no route certifies
     python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
     python benchmarks/bench_formfactor.py estimators # energy balance of an occluded box per visibility estimator
+    python benchmarks/bench_formfactor.py rules      # the same through the render, per --end-points rule
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
@@ -400,6 +401,37 @@ ESTIMATORS = {
 }
 
 
+def _study_scene(name):
+    """block (a cube in a box, 60 patches), slab (a slab on a box's floor, cut along its contact
+    lines) or a closed_scenes name prefix."""
+    if name == "block":
+        from test_energy_closure import _box_with_block
+        return _box_with_block()
+    if name == "slab":
+        from test_contact import closed_box_with_slab
+        from blockray.host_driver.contact import split_contacts
+        return split_contacts(closed_box_with_slab())[0]
+    return next(s for n, s in closed_scenes() if n.startswith(name))
+
+
+def rules(args):
+    """Energy balance of closed scenes rendered with each --end-points rule (the render's own
+    path: host, board, Jacobi), draw over several seeds."""
+    print("| scene | patches | rule | absorbed / emitted - 1 (R, G, B) | rays | seconds |")
+    print("|---|---|---|---|---|---|")
+    for name in args.scenes:
+        scene = _study_scene(name)
+        runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
+        for rule, seed in runs:
+            t = time.perf_counter()
+            res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
+                         end_seed=seed)
+            bal = absorbed_balance(scene, res.radiosity)
+            label = rule if rule != "draw" else f"draw, seed {seed}"
+            print(f"| {name} | {scene.patches} | {label} | " + ", ".join(f"{100 * x:+.3f}%" for x in bal)
+                  + f" | {res.report['rays']} | {time.perf_counter() - t:.0f} |", flush=True)
+
+
 def estimators(args):
     """Energy balance of an occluded closed scene with each visibility estimator of ESTIMATORS:
     the exact factor F_ji times a weighted clear fraction (weights: each shooter sample's point
@@ -408,15 +440,7 @@ def estimators(args):
     from blockray.exact_float import blocked_rays
     from blockray.host_driver.solver import jacobi
     from blockray.samples import SampleScheme
-    if args.scene == "block":
-        from test_energy_closure import _box_with_block
-        scene = _box_with_block()
-    elif args.scene == "slab":
-        from test_contact import closed_box_with_slab
-        from blockray.host_driver.contact import split_contacts
-        scene = split_contacts(closed_box_with_slab())[0]
-    else:
-        scene = next(s for name, s in closed_scenes() if name.startswith(args.scene))
+    scene = _study_scene(args.scene)
     K, levels = args.samples, 3
     samples = SampleScheme(K)
     W = np.asarray(samples.weights, dtype=np.int64)
@@ -784,6 +808,12 @@ def main(argv=None):
     es.add_argument("--seed", type=int, default=1, help="pair-draw's random end points")
     es.add_argument("--shooter-levels", type=int, default=3,
                     help="pair-centroid: the kernel summed over 4^L points of the shooter (and 64 of j)")
+    ru = sub.add_parser("rules")
+    ru.add_argument("scenes", nargs="*", default=["block", "slab", "icosphere"])
+    ru.add_argument("--board", default="model")
+    ru.add_argument("--seeds", type=int, default=3, help="draw: seeds 0 .. N-1")
+    ru.add_argument("--rules", nargs="+", default=["centroid", "kernel", "draw"])
+    ru.add_argument("--tolerance", type=float, default=1e-6)
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
@@ -807,7 +837,7 @@ def main(argv=None):
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
      "versus": versus, "unresolved": unresolved, "closure": closure, "boards": boards, "change": change, "ends": end_points,
-     "estimators": estimators}[args.what](args)
+     "estimators": estimators, "rules": rules}[args.what](args)
 
 
 if __name__ == "__main__":
