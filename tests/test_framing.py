@@ -175,7 +175,7 @@ def test_fault_injector_is_seeded_and_counts():
     assert one(data) == two(data) != data
     assert one.counts == two.counts and 50 < sum(one.counts.values()) < 160
     assert FaultInjector(0, None)(data) == data
-    with pytest.raises(Exception, match="link-faults"):
+    with pytest.raises(Exception, match="^link_faults must be a rate per byte"):
         LinkFaults(1.5)
 
 
