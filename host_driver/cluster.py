@@ -294,6 +294,7 @@ def _results(client, futures, done=None):
     loss of the scheduler (:data:`POLL` s to notice), no worker for :data:`WORKERLESS` s, or a task
     whose workers keep dying raise :class:`ResourceError`; a task's own error is raised as is."""
     from distributed import wait
+    from distributed.comm import CommClosedError
     from distributed.scheduler import KilledWorker
     from distributed.utils import CancelledError, TimeoutError
     finished, workerless = 0, None
@@ -318,13 +319,13 @@ def _results(client, futures, done=None):
             wait(futures, timeout=POLL)
         except TimeoutError:
             pass
-        except CancelledError:
+        except (CommClosedError, CancelledError):
             raise _lost(client) from None
     try:
         return client.gather(futures)
     except KilledWorker as e:
         raise ResourceError(f"--sets: {e.args[0] if e.args else 'a task'}: every worker that ran it died") from None
-    except CancelledError:
+    except (CommClosedError, CancelledError):     # the scheduler lost while it gathers them
         raise _lost(client) from None
 
 
