@@ -194,3 +194,37 @@ def test_signal_during_the_write_leaves_the_old_files(tmp_path, option, sig):
     assert err.strip() == ("blockray: terminated" if sig == signal.SIGTERM else "blockray: interrupted"), err
     _assert_old_and_no_temporaries(folder)
     assert _temporaries(folder) == []
+
+
+def test_vcd_is_replaced_with_the_outputs_or_left_as_it_was(tmp_path, capsys, monkeypatch):
+    """--vcd: each board's simulator writes its waveform (FILE, FILE.1) to a temporary beside it,
+    renamed with the render's other outputs. A render that fails while the waveforms are being
+    written leaves the previous files (tests/test_rtl_board.py: a render that succeeds writes
+    them, and leaves no temporary)."""
+    from blockray.cli import main
+    from blockray.host_driver.simulated import AmaranthTransport
+    from blockray.host_driver.transport import TransportError
+    from scenes import RTL_BITS, room_scene
+    room_scene(tmp_path, 1.5)
+    vcd, csv = tmp_path / "w.vcd", tmp_path / "w.csv"
+    old = {vcd: "old board 0 waveform\n", tmp_path / "w.vcd.1": "old board 1 waveform\n", csv: "old csv\n"}
+    for path, text in old.items():
+        path.write_text(text)
+    argv = ["render", str(tmp_path / "room.obj"), "--max-edge", "1.5", "--voxels", "3", "--samples", "4",
+            "--max-shots", "1", "--rows", "2", "--cols", "2", "--boards", "2", "--bits", str(RTL_BITS),
+            "--board", "amaranth", "--vcd", str(vcd), "--patches", str(csv), "--quiet"]
+    recv, calls, written = AmaranthTransport.recv, [], []
+
+    def failing(self, count, **kw):
+        data = recv(self, count, **kw)
+        calls.append(count)
+        if len(calls) == 2:             # each board has answered once (IDENTIFY)
+            written.extend(p.stat().st_size for p in tmp_path.iterdir() if p.name.startswith(".w.vcd."))
+            raise TransportError("injected: the link failed")
+        return data
+    monkeypatch.setattr(AmaranthTransport, "recv", failing)
+    assert main(argv) == 2
+    assert "injected: the link failed" in capsys.readouterr().err
+    assert len(written) == 2 and all(written), written      # both waveforms had begun, beside w.vcd
+    assert {path: path.read_text() for path in old} == old
+    assert _temporaries(tmp_path) == []
