@@ -196,10 +196,11 @@ def test_signal_during_the_write_leaves_the_old_files(tmp_path, option, sig):
     assert _temporaries(folder) == []
 
 
-def test_vcd_is_replaced_with_the_outputs_or_left_as_it_was(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("ending", ["error", "SIGTERM"])
+def test_vcd_is_replaced_with_the_outputs_or_left_as_it_was(tmp_path, capsys, monkeypatch, ending):
     """--vcd: each board's simulator writes its waveform (FILE, FILE.1) to a temporary beside it,
-    renamed with the render's other outputs. A render that fails while the waveforms are being
-    written leaves the previous files (tests/test_rtl_board.py: a render that succeeds writes
+    renamed with the render's other outputs. A render that fails, or gets SIGTERM, while the
+    waveforms are being written leaves the previous files (tests/test_rtl_board.py: a render that succeeds writes
     them, and leaves no temporary)."""
     from blockray.cli import main
     from blockray.host_driver.simulated import AmaranthTransport
@@ -220,11 +221,16 @@ def test_vcd_is_replaced_with_the_outputs_or_left_as_it_was(tmp_path, capsys, mo
         calls.append(count)
         if len(calls) == 2:             # each board has answered once (IDENTIFY)
             written.extend(p.stat().st_size for p in tmp_path.iterdir() if p.name.startswith(".w.vcd."))
+            if ending == "SIGTERM":
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(10)                  # the CLI's handler raises here
             raise TransportError("injected: the link failed")
         return data
     monkeypatch.setattr(AmaranthTransport, "recv", failing)
-    assert main(argv) == 2
-    assert "injected: the link failed" in capsys.readouterr().err
+    code, line = (2, "blockray: error: injected: the link failed") if ending == "error" else \
+        (143, "blockray: terminated")
+    assert main(argv) == code
+    assert line in capsys.readouterr().err
     assert len(written) == 2 and all(written), written      # both waveforms had begun, beside w.vcd
     assert {path: path.read_text() for path in old} == old
     assert _temporaries(tmp_path) == []
