@@ -90,21 +90,22 @@ def test_modes_links_and_devices(tmp_path):
 
 # --- a full disk ---------------------------------------------------------------------------
 
-#: runs the CLI with RLIMIT_FSIZE set once the outputs start (so numba's cache is not limited);
-#: SIGXFSZ ignored, a write past the limit fails with EFBIG as one on a full disk with ENOSPC
+#: runs the CLI with RLIMIT_FSIZE set once the first output is written, after the render (so
+#: numba's cache is not limited); SIGXFSZ ignored, a write past the limit fails with EFBIG as one
+#: on a full disk with ENOSPC
 _LIMITED = textwrap.dedent("""
     import resource, signal, sys
     from blockray import atomic
     from blockray.cli import main
     limit = int(sys.argv[1])
-    enter = atomic.Outputs.__enter__
+    add = atomic.Outputs.add
 
-    def limited(self):
+    def limited(self, *args, **kwargs):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-        return enter(self)
+        return add(self, *args, **kwargs)
     if limit:
-        atomic.Outputs.__enter__ = limited
+        atomic.Outputs.add = limited
     sys.exit(main(sys.argv[2:]))
 """)
 
