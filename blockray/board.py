@@ -188,6 +188,10 @@ class CountingBoard(Board):
                 f"scene {scene.name!r} at B = {q.bits} bits: {sum(len(g) for g in q.collapsed)} vertices "
                 f"collapse onto {len(q.collapsed)} grid points and {len(q.degenerate)} patches degenerate "
                 f"to zero area (they never block); use more --bits to keep them", QuantisationWarning)
+        if getattr(samples, "rows_are_points", False):
+            # rows address the point table as the columns do, patch * count + point (the
+            # sub-element end points of host_driver/hierarchical.py); LOAD_POINTS takes any point
+            q.receivers = q.shooters.reshape(-1, 3)
         self.quantised, self.samples, self.margin = q, samples, q.margin
         self.params = self.params.with_(bits=q.bits)
         self.timing = getattr(self, "_timing", None) or BoardTiming.for_cell(self.cell)

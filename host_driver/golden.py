@@ -54,6 +54,7 @@ class GoldenBoard(Board):
         check_exact_range(V, f"scene {scene.name!r} on the golden board")
         self._V = V
         self._weights = np.asarray(samples.weights, dtype=np.int64)
+        self._rows_are_points = getattr(samples, "rows_are_points", False)    # as CountingBoard._quantise
         lo, hi = scene.bbox
         self.margin = MARGIN * float(max(np.max(hi - lo), np.finfo(float).tiny))
         self._reset()
@@ -79,7 +80,11 @@ class GoldenBoard(Board):
         sp = np.asarray(shooter_patch, dtype=np.int64).reshape(-1)
         P_w = self._weights[np.asarray(shooter_sample, dtype=np.int64).reshape(-1)]
         rp = np.asarray(receiver_patch, dtype=np.int64).reshape(-1)
-        return blocked_rays(self._V[sp], P_w, self._V[rp], np.ones(3, dtype=np.int64),
+        Q_w = np.ones(3, dtype=np.int64)
+        if self._rows_are_points:           # row: point rp % K of patch rp // K
+            rp, Q_w = np.divmod(rp, len(self._weights))
+            Q_w = self._weights[Q_w]
+        return blocked_rays(self._V[sp], P_w, self._V[rp], Q_w,
                             self._V[np.asarray(t, dtype=np.int64)], self._crossings)
 
     def blocked(self, P, Q, t):
