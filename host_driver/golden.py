@@ -76,7 +76,9 @@ class GoldenBoard(Board):
 
     def blocked_samples(self, shooter_patch, shooter_sample, receiver_patch, t):
         """bool (R, S): rays from the exact sample points (shooter_patch[s], shooter_sample[s])
-        to the exact centroids of receiver_patch[r], blocked by any of the patches t."""
+        to the exact centroids of receiver_patch[r] (with a scheme whose ``rows_are_points``, to
+        point ``receiver_patch[r] % K`` of patch ``receiver_patch[r] // K``), blocked by any of
+        the patches t."""
         sp = np.asarray(shooter_patch, dtype=np.int64).reshape(-1)
         P_w = self._weights[np.asarray(shooter_sample, dtype=np.int64).reshape(-1)]
         rp = np.asarray(receiver_patch, dtype=np.int64).reshape(-1)

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ParameterError, SolveError
+from ..errors import CapacityError, SolveError
 from ..exact_float import plane_signs
 from . import formfactor
 from .board import BlockBatch, BlockBits, ranges
@@ -338,7 +338,13 @@ def render_hierarchical(scene, board, options, *, phases=None):
     min_area = 0.0 if solve.min_area is None else solve.min_area
     points = ElementPoints(ray.samples, max_level_for(scene, solve.min_area))
     with phases.timed("prepare"):
-        board.prepare(scene, points)
+        try:
+            board.prepare(scene, points)
+        except CapacityError as e:
+            if not points.max_level:
+                raise
+            raise CapacityError(f"{e}; {points.max_level} of them are the element levels --min-area asks for "
+                                f"(one bit each): use a larger --min-area") from None
     voxels = ray.voxels or default_voxels(scene.patches, parallelism=1)
     with phases.timed("voxelise"):
         grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)

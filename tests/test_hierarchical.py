@@ -231,3 +231,36 @@ def test_rtl_boards_same_blocked_bits():
         assert np.array_equal(got.solve.links.vis, model.solve.links.vis), name
         assert np.array_equal(got.radiosity, model.radiosity), name
         assert got.report["rays"] == model.report["rays"] and got.report["tests"] == model.report["tests"], name
+
+
+def test_cli_writes_leaves_and_report(tmp_path, capsys):
+    """``blockray render --solver hierarchical`` on cornell's input triangles: one CSV row per leaf
+    with its input triangle and level, areas summing to the input triangles', a report with the
+    links, elements per level, rays and refinement rounds; an image."""
+    import csv
+    import json
+    from clirun import cli
+    from blockray.host_driver.builtin import load_scene
+    out = {k: tmp_path / f"o.{k}" for k in ("csv", "json", "png")}
+    code, err = cli(capsys, ["render", "cornell", "--max-edge", "1e9", "--solver", "hierarchical", "--epsilon", "1e-2",
+                             "--patches", out["csv"], "--report", out["json"], "--image", out["png"], "--size", 32])
+    assert code == 0, err
+    scene = load_scene("cornell", max_edge=1e9)
+    rows = list(csv.DictReader(out["csv"].open()))
+    report = json.loads(out["json"].read_text())
+    assert len(rows) == report["leaves"] > scene.patches
+    area = np.zeros(scene.patches)
+    for r in rows:
+        area[int(r["patch"])] += float(r["area"])
+        assert float(r["area"]) == pytest.approx(scene.areas[int(r["patch"])] / 4 ** int(r["level"]), rel=1e-9)
+    assert np.allclose(area, scene.areas, rtol=1e-9)
+    assert report["refinement_rounds"] >= 1 and report["rays"] > 0 and report["links"] > 0
+    assert sum(report["elements_per_level"]) == report["elements"] and report["elements_per_level"][0] == scene.patches
+    assert out["png"].stat().st_size > 0
+
+
+def test_cli_too_many_levels_for_the_bits(capsys):
+    from clirun import assert_one_line_error, cli
+    code, err = cli(capsys, ["render", "cornell", "--max-edge", "1e9", "--solver", "hierarchical", "--min-area", 500,
+                             "--quiet"])
+    assert_one_line_error(code, err, "--min-area", "20 coordinate bits")
