@@ -1,7 +1,7 @@
 """Error against speed: --solver hierarchical against the uniform progressive solve.
 
     python benchmarks/bench_hierarchical.py cornell --reference-edge 70 --check-edge 100 \
-        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4
+        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4 --plot docs/img/hierarchical-cornell.png
 
 The reference is a uniform Jacobi solve on the golden board (``--reference-edge``,
 ``--reference-samples``, tolerance 1e-6), kept in ``--cache`` between runs; its distance to a coarser uniform solve of the
@@ -85,6 +85,7 @@ def main(argv=None):
     ap.add_argument("--epsilons", default="1e-2,3e-3,1e-3,3e-4,1e-4")
     ap.add_argument("--tolerance", type=float, default=1e-3)
     ap.add_argument("--cache", default=os.environ.get("TMPDIR", "/tmp"))
+    ap.add_argument("--plot", metavar="PNG", help="write error against rays and CPU seconds")
     args = ap.parse_args(argv)
     print_run_header()
     print(f"# load average before: {os.getloadavg()}", flush=True)
@@ -96,15 +97,38 @@ def main(argv=None):
           f"from it", flush=True)
     print("| solver | mesh | patches / leaves | links | rays | CPU s | error |")
     print("|---|---|---|---|---|---|---|")
+    rows = {"progressive": [], "hierarchical": []}
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
+        rows["progressive"].append(r)
         print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} |",
               flush=True)
     for eps in (float(x) for x in args.epsilons.split(",")):
         r = run(ref, args.scene, RAW, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10)
+        rows["hierarchical"].append(r)
         print(f"| hierarchical | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | {r['cpu']:.2f} | "
               f"{r['error']:.4f} |", flush=True)
     print(f"# load average after: {os.getloadavg()}")
+    if args.plot:
+        plot(rows, args.plot, args.scene)
+
+
+def plot(rows, path, name):
+    """Error against rays and against CPU seconds, one line per solver."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    for ax, key, label in zip(axes, ("rays", "cpu"), ("rays", "CPU seconds")):
+        for solver, marker in (("progressive", "o-"), ("hierarchical", "s-")):
+            ax.loglog([r[key] for r in rows[solver]], [r["error"] for r in rows[solver]], marker, label=solver)
+        ax.set_xlabel(label)
+        ax.set_ylabel("relative L1 error")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend()
+    fig.suptitle(f"{name}: error against the reference, hierarchical vs uniform progressive")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 if __name__ == "__main__":

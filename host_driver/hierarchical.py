@@ -26,7 +26,8 @@ E_j``; links whose visibility is certain (every counted ray clear, or every one 
 ``b / 2``, so shadow boundaries refine first. A link over the threshold is replaced by four
 links to the children of its larger element, while that element's children are at least
 ``min_area``. Rounds: solve, refine with that solution, cast the new links, until no link
-refines.
+refines. The other links of a receiver that is split move to its children (:func:`push_to_leaves`),
+so links end on leaves and a leaf's factors partition its sources.
 
 **Solve.** Jacobi over the links with push-pull (HSA's gathering): every element gathers
 ``G_p = sum_links F v B_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
@@ -248,8 +249,9 @@ class LinkCaster:
 
 
 def refine(h, links, B, threshold, min_area, max_level):
-    """Split the links whose oracle exceeds ``threshold`` (module docstring): the new links (not yet
-    cast) and the links kept. Elements are split as needed; the new ones take their parent's B."""
+    """Split the links whose oracle exceeds ``threshold`` (module docstring), splitting elements as
+    needed: ``(recv, src, kept)``, the new links' ends (factors not computed, not cast) and the
+    links kept."""
     A = h.areas
     bound = B[links.src].max(axis=1) * links.F * A[links.recv]
     bound = np.where(links.partial, bound, CERTAIN_WEIGHT * bound)
