@@ -73,6 +73,15 @@ def two_squares(receiver, rho=0.5):
     return make_scene(tris, reflectance=refl, emission=emit)
 
 
+def _occluded_pair():
+    """Emitter, receiver 2 above it, and a blocker over part of the way facing the emitter."""
+    scene = two_squares(rectangle(np.array([0, 0, 2.0]), Y, X, 1, 1))
+    blocker = rectangle(np.array([0.3, 0.2, 1.0]), Y * 0.45, X * 0.5, 1, 1)
+    return make_scene(np.concatenate([scene.patch_vertices, blocker]),
+                      reflectance=np.concatenate([scene.reflectance, np.full((2, 3), 0.5)]),
+                      emission=np.concatenate([scene.emission, np.zeros((2, 3))]))
+
+
 def receiver_mean(result, first_patch):
     """Area-weighted mean radiosity of the leaves of input triangles >= first_patch."""
     h = result.solve.hierarchy
@@ -203,15 +212,6 @@ def test_min_area_too_deep_is_refused():
     with pytest.raises(ParameterError) as e:
         render(scene, backend="golden", solver="hierarchical", min_area=1e-9)
     assert e.value.parameter == "min_area"
-
-
-def _occluded_pair():
-    """Emitter, receiver 2 above it, and a blocker over part of the way facing the emitter."""
-    scene = two_squares(rectangle(np.array([0, 0, 2.0]), Y, X, 1, 1))
-    blocker = rectangle(np.array([0.3, 0.2, 1.0]), Y * 0.45, X * 0.5, 1, 1)
-    return make_scene(np.concatenate([scene.patch_vertices, blocker]),
-                      reflectance=np.concatenate([scene.reflectance, np.full((2, 3), 0.5)]),
-                      emission=np.concatenate([scene.emission, np.zeros((2, 3))]))
 
 
 @pytest.mark.cocotb
