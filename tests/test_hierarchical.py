@@ -264,3 +264,21 @@ def test_cli_too_many_levels_for_the_bits(capsys):
     code, err = cli(capsys, ["render", "cornell", "--max-edge", "1e9", "--solver", "hierarchical", "--min-area", 500,
                              "--quiet"])
     assert_one_line_error(code, err, "--min-area", "20 coordinate bits")
+
+
+@pytest.mark.slow
+@pytest.mark.cocotb
+def test_cornell_verilator_same_as_model():
+    """Cornell's input triangles refined at epsilon 1e-2 (16 k rays, B = 20: 17 for the scene and 3
+    levels) on the simulated RTL (2 x 2 array, P = 2): the model's visible fractions, radiosity,
+    tests and board cycles exactly. About 60 s with the B = 20 harness's first build."""
+    from scenes import RTL_PARAMS
+    from blockray.host_driver.builtin import load_scene
+    scene = load_scene("cornell", max_edge=1e9)
+    model, rtl = (render(scene, backend=b, params=RTL_PARAMS, solver="hierarchical", epsilon=1e-2)
+                  for b in ("model", "verilator"))
+    assert rtl.report["bits"] == model.report["bits"] == 20
+    assert np.array_equal(rtl.solve.links.vis, model.solve.links.vis)
+    assert np.array_equal(rtl.radiosity, model.radiosity)
+    for key in ("rays", "tests", "board_cycles"):
+        assert rtl.report[key] == model.report[key], key
