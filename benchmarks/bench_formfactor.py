@@ -10,6 +10,7 @@
     python benchmarks/bench_formfactor.py unresolved cornell room   # pairs no route certifies
     python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
     python benchmarks/bench_formfactor.py estimators # energy balance of an occluded box per visibility estimator
+    python benchmarks/bench_formfactor.py rules      # the same through the render, per --end-points rule
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
@@ -340,12 +341,7 @@ def end_points(args):
 
 def _sub_centroids(T, levels):
     """Centroids of the 4^levels congruent sub-triangles of each triangle: (N, 4^levels, 3)."""
-    tris = T[:, None]
-    for _ in range(levels):
-        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
-    return tris.mean(axis=2)
+    return _sub_triangles(T, levels).mean(axis=2)
 
 
 def _kernel(p, n_p, q, n_q):
@@ -353,6 +349,29 @@ def _kernel(p, n_p, q, n_q):
     d = q - p
     r2 = (d * d).sum(-1)
     return np.maximum((d * n_p).sum(-1), 0) * np.maximum(-(d * n_q).sum(-1), 0) / np.maximum(r2, 1e-300) ** 2
+
+
+def _sub_triangles(T, levels):
+    """The 4^levels congruent sub-triangles of each triangle, in _sub_centroids' order: (N, 4^levels, 3, 3)."""
+    tris = T[:, None]
+    for _ in range(levels):
+        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
+    return tris
+
+
+def _draw(rng, T, g, levels):
+    """One random point per triangle T[m], drawn from the piecewise-constant density g[m] over its
+    4^levels sub-triangles (uniform inside the chosen one); uniform where g[m] vanishes."""
+    sub = _sub_triangles(T, levels)
+    M, C = g.shape
+    p = np.where(g.sum(1, keepdims=True) > 0, g, 1.0)
+    p = p / p.sum(1, keepdims=True)
+    c = (p.cumsum(1) < rng.random((M, 1))).sum(1).clip(0, C - 1)
+    t = sub[np.arange(M), c]
+    r1, r2 = np.sqrt(rng.random(M))[:, None], rng.random(M)[:, None]
+    return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
 
 
 def _on_lattice(T, y, D):
@@ -378,7 +397,39 @@ ESTIMATORS = {
     "cell-centroids": "4 end points per pair: each quarter of j's kernel-weighted centroid, weighted by its kernel mass",
     "KxK-sum": "K x K rays to j's K sample points, j's weighted by the kernel summed over i, i's by their point factor",
     "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
+    "pair-draw": "one end point per pair drawn at random from j's kernel density summed over i (seeded)",
 }
+
+
+def _study_scene(name):
+    """block (a cube in a box, 60 patches), slab (a slab on a box's floor, cut along its contact
+    lines) or a closed_scenes name prefix."""
+    if name == "block":
+        from test_energy_closure import _box_with_block
+        return _box_with_block()
+    if name == "slab":
+        from test_contact import closed_box_with_slab
+        from blockray.host_driver.contact import split_contacts
+        return split_contacts(closed_box_with_slab())[0]
+    return next(s for n, s in closed_scenes() if n.startswith(name))
+
+
+def rules(args):
+    """Energy balance of closed scenes rendered with each --end-points rule (the render's own
+    path: host, board, Jacobi), draw over several seeds."""
+    print("| scene | patches | rule | absorbed / emitted - 1 (R, G, B) | rays | seconds |")
+    print("|---|---|---|---|---|---|")
+    for name in args.scenes:
+        scene = _study_scene(name)
+        runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
+        for rule, seed in runs:
+            t = time.perf_counter()
+            res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
+                         end_seed=seed)
+            bal = absorbed_balance(scene, res.radiosity)
+            label = rule if rule != "draw" else f"draw, seed {seed}"
+            print(f"| {name} | {scene.patches} | {label} | " + ", ".join(f"{100 * x:+.3f}%" for x in bal)
+                  + f" | {res.report['rays']} | {time.perf_counter() - t:.0f} |", flush=True)
 
 
 def estimators(args):
@@ -389,21 +440,15 @@ def estimators(args):
     from blockray.exact_float import blocked_rays
     from blockray.host_driver.solver import jacobi
     from blockray.samples import SampleScheme
-    if args.scene == "block":
-        from test_energy_closure import _box_with_block
-        scene = _box_with_block()
-    elif args.scene == "slab":
-        from test_contact import closed_box_with_slab
-        from blockray.host_driver.contact import split_contacts
-        scene = split_contacts(closed_box_with_slab())[0]
-    else:
-        scene = next(s for name, s in closed_scenes() if name.startswith(args.scene))
+    scene = _study_scene(args.scene)
     K, levels = args.samples, 3
     samples = SampleScheme(K)
     W = np.asarray(samples.weights, dtype=np.int64)
     V, A, nrm, N = scene.patch_vertices, scene.areas, scene.normals, scene.patches
     X, SP, SPi = samples.points(V), _sub_centroids(V, levels), _sub_centroids(V, args.shooter_levels)
     fine = 3 * 2 ** 24                                   # end points exact on j's plane, about 1e-7 of it off y
+    rng = np.random.default_rng(args.seed)
+    print(f"seed={args.seed}")
 
     def clear(i, P_w, j, Q_w):
         """(len(Q_w), len(P_w)) clear bits: from i's points P_w to j's points Q_w (barycentric)."""
@@ -451,6 +496,12 @@ def estimators(args):
                 for m in range(len(J)):
                     for k in range(K):
                         bits[m, k] = clear(i, W[k:k + 1], J[m], y[m, k][None])[0, 0]
+            elif e.startswith("pair-draw"):
+                g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                y = _draw(rng, V[J], g, levels)
+                y = _on_lattice(V[J], y, int(e.split("/")[1]) if "/" in e else fine)
+                for m in range(len(J)):
+                    bits[m] = clear(i, W, J[m], y[m][None])[0]
             elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
                 cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
@@ -754,8 +805,15 @@ def main(argv=None):
     es.add_argument("--samples", type=int, default=8)
     es.add_argument("--which", nargs="+", default=list(ESTIMATORS),
                     help=f"of {', '.join(ESTIMATORS)}; pair-centroid/N: on j's 1/N barycentric lattice")
+    es.add_argument("--seed", type=int, default=1, help="pair-draw's random end points")
     es.add_argument("--shooter-levels", type=int, default=3,
                     help="pair-centroid: the kernel summed over 4^L points of the shooter (and 64 of j)")
+    ru = sub.add_parser("rules")
+    ru.add_argument("scenes", nargs="*", default=["block", "slab", "icosphere"])
+    ru.add_argument("--board", default="model")
+    ru.add_argument("--seeds", type=int, default=3, help="draw: seeds 0 .. N-1")
+    ru.add_argument("--rules", nargs="+", default=["centroid", "kernel", "draw"])
+    ru.add_argument("--tolerance", type=float, default=1e-6)
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
@@ -779,7 +837,7 @@ def main(argv=None):
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
      "versus": versus, "unresolved": unresolved, "closure": closure, "boards": boards, "change": change, "ends": end_points,
-     "estimators": estimators}[args.what](args)
+     "estimators": estimators, "rules": rules}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -2,8 +2,10 @@
 
 Every back-end (``golden`` float64, ``model`` bit-exact, the driven boards of host_driver/driver.py) implements
 :class:`Board`, and the host driver talks to nothing else. A **block ray** is the paper's bundle:
-the rays from S_b shooter sample points to the centroids of R_b receiver patches (every
-shooter-receiver pair is a ray), together with the voxels the bundle visits. The board tests
+the rays from S_b shooter sample points to one end point on each of R_b receiver patches (every
+shooter-receiver pair is a ray), together with the voxels the bundle visits. A row's end point is
+its patch's centroid, or the point ``receiver_weights[r]`` gives (barycentric integer weights
+summing to the sample denominator D, so that it is exact on the board's grid like the samples). The board tests
 every patch registered in those voxels against every ray of the block.
 
 Life cycle::
@@ -38,8 +40,9 @@ __all__ = ["BlockRay", "BlockBatch", "BlockBits", "Board", "CountingBoard", "ran
 class BlockRay:
     shooter_patch: np.ndarray    # (S_b,) int64: patch of each shooter point (array column)
     shooter_sample: np.ndarray   # (S_b,) int64: sample index on that patch (see SampleScheme)
-    receiver_patch: np.ndarray   # (R_b,) int64: receiver patches (array rows); end point = centroid
+    receiver_patch: np.ndarray   # (R_b,) int64: receiver patches (array rows)
     voxels: np.ndarray           # (K,) int64: linear voxel indices the bundle visits, in order
+    receiver_weights: np.ndarray = None   # (R_b, 3) int64 summing to D: each row's end point; None: centroids
 
     @property
     def rays(self):
@@ -53,16 +56,19 @@ def _offsets(counts):
 class BlockBatch:
     """Many block rays in flat arrays: block b's columns are ``col_off[b]:col_off[b+1]`` of
     ``shooter_patch`` / ``shooter_sample``, its rows ``row_off[b]:row_off[b+1]`` of
-    ``receiver_patch``, its voxels ``vox_off[b]:vox_off[b+1]`` of ``voxels`` (all int64).
+    ``receiver_patch`` (and of ``receiver_weights``, (rows, 3), when the rows' end points are not the
+centroids), its voxels ``vox_off[b]:vox_off[b+1]`` of ``voxels`` (all int64).
 
     A sequence of :class:`BlockRay` (views into the arrays); compiled back-ends read the arrays.
     """
 
-    def __init__(self, shooter_patch, shooter_sample, col_off, receiver_patch, row_off, voxels, vox_off):
+    def __init__(self, shooter_patch, shooter_sample, col_off, receiver_patch, row_off, voxels, vox_off,
+                 receiver_weights=None):
         a = lambda x: np.ascontiguousarray(x, dtype=np.int64)
         self.shooter_patch, self.shooter_sample, self.col_off = a(shooter_patch), a(shooter_sample), a(col_off)
         self.receiver_patch, self.row_off = a(receiver_patch), a(row_off)
         self.voxels, self.vox_off = a(voxels), a(vox_off)
+        self.receiver_weights = None if receiver_weights is None else a(receiver_weights).reshape(-1, 3)
 
     @classmethod
     def from_blocks(cls, blocks):
@@ -71,10 +77,16 @@ class BlockBatch:
             return blocks
         cat = lambda xs: (np.concatenate([np.asarray(x, dtype=np.int64).reshape(-1) for x in xs])
                           if len(xs) else np.zeros(0, np.int64))
+        weighted = {b.receiver_weights is not None for b in blocks}
+        if len(weighted) > 1:
+            raise ValueError("a batch's blocks either all give their rows' end points or none does")
+        weights = (np.concatenate([np.asarray(b.receiver_weights, dtype=np.int64).reshape(-1, 3) for b in blocks])
+                   if weighted == {True} else None)
         return cls(cat([b.shooter_patch for b in blocks]), cat([b.shooter_sample for b in blocks]),
                    _offsets([len(b.shooter_patch) for b in blocks]),
                    cat([b.receiver_patch for b in blocks]), _offsets([len(b.receiver_patch) for b in blocks]),
-                   cat([b.voxels for b in blocks]), _offsets([len(np.asarray(b.voxels).reshape(-1)) for b in blocks]))
+                   cat([b.voxels for b in blocks]), _offsets([len(np.asarray(b.voxels).reshape(-1)) for b in blocks]),
+                   weights)
 
     def __len__(self):
         return len(self.col_off) - 1
@@ -84,7 +96,8 @@ class BlockBatch:
             raise IndexError(b)
         b %= len(self)
         c, r, v = slice(*self.col_off[b:b + 2]), slice(*self.row_off[b:b + 2]), slice(*self.vox_off[b:b + 2])
-        return BlockRay(self.shooter_patch[c], self.shooter_sample[c], self.receiver_patch[r], self.voxels[v])
+        w = None if self.receiver_weights is None else self.receiver_weights[r]
+        return BlockRay(self.shooter_patch[c], self.shooter_sample[c], self.receiver_patch[r], self.voxels[v], w)
 
     def __iter__(self):
         return (self[b] for b in range(len(self)))
@@ -188,10 +201,6 @@ class CountingBoard(Board):
                 f"scene {scene.name!r} at B = {q.bits} bits: {sum(len(g) for g in q.collapsed)} vertices "
                 f"collapse onto {len(q.collapsed)} grid points and {len(q.degenerate)} patches degenerate "
                 f"to zero area (they never block); use more --bits to keep them", QuantisationWarning)
-        if getattr(samples, "rows_are_points", False):
-            # rows address the point table as the columns do, patch * count + point (the
-            # sub-element end points of host_driver/hierarchical.py); LOAD_POINTS takes any point
-            q.receivers = q.shooters.reshape(-1, 3)
         self.quantised, self.samples, self.margin = q, samples, q.margin
         self.params = self.params.with_(bits=q.bits)
         self.timing = getattr(self, "_timing", None) or BoardTiming.for_cell(self.cell)

@@ -147,6 +147,7 @@ def _check_render(args):
 
 
 def _render_parser(sub):
+    from .host_driver.endpoints import ENDS
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -165,6 +166,11 @@ def _render_parser(sub):
     p.add_argument("--packing", default="voxel", choices=["voxel", "fill"],
                    help="receivers of a block: those whose end points share a voxel (the paper; default) "
                         "or runs of R receivers in Z-order of their voxels (fills every array row)")
+    p.add_argument("--end-points", default="centroid", choices=list(ENDS),
+                   help="where each ray ends on its receiver: the centroid (the paper; default), the centroid "
+                        "weighted by the light the shooter sends (kernel), or a point drawn from that light per "
+                        "pair (draw); docs/formfactors.md measures what each gives")
+    p.add_argument("--end-seed", type=int, default=0, metavar="N", help="seed of --end-points draw")
     p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel", "hierarchical"],
                    help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "
                         "leaf element)")

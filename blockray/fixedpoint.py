@@ -103,6 +103,16 @@ class QuantisedScene:
         """Max vertex displacement / bounding-box diagonal."""
         return self.displacement / self.diagonal if self.diagonal > 0 else 0.0
 
+    def end_points(self, receiver_patch, receiver_weights=None):
+        """(R, 3) int64 end points of rows on ``receiver_patch``: the centroids, or the exact points
+        of the barycentric ``receiver_weights`` (R, 3), integers summing to D."""
+        if receiver_weights is None:
+            return self.receivers[receiver_patch]
+        w = np.asarray(receiver_weights, dtype=np.int64)
+        if len(w) and ((w.sum(axis=1) != self.D).any() or (w < 0).any()):
+            raise ValueError(f"end-point weights must be non-negative and sum to D = {self.D}")
+        return np.einsum("rk,rkc->rc", w, self.vertices[receiver_patch]) // self.D
+
     def report(self):
         """Summary dict (for --report and logs)."""
         return {

@@ -151,6 +151,6 @@ class BoardMemories:
         """The command stream of one block ray (the same for every board)."""
         q = self.q
         P = q.shooters[block.shooter_patch, block.shooter_sample]
-        Q = q.receivers[block.receiver_patch]
+        Q = q.end_points(block.receiver_patch, block.receiver_weights)
         return ([BeginBlock()] + load_points_commands(Q, P)
                 + [Voxel(int(v)) for v in block.voxels] + [EndBlock()])

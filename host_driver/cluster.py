@@ -35,6 +35,7 @@ from ..errors import ParameterError, ResourceError
 from . import formfactor, solver as solvers
 from .backends import make_board
 from .scaleout import assign_sets, receiver_work
+from .endpoints import EndPoints
 from .visibility import Phases, Visibility, visible_fraction
 from ..threads import available, set_threads
 
@@ -127,6 +128,8 @@ class SetJob:
     traversal: str
     packing: str
     stats_fraction: float
+    end_points: str = "centroid"
+    end_seed: int = 0
     threads: object = None     # cores for this worker's compiled kernels (None: its default)
 
 
@@ -188,7 +191,8 @@ def cast_set(k, scene, grid, owner, job):
             board.load(grid)
         stats = TraversalStats(grid, sample_fraction=job.stats_fraction, seed=k)
         vis = Visibility(scene, board, grid, job.samples, rows=job.params.rows, cols=job.params.cols,
-                         traversal=job.traversal, packing=job.packing, phases=phases, stats=stats)
+                         traversal=job.traversal, packing=job.packing, phases=phases, stats=stats,
+                         ends=EndPoints(scene, job.samples, job.end_points, job.end_seed))
         receivers = _Receivers(scene, own)
         F = np.zeros((len(own), scene.patches))
         for i in range(scene.patches):

@@ -59,11 +59,9 @@ class ElementPoints:
     """The end points of every element up to ``max_level``, as a sample scheme for the board.
 
     Point ``m (K + 1) + k`` of an input triangle is sample k (k < K) of its element m, or its
-    centroid (k = K). ``rows_are_points``: block rays' rows address this table like the columns,
-    row ``patch * count + point`` (the boards' hook, blockray/board.py and host_driver/golden.py).
+    centroid (k = K). A block ray's columns address the table as ``(patch, point)``; its rows end
+    at ``receiver_weights`` (blockray/board.py) taken from it, ``weights[point]``.
     """
-
-    rows_are_points = True
 
     def __init__(self, samples, max_level):
         if not 0 <= max_level <= MAX_LEVEL:

@@ -54,7 +54,6 @@ class GoldenBoard(Board):
         check_exact_range(V, f"scene {scene.name!r} on the golden board")
         self._V = V
         self._weights = np.asarray(samples.weights, dtype=np.int64)
-        self._rows_are_points = getattr(samples, "rows_are_points", False)    # as CountingBoard._quantise
         lo, hi = scene.bbox
         self.margin = MARGIN * float(max(np.max(hi - lo), np.finfo(float).tiny))
         self._reset()
@@ -74,18 +73,14 @@ class GoldenBoard(Board):
         offsets = np.repeat(self._start[voxels] - np.cumsum(counts) + counts, counts)
         return np.unique(self._patches[offsets + np.arange(counts.sum())])
 
-    def blocked_samples(self, shooter_patch, shooter_sample, receiver_patch, t):
+    def blocked_samples(self, shooter_patch, shooter_sample, receiver_patch, t, receiver_weights=None):
         """bool (R, S): rays from the exact sample points (shooter_patch[s], shooter_sample[s])
-        to the exact centroids of receiver_patch[r] (with a scheme whose ``rows_are_points``, to
-        point ``receiver_patch[r] % K`` of patch ``receiver_patch[r] // K``), blocked by any of
-        the patches t."""
+        to the exact centroids of receiver_patch[r] (or the exact points of receiver_weights[r]),
+        blocked by any of the patches t."""
         sp = np.asarray(shooter_patch, dtype=np.int64).reshape(-1)
         P_w = self._weights[np.asarray(shooter_sample, dtype=np.int64).reshape(-1)]
         rp = np.asarray(receiver_patch, dtype=np.int64).reshape(-1)
-        Q_w = np.ones(3, dtype=np.int64)
-        if self._rows_are_points:           # row: point rp % K of patch rp // K
-            rp, Q_w = np.divmod(rp, len(self._weights))
-            Q_w = self._weights[Q_w]
+        Q_w = np.ones(3, dtype=np.int64) if receiver_weights is None else receiver_weights
         return blocked_rays(self._V[sp], P_w, self._V[rp], Q_w,
                             self._V[np.asarray(t, dtype=np.int64)], self._crossings)
 
@@ -103,7 +98,8 @@ class GoldenBoard(Board):
         results = []
         for block in blocks:
             t = self.patches_of(block.voxels)
-            bits = self.blocked_samples(block.shooter_patch, block.shooter_sample, block.receiver_patch, t)
+            bits = self.blocked_samples(block.shooter_patch, block.shooter_sample, block.receiver_patch, t,
+                                        block.receiver_weights)
             results.append(bits)
             rays = bits.size
             self._counters["blocks"] += 1

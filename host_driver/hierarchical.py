@@ -239,13 +239,15 @@ class LinkCaster:
             col_elem = np.repeat(np.repeat(c[run_start], len(chunk_start)), cols)
             shooter_patch = h.patch[col_elem]
             shooter_point = h.node[col_elem] * pts.per_element + col_k
-            receiver_point = h.patch[target[row_link]] * pts.count + end_node[row_link]
+            receiver_patch, receiver_weights = h.patch[target[row_link]], pts.weights[end_node[row_link]]
             row_off = np.concatenate([[0], np.cumsum(rows)])
             col_off = np.concatenate([[0], np.cumsum(cols)])
             starts = pts.point(V[shooter_patch], shooter_point)
         with self.phases.timed("traverse"):
             vox, vox_off, _, _ = grid.traverse_blocks(starts, col_off, ends[row_link], row_off, nonempty_only=True)
-        return BlockBatch(shooter_patch, shooter_point, col_off, receiver_point, row_off, vox, vox_off), row_link, col_k
+        batch = BlockBatch(shooter_patch, shooter_point, col_off, receiver_patch, row_off, vox, vox_off,
+                           receiver_weights)
+        return batch, row_link, col_k
 
 
 def refine(h, links, B, threshold, min_area, max_level):

@@ -81,11 +81,15 @@ class BoardOptions:
 class RayOptions:
     """The voxel grid (``voxels`` per axis; None: the paper's cost model chooses), the shooter
     ``samples`` (a count or a :class:`~blockray.samples.SampleScheme`), the ``traversal`` and
-    ``packing`` of block rays, and the fraction of rays whose traversal is measured."""
+    ``packing`` of block rays, where each row ends on its receiver (``end_points``, a rule of
+    host_driver/endpoints.py, with ``end_seed`` for ``draw``), and the fraction of rays whose
+    traversal is measured."""
     voxels: int = None
     samples: SampleScheme = 8
     traversal: str = "block"
     packing: str = "voxel"
+    end_points: str = "centroid"
+    end_seed: int = 0
     stats_fraction: float = 0.02
 
     def __post_init__(self):
@@ -96,6 +100,11 @@ class RayOptions:
             object.__setattr__(self, "samples", SampleScheme(self.samples))
         _one_of("traversal", self.traversal, TRAVERSALS)
         _one_of("packing", self.packing, PACKINGS)
+        from .endpoints import ENDS
+        _one_of("end_points", self.end_points, ENDS)
+        if not _integer(self.end_seed) or not 0 <= self.end_seed < 2 ** 63:
+            raise ParameterError(f"end_seed must be an integer from 0 to 2**63 - 1, not {self.end_seed!r}",
+                                 parameter="end_seed")
         if not 0 <= self.stats_fraction <= 1:
             raise ParameterError(f"stats_fraction must be from 0 to 1, not {self.stats_fraction!r}",
                                  parameter="stats_fraction")
@@ -209,6 +218,9 @@ class RenderOptions:
 
     def __post_init__(self):
         b, s = self.board, self.solve
+        if s.solver == "hierarchical" and self.ray.end_points != "centroid":
+            raise ParameterError("--end-points: the hierarchical solver's rays end at its elements' centroids",
+                                 parameter="end_points")
         if not self.run.distributed:
             return
         if s.closure != "off":

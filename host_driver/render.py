@@ -24,6 +24,7 @@ from .options import SOLVERS, RenderOptions
 from .. import threads as host_threads
 from . import closure as closures, formfactor, solver as solvers
 from .scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
+from .endpoints import EndPoints
 from .visibility import TRAVERSALS, Phases, Visibility, _morton, visible_fraction
 from .voxel import VoxelGrid, default_voxels, TraversalStats
 
@@ -89,6 +90,7 @@ def _resume(scene, board, options, params, checkpoint):
         "board": board.name, "bits": b.bits, "voxels": ray.voxels, "samples": ray.samples.count,
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
+        "end_points": ray.end_points, "end_seed": ray.end_seed,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
         "rows": params.rows, "cols": params.cols, "boards": params.boards})
 
@@ -127,7 +129,8 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
 
     stats = TraversalStats(grid, sample_fraction=ray.stats_fraction)
     vis = Visibility(scene, board, grid, samples, rows=params.rows, cols=params.cols,
-                     traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats)
+                     traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats,
+                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed))
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
     if checkpoint is not None and cache is not None:
@@ -285,6 +288,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "samples": ray.samples.count,
         "traversal": ray.traversal,
         "packing": ray.packing,
+        "end_points": ray.end_points if ray.end_points != "draw" else f"draw (seed {ray.end_seed})",
         "partition": getattr(run.board, "partition", None),
         "solver": solve.solver,
         "sets": int(run.options.run.sets),
@@ -329,7 +333,8 @@ def _render_sets(run, grid, *, progress, echo):
                                                  echo=echo) as (client, threads):
         job = SetJob(board=b.backend, params=params, bits=None if quantised is None else quantised.bits,
                      partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
-                     stats_fraction=ray.stats_fraction, threads=threads)
+                     stats_fraction=ray.stats_fraction, threads=threads, end_points=ray.end_points,
+                     end_seed=ray.end_seed)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
                                                     _morton(grid.cell_of(scene.centroids)), job,
                                                     solver=solve.solver, tolerance=solve.tolerance,

@@ -31,6 +31,7 @@ import numpy as np
 from ..atomic import Outputs
 from ..errors import ParameterError, printable
 from ..params import MAX_BITS, MIN_BITS
+from .endpoints import ENDS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
            "error_against", "map_to_mesh", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
@@ -70,6 +71,8 @@ SETTINGS = {
     "cell": Setting("--cell", str, ("exact", "filtered")),
     "traversal": Setting("--traversal", str, ("block", "ray")),
     "packing": Setting("--packing", str, ("voxel", "fill")),
+    "end-points": Setting("--end-points", str, ENDS),
+    "end-seed": Setting("--end-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),
     "contact": Setting("--contact", str, ("on", "off")),
     "rows": Setting("--rows", int, check=_positive),
     "cols": Setting("--cols", int, check=_positive),

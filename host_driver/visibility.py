@@ -67,13 +67,14 @@ class Visibility:
     """
 
     def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", packing="voxel",
-                 phases=None, stats=None):
+                 phases=None, stats=None, ends=None):
         if traversal not in TRAVERSALS:
             raise ParameterError(f"--traversal must be one of {', '.join(TRAVERSALS)}, not {traversal!r}")
         self.scene, self.board, self.grid, self.samples = scene, board, grid, samples
         self.rows, self.cols, self.traversal = rows, cols, traversal
         self.phases = phases or Phases()
         self.stats = stats
+        self.ends = ends        # an endpoints.EndPoints choosing each pair's end point; None: centroids
         self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
         self.weight_points = formfactor.weight_points(scene, samples)    # the same, as the ray weights take them
         self.centroids = scene.centroids
@@ -87,45 +88,61 @@ class Visibility:
         self.blocks = 0
         self.columns = 0     # columns cast: a shooter to its receivers, or a reverse receiver to its shooter
 
-    def _ray_batch(self, shooters, receivers):
+    def _end_points(self, receivers, end_weights):
+        """Float end points of pairs on ``receivers``: their centroids, or the points of their
+        ``end_weights`` (barycentric, summing to the sample denominator)."""
+        if end_weights is None:
+            return self.centroids[receivers]
+        V = self.scene.patch_vertices[receivers]
+        return np.einsum("rk,rkd->rd", end_weights / self.samples.denominator, V)
+
+    def _ray_batch(self, shooters, receivers, end_weights=None):
         """One block per ray (pairs in order, samples inner) with its 3D-DDA voxels; each block's
         row is its pair."""
         K = self.samples.count
         pair = np.repeat(np.arange(len(receivers)), K)
         ks = np.tile(np.arange(K), len(receivers))
+        ends = self._end_points(receivers, end_weights)
         with self.phases.timed("traverse"):
-            vox, off = self.grid.rays_voxels(self.sample_points[shooters[pair], ks], self.centroids[receivers[pair]],
-                                             nonempty_only=True)
+            vox, off = self.grid.rays_voxels(self.sample_points[shooters[pair], ks], ends[pair], nonempty_only=True)
         one = np.arange(len(pair) + 1)
-        return BlockBatch(shooters[pair], ks, one, receivers[pair], one, vox, off), pair
+        weights = None if end_weights is None else end_weights[pair]
+        return BlockBatch(shooters[pair], ks, one, receivers[pair], one, vox, off, weights), pair
 
     def _blocks_for(self, i, receivers):
         """The block rays of shooter i to ``receivers``, packed and traversed, as a BlockBatch."""
         receivers = np.asarray(receivers, dtype=np.int64)
         return self._pair_blocks(np.full(len(receivers), i, dtype=np.int64), receivers)[0]
 
-    def _pair_blocks(self, shooters, receivers):
+    def _pair_blocks(self, shooters, receivers, end_weights=None):
         """The block rays of the pairs (shooters[m], receivers[m]), packed and traversed, as one
-        BlockBatch, and the pair of each of its rows.
+        BlockBatch, and the pair of each of its rows; each pair's row ends at the point of
+        ``end_weights[m]`` if given, else at the receiver's centroid.
 
         A run of equal consecutive shooters is one column: its receivers are packed as those of
         one shooter (:meth:`_blocks_for`), columns in order, so a column's blocks are the same
         whatever else shares the batch."""
         if self.traversal == "ray":
-            return self._ray_batch(shooters, receivers)
+            return self._ray_batch(shooters, receivers, end_weights)
         K = self.samples.count
         with self.phases.timed("commands"):
+            if end_weights is None:
+                pair_voxel, pair_morton, pair_end = (self.end_voxel[receivers], self.end_morton[receivers],
+                                                     self.centroids[receivers])
+            else:
+                pair_end = self._end_points(receivers, end_weights)
+                pair_voxel, pair_morton = self.grid.voxel_of(pair_end), _morton(self.grid.cell_of(pair_end))
             column = np.zeros(len(shooters), dtype=np.int64)
             column[1:] = np.cumsum(shooters[1:] != shooters[:-1])
             if self.packing == "fill":
                 # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
                 # A block then spans neighbouring voxels; its bundle is a little wider.
-                pair = np.lexsort((self.end_morton[receivers], column))
+                pair = np.lexsort((pair_morton, column))
                 first = np.concatenate([[True], column[pair][1:] != column[pair][:-1]])
             else:
                 # The paper's block: the receivers whose end points share a voxel.
-                pair = np.lexsort((self.end_voxel[receivers], column))
-                key = self.end_voxel[receivers[pair]]
+                pair = np.lexsort((pair_voxel, column))
+                key = pair_voxel[pair]
                 first = np.concatenate([[True], (key[1:] != key[:-1]) | (column[pair][1:] != column[pair][:-1])])
             # runs of at most R receivers within each group, times chunks of at most S samples
             group_start = np.flatnonzero(first)
@@ -142,13 +159,15 @@ class Visibility:
             shooter_patch = np.repeat(shooters[pair[run_start]], K)     # each run's K samples
             row_off = np.concatenate([[0], np.cumsum(rows)])
             col_off = np.concatenate([[0], np.cumsum(cols)])
-            starts, ends = self.sample_points[shooter_patch, shooter_sample], self.centroids[receiver_patch]
+            starts, ends = self.sample_points[shooter_patch, shooter_sample], pair_end[row_pair]
         with self.phases.timed("traverse"):
             vox, vox_off, visited, tests = self.grid.traverse_blocks(starts, col_off, ends, row_off,
                                                                      nonempty_only=True)
             if self.stats is not None:
                 self.stats.add_blocks(starts, col_off, ends, row_off, visited, tests)
-        return BlockBatch(shooter_patch, shooter_sample, col_off, receiver_patch, row_off, vox, vox_off), row_pair
+        weights = None if end_weights is None else end_weights[row_pair]
+        return BlockBatch(shooter_patch, shooter_sample, col_off, receiver_patch, row_off, vox, vox_off,
+                          weights), row_pair
 
     def clear_fraction(self, i, receivers, weights=None):
         """Fraction of the K rays from shooter i to each receiver that is not blocked; with
@@ -158,7 +177,7 @@ class Visibility:
         return self.pair_clear_fraction(np.full(len(receivers), i, dtype=np.int64), receivers, weights,
                                         columns=1)
 
-    def pair_clear_fraction(self, shooters, receivers, weights=None, *, columns=None):
+    def pair_clear_fraction(self, shooters, receivers, weights=None, *, columns=None, end_weights=None):
         """:meth:`clear_fraction` of the pairs (shooters[m], receivers[m]), all in one board batch
         (a run of equal consecutive shooters is one column; ``columns`` counts them unless given).
         Each pair's value is the one :meth:`clear_fraction` gives it alone, to the bit."""
@@ -170,7 +189,7 @@ class Visibility:
         self.columns += columns
         if n == 0:
             return np.zeros(0)
-        batch, row_pair = self._pair_blocks(shooters, receivers)
+        batch, row_pair = self._pair_blocks(shooters, receivers, end_weights)
         with self.phases.timed("board"):
             bits = self.board.run(batch)
         flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
@@ -207,9 +226,14 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         shooters = np.concatenate([np.full(len(forward), i, dtype=np.int64), reverse])
         targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
         weights = formfactor.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
+        ends = None
+        if vis.ends is not None and vis.ends.rule != "centroid":
+            # i's own rows end where the rule puts them; reverse rows at i's centroid
+            ends = np.concatenate([vis.ends.weights(i, forward),
+                                   np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
     frac = np.empty(len(receivers))
     # the column count as one call per column would give it: i's own (even if empty), one per reverse
-    f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse))
+    f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends)
     frac[direct] = f[:len(forward)]
     frac[~direct] = f[len(forward):]
     return frac

@@ -248,6 +248,14 @@ class BoardModel:
         return out
 
 
+def _row_ends(q, batch):
+    """The kernels' end-point table and each row's index into it: the centroids by patch, or the
+    batch's own points row by row."""
+    if batch.receiver_weights is None:
+        return q.receivers, batch.receiver_patch
+    return q.end_points(batch.receiver_patch, batch.receiver_weights), np.arange(len(batch.receiver_patch))
+
+
 class ModelBoard(CountingBoard):
     """P bit-exact boards behind the host's Board interface (``--board model``).
 
@@ -308,9 +316,10 @@ class ModelBoard(CountingBoard):
         too_big = np.flatnonzero((Rb > p.rows) | (Sb > p.cols))
         if len(too_big):
             self.check_block(batch[int(too_big[0])])
+        ends, end_of_row = _row_ends(q, batch)
         bits, records, streamed = kernel.run_blocks(
-            q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
-            batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
+            q.shooters, ends, batch.col_off, batch.shooter_patch, batch.shooter_sample,
+            batch.row_off, end_of_row, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, batch.ray_off)
         cycles = self.timing.blocks_cycles(Rb, Sb, streamed)
         if self.cell != "exact":
@@ -331,9 +340,10 @@ class ModelBoard(CountingBoard):
         q, f = self.quantised, self.filter_format
         loads = -(-(batch.rows + batch.cols) // POINTS_PER_LOAD)
         step_off = np.vstack([np.zeros((1, cycles.shape[1]), np.int64), np.cumsum(cycles, axis=0)])
+        ends, end_of_row = _row_ends(q, batch)
         kinds, undecided = kernel.filtered_steps(
-            q.shooters, q.receivers, batch.col_off, batch.shooter_patch, batch.shooter_sample,
-            batch.row_off, batch.receiver_patch, batch.vox_off, batch.voxels,
+            q.shooters, ends, batch.col_off, batch.shooter_patch, batch.shooter_sample,
+            batch.row_off, end_of_row, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off)
         total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
         for b, steps in enumerate(step_off[-1]):

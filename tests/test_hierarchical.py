@@ -181,7 +181,7 @@ def test_end_points_exact_on_their_triangles_plane():
     q = deep.quantised
     assert q.bits == plain.quantised.bits + 3
     V = q.vertices
-    points = q.receivers.reshape(len(V), -1, 3)
+    points = q.shooters
     side = np.einsum("nc,nkc->nk", q.normals, points - V[:, None, 0])
     assert points.shape[1] == 85 * 9 and (side == 0).all()
 
@@ -199,7 +199,8 @@ def test_model_and_golden_same_blocked_bits():
 
 @pytest.mark.parametrize("flat,parameter", [({"epsilon": 0}, "epsilon"), ({"min_area": -1.0}, "min_area"),
                                             ({"epsilon": float("nan")}, "epsilon"),
-                                            ({"closure": "symmetric"}, "closure")])
+                                            ({"closure": "symmetric"}, "closure"),
+                                            ({"end_points": "kernel"}, "end_points")])
 def test_bad_options_named(flat, parameter):
     from blockray.host_driver.options import RenderOptions
     with pytest.raises(ParameterError) as e:
