@@ -252,10 +252,10 @@ def _cmd_render(args):
         check_matrix_memory(scene.patches, args.solver)
     progress = not args.quiet and sys.stderr.isatty()
     echo = None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
-    with _naming_option(lambda: build_board(options.board)) as board:       # closed on every path
-        result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo,
-                                               checkpoint=_checkpoint(args)))
     with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
+        with _naming_option(lambda: build_board(options.board, outputs)) as board:    # closed on every path
+            result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo,
+                                                   checkpoint=_checkpoint(args)))
         if args.image:
             from .host_driver.image import render_image, save_png
             img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)

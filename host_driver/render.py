@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..atomic import Outputs
 from ..errors import ParameterError
 from .backends import build_board, make_board
 from .options import SOLVERS, RenderOptions
@@ -73,7 +74,8 @@ def render(scene, board=None, options=None, *, progress=False, echo=None, checkp
     with host_threads.using(options.run.threads):
         if board is not None:
             return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
-        with build_board(options.board) as board:           # closed on every path
+        # the waveforms (--vcd) are renamed into place when the board is closed after a render
+        with Outputs() as outputs, build_board(options.board, outputs) as board:     # closed on every path
             return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
 
 
