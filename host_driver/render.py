@@ -98,6 +98,8 @@ def _resume(scene, board, options, params, checkpoint):
 
 
 def _render(scene, board, options, *, progress, echo, checkpoint):
+    if options.solve.solver == "hierarchical":
+        return _hierarchical(scene, board, options, checkpoint)
     b, ray, solve = options.board, options.ray, options.solve
     params = getattr(board, "params", None) or b.params       # R, S, P of the board as built
     if options.run.distributed:
@@ -190,6 +192,19 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
         report["closure"] = closure_info
     _resumed(report, resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report, factors=factors)
+
+
+def _hierarchical(scene, board, options, checkpoint):
+    """``--solver hierarchical`` (host_driver/hierarchical.py): the result's scene is the leaf
+    elements', ``hierarchy`` the elements and links."""
+    from .hierarchical import render_hierarchical
+    if checkpoint is not None:
+        raise ParameterError("--checkpoint / --resume: the hierarchical solver is not checkpointed",
+                             parameter="checkpoint")
+    h = render_hierarchical(scene, board, options)
+    result = RenderResult(scene=h.leaves, radiosity=h.radiosity, solve=h, report=h.report)
+    result.hierarchy = h
+    return result
 
 
 def _solve_closed(scene, shoot, solve, bar):
