@@ -1,9 +1,11 @@
 """Output files replaced atomically, alone or several together.
 
-Every file a command writes (``render --image/--patches/--report``, ``--checkpoint``, ``synth
---report``, ``verilog --out``) goes through :class:`Outputs`: each is written to a temporary file
-in its own folder (``.NAME.XXXXXXXX.tmp``), flushed and fsynced, and only when every file of the
-batch is complete are they renamed over their targets (``os.replace``) and the folders fsynced.
+Every file a command writes (``render --image/--patches/--report/--vcd``, ``--checkpoint``,
+``synth --report``, ``verilog --out``) goes through :class:`Outputs`: each is written to a
+temporary file in its own folder (``.NAME.XXXXXXXX.tmp``), flushed and fsynced, and only when
+every file of the batch is complete are they renamed over their targets (``os.replace``) and the
+folders fsynced. A file that another writer opens by name (a simulator's waveform) gets the name
+of its temporary from :meth:`Outputs.reserve`.
 
 - A write error (a full disk, a file size limit, an I/O error) raises
   :class:`~blockray.errors.ResourceError` naming the option and the file (a folder that takes no
@@ -40,6 +42,18 @@ def _fsync(f):
     os.fsync(f.fileno())
 
 
+def _fsync_file(path, shown):
+    """Flush a file another writer wrote and closed to the disk."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as e:
+        raise ResourceError(f"{shown}: cannot write: {e.strerror or e}; the previous file is unchanged") from None
+
+
 def _umask():
     mask = os.umask(0)
     os.umask(mask)
@@ -59,37 +73,63 @@ class Outputs:
     """
 
     def __init__(self):
-        self._staged = []           # (temporary, target, option)
+        self._staged = []           # (temporary, target, option and path, written here)
 
     def add(self, path, option, write, *, binary=False):
         """Write ``path`` (named ``option`` in errors) by calling ``write(f)`` on a temporary file
         in its folder, opened for text (UTF-8, ``newline=""``) or ``binary``; fsynced, not yet
         renamed. An OSError raises :class:`ResourceError`."""
         shown = f"{option} {printable(path, 200)}"
-        target = os.path.realpath(os.fspath(path))
-        try:
-            st = os.stat(target)
-        except FileNotFoundError:
-            st = None
-        except OSError as e:
-            raise ResourceError(f"{shown}: cannot write: {e.strerror or e}") from None
+        target, st = self._target(path, shown)
         if st is not None and not stat.S_ISREG(st.st_mode):
             self._write_in_place(target, write, binary, shown)
             return
-        folder, name = os.path.split(target)
+        fd = self._stage(target, st, shown, written_by_us=True)
         try:
-            fd, temporary = tempfile.mkstemp(dir=folder, prefix=f".{name[:100]}.", suffix=".tmp")
-        except OSError as e:                    # no such folder, a read-only one: the path's fault
-            raise ParameterError(f"{shown}: cannot write: {e.strerror or e}") from None
-        self._staged.append((temporary, target, shown))
-        try:
-            os.fchmod(fd, stat.S_IMODE(st.st_mode) if st is not None else 0o666 & ~_umask())
             with (os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="")) as f:
                 write(f)
                 _fsync(f)
         except OSError as e:
             raise ResourceError(f"{shown}: cannot write: {e.strerror or e}; the previous file is unchanged") \
                 from None
+
+    def reserve(self, path, option):
+        """The name of a temporary file in ``path``'s folder for a writer that opens it by name
+        itself (a simulator writing a waveform); :meth:`commit` fsyncs it and renames it over
+        ``path`` with the batch, :meth:`discard` removes it. A ``path`` that exists and is not a
+        regular file is returned as it is (written in place)."""
+        shown = f"{option} {printable(path, 200)}"
+        target, st = self._target(path, shown)
+        if st is not None and not stat.S_ISREG(st.st_mode):
+            return target
+        os.close(self._stage(target, st, shown, written_by_us=False))
+        return self._staged[-1][0]
+
+    @staticmethod
+    def _target(path, shown):
+        """The file ``path`` names (a symbolic link followed) and its ``os.stat`` (None: new)."""
+        target = os.path.realpath(os.fspath(path))
+        try:
+            return target, os.stat(target)
+        except FileNotFoundError:
+            return target, None
+        except OSError as e:
+            raise ResourceError(f"{shown}: cannot write: {e.strerror or e}") from None
+
+    def _stage(self, target, st, shown, *, written_by_us):
+        """A new temporary beside ``target`` with its permission bits, staged; returns its fd."""
+        folder, name = os.path.split(target)
+        try:
+            fd, temporary = tempfile.mkstemp(dir=folder, prefix=f".{name[:100]}.", suffix=".tmp")
+        except OSError as e:                    # no such folder, a read-only one: the path's fault
+            raise ParameterError(f"{shown}: cannot write: {e.strerror or e}") from None
+        self._staged.append((temporary, target, shown, written_by_us))
+        try:
+            os.fchmod(fd, stat.S_IMODE(st.st_mode) if st is not None else 0o666 & ~_umask())
+        except OSError as e:
+            os.close(fd)
+            raise ResourceError(f"{shown}: cannot write: {e.strerror or e}") from None
+        return fd
 
     @staticmethod
     def _write_in_place(target, write, binary, shown):
@@ -100,10 +140,14 @@ class Outputs:
             raise ResourceError(f"{shown}: cannot write: {e.strerror or e}") from None
 
     def commit(self):
-        """Rename every temporary over its target, then fsync their folders."""
+        """Fsync the reserved files (:meth:`reserve`), rename every temporary over its target,
+        then fsync their folders."""
+        for temporary, _, shown, written_by_us in self._staged:
+            if not written_by_us:
+                _fsync_file(temporary, shown)
         folders = set()
         while self._staged:
-            temporary, target, shown = self._staged[0]
+            temporary, target, shown, _ = self._staged[0]
             try:
                 os.replace(temporary, target)
             except OSError as e:

@@ -182,7 +182,14 @@ def _render_parser(sub):
                         "weighted by the light the shooter sends (kernel), or a point drawn from that light per "
                         "pair (draw); docs/formfactors.md measures what each gives")
     p.add_argument("--end-seed", type=int, default=0, metavar="N", help="seed of --end-points draw")
-    p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel"])
+    p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel", "hierarchical"],
+                   help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "
+                        "leaf element)")
+    p.add_argument("--epsilon", type=_positive_float, default=1e-3,
+                   help="hierarchical: refine a link that may carry more than this fraction of the emitted power")
+    p.add_argument("--min-area", type=_positive_float, default=None, metavar="AREA",
+                   help="hierarchical: smallest element area (scene units squared; default: 3 levels below each "
+                        "input triangle)")
     p.add_argument("--tolerance", type=_positive_float, default=1e-3,
                    help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
     p.add_argument("--max-shots", type=_positive_int, default=None, help="progressive refinement: at most this many shots")
@@ -252,18 +259,22 @@ def _cmd_render(args):
     _check_render(args)
     options = _naming_option(lambda: RenderOptions.from_args(args))
     scene = load_scene(args.scene, max_edge=args.max_edge, limits=_load_limits(args), contact=args.contact == "on")
-    check_matrix_memory(scene.patches, args.solver)
+    if args.solver != "hierarchical":
+        check_matrix_memory(scene.patches, args.solver)
     progress = not args.quiet and sys.stderr.isatty()
     echo = None if args.quiet else (lambda text: print(f"blockray: {text}", file=sys.stderr))
-    with _naming_option(lambda: build_board(options.board)) as board:       # closed on every path
-        result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo,
-                                               checkpoint=_checkpoint(args)))
     with Outputs() as outputs:          # all renamed together, or none (blockray/atomic.py)
+        with _naming_option(lambda: build_board(options.board, outputs)) as board:    # closed on every path
+            result = _naming_option(lambda: render(scene, board, options, progress=progress, echo=echo,
+                                                   checkpoint=_checkpoint(args)))
         if args.image:
             from .host_driver.image import render_image, save_png
-            img = render_image(scene, result.radiosity, width=args.size, height=args.size)
+            img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
             save_png(args.image, img, outputs)
-        if args.patches:
+        if args.patches and args.solver == "hierarchical":
+            from .host_driver.hierarchical import write_leaves_csv
+            write_leaves_csv(args.patches, result.solve, outputs)
+        elif args.patches:
             write_patches_csv(args.patches, scene, result.radiosity, outputs)
         if args.report:
             write_report_json(args.report, result.report, outputs)

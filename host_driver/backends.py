@@ -99,10 +99,12 @@ def check_board(options):
                              parameter="link_faults")
 
 
-def build_board(options):
+def build_board(options, outputs=None):
     """The board of a :class:`~blockray.host_driver.options.BoardOptions` (checked by
     :func:`check_board` when the options were built). ``params.bits=None`` lets the board choose
-    B for the scene; ``vcd`` (a path) a waveform of a simulated board (board b > 0 writes ``FILE.b``);
+    B for the scene; ``vcd`` (a path) a waveform of a simulated board (board b > 0 writes ``FILE.b``),
+    given an ``outputs`` (:class:`blockray.atomic.Outputs`) written to temporaries that are
+    renamed over the files with that batch (close the board before the batch ends);
     ``host``: the host's timing on a simulated board's link: ``(idle, backpressure, seed)``, two
     :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor cell,
     ``"exact"`` or ``"filtered"`` (``filter_format``: its :class:`~blockray.filtered.FilterFormat`,
@@ -117,10 +119,16 @@ def build_board(options):
         extra.update(cell=o.cell, filter_format=o.filter_format)
     if entry.serial:
         extra.update(port=o.port, baud=o.baud)
-    return entry.factory(o.params, partition=o.partition, vcd=o.vcd, host=o.host, **extra)
+    vcd = o.vcd
+    if vcd is not None and outputs is not None:
+        vcd = [outputs.reserve(_wave(vcd, b), "--vcd") for b in range(o.params.boards)]
+    return entry.factory(o.params, partition=o.partition, vcd=vcd, host=o.host, **extra)
 
 
 def _wave(vcd, b):
+    """Board b's waveform file: of a path ``vcd`` (FILE, FILE.1, ...) or a list of one per board."""
+    if isinstance(vcd, list):
+        return vcd[b]
     return None if vcd is None else (str(vcd) if b == 0 else f"{vcd}.{b}")
 
 

@@ -297,6 +297,7 @@ def _results(client, futures, done=None):
     loss of the scheduler (:data:`POLL` s to notice), no worker for :data:`WORKERLESS` s, or a task
     whose workers keep dying raise :class:`ResourceError`; a task's own error is raised as is."""
     from distributed import wait
+    from distributed.comm import CommClosedError
     from distributed.scheduler import KilledWorker
     from distributed.utils import CancelledError, TimeoutError
     finished, workerless = 0, None
@@ -321,13 +322,13 @@ def _results(client, futures, done=None):
             wait(futures, timeout=POLL)
         except TimeoutError:
             pass
-        except CancelledError:
+        except (CommClosedError, CancelledError):
             raise _lost(client) from None
     try:
         return client.gather(futures)
     except KilledWorker as e:
         raise ResourceError(f"{option('sets')}: {e.args[0] if e.args else 'a task'}: every worker that ran it died") from None
-    except CancelledError:
+    except (CommClosedError, CancelledError):     # the scheduler lost while it gathers them
         raise _lost(client) from None
 
 
@@ -359,7 +360,10 @@ def _summaries(client, rows, progress):
 
 class _Sweeps:
     """Gathering sweeps on the sets' rows: each sends the radiosities B to the workers once, runs
-    every set's part and brings back each set's new radiosities; counts the bytes moved."""
+    every set's part and brings back each set's new radiosities. Counts the bytes of the
+    exchange: B to every set and each set's part back. (Sets that share a worker share its copy
+    of B, and which sets do depends on Dask's placement, which varies from run to run; the
+    sets' count does not.)"""
 
     def __init__(self, client, rows, owner):
         self.client, self.rows = client, rows
@@ -370,8 +374,7 @@ class _Sweeps:
         client = self.client
         B_f = _hold(client, B)
         pieces = _results(client, [client.submit(kernel, r, B_f, pure=False) for r in self.rows])
-        workers = _workers(client)
-        self.bytes += B.nbytes * workers + sum(
+        self.bytes += B.nbytes * len(self.rows) + sum(
             p[1].nbytes + 8 if isinstance(p, tuple) else p.nbytes for p in pieces)   # (weighted, new) or new
         self.count += 1
         return pieces

@@ -26,7 +26,7 @@ from ..link import DEFAULT_BAUD
 __all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "filter_format",
            "host_timing"]
 
-SOLVERS = ("progressive", "jacobi", "gauss-seidel")
+SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
 
 
 def _one_of(name, value, choices):
@@ -111,12 +111,16 @@ class RayOptions:
 @dataclass(frozen=True)
 class SolveOptions:
     """The ``solver``, its stopping ``tolerance``, ``max_shots`` (progressive) and
-    ``max_iterations`` (gathering), and the ``closure`` of the visible form factors."""
+    ``max_iterations`` (gathering), the ``closure`` of the visible form factors, and the
+    hierarchical solver's refinement threshold ``epsilon`` (a fraction of the emitted power) and
+    smallest element ``min_area`` (None: 3 levels below each input triangle), host_driver/hierarchical.py."""
     solver: str = "progressive"
     tolerance: float = 1e-3
     max_shots: int = None
     max_iterations: int = 200
     closure: str = "off"
+    epsilon: float = 1e-3
+    min_area: float = None
 
     def __post_init__(self):
         from .closure import MODES
@@ -130,6 +134,15 @@ class SolveOptions:
             raise ParameterError(f"max_iterations must be at least 1, not {self.max_iterations!r}",
                                  parameter="max_iterations")
         _one_of("closure", self.closure, MODES)
+        for name in ("epsilon", "min_area"):
+            value = getattr(self, name)
+            if value is None and name == "min_area":
+                continue
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ParameterError(f"{name} must be a positive number, not {value!r}", parameter=name)
+        if self.solver == "hierarchical" and self.closure != "off":
+            raise ParameterError(f"{option('closure')} corrects a full matrix of patch factors; the hierarchical solver has "
+                                 "links, not a matrix", parameter="closure")
 
 
 @dataclass(frozen=True)
@@ -207,14 +220,17 @@ class RenderOptions:
 
     def __post_init__(self):
         b, s = self.board, self.solve
+        if s.solver == "hierarchical" and self.ray.end_points != "centroid":
+            raise ParameterError(f"{option('end_points')}: the hierarchical solver's rays end at its elements' centroids",
+                                 parameter="end_points")
         if not self.run.distributed:
             return
         if s.closure != "off":
             raise ParameterError(f"{option('closure')} needs the whole form-factor matrix on one host; it cannot be used "
                                  f"with {_DISTRIBUTED}", parameter="closure")
-        if s.solver == "progressive":
-            raise ParameterError(f"{option('sets')}: host + board sets solve by gathering; use {option('solver')} jacobi "
-                                 "or gauss-seidel", parameter="sets")
+        if s.solver in ("progressive", "hierarchical"):
+            raise ParameterError(f"{option('sets')}: host + board sets solve by gathering over a matrix; use "
+                                 f"{option('solver')} jacobi or gauss-seidel, not {s.solver}", parameter="sets")
         if b.vcd is not None:
             raise ParameterError(f"{option('vcd')} traces one board's simulation; it cannot be used with {_DISTRIBUTED}",
                                  parameter="vcd")

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..atomic import Outputs
 from ..errors import ParameterError, option
 from .backends import build_board, make_board
 from .options import SOLVERS, RenderOptions
@@ -73,7 +74,8 @@ def render(scene, board=None, options=None, *, progress=False, echo=None, checkp
     with host_threads.using(options.run.threads):
         if board is not None:
             return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
-        with build_board(options.board) as board:           # closed on every path
+        # the waveforms (--vcd) are renamed into place when the board is closed after a render
+        with Outputs() as outputs, build_board(options.board, outputs) as board:     # closed on every path
             return _render(scene, board, options, progress=progress, echo=echo, checkpoint=checkpoint)
 
 
@@ -97,6 +99,8 @@ def _resume(scene, board, options, params, checkpoint):
 
 
 def _render(scene, board, options, *, progress, echo, checkpoint):
+    if options.solve.solver == "hierarchical":
+        return _hierarchical(scene, board, options, checkpoint)
     b, ray, solve = options.board, options.ray, options.solve
     params = getattr(board, "params", None) or b.params       # R, S, P of the board as built
     if options.run.distributed:
@@ -189,6 +193,19 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
         report["closure"] = closure_info
     _resumed(report, resume)
     return RenderResult(scene=scene, radiosity=result.B, solve=result, report=report, factors=factors)
+
+
+def _hierarchical(scene, board, options, checkpoint):
+    """``--solver hierarchical`` (host_driver/hierarchical.py): the result's scene is the leaf
+    elements', ``hierarchy`` the elements and links."""
+    from .hierarchical import render_hierarchical
+    if checkpoint is not None:
+        raise ParameterError(f"{option('checkpoint')} / {option('resume')}: the hierarchical solver is not checkpointed",
+                             parameter="checkpoint")
+    h = render_hierarchical(scene, board, options)
+    result = RenderResult(scene=h.leaves, radiosity=h.radiosity, solve=h, report=h.report)
+    result.hierarchy = h
+    return result
 
 
 def _solve_closed(scene, shoot, solve, bar):

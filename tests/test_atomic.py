@@ -90,21 +90,22 @@ def test_modes_links_and_devices(tmp_path):
 
 # --- a full disk ---------------------------------------------------------------------------
 
-#: runs the CLI with RLIMIT_FSIZE set once the outputs start (so numba's cache is not limited);
-#: SIGXFSZ ignored, a write past the limit fails with EFBIG as one on a full disk with ENOSPC
+#: runs the CLI with RLIMIT_FSIZE set once the first output is written, after the render (so
+#: numba's cache is not limited); SIGXFSZ ignored, a write past the limit fails with EFBIG as one
+#: on a full disk with ENOSPC
 _LIMITED = textwrap.dedent("""
     import resource, signal, sys
     from blockray import atomic
     from blockray.cli import main
     limit = int(sys.argv[1])
-    enter = atomic.Outputs.__enter__
+    add = atomic.Outputs.add
 
-    def limited(self):
+    def limited(self, *args, **kwargs):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-        return enter(self)
+        return add(self, *args, **kwargs)
     if limit:
-        atomic.Outputs.__enter__ = limited
+        atomic.Outputs.add = limited
     sys.exit(main(sys.argv[2:]))
 """)
 
@@ -194,3 +195,43 @@ def test_signal_during_the_write_leaves_the_old_files(tmp_path, option, sig):
     assert err.strip() == ("blockray: terminated" if sig == signal.SIGTERM else "blockray: interrupted"), err
     _assert_old_and_no_temporaries(folder)
     assert _temporaries(folder) == []
+
+
+@pytest.mark.parametrize("ending", ["error", "SIGTERM"])
+def test_vcd_is_replaced_with_the_outputs_or_left_as_it_was(tmp_path, capsys, monkeypatch, ending):
+    """--vcd: each board's simulator writes its waveform (FILE, FILE.1) to a temporary beside it,
+    renamed with the render's other outputs. A render that fails, or gets SIGTERM, while the
+    waveforms are being written leaves the previous files (tests/test_rtl_board.py: a render that succeeds writes
+    them, and leaves no temporary)."""
+    from blockray.cli import main
+    from blockray.host_driver.simulated import AmaranthTransport
+    from blockray.host_driver.transport import TransportError
+    from scenes import RTL_BITS, room_scene
+    room_scene(tmp_path, 1.5)
+    vcd, csv = tmp_path / "w.vcd", tmp_path / "w.csv"
+    old = {vcd: "old board 0 waveform\n", tmp_path / "w.vcd.1": "old board 1 waveform\n", csv: "old csv\n"}
+    for path, text in old.items():
+        path.write_text(text)
+    argv = ["render", str(tmp_path / "room.obj"), "--max-edge", "1.5", "--voxels", "3", "--samples", "4",
+            "--max-shots", "1", "--rows", "2", "--cols", "2", "--boards", "2", "--bits", str(RTL_BITS),
+            "--board", "amaranth", "--vcd", str(vcd), "--patches", str(csv), "--quiet"]
+    recv, calls, written = AmaranthTransport.recv, [], []
+
+    def failing(self, count, **kw):
+        data = recv(self, count, **kw)
+        calls.append(count)
+        if len(calls) == 2:             # each board has answered once (IDENTIFY)
+            written.extend(p.stat().st_size for p in tmp_path.iterdir() if p.name.startswith(".w.vcd."))
+            if ending == "SIGTERM":
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(10)                  # the CLI's handler raises here
+            raise TransportError("injected: the link failed")
+        return data
+    monkeypatch.setattr(AmaranthTransport, "recv", failing)
+    code, line = (2, "blockray: error: injected: the link failed") if ending == "error" else \
+        (143, "blockray: terminated")
+    assert main(argv) == code
+    assert line in capsys.readouterr().err
+    assert len(written) == 2 and all(written), written      # both waveforms had begun, beside w.vcd
+    assert {path: path.read_text() for path in old} == old
+    assert _temporaries(tmp_path) == []

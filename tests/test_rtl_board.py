@@ -182,7 +182,9 @@ def test_driver_checks_the_identity(scene, fields, error, match):
 
 @pytest.mark.cocotb
 def test_amaranth_vcd(renders):
-    """The amaranth render above wrote a waveform of each board (FILE, FILE.1) for the whole run."""
+    """The amaranth render above wrote a waveform of each board (FILE, FILE.1) for the whole run,
+    through temporaries beside them (blockray/atomic.py) that are gone."""
+    assert sorted(p.name for p in renders["vcd"].parent.iterdir()) == ["amaranth.vcd", "amaranth.vcd.1"]
     for b, path in enumerate((renders["vcd"], renders["vcd"].with_name(renders["vcd"].name + ".1"))):
         text = path.read_text()
         assert "i_bytes__valid" in text and "o_bytes__payload" in text and "commands__valid" in text
@@ -215,6 +217,7 @@ def test_cli_render_verilator(tmp_path, capsys):
 def test_verilator_vcd(scene, tmp_path):
     vcd = tmp_path / "board.vcd"
     render(scene, backend="verilator", params=PARAMS, bits=BITS, samples=4, max_shots=1, voxels=3, vcd=vcd)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["board.vcd", "board.vcd.1"]     # no temporary left
     for path in (vcd, tmp_path / "board.vcd.1"):         # one waveform per simulator process (board)
         text = path.read_text()
         assert "i_bytes__valid" in text and "\n#1" in text

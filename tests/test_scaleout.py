@@ -149,19 +149,19 @@ def test_render_sets_same_visibility_less_machine_time(small_cornell, one_set, c
     assert max(rays) < 1.05 * min(rays), rays        # (by patch count: 65 344 - 71 680)
     assert three.report["exchange_bytes_per_sweep"] == 4 * small_cornell.patches * 2
     assert len(three.report["board_cycles_per_board"]) == 3 * 8
-    # what moved: per sweep the radiosities (N x RGB float64) to each of the 2 workers and each
+    # what moved: per sweep the radiosities (N x RGB float64) to each of the 3 sets and each
     # set's own back; the sets' rows of F stayed on the workers
     run = three.report["cluster"]
     sweeps = three.report["iterations"] + 1
     assert run["exchanges"] == sweeps
-    assert run["exchanged_bytes"] == sweeps * (2 + 1) * small_cornell.patches * 3 * 8
+    assert run["exchanged_bytes"] == sweeps * (3 + 1) * small_cornell.patches * 3 * 8
     assert len(run["workers"]) == 2 and {s["worker"] for s in per_set} <= {w["address"] for w in run["workers"]}
     assert len(run["cast_seconds_per_set"]) == 3
     gs = render(small_cornell, backend="model", solver="gauss-seidel", tolerance=1e-4, sets=3,
                 scheduler=cluster.scheduler_address)
     assert gs.report["residual"] < 1e-4 and gs.report["sets"] == 3
     assert gs.report["cluster"]["exchanged_bytes"] == (gs.report["iterations"] + 1) * (
-        2 * small_cornell.patches * 3 * 8 + small_cornell.patches * 3 * 8 + 3 * 8)
+        3 * small_cornell.patches * 3 * 8 + small_cornell.patches * 3 * 8 + 3 * 8)
     rel = np.abs(gs.radiosity - one.radiosity).max() / np.abs(one.radiosity).max()
     assert rel < 1e-3, rel
 

@@ -1,0 +1,135 @@
+"""Error against speed: --solver hierarchical against the uniform progressive solve.
+
+    python benchmarks/bench_hierarchical.py cornell --reference-edge 70 --check-edge 100 \
+        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4 --plot docs/img/hierarchical-cornell.png
+
+The reference is a uniform Jacobi solve on the golden board (``--reference-edge``,
+``--reference-samples``, tolerance 1e-6), kept in ``--cache`` between runs; its distance to a coarser uniform solve of the
+same kind (``--check-edge``) is printed as the reference's own refinement error. Each run's error
+is the area-weighted L1 distance on the reference mesh, per channel (the largest of the three
+printed), relative to the reference's area-weighted mean: every reference patch takes the
+radiosity of the run's patch or leaf that holds its centroid. Rays and CPU seconds (the process's,
+every thread) are the render's report. The hierarchical runs start from the input triangles
+(``--max-edge`` 1e9); the uniform runs from the scene subdivided to each edge length.
+"""
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from _run_header import print_run_header
+from blockray.host_driver.builtin import load_scene
+from blockray.host_driver.render import render
+
+RAW = 1e9          # no subdivision: the input triangles
+
+
+def locate(tri, points, chunk=256):
+    """Index of the triangle of ``tri`` (T, 3, 3) holding each point (M, 3): of the triangles whose
+    plane passes within 1e-7 of the scene's size, the one the point is deepest inside."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    n2 = (n * n).sum(axis=1)
+    size = np.ptp(tri.reshape(-1, 3), axis=0).max()
+    out = np.empty(len(points), dtype=np.int64)
+    for s in range(0, len(points), chunk):
+        p = points[s:s + chunk, None, :]
+        off = ((p - a) * n).sum(axis=-1) / np.sqrt(n2)
+        w = [((np.cross(v1 - v0, p - v0)) * n).sum(axis=-1) / n2 for v0, v1 in ((b, c), (c, a), (a, b))]
+        inside = np.minimum(np.minimum(w[0], w[1]), w[2])
+        inside = np.where(np.abs(off) < 1e-7 * size, inside, -np.inf)
+        out[s:s + chunk] = np.argmax(inside, axis=1)
+    return out
+
+
+def error(reference, result):
+    """Largest per-channel area-weighted L1 distance on the reference mesh, relative."""
+    ref = reference["scene"]
+    at = locate(result.scene.patch_vertices, ref.centroids)
+    A = ref.areas[:, None]
+    diff = (A * np.abs(result.radiosity[at] - reference["B"])).sum(axis=0)
+    return float((diff / (A * reference["B"]).sum(axis=0)).max())
+
+
+def reference_solution(name, edge, cache, samples):
+    path = os.path.join(cache, f"hier-ref-{name}-{edge:g}-{samples}.npz")
+    scene = load_scene(name, max_edge=edge)
+    if os.path.exists(path):
+        B = np.load(path)["B"]
+        if B.shape == (scene.patches, 3):
+            return {"scene": scene, "B": B, "seconds": float(np.load(path)["seconds"])}
+    t0 = time.process_time()
+    result = render(scene, backend="golden", solver="jacobi", samples=samples, tolerance=1e-6)
+    seconds = time.process_time() - t0
+    np.savez(path, B=result.radiosity, seconds=seconds)
+    return {"scene": scene, "B": result.radiosity, "seconds": seconds}
+
+
+def run(reference, name, edge, **options):
+    scene = load_scene(name, max_edge=edge)
+    result = render(scene, backend="model", **options)
+    r = result.report
+    return {"patches": scene.patches, "rays": r["rays"], "cpu": r["cpu_seconds"]["total"],
+            "error": error(reference, result), "leaves": r.get("leaves", scene.patches), "links": r.get("links", "")}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene")
+    ap.add_argument("--reference-edge", type=float, default=70.0)
+    ap.add_argument("--reference-samples", type=int, default=8)
+    ap.add_argument("--check-edge", type=float, default=100.0)
+    ap.add_argument("--uniform-edges", default="300,200,100")
+    ap.add_argument("--epsilons", default="1e-2,3e-3,1e-3,3e-4,1e-4")
+    ap.add_argument("--tolerance", type=float, default=1e-3)
+    ap.add_argument("--cache", default=os.environ.get("TMPDIR", "/tmp"))
+    ap.add_argument("--plot", metavar="PNG", help="write error against rays and CPU seconds")
+    args = ap.parse_args(argv)
+    print_run_header()
+    print(f"# load average before: {os.getloadavg()}", flush=True)
+    ref = reference_solution(args.scene, args.reference_edge, args.cache, args.reference_samples)
+    check = reference_solution(args.scene, args.check_edge, args.cache, args.reference_samples)
+    fake = type("R", (), {"scene": check["scene"], "radiosity": check["B"]})
+    print(f"# reference: {ref['scene'].patches} patches, golden, jacobi 1e-6, {args.reference_samples} samples, {ref['seconds']:.0f} CPU s; "
+          f"the same at max edge {args.check_edge:g} ({check['scene'].patches} patches) is {error(ref, fake):.4f} "
+          f"from it", flush=True)
+    print("| solver | mesh | patches / leaves | links | rays | CPU s | error |")
+    print("|---|---|---|---|---|---|---|")
+    rows = {"progressive": [], "hierarchical": []}
+    for edge in (float(x) for x in args.uniform_edges.split(",")):
+        r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
+        rows["progressive"].append(r)
+        print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} |",
+              flush=True)
+    for eps in (float(x) for x in args.epsilons.split(",")):
+        r = run(ref, args.scene, RAW, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10)
+        rows["hierarchical"].append(r)
+        print(f"| hierarchical | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | {r['cpu']:.2f} | "
+              f"{r['error']:.4f} |", flush=True)
+    print(f"# load average after: {os.getloadavg()}")
+    if args.plot:
+        plot(rows, args.plot, args.scene)
+
+
+def plot(rows, path, name):
+    """Error against rays and against CPU seconds, one line per solver."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    for ax, key, label in zip(axes, ("rays", "cpu"), ("rays", "CPU seconds")):
+        for solver, marker in (("progressive", "o-"), ("hierarchical", "s-")):
+            ax.loglog([r[key] for r in rows[solver]], [r["error"] for r in rows[solver]], marker, label=solver)
+        ax.set_xlabel(label)
+        ax.set_ylabel("relative L1 error")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend()
+    fig.suptitle(f"{name}: error against the reference, hierarchical vs uniform progressive")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,285 @@
+"""--solver hierarchical (host_driver/hierarchical.py, host_driver/elements.py) against oracles
+that share no code with it: Howell's closed forms for parallel and perpendicular squares and for a
+point above a rectangle, computed here; a receiver hidden by a blocker (radiosity exactly its
+emission); closed furnaces, where B = E / (1 - rho) everywhere; the energy balance of a closed
+scene from B, E, rho and A alone; integer plane equations for the board's end points; and the
+same blocked bits from the model and golden boards."""
+
+import math
+
+import numpy as np
+import pytest
+
+from blockray.errors import ParameterError
+from blockray.host_driver.elements import ElementPoints
+from blockray.host_driver.render import render
+from blockray.samples import SampleScheme
+from blockray.sim.model import ModelBoard
+
+from scenes import balance, closed_box, make_scene, rectangle
+
+X, Y, Z = np.eye(3)
+
+
+def parallel_squares_factor(d):
+    """Howell C-11: two coaxial parallel unit squares d apart."""
+    x = y = 1.0 / d
+    a, b = 1 + x * x, 1 + y * y
+    return 2 / (math.pi * x * y) * (math.log(math.sqrt(a * b / (1 + x * x + y * y)))
+                                   + x * math.sqrt(b) * math.atan(x / math.sqrt(b))
+                                   + y * math.sqrt(a) * math.atan(y / math.sqrt(a)) - x * math.atan(x) - y * math.atan(y))
+
+
+def perpendicular_squares_factor():
+    """Howell C-14: unit squares at a right angle sharing an edge (H = W = 1)."""
+    H = W = 1.0
+    a, b, c = (1 + W * W) * (1 + H * H) / (1 + W * W + H * H), W * W * (1 + W * W + H * H) / ((1 + W * W) * (W * W + H * H)), \
+        H * H * (1 + H * H + W * W) / ((1 + H * H) * (H * H + W * W))
+    s = math.sqrt(H * H + W * W)
+    return 1 / (math.pi * W) * (W * math.atan(1 / W) + H * math.atan(1 / H) - s * math.atan(1 / s)
+                                + 0.25 * math.log(a * b ** (W * W) * c ** (H * H)))
+
+
+def point_over_rectangle(x, y, d):
+    """Differential area facing a parallel unit square [0,1]^2 from (x, y) at height d (Howell B-3
+    by corner sums; (x, y) inside the square; numpy arrays)."""
+    def corner(a, b):
+        A, B = a / d, b / d
+        return (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+                + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+    return sum(corner(a, b) for a in (x, 1 - x) for b in (y, 1 - y))
+
+
+def triangle_average(f, tri, n=24):
+    """Mean of f(x, y) over triangles (M, 3, 3): the centroids of the n*n congruent sub-triangles."""
+    w = []
+    for i in range(n):
+        for j in range(2 * i + 1):
+            a, down = divmod(j, 2)
+            corners = [(i, a), (i, a + 1), (i + 1, a + 1)] if down else [(i, a), (i + 1, a), (i + 1, a + 1)]
+            r, c = np.mean(corners, axis=0) / n
+            w.append((1 - r, r - c, c))
+    P = np.einsum("kv,mvc->mkc", np.array(w), tri)
+    return f(P[..., 0], P[..., 1]).mean(axis=1)
+
+
+def two_squares(receiver, rho=0.5):
+    """An emitter (E = 1, rho = 0) unit square at z = 0 facing +z and ``receiver`` (a square of 2
+    triangles, reflectance rho)."""
+    emitter = rectangle(np.zeros(3), X, Y, 1, 1)
+    tris = np.concatenate([emitter, receiver])
+    refl = np.array([0.0] * 2 + [rho] * 2)[:, None] * np.ones(3)
+    emit = np.array([1.0] * 2 + [0.0] * 2)[:, None] * np.ones(3)
+    return make_scene(tris, reflectance=refl, emission=emit)
+
+
+def _occluded_pair():
+    """Emitter, receiver 2 above it, and a blocker over part of the way facing the emitter."""
+    scene = two_squares(rectangle(np.array([0, 0, 2.0]), Y, X, 1, 1))
+    blocker = rectangle(np.array([0.3, 0.2, 1.0]), Y * 0.45, X * 0.5, 1, 1)
+    return make_scene(np.concatenate([scene.patch_vertices, blocker]),
+                      reflectance=np.concatenate([scene.reflectance, np.full((2, 3), 0.5)]),
+                      emission=np.concatenate([scene.emission, np.zeros((2, 3))]))
+
+
+def receiver_mean(result, first_patch):
+    """Area-weighted mean radiosity of the leaves of input triangles >= first_patch."""
+    h = result.solve.hierarchy
+    mine = h.patch[h.leaves()] >= first_patch
+    A = result.scene.areas[mine]
+    return (A[:, None] * result.radiosity[mine]).sum(axis=0) / A.sum()
+
+
+@pytest.mark.parametrize("d", [0.5, 1.0, 2.0])
+def test_parallel_squares(d):
+    """Receiver faces the emitter d above: its mean radiosity is rho F E (Howell C-11)."""
+    scene = two_squares(rectangle(np.array([0, 0, d]), Y, X, 1, 1))
+    result = render(scene, backend="golden", solver="hierarchical", epsilon=1e-3, tolerance=1e-10)
+    mean = receiver_mean(result, 2)
+    assert np.allclose(mean, 0.5 * parallel_squares_factor(d), rtol=1e-6), (mean, parallel_squares_factor(d))
+    assert result.report["refinement_rounds"] >= 1 and result.report["leaves"] > 4
+
+
+@pytest.mark.parametrize("d", [0.5, 2.0])
+def test_parallel_squares_leaves_converge(d):
+    """Each receiver leaf's radiosity tends to rho times its own mean point factor (Howell B-3,
+    averaged over the leaf here) as epsilon falls: once every link ends on a leaf, it is that."""
+    scene = two_squares(rectangle(np.array([0, 0, d]), Y, X, 1, 1))
+    errors = []
+    for epsilon in (1e-2, 1e-5):
+        result = render(scene, backend="golden", solver="hierarchical", epsilon=epsilon, tolerance=1e-12)
+        h = result.solve.hierarchy
+        mine = h.patch[h.leaves()] >= 2
+        exact = 0.5 * triangle_average(lambda x, y: point_over_rectangle(x, y, d), result.scene.patch_vertices[mine])
+        errors.append(np.abs(result.radiosity[mine, 0] / exact - 1).max())
+    print(f"d = {d}: largest leaf error {errors[0]:.2e} at epsilon 1e-2, {errors[1]:.2e} at 1e-5")
+    assert errors[1] < 2e-4 and errors[0] > 10 * errors[1]
+
+
+def test_perpendicular_squares():
+    scene = two_squares(rectangle(np.zeros(3), Z, X, 1, 1))       # the y = 0 plane, facing +y
+    result = render(scene, backend="golden", solver="hierarchical", epsilon=1e-3, tolerance=1e-10)
+    F = perpendicular_squares_factor()
+    assert abs(F - 0.20004) < 1e-5                                    # the catalogue's value
+    assert np.allclose(receiver_mean(result, 2), 0.5 * F, rtol=1e-6)
+
+
+def test_occluded_receiver_sees_nothing():
+    """A blocker larger than both squares between them: every link's rays are blocked, so the
+    receiver keeps B = 0."""
+    scene = two_squares(rectangle(np.array([0, 0, 2.0]), Y, X, 1, 1))
+    blocker = rectangle(np.array([-1, -1, 1.0]), X * 3, Y * 3, 1, 1)
+    both = make_scene(np.concatenate([scene.patch_vertices, blocker]),
+                      reflectance=np.concatenate([scene.reflectance, np.zeros((2, 3))]),
+                      emission=np.concatenate([scene.emission, np.zeros((2, 3))]))
+    for board in ("golden", "model"):
+        result = render(both, backend=board, solver="hierarchical", epsilon=1e-4, tolerance=1e-10)
+        h = result.solve.hierarchy
+        mine = (h.patch[h.leaves()] == 2) | (h.patch[h.leaves()] == 3)
+        assert (result.radiosity[mine] == 0).all(), board
+
+
+@pytest.mark.parametrize("size,board", [(1.0, "golden"), (13.37, "model")])
+def test_furnace(size, board):
+    """A closed cube, every face emitting 1 with reflectance 0.5: B = 2 on every leaf."""
+    tris, _ = closed_box(1, size)
+    scene = make_scene(tris, reflectance=0.5, emission=1.0)
+    result = render(scene, backend=board, solver="hierarchical", epsilon=1e-3, tolerance=1e-9,
+                    max_iterations=500)
+    assert result.report["leaves"] > len(tris)                       # it did refine
+    assert np.abs(result.radiosity - 2.0).max() < 1e-6
+
+
+def test_closed_box_energy_balance():
+    """Unequal emission and reflectance in a closed box: absorbed power is emitted power to the
+    solver's discretisation. Exact where links join whole input triangles' uniform levels
+    (epsilon 1e-2 here); within 2e-3 where sources are coarser than the leaves they light
+    (a link spreads its source's mean radiosity with its source's mean factor; measured
+    1.7e-3, docs/hierarchical.md)."""
+    tris, face = closed_box(1)
+    refl = np.array([[0.3, 0.5, 0.7], [0.8, 0.2, 0.4], [0.5] * 3, [0.6, 0.6, 0.1], [0.2] * 3, [0.9, 0.5, 0.3]])[face]
+    emit = np.zeros((len(tris), 3))
+    emit[face == 1] = [1.0, 0.8, 0.6]
+    scene = make_scene(tris, reflectance=refl, emission=emit)
+    for epsilon, bound in ((1e-2, 1e-4), (1e-3, 2e-3)):
+        result = render(scene, backend="golden", solver="hierarchical", epsilon=epsilon, tolerance=1e-11,
+                        max_iterations=1000)
+        got = balance(result.scene, result.radiosity)
+        print(f"epsilon {epsilon}: absorbed / emitted - 1 = {got}")
+        assert np.abs(got).max() < bound, got
+
+
+def test_end_points_exact_on_their_triangles_plane():
+    """Every quantised element end point lies exactly on its input triangle's plane (integer
+    arithmetic here), at one coordinate bit per level more than the uniform scheme's."""
+    tris, _ = closed_box(1, 3.7)
+    scene = make_scene(tris + 0.123, reflectance=0.5)
+    samples = SampleScheme(8)
+    plain, deep = ModelBoard(), ModelBoard()
+    plain.prepare(scene, samples)
+    deep.prepare(scene, ElementPoints(samples, 3))
+    q = deep.quantised
+    assert q.bits == plain.quantised.bits + 3
+    V = q.vertices
+    points = q.shooters
+    side = np.einsum("nc,nkc->nk", q.normals, points - V[:, None, 0])
+    assert points.shape[1] == 85 * 9 and (side == 0).all()
+
+
+def test_model_and_golden_same_blocked_bits():
+    """A scene with partial occlusion: both boards give every link the same visible fraction,
+    so the same refinement and radiosity."""
+    both = _occluded_pair()
+    results = [render(both, backend=b, solver="hierarchical", epsilon=1e-4, tolerance=1e-8) for b in ("golden", "model")]
+    a, b = (r.solve.links for r in results)
+    assert 0 < (a.vis < 1).sum() and ((a.vis > 0) & (a.vis < 1)).any()
+    assert np.array_equal(a.recv, b.recv) and np.array_equal(a.vis, b.vis)
+    assert np.array_equal(results[0].radiosity, results[1].radiosity)
+
+
+@pytest.mark.parametrize("flat,parameter", [({"epsilon": 0}, "epsilon"), ({"min_area": -1.0}, "min_area"),
+                                            ({"epsilon": float("nan")}, "epsilon"),
+                                            ({"closure": "symmetric"}, "closure"),
+                                            ({"end_points": "kernel"}, "end_points")])
+def test_bad_options_named(flat, parameter):
+    from blockray.host_driver.options import RenderOptions
+    with pytest.raises(ParameterError) as e:
+        RenderOptions.of(solver="hierarchical", **flat)
+    assert e.value.parameter == parameter
+
+
+def test_min_area_too_deep_is_refused():
+    scene = two_squares(rectangle(np.array([0, 0, 1.0]), Y, X, 1, 1))
+    with pytest.raises(ParameterError) as e:
+        render(scene, backend="golden", solver="hierarchical", min_area=1e-9)
+    assert e.value.parameter == "min_area"
+
+
+@pytest.mark.cocotb
+def test_rtl_boards_same_blocked_bits():
+    """The simulated RTL (verilator) and the model behind a link give every link the same
+    visible fraction as the model: the same hierarchy and radiosity to the last bit (RTL array
+    2 x 2, P = 2, B = 10: one level of elements, samples 4)."""
+    from scenes import RTL_BITS, RTL_PARAMS
+    scene = _occluded_pair()
+    results = {b: render(scene, backend=b, params=RTL_PARAMS, bits=RTL_BITS, samples=4, voxels=3,
+                         solver="hierarchical", epsilon=1e-3, min_area=0.2, tolerance=1e-8)
+               for b in ("model", "model-link", "verilator")}
+    model = results["model"]
+    assert ((model.solve.links.vis > 0) & (model.solve.links.vis < 1)).any()
+    for name in ("model-link", "verilator"):
+        got = results[name]
+        assert np.array_equal(got.solve.links.vis, model.solve.links.vis), name
+        assert np.array_equal(got.radiosity, model.radiosity), name
+        assert got.report["rays"] == model.report["rays"] and got.report["tests"] == model.report["tests"], name
+
+
+def test_cli_writes_leaves_and_report(tmp_path, capsys):
+    """``blockray render --solver hierarchical`` on cornell's input triangles: one CSV row per leaf
+    with its input triangle and level, areas summing to the input triangles', a report with the
+    links, elements per level, rays and refinement rounds; an image."""
+    import csv
+    import json
+    from clirun import cli
+    from blockray.host_driver.builtin import load_scene
+    out = {k: tmp_path / f"o.{k}" for k in ("csv", "json", "png")}
+    code, err = cli(capsys, ["render", "cornell", "--max-edge", "1e9", "--solver", "hierarchical", "--epsilon", "1e-2",
+                             "--patches", out["csv"], "--report", out["json"], "--image", out["png"], "--size", 32])
+    assert code == 0, err
+    scene = load_scene("cornell", max_edge=1e9)
+    rows = list(csv.DictReader(out["csv"].open()))
+    report = json.loads(out["json"].read_text())
+    assert len(rows) == report["leaves"] > scene.patches
+    area = np.zeros(scene.patches)
+    for r in rows:
+        area[int(r["patch"])] += float(r["area"])
+        assert float(r["area"]) == pytest.approx(scene.areas[int(r["patch"])] / 4 ** int(r["level"]), rel=1e-9)
+    assert np.allclose(area, scene.areas, rtol=1e-9)
+    assert report["refinement_rounds"] >= 1 and report["rays"] > 0 and report["links"] > 0
+    assert sum(report["elements_per_level"]) == report["elements"] and report["elements_per_level"][0] == scene.patches
+    assert out["png"].stat().st_size > 0
+
+
+def test_cli_too_many_levels_for_the_bits(capsys):
+    from clirun import assert_one_line_error, cli
+    code, err = cli(capsys, ["render", "cornell", "--max-edge", "1e9", "--solver", "hierarchical", "--min-area", 500,
+                             "--quiet"])
+    assert_one_line_error(code, err, "--min-area", "20 coordinate bits")
+
+
+@pytest.mark.slow
+@pytest.mark.cocotb
+def test_cornell_verilator_same_as_model():
+    """Cornell's input triangles refined at epsilon 1e-2 (16 k rays, B = 20: 17 for the scene and 3
+    levels) on the simulated RTL (2 x 2 array, P = 2): the model's visible fractions, radiosity,
+    tests and board cycles exactly. About 60 s with the B = 20 harness's first build."""
+    from scenes import RTL_PARAMS
+    from blockray.host_driver.builtin import load_scene
+    scene = load_scene("cornell", max_edge=1e9)
+    model, rtl = (render(scene, backend=b, params=RTL_PARAMS, solver="hierarchical", epsilon=1e-2)
+                  for b in ("model", "verilator"))
+    assert rtl.report["bits"] == model.report["bits"] == 20
+    assert np.array_equal(rtl.solve.links.vis, model.solve.links.vis)
+    assert np.array_equal(rtl.radiosity, model.radiosity)
+    for key in ("rays", "tests", "board_cycles"):
+        assert rtl.report[key] == model.report[key], key
