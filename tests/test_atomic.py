@@ -148,7 +148,10 @@ def test_full_disk_is_one_line_exit_2_and_no_output_changes(tmp_path, disk):
 #: runs the CLI with a hook in the write path: after ``--option``'s file is written (not yet
 #: fsynced or renamed) it says so in READY and blocks opening the FIFO, where the signal finds it
 _HOOKED = textwrap.dedent("""
-    import os, sys
+    import os, signal, sys
+    # SIGINT as a terminal delivers it: a shell starts background jobs (a CI script's, say) with
+    # SIGINT ignored, and the child would inherit that
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     from blockray import atomic
     from blockray.cli import main
     option, ready, fifo = sys.argv[1:4]
