@@ -15,7 +15,8 @@ and a transport that injects faults.
   per byte, seeded (``--link-faults RATE --link-seed N``).
 
 A pipe has ``write(data)``, ``read(timeout) -> bytes`` (what arrived within ``timeout``
-seconds; empty: a time-out) and ``reset()``; optionally ``stats()`` and ``close()``.
+seconds; empty: a time-out) and ``reset()``; optionally ``stats()``, ``close()`` and ``clock()``
+(its seconds, if not the wall clock's: a simulation's, so its time-outs count simulated time).
 """
 
 import time
@@ -33,9 +34,12 @@ __all__ = ["FramedTransport", "ModelBoardLink", "FaultyPipe", "LinkFaults", "Fau
 @dataclass(frozen=True)
 class LinkFaults:
     """Faults to inject: each byte, in each direction, is with probability ``rate`` flipped (one
-    random bit), dropped or duplicated (one of the three, equally likely); ``seed`` seeds it."""
+    random bit), dropped or duplicated (one of the three, equally likely); ``seed`` seeds it.
+    ``record``: the injectors keep the bytes they were given and gave since the link's last reset
+    (tests derive from them what each side must have seen)."""
     rate: float
     seed: int = 0
+    record: bool = False
 
     def __post_init__(self):
         if not 0 <= self.rate < 1:
@@ -44,19 +48,32 @@ class LinkFaults:
 
     def injector(self, board, direction):
         """The injector of board ``board``'s ``direction`` (0: to the board, 1: from it)."""
-        return FaultInjector(self.rate, np.random.default_rng([self.seed, board, direction]))
+        return FaultInjector(self.rate, np.random.default_rng([self.seed, board, direction]), record=self.record)
 
 
 class FaultInjector:
-    """Corrupts byte strings at ``rate`` faults per byte (``counts``: flipped, dropped, duplicated)."""
+    """Corrupts byte strings at ``rate`` faults per byte (``counts``: flipped, dropped, duplicated).
+    With ``record``, ``given`` and ``gave`` hold the bytes in and out since :meth:`restart`."""
 
     KINDS = ("flipped", "dropped", "duplicated")
 
-    def __init__(self, rate, rng):
-        self.rate, self.rng = rate, rng
+    def __init__(self, rate, rng, *, record=False):
+        self.rate, self.rng, self.record = rate, rng, record
         self.counts = dict.fromkeys(self.KINDS, 0)
+        self.restart()
+
+    def restart(self):
+        """The link was reset: record afresh."""
+        self.given, self.gave = bytearray(), bytearray()
 
     def __call__(self, data):
+        out = self._corrupt(data)
+        if self.record:
+            self.given += data
+            self.gave += out
+        return out
+
+    def _corrupt(self, data):
         if not data or not self.rate:
             return data
         hits = np.flatnonzero(self.rng.random(len(data)) < self.rate)
@@ -89,6 +106,11 @@ class FaultyPipe:
 
     def reset(self):
         self.pipe.reset()
+        self.outgoing.restart()
+        self.incoming.restart()
+
+    def clock(self):
+        return _clock_of(self.pipe)()
 
     def close(self):
         if hasattr(self.pipe, "close"):
@@ -132,6 +154,11 @@ class ModelBoardLink:
 _MAX_BACKOFF = 16
 
 
+def _clock_of(pipe):
+    """The pipe's clock in seconds: its own (a simulation's time) or the wall clock."""
+    return getattr(pipe, "clock", time.monotonic)
+
+
 class FramedTransport(Transport):
     """The core's bytes over ``pipe`` in frames (see the module docstring). ``where`` names the
     link in errors; ``timeout``: seconds of silence before a resend (a board answers within a
@@ -150,6 +177,7 @@ class FramedTransport(Transport):
         self._resets = 0
         self._failed = False
         self._wait = 1          # the time-out in units of ``timeout``: doubled on a time-out, halved on progress
+        self._clock = _clock_of(pipe)
         self.wire_sent = self.wire_received = 0     # bytes on the wire, frames and resends included
 
     def send(self, data):
@@ -165,7 +193,7 @@ class FramedTransport(Transport):
     def recv(self, count, *, timeout=None):
         e = self.endpoint
         silence = self.timeout if timeout is None else timeout
-        mark, since = None, time.monotonic()
+        mark, since = None, self._clock()
         while len(self._results) < count:
             self._flush()
             data = self.pipe.read(self._wait * silence)
@@ -174,10 +202,10 @@ class FramedTransport(Transport):
                 self._results += e.receive(data)
             now = (e.base, e.expect)
             if now != mark:
-                mark, since = now, time.monotonic()
+                mark, since = now, self._clock()
                 self._wait = max(1, self._wait // 2)
                 continue
-            if time.monotonic() - since > self.max_retries * silence:
+            if self._clock() - since > self.max_retries * silence:
                 self._failed = True
                 raise TransportError(self._failure(count, silence))
             if not data:        # a time-out: resend, and wait longer next time (the window may be in transit)
@@ -211,16 +239,16 @@ class FramedTransport(Transport):
         frame, asked again each ``timeout`` without an answer; None if none came in ``seconds``."""
         e = self.endpoint
         e.request_status()
-        deadline = time.monotonic() + seconds
+        deadline = self._clock() + seconds
         while True:
             self._flush()
-            data = self.pipe.read(max(0.0, min(self.timeout, deadline - time.monotonic())))
+            data = self.pipe.read(max(0.0, min(self.timeout, deadline - self._clock())))
             self.wire_received += len(data)
             if data:
                 self._results += e.receive(data)
             if e.peer_status is not None:
                 return e.peer_status
-            if time.monotonic() >= deadline:
+            if self._clock() >= deadline:
                 return None
             if not data:                    # the request or its answer was lost: ask again
                 e.request_status()
@@ -233,9 +261,10 @@ class FramedTransport(Transport):
         """The pipe's, the host's frame counts, the board's (read over the link; absent once the
         link has failed) and the wire bytes."""
         e = self.endpoint
+        # the board's counters first: then the host's and the pipe's include the status exchange too
+        board = None if self._failed else self.board_status(self.max_retries * self.timeout)
         pipe = self.pipe.stats() if hasattr(self.pipe, "stats") else {}
         out = {**pipe, "host": {"frames_resent": e.counts["frames_resent"], "errors": e.faults(), **e.counts}}
-        board = None if self._failed else self.board_status(max(1.0, self.max_retries * self.timeout))
         if board is not None:
             out["board"] = board
         return {**out, "resets": self._resets, "wire_bytes_sent": self.wire_sent,

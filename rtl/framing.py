@@ -56,7 +56,8 @@ class FrameReceiver(wiring.Component):
     accepted, the host resends it: so a payload never waits and the frames behind it, the
     host's acknowledgements among them, are never held up), ``status`` (Out, :data:`LinkStatus`:
     ``expect``, the next sequence number accepted, and the strobes), ``accept``
-    (a frame accepted), ``error`` (a bad frame or a gap); ``frames`` / ``errors``: counts."""
+    (a frame accepted), ``error`` (a bad frame, or a gap not caused by a frame refused for
+    space: :meth:`Endpoint.faults`); ``frames`` / ``errors``: counts."""
 
     wire: In(stream.Signature(8))
     payload: Out(stream.Signature(8))
@@ -101,6 +102,7 @@ class FrameReceiver(wiring.Component):
         header = [Signal(8, name=f"header{k}") for k in range(HEADER_BYTES)]
         flags, seq, ack, length = header              # flags bit 0: RESEND
         nak_sent = Signal()
+        refused = Signal()                              # a frame was refused for space: its gap is no fault
         addr, left = Signal(range(body_max + 1)), Signal(8)
 
         put, put_data = Signal(), Signal(8)
@@ -145,8 +147,8 @@ class FrameReceiver(wiring.Component):
                         m.d.comb += [put.eq(1), put_data.eq(byte)]
                         m.d.sync += code_left.eq(code_left - 1)
             with m.State("Check"):
-                self._check(m, raw <= raw_max, count, code_left, check, flags, seq, length, nak_sent, addr, left,
-                            raise_nak)
+                self._check(m, raw <= raw_max, count, code_left, check, flags, seq, length, nak_sent, refused,
+                            addr, left, raise_nak)
                 restart()
             with m.State("Emit"):
                 m.d.comb += self.payload.valid.eq(1)
@@ -156,7 +158,7 @@ class FrameReceiver(wiring.Component):
                         m.next = "Collect"
         return m
 
-    def _check(self, m, fits, count, code_left, check, flags, seq, length, nak_sent, addr, left, raise_nak):
+    def _check(self, m, fits, count, code_left, check, flags, seq, length, nak_sent, refused, addr, left, raise_nak):
         """The frame is complete: accept it, acknowledge a duplicate, or ask for a resend."""
         good = Signal()
         m.d.comb += good.eq(fits & (code_left == 0) & (count >= HEADER_BYTES + CRC_BYTES)
@@ -174,14 +176,15 @@ class FrameReceiver(wiring.Component):
             with m.Elif(length == 0):
                 pass                                            # a pure acknowledgement
             with m.Elif((gap == 0) & (length > self.space)):
-                pass            # no room behind: not accepted, so never blocking the acknowledgements behind it
+                # no room behind: not accepted, so never blocking the acknowledgements behind it
+                m.d.sync += refused.eq(1)
             with m.Elif(gap == 0):
                 m.d.comb += [self.accept.eq(1), self.status.ack_due.eq(1)]
-                m.d.sync += [self.status.expect.eq(self.status.expect + 1), nak_sent.eq(0), addr.eq(HEADER_BYTES),
-                             left.eq(length)]
+                m.d.sync += [self.status.expect.eq(self.status.expect + 1), nak_sent.eq(0), refused.eq(0),
+                             addr.eq(HEADER_BYTES), left.eq(length)]
                 m.next = "Emit"
-            with m.Elif(gap < 128):                             # frames were lost
-                with m.If(~nak_sent):
+            with m.Elif(gap < 128):                             # frames were lost (or refused: no error)
+                with m.If(~nak_sent & ~refused):
                     m.d.comb += self.error.eq(1)
                 raise_nak()
             with m.Else():                                      # one accepted before

@@ -55,7 +55,7 @@ def _model(wire):
             f = None
         if f is not None:
             peers.append((f.ack, f.flags & 1))
-    return payload, board.counts["naks_sent"], board.expect, peers, board.counts["frames_accepted"]
+    return payload, board.counts["naks_sent"], board.expect, peers, board.counts["frames_accepted"], board.faults()
 
 
 def _rtl(wire, seed):
@@ -84,6 +84,7 @@ def _rtl(wire, seed):
             await ctx.tick()
         got["expect"] = ctx.get(dut.status.expect)
         got["frames"] = ctx.get(dut.frames)
+        got["errors"] = ctx.get(dut.errors)
 
     sim.add_testbench(bench)
     sim.run()
@@ -94,12 +95,56 @@ def _rtl(wire, seed):
 def test_frame_receiver_equals_the_model(rate, rng_seed):
     seed = rng_seed
     wire = _stream(seed, rate)
-    payload, naks, expect, peers, accepted = _model(wire)
+    payload, naks, expect, peers, accepted, errors = _model(wire)
     got = _rtl(wire, seed)
     assert len(payload) > 0 or naks > 0          # (a lost first frame leaves only gaps)
     assert bytes(got["payload"]) == payload
-    assert (got["naks"], got["expect"], got["frames"]) == (naks, expect, accepted)
+    assert (got["naks"], got["expect"], got["frames"], got["errors"]) == (naks, expect, accepted, errors)
     assert got["peers"] == peers
+
+
+def _frames_through_receiver(frames, space):
+    """(naks, errors, frames accepted) of a FrameReceiver given ``frames`` (Frame) with the
+    consumer's room ``space(k)`` while frame ``k`` is checked."""
+    dut = FrameReceiver()
+    sim = Simulator(dut)
+    sim.add_clock(1e-8)
+    got = {"naks": 0}
+
+    async def bench(ctx):
+        ctx.set(dut.payload.ready, 1)
+        for k, frame in enumerate(frames):
+            ctx.set(dut.space, space(k))
+            for byte in encode_frame(frame):
+                ctx.set(dut.wire.valid, 1)
+                ctx.set(dut.wire.payload, byte)
+                await ctx.delay(1e-9)
+                while not ctx.get(dut.wire.ready):
+                    await ctx.tick()
+                    await ctx.delay(1e-9)
+                got["naks"] += ctx.get(dut.status.nak)
+                await ctx.tick()
+            ctx.set(dut.wire.valid, 0)
+            for _ in range(300):            # the check and the payload out
+                await ctx.delay(1e-9)
+                got["naks"] += ctx.get(dut.status.nak)
+                await ctx.tick()
+        got["errors"], got["frames"] = ctx.get(dut.errors), ctx.get(dut.frames)
+
+    sim.add_testbench(bench)
+    sim.run()
+    return got["naks"], got["errors"], got["frames"]
+
+
+@pytest.mark.parametrize("refused,errors", [(True, 0), (False, 1)])
+def test_a_frame_refused_for_space_is_no_error(refused, errors):
+    """Frame 0 refused for want of room (or, for contrast, lost on the wire): frame 1 after it is
+    a gap and asks for a resend either way, but only a lost frame counts as an error (the
+    report's ``board_errors`` count link faults); frames 0 and 1 resent are accepted."""
+    f = [Frame(0, seq, 0, bytes([seq + 1]) * 20) for seq in (0, 1)]
+    sent = [f[0], f[1], f[0], f[1]] if refused else [f[1], f[0], f[1]]
+    naks, got_errors, accepted = _frames_through_receiver(sent, lambda k: 0 if refused and k == 0 else 255)
+    assert (naks, got_errors, accepted) == (1, errors, 2)
 
 
 class _Loopback(wiring.Component):
