@@ -1,7 +1,9 @@
 """``--board ulx3s-sim``: the ULX3S top level (UART, framed link, the board core) under
 Verilator, driven by the host driver through the same link code as the real board, renders
 bit-identically to ``--board model`` (radiosities and every counter), with ``--link-faults``
-too (byte-identical CSVs), and a hopeless fault rate ends with one error line, exit 2.
+too (byte-identical CSVs, each side's errors and resends what the injected faults imply), and a
+hopeless fault rate ends with one error line, exit 2. The simulation runs in lockstep with the
+host (its time-outs count clock cycles), so every run here is the same under any load.
 
 """
 
@@ -9,7 +11,9 @@ import numpy as np
 import pytest
 
 import clirun
+import link_oracle
 from blockray.host_driver.driver import BoardDriver
+from blockray.host_driver.framed import LinkFaults
 from blockray.host_driver.render import render
 from blockray.host_driver.ulx3s import ulx3s_sim_transport
 from blockray.params import BoardParams
@@ -20,9 +24,9 @@ COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "tests", "blocks", "
             "board_cycles_per_board", "load_cycles_per_board")
 
 
-def _compare(scene, params, bits, **kw):
+def _compare(scene, params, bits, transport=ulx3s_sim_transport, **kw):
     model = render(scene, backend="model", params=params, bits=bits, **kw)
-    board = BoardDriver(params.with_(bits=bits), name="ulx3s-sim", transport=ulx3s_sim_transport)
+    board = BoardDriver(params.with_(bits=bits), name="ulx3s-sim", transport=transport)
     sim = render(scene, board=board, params=params, bits=bits, **kw)
     assert np.array_equal(model.radiosity, sim.radiosity)
     for key in COUNTERS:
@@ -59,15 +63,64 @@ def _faulty_render(room, tmp_path, rate, seed):
     return clirun.faulty_render(room, tmp_path, RENDER, rate, seed)
 
 
+def _faulty_links(rate, seed):
+    """A transport factory injecting faults with records, and the links it opened (each keeps
+    ``final``: its stats at close, after the last traffic, as its injectors' records end)."""
+    links = []
+
+    def transport(params, board):
+        link = ulx3s_sim_transport(params, board, faults=LinkFaults(rate, seed, record=True))
+        close = link.close
+
+        def final_close():
+            link.final = link.stats()
+            close()
+        link.close = final_close
+        links.append(link)
+        return link
+    return transport, links
+
+
+def _check_faults(links):
+    """Per direction: the receiver's errors are the corrupted frames, the sender resent every
+    first send that was hit (tests/link_oracle.py); the totals over the links."""
+    totals = [0, 0, 0, 0]
+    for link in links:
+        board, host = link.final["board"], link.final["host"]
+        totals[0:2] = map(sum, zip(totals[0:2], link_oracle.check_direction(
+            link.pipe.outgoing, errors=board["errors"], resent=host["frames_resent"], where="to the board")))
+        totals[2:4] = map(sum, zip(totals[2:4], link_oracle.check_direction(
+            link.pipe.incoming, errors=host["errors"], resent=board["frames_resent"], where="from the board")))
+    return totals
+
+
+def test_small_scene_with_faults_both_ways(tmp_path):
+    """A few hundred frames at 3e-3 faults per byte: the render equals the model's, and what
+    each side counted is what the faults injected imply; the seed hits first sends both ways."""
+    from scenes import room_scene
+    seed = 5
+    print("seed", seed)
+    transport, links = _faulty_links(3e-3, seed)
+    _compare(room_scene(tmp_path, 2.0), BoardParams(rows=2, cols=2, boards=1), 10, transport=transport, samples=2,
+             max_shots=1, voxels=2)
+    for link in links:
+        print("simulated cycles", link.pipe.pipe.cycles, "time-outs", link.final["host"]["timeouts"])
+    to_bad, to_hit, from_bad, from_hit = _check_faults(links)
+    assert to_bad and to_hit and from_bad and from_hit
+
+
 @pytest.mark.slow
-def test_render_at_1e_3_faults_is_byte_identical(room, tmp_path):
-    """Faults both ways, corrected by resending; the board's own counters (read over the link)
-    show the errors it saw and the frames it resent. Slow: the simulated UART carries a few
-    hundred bytes per second, and every fault that needs a time-out costs 10 s of it."""
-    integrity = _faulty_render(room, tmp_path, 1e-3, 3)
-    assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
-    assert integrity["board_errors"] > 0 and integrity["board_frames_resent"] > 0
-    assert integrity["frames_resent"] >= integrity["board_frames_resent"]
+def test_room_at_1e_3_faults_both_ways(tmp_path):
+    """The room of the CLI tests at 1e-3 faults per byte, through the Python API so the oracle
+    sees the injectors' records."""
+    from scenes import room_scene
+    seed = 3
+    print("seed", seed)
+    transport, links = _faulty_links(1e-3, seed)
+    _compare(room_scene(tmp_path, 1.5), BoardParams(rows=2, cols=2, boards=1), 10, transport=transport,
+             samples=4, max_shots=1, voxels=3)
+    to_bad, to_hit, from_bad, from_hit = _check_faults(links)
+    assert to_bad and from_bad
 
 
 @pytest.mark.slow
@@ -78,5 +131,5 @@ def test_render_at_low_fault_rates_is_byte_identical(room, tmp_path, rate, seed)
 
 @pytest.mark.slow
 def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
-    """About 3 minutes: 12 time-outs of 10 s without progress before the link is given up."""
+    """12 time-outs of 2 simulated ms without progress before the link is given up."""
     clirun.hopeless_render(capsys, room, tmp_path, RENDER, "the simulated board 0")
