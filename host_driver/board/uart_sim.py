@@ -1,0 +1,159 @@
+"""The simulated real board (``--board ulx3s-sim``): the board's top level at its UART pins under
+Verilator, reached through the same framed link as the real board.
+
+:class:`UartSimTransport` is a :class:`~blockray.host_driver.board.framed.FramedTransport` whose raw
+byte pipe (:class:`UartSimPipe`) is a localhost socket to a cocotb test (sim/uart_cocotb.py)
+that drives the simulated ``rx`` pin and decodes ``tx``: a virtual serial port, whose reset is a
+break on ``rx``. ``faults`` injects faults on it (``--link-faults``). The simulation is
+:class:`blockray.rtl.link.SerialLink` around the core, as on the ULX3S (:mod:`blockray.rtl.ulx3s`
+adds only the PLL, the reset synchroniser and the pins), with a short bit time (``divisor``,
+4 clock cycles by default, where the board runs 15 at 3 Mbaud). Built once per design with
+:func:`blockray.sim.cocotb_support.build_verilator` (cached).
+
+    link = UartSimTransport(EchoCore())      # or the board core
+    link.send(b"...")
+    link.recv(3)
+"""
+
+import math
+import socket
+import tempfile
+import weakref
+from pathlib import Path
+
+from .framed import FaultyPipe, FramedTransport
+from .transport import TransportError
+
+__all__ = ["UartSimPipe", "UartSimTransport", "SIM_DIVISOR"]
+
+#: clock cycles per bit in simulation (the UART's minimum)
+SIM_DIVISOR = 4
+_MODULE_DIR = Path(__file__).resolve().parents[2] / "sim"
+
+
+class UartSimPipe:
+    """``core`` (a component with ``i_bytes``/``o_bytes``) behind :class:`~blockray.rtl.link.SerialLink`
+    under Verilator, as a byte pipe in lockstep with the host: the simulation runs only within
+    :meth:`read`, for at most its ``timeout`` in simulated seconds (``clock()``: the simulated
+    seconds run so far), so every time-out counts clock cycles and a run does not depend on the
+    machine's load. ``divisor``, ``fifo_depth``: the link's; ``name``: the Verilog top module
+    (and cache entry); ``answer_seconds``: wall-clock seconds the simulator may take to answer
+    one run before it is taken for dead. ``reset()``: a break on ``rx`` of ``BREAK_BITS`` bit
+    times, then what came before is dropped."""
+
+    #: simulated seconds per clock cycle (sim/uart_cocotb.py's clock)
+    CYCLE_SECONDS = 10e-9
+    #: the break's length and the quiet time after it, in bit times (a break is 10 low bits or more)
+    BREAK_BITS, AFTER_BREAK_BITS = 20, 40
+
+    def __init__(self, core, *, divisor=SIM_DIVISOR, fifo_depth=2048, name="blockray_uart_sim", startup_timeout=600,
+                 answer_seconds=600):
+        from ...rtl.link import SerialLink
+        from ...sim.cocotb_support import build_verilator, start_cocotb, stop_cocotb
+
+        self.divisor, self.answer_seconds = divisor, answer_seconds
+        self.cycles = 0
+        self.build = build_verilator(SerialLink(core, divisor=divisor, fifo_depth=fifo_depth), name=name)
+        self.workdir = Path(tempfile.mkdtemp(prefix="blockray_uart_"))
+        self.log_path = self.workdir / "simulator.log"
+        self._log = open(self.log_path, "w")
+        try:
+            self._proc, self._sock = start_cocotb(
+                self.build, "uart_cocotb", module_dir=_MODULE_DIR, workdir=self.workdir, log=self._log,
+                port_env="BLOCKRAY_UART_PORT", env={"BLOCKRAY_UART_DIVISOR": str(divisor)},
+                startup_timeout=startup_timeout, error=TransportError)
+        except BaseException:
+            self._log.close()
+            raise
+        self._finalizer = weakref.finalize(self, stop_cocotb, self._proc, self._sock)
+        self._pending = bytearray()
+
+    def _message(self, kind, payload=b""):
+        try:
+            self._sock.sendall(kind + len(payload).to_bytes(2, "little") + payload)
+        except OSError as e:
+            raise TransportError(f"the UART simulation ended ({e}); see {self.log_path}") from None
+
+    def _take(self, n):
+        while len(self._pending) < n:
+            try:
+                data = self._sock.recv(65536)
+            except socket.timeout:
+                raise TransportError(f"the UART simulation did not answer in {self.answer_seconds:g} s; "
+                                     f"see {self.log_path}") from None
+            except OSError as e:
+                raise TransportError(f"the UART simulation ended ({e}); see {self.log_path}") from None
+            if not data:
+                raise TransportError(f"the UART simulation ended; see {self.log_path}")
+            self._pending += data
+        out = bytes(self._pending[:n])
+        del self._pending[:n]
+        return out
+
+    def clock(self):
+        """Simulated seconds run so far (the framed link's clock)."""
+        return self.cycles * self.CYCLE_SECONDS
+
+    def write(self, data):
+        for i in range(0, len(data), 0xFFFF):
+            self._message(b"D", data[i:i + 0xFFFF])
+
+    def run(self, cycles):
+        """Run the simulation for at most ``cycles`` clock cycles, less if a frame delimiter came
+        first; the bytes received meanwhile."""
+        self._message(b"R", max(1, int(cycles)).to_bytes(4, "little"))
+        self._sock.settimeout(self.answer_seconds)
+        header = self._take(9)
+        if header[:1] != b"T":
+            raise TransportError(f"the UART simulation answered {header[:1]!r}, not a run; see {self.log_path}")
+        self.cycles += int.from_bytes(header[1:5], "little")
+        return self._take(int.from_bytes(header[5:9], "little"))
+
+    def read(self, timeout):
+        return self.run(math.ceil(timeout / self.CYCLE_SECONDS))
+
+    def reset(self):
+        self._message(b"B")
+        self._quiet(self.BREAK_BITS)
+        self._message(b"b")
+        self._quiet(self.AFTER_BREAK_BITS)
+
+    def _quiet(self, bits):
+        """Run ``bits`` bit times whatever arrives, and drop it."""
+        end = self.cycles + bits * self.divisor
+        while self.cycles < end:
+            self.run(end - self.cycles)
+
+    def close(self):
+        if getattr(self, "_sock", None) is None:
+            return
+        try:
+            self._message(b"Q")
+        except TransportError:
+            pass
+        self._finalizer()
+        self._sock = None
+        self._log.close()
+
+
+class UartSimTransport(FramedTransport):
+    """The framed link to ``core`` over :class:`UartSimPipe` (``divisor``, ``fifo_depth``,
+    ``name``: its), reset once opened. ``faults``: a
+    :class:`~blockray.host_driver.board.framed.LinkFaults` to inject (``board``: which board's seeds).
+    The time-outs are in simulated seconds (``timeout``: silence before a resend, 2 ms: about 20
+    of the host's frames at the simulated bit time), so which faults need one, and how many
+    there are, depends only on the faults injected."""
+
+    def __init__(self, core, *, divisor=SIM_DIVISOR, fifo_depth=2048, name="blockray_uart_sim", faults=None, board=0,
+                 startup_timeout=600, timeout=2e-3, max_retries=12, answer_timeout=24e-3):
+        pipe = UartSimPipe(core, divisor=divisor, fifo_depth=fifo_depth, name=name, startup_timeout=startup_timeout)
+        self.log_path = pipe.log_path
+        if faults is not None:
+            pipe = FaultyPipe(pipe, faults.injector(board, 0), faults.injector(board, 1))
+        super().__init__(pipe, where=f"the simulated board {board}", timeout=timeout, max_retries=max_retries,
+                         answer_timeout=answer_timeout)
+        try:
+            self.reset()
+        except BaseException:
+            self.close()
+            raise
