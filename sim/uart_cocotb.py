@@ -13,8 +13,9 @@ Host to simulator messages: a type byte and a 2-byte little-endian length, then 
 ``D`` bytes to send (queued; they go out during runs), ``R`` run for at most the 4-byte
 little-endian number of cycles, ``B`` break on (rx held low, the queue dropped), ``b`` break
 off, ``Q`` quit. The simulator answers each ``R`` once the cycles have passed or, earlier, on
-the clock cycle a frame delimiter (a zero byte) was decoded on ``tx``: ``T``, the cycles run
-(4 bytes) and the number of received bytes (4 bytes, both little-endian), then those bytes.
+the clock cycle a frame delimiter (a zero byte) was decoded on ``tx``: ``T``, the cycles run,
+the bytes still queued for ``rx`` and the number of received bytes (4 bytes each,
+little-endian), then those bytes.
 """
 
 import os
@@ -96,7 +97,8 @@ async def _run(dut, port, sock, cycles):
         await First(ClockCycles(dut.clk, cycles), port.delimiter.wait())
     port.delimiter.clear()
     out, port.received = bytes(port.received), bytearray()
-    sock.sendall(b"T" + (_cycles() - start).to_bytes(4, "little") + len(out).to_bytes(4, "little") + out)
+    sock.sendall(b"T" + (_cycles() - start).to_bytes(4, "little") + len(port.queue).to_bytes(4, "little")
+                 + len(out).to_bytes(4, "little") + out)
 
 
 @cocotb.test()

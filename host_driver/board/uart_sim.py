@@ -34,9 +34,9 @@ _MODULE_DIR = Path(__file__).resolve().parents[2] / "sim"
 class UartSimPipe:
     """``core`` (a component with ``i_bytes``/``o_bytes``) behind :class:`~blockray.rtl.link.SerialLink`
     under Verilator, as a byte pipe in lockstep with the host: the simulation runs only within
-    :meth:`read`, for at most its ``timeout`` in simulated seconds (``clock()``: the simulated
-    seconds run so far), so every time-out counts clock cycles and a run does not depend on the
-    machine's load. ``divisor``, ``fifo_depth``: the link's; ``name``: the Verilog top module
+    :meth:`read`, for at most its ``timeout`` in simulated seconds after the bytes written have
+    left on ``rx`` (``clock()``: the simulated seconds run so far), so every time-out counts clock
+    cycles of silence and a run does not depend on the machine's load. ``divisor``, ``fifo_depth``: the link's; ``name``: the Verilog top module
     (and cache entry); ``answer_seconds``: wall-clock seconds the simulator may take to answer
     one run before it is taken for dead. ``reset()``: a break on ``rx`` of ``BREAK_BITS`` bit
     times, then what came before is dropped."""
@@ -53,6 +53,7 @@ class UartSimPipe:
 
         self.divisor, self.answer_seconds = divisor, answer_seconds
         self.cycles = 0
+        self.queued = 0             # bytes written and not yet sent on rx
         self.build = build_verilator(SerialLink(core, divisor=divisor, fifo_depth=fifo_depth), name=name)
         self.workdir = Path(tempfile.mkdtemp(prefix="blockray_uart_"))
         self.log_path = self.workdir / "simulator.log"
@@ -97,20 +98,23 @@ class UartSimPipe:
     def write(self, data):
         for i in range(0, len(data), 0xFFFF):
             self._message(b"D", data[i:i + 0xFFFF])
+        self.queued += len(data)
 
     def run(self, cycles):
         """Run the simulation for at most ``cycles`` clock cycles, less if a frame delimiter came
         first; the bytes received meanwhile."""
         self._message(b"R", max(1, int(cycles)).to_bytes(4, "little"))
         self._sock.settimeout(self.answer_seconds)
-        header = self._take(9)
+        header = self._take(13)
         if header[:1] != b"T":
             raise TransportError(f"the UART simulation answered {header[:1]!r}, not a run; see {self.log_path}")
         self.cycles += int.from_bytes(header[1:5], "little")
-        return self._take(int.from_bytes(header[5:9], "little"))
+        self.queued = int.from_bytes(header[5:9], "little")
+        return self._take(int.from_bytes(header[9:13], "little"))
 
     def read(self, timeout):
-        return self.run(math.ceil(timeout / self.CYCLE_SECONDS))
+        # the silence counts from when what was written has left (10 bits a byte)
+        return self.run(math.ceil(timeout / self.CYCLE_SECONDS) + 10 * self.divisor * self.queued)
 
     def reset(self):
         self._message(b"B")
@@ -140,12 +144,12 @@ class UartSimTransport(FramedTransport):
     """The framed link to ``core`` over :class:`UartSimPipe` (``divisor``, ``fifo_depth``,
     ``name``: its), reset once opened. ``faults``: a
     :class:`~blockray.host_driver.board.framed.LinkFaults` to inject (``board``: which board's seeds).
-    The time-outs are in simulated seconds (``timeout``: silence before a resend, 2 ms: about 20
-    of the host's frames at the simulated bit time), so which faults need one, and how many
-    there are, depends only on the faults injected."""
+    The time-outs are in simulated seconds (``timeout``: silence before a resend, 0.5 ms: 5 of the
+    host's frames at the simulated bit time), so which faults need one, and how many there are,
+    depends only on the faults injected."""
 
     def __init__(self, core, *, divisor=SIM_DIVISOR, fifo_depth=2048, name="blockray_uart_sim", faults=None, board=0,
-                 startup_timeout=600, timeout=2e-3, max_retries=12, answer_timeout=24e-3):
+                 startup_timeout=600, timeout=5e-4, max_retries=12, answer_timeout=6e-3):
         pipe = UartSimPipe(core, divisor=divisor, fifo_depth=fifo_depth, name=name, startup_timeout=startup_timeout)
         self.log_path = pipe.log_path
         if faults is not None:
