@@ -48,7 +48,7 @@ import numpy as np
 
 import _shared  # noqa: F401  (tests/ on the path: the tests' scenes and oracles)
 from _run_header import print_run_header
-from blockray.host_driver.radiosity import formfactor as ff
+from blockray.host_driver.radiosity import closed_form, cubature, formfactor as ff, point_factor, ray_weights
 from blockray.host_driver.radiosity.closure import absorbed_balance
 from blockray.host_driver.render.render import render
 
@@ -70,10 +70,10 @@ def forced(Ti, Tj):
     poly = np.empty((4, 3))
     c = Tj.mean(axis=0)
     out = {"closed form": ff.pair_factors(Ti[None], Tj[None], target=0.0)[0],
-           "centroid": Aj * ff._lambert(c[0], c[1], c[2], nj[0], nj[1], nj[2], Ti, poly),
-           "7-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE7, ff._RULE7_W, poly),
-           "25-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE25, ff._RULE25_W, poly),
-           "64-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE64, ff._RULE64_W, poly)}
+           "centroid": Aj * point_factor._lambert(c[0], c[1], c[2], nj[0], nj[1], nj[2], Ti, poly),
+           "7-point": Aj * cubature._cubature(Ti, Tj, nj[0], nj[1], nj[2], cubature._RULE7, cubature._RULE7_W, poly),
+           "25-point": Aj * cubature._cubature(Ti, Tj, nj[0], nj[1], nj[2], cubature._RULE25, cubature._RULE25_W, poly),
+           "64-point": Aj * cubature._cubature(Ti, Tj, nj[0], nj[1], nj[2], cubature._RULE64, cubature._RULE64_W, poly)}
     stats = np.zeros(len(ff.METHODS), dtype=np.int64)
     out["default"] = ff.pair_factors(Ti[None], Tj[None], stats=stats)[0]
     return out, ff.METHODS[int(np.argmax(stats))]
@@ -234,10 +234,10 @@ def end_points(args):
     for i in range(0, 192, 6):
         f = ff.unoccluded_factors(scene, i)
         rec = np.flatnonzero(f > 0)
-        front_i = ff.samples_in_front(scene, samples, i, rec).astype(float)     # (R, K)
+        front_i = ray_weights.samples_in_front(scene, samples, i, rec).astype(float)     # (R, K)
         vis = {1: np.zeros(len(rec)), K: np.zeros(len(rec))}
         for r, j in enumerate(rec):
-            front_j = ff.samples_in_front(scene, samples, j, [i])[0].astype(float)
+            front_j = ray_weights.samples_in_front(scene, samples, j, [i])[0].astype(float)
             for M, Q_w, mask in ((1, np.ones((1, 3), dtype=np.int64), np.ones(1)), (K, W, front_j)):
                 clear = ~blocked_rays(np.repeat(V[i][None], K, axis=0), W, np.repeat(V[j][None], M, axis=0), Q_w, V)
                 w = mask[:, None] * front_i[r][None, :]
@@ -373,8 +373,8 @@ def estimators(args):
         J = np.flatnonzero(F[:, i] > 0)
         if not len(J):
             continue
-        w = ff.pair_sample_weights(scene, samples, np.full(len(J), i), J)                      # (J, K)
-        front = ff.centroid_in_front(scene, i, J)
+        w = ray_weights.pair_sample_weights(scene, samples, np.full(len(J), i), J)                      # (J, K)
+        front = ray_weights.centroid_in_front(scene, i, J)
         for e in args.which:
             bits = np.zeros((len(J), K))
             weights = w
@@ -386,7 +386,7 @@ def estimators(args):
                 for m in np.flatnonzero(~front):                                             # reverse rays
                     j = J[m]
                     bits[m] = clear(j, W, i, [[1, 1, 1]])[0]
-                    weights[m] = ff.pair_sample_weights(scene, samples, [j], [i])[0]
+                    weights[m] = ray_weights.pair_sample_weights(scene, samples, [j], [i])[0]
             elif e.startswith("pair-centroid"):
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
                 # (a pair whose kernel vanishes at every cubature point keeps j's centroid)
@@ -428,7 +428,7 @@ def estimators(args):
                 Y = X[J]
                 g = _kernel(X[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None])       # (J, K, K)
                 if e == "KxK-area":         # j's points in front of i's plane, equally
-                    ahead = np.array([ff.samples_in_front(scene, samples, j, [i])[0] for j in J], dtype=float)
+                    ahead = np.array([ray_weights.samples_in_front(scene, samples, j, [i])[0] for j in J], dtype=float)
                     g = w[:, :, None] * ahead[:, None, :]
                 elif e == "KxK-sum":        # j's points by the kernel summed over i
                     u = _kernel(SPi[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None]).sum(axis=1)
@@ -471,10 +471,10 @@ def row_sums(args):
         for i in range(0, 192, 6):                          # every 6th triangle of the box
             f = ff.unoccluded_factors(scene, i)
             rec = np.flatnonzero(f > 0)
-            direct = ff.centroid_in_front(scene, i, rec)
+            direct = ray_weights.centroid_in_front(scene, i, rec)
             v = np.empty(len(rec))
-            weigh = ff.sample_weights if args.kernel else (
-                lambda sc, sa, a, b: ff.samples_in_front(sc, sa, a, b).astype(float))
+            weigh = ray_weights.sample_weights if args.kernel else (
+                lambda sc, sa, a, b: ray_weights.samples_in_front(sc, sa, a, b).astype(float))
             v[direct] = vis.clear_fraction(i, rec[direct], weigh(scene, samples, i, rec[direct]))
             for m in np.flatnonzero(~direct):
                 j = rec[m]
@@ -601,7 +601,7 @@ def trigger(args):
             continue
         P4, Q4 = np.zeros((4, 3)), np.zeros((4, 3))
         P4[:len(P)], Q4[:len(Q)] = P, Q
-        value, size, _, _ = ff._contour(P4, len(P), Q4, len(Q), ff.EDGE_TARGET)
+        value, size, _, _ = closed_form._contour(P4, len(P), Q4, len(Q), closed_form.EDGE_TARGET)
         if value == 0.0:
             continue
         estimate = 2.0 ** -53 * size / value

@@ -6,7 +6,7 @@ into visible form factors and solves for radiosity.
 
 Visibility of a (shooter i, receiver j) pair is the fraction of the rays from i's sample points to
 j's centroid that the board reports clear, each ray weighted by the light its sample sends to j
-(:func:`~blockray.host_driver.radiosity.formfactor.sample_weights`: 0 from samples behind j's plane); for a
+(:func:`~blockray.host_driver.radiosity.ray_weights.sample_weights`: 0 from samples behind j's plane); for a
 receiver whose centroid lies behind i's plane, the reverse rays (from j's samples to i's centroid);
 the form factor is the exact patch-to-patch factor ``F_ji``
 (:func:`~blockray.host_driver.radiosity.formfactor.unoccluded_factors`) times that fraction. Rays are cast
