@@ -144,7 +144,8 @@ def boards(args):
     shooter compiles its kernels and is not timed."""
     from blockray.host_driver.scene.builtin import load_scene
     from blockray.host_driver.render.render import make_board, Visibility
-    from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    from blockray.host_driver.traverse.cost import default_voxels
     from blockray.params import BoardParams
     from blockray.samples import SampleScheme
     from blockray import threads
@@ -454,7 +455,8 @@ def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
     from blockray.host_driver.render.render import make_board, Visibility
-    from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    from blockray.host_driver.traverse.cost import default_voxels
     from blockray.params import BoardParams
     from blockray.samples import SampleScheme
     scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))

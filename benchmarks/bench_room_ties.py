@@ -49,7 +49,8 @@ from blockray.host_driver.scene.builtin import load_scene
 from blockray.host_driver.render.output import write_patches_csv
 from blockray.host_driver.render.render import render
 from blockray.host_driver.traverse.visibility import Visibility, _clear_bits
-from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import default_voxels
 
 SAMPLES = SampleScheme(8)
 

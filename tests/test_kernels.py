@@ -10,7 +10,8 @@ from blockray.host_driver.cli import main
 from blockray.exact import blocked_reference, patch_normals
 from blockray import threads
 from blockray.host_driver.render.render import render
-from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import TraversalStats
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim import kernel

@@ -9,7 +9,8 @@ from blockray.host_driver.radiosity import formfactor, ray_weights
 from blockray.host_driver.board.backends import make_board
 from blockray.host_driver.scene.builtin import load_scene
 from blockray.host_driver.traverse.visibility import Phases, Visibility, visible_fraction
-from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import TraversalStats
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 

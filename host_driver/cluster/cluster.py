@@ -176,7 +176,7 @@ def cast_set(k, scene, grid, owner, job):
     """On a worker: set k builds its board, loads the grid and casts the rays ending on its own
     patches, shooter by shooter. Returns its :class:`SetRows`."""
     from distributed import get_worker
-    from ..traverse.voxel import TraversalStats
+    from ..traverse.cost import TraversalStats
     t0, cpu0 = time.perf_counter(), time.process_time()
     if job.threads is not None:
         set_threads(min(job.threads, available()))

@@ -27,7 +27,8 @@ from ..radiosity import closure as closures, formfactor, solver as solvers
 from ..cluster.scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from ..traverse.endpoints import EndPoints
 from ..traverse.visibility import TRAVERSALS, Phases, Visibility, _morton, visible_fraction
-from ..traverse.voxel import VoxelGrid, default_voxels, TraversalStats
+from ..traverse.voxel import VoxelGrid
+from ..traverse.cost import TraversalStats, default_voxels
 
 __all__ = ["RenderResult", "RenderOptions", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
 
