@@ -62,6 +62,9 @@ def _collapsed_gauss(n):
 _RULE25, _RULE25_W = _collapsed_gauss(5)
 _RULE64, _RULE64_W = _collapsed_gauss(8)
 _RULE144, _RULE144_W = _collapsed_gauss(12)     # degree 22: grazing pairs, cheaper than a split
+#: the far pairs' rules after the centroid, in the order tried: (degree, points, weights, the
+#: method code counted in pair_factors' statistics)
+_FAR_RULES = ((5, _RULE7, _RULE7_W, 3), (8, _RULE25, _RULE25_W, 4), (14, _RULE64, _RULE64_W, 5))
 
 
 @njit(cache=True)
@@ -132,21 +135,12 @@ def _far(Tt, Tr, target, stats, P):
         return Ar * f1
     # a rule is computed only where the bound, against the centroid's estimate of the value, looks
     # met; it is accepted only where the bound holds against its own value
-    if _far_bound(At, D, rho_r, 5) <= 0.9 * target * f1:
-        f = _cubature(Tt, Tr, nrx, nry, nrz, _RULE7, _RULE7_W, P)
-        if f > 0 and _far_bound(At, D, rho_r, 5) <= target * f:
-            stats[3] += 1
-            return Ar * f
-    if _far_bound(At, D, rho_r, 8) <= 0.9 * target * f1:
-        f = _cubature(Tt, Tr, nrx, nry, nrz, _RULE25, _RULE25_W, P)
-        if f > 0 and _far_bound(At, D, rho_r, 8) <= target * f:
-            stats[4] += 1
-            return Ar * f
-    if _far_bound(At, D, rho_r, 14) <= 0.9 * target * f1:
-        f = _cubature(Tt, Tr, nrx, nry, nrz, _RULE64, _RULE64_W, P)
-        if f > 0 and _far_bound(At, D, rho_r, 14) <= target * f:
-            stats[5] += 1
-            return Ar * f
+    for degree, rule, weights, method in _FAR_RULES:
+        if _far_bound(At, D, rho_r, degree) <= 0.9 * target * f1:
+            f = _cubature(Tt, Tr, nrx, nry, nrz, rule, weights, P)
+            if f > 0 and _far_bound(At, D, rho_r, degree) <= target * f:
+                stats[method] += 1
+                return Ar * f
     return -1.0
 
 
