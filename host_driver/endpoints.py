@@ -15,10 +15,16 @@ the estimate's bias (docs/formfactors.md, "The raw visibility estimate's bias"):
   of (seed, shooter, receiver): unbiased for the kernel-weighted fraction up to the density's
   discretisation, contact shadows included, at the price of noise in each pair's estimate.
 
+  ``draws`` rows per pair, each with its own drawn point, average the pair's estimate: the noise
+  falls as 1/sqrt(draws) at draws times the rays.
+
 The density is piecewise constant over the receiver's 16 congruent sub-triangles (two midpoint
 subdivisions), each valued at its centroid. End points lie on the samples' 1/D barycentric lattice,
 strictly inside the receiver and with no weight a multiple of p (samples.py: off the scene's design
 grid), so they are exact integers on the board's grid and exact rationals on the golden board.
+Being strictly inside, no point lies in the strip within 1/D of the receiver's edges, where contact
+shadows are: ``SampleScheme.end_lattice`` makes D finer to narrow that strip, at a coordinate bit
+per doubling.
 """
 
 from functools import lru_cache
@@ -27,9 +33,10 @@ import numpy as np
 
 from ..errors import ParameterError
 
-__all__ = ["ENDS", "EndPoints"]
+__all__ = ["ENDS", "EndPoints", "MAX_DRAWS"]
 
 ENDS = ("centroid", "kernel", "draw")
+MAX_DRAWS = 64       # rows per pair under ``draw``
 _LEVELS = 2          # 4^2 sub-triangles carry the density
 
 
@@ -63,15 +70,17 @@ class EndPoints:
     """Each (shooter, receiver) pair's end point under ``rule`` (one of :data:`ENDS`), as integer
     barycentric weights over the receiver's corners summing to the sample denominator D."""
 
-    def __init__(self, scene, samples, rule="centroid", seed=0):
+    def __init__(self, scene, samples, rule="centroid", seed=0, draws=1):
         if rule not in ENDS:
             raise ParameterError(f"end point rule must be one of {', '.join(ENDS)}, not {rule!r}", parameter="end_points")
-        self.scene, self.samples, self.rule, self.seed = scene, samples, rule, int(seed)
+        if not 1 <= draws <= (MAX_DRAWS if rule == "draw" else 1):
+            raise ParameterError(f"end_draws {draws} needs the draw rule and at most {MAX_DRAWS}", parameter="end_draws")
+        self.scene, self.samples, self.rule, self.seed, self.draws = scene, samples, rule, int(seed), int(draws)
         self.D, self.p = int(samples.denominator), int(samples.prime)
 
-    def weights(self, i, receivers):
-        """(R, 3) int64 end-point weights of shooter i's pairs with ``receivers``; None for
-        ``centroid`` (the board's own centroids)."""
+    def weights(self, i, receivers, draw=0):
+        """(R, 3) int64 end-point weights of shooter i's pairs with ``receivers`` (the pair's row
+        ``draw`` of ``draws``); None for ``centroid`` (the board's own centroids)."""
         if self.rule == "centroid":
             return None
         receivers = np.asarray(receivers, dtype=np.int64)
@@ -87,8 +96,8 @@ class EndPoints:
             target = (g @ centres)[lit] / total[lit, None]                       # barycentric
             out[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
         else:
-            u = uniforms(self.seed, i, receivers, 0)
-            v = uniforms(self.seed, i, receivers, 1)
+            u = uniforms(self.seed, i, receivers, 2 * draw)
+            v = uniforms(self.seed, i, receivers, 2 * draw + 1)
             cdf = np.cumsum(g, axis=1) / np.where(lit, total, 1)[:, None]
             cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
             pick = members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]
