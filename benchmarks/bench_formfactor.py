@@ -333,10 +333,12 @@ def rules(args):
         runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
         for rule, seed in runs:
             t = time.perf_counter()
+            ends = {"end_lattice": args.end_lattice if rule != "centroid" else 1,
+                    "end_draws": args.end_draws if rule == "draw" else 1}
             res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
-                         end_seed=seed)
+                         end_seed=seed, **ends)
             bal = absorbed_balance(scene, res.radiosity)
-            label = rule if rule != "draw" else f"draw, seed {seed}"
+            label = res.report["end_points"]
             print(f"| {name} | {scene.patches} | {label} | " + ", ".join(f"{100 * x:+.3f}%" for x in bal)
                   + f" | {res.report['rays']} | {time.perf_counter() - t:.0f} |", flush=True)
 
@@ -720,6 +722,8 @@ def main(argv=None):
     ru.add_argument("--seeds", type=int, default=3, help="draw: seeds 0 .. N-1")
     ru.add_argument("--rules", nargs="+", default=["centroid", "kernel", "draw"])
     ru.add_argument("--tolerance", type=float, default=1e-6)
+    ru.add_argument("--end-draws", type=int, default=1, help="draw: rows per pair")
+    ru.add_argument("--end-lattice", type=int, default=1, help="kernel, draw: the end-point lattice's refinement")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
