@@ -15,8 +15,9 @@ the estimate's bias (docs/formfactors.md, "The raw visibility estimate's bias"):
   of (seed, shooter, receiver): unbiased for the kernel-weighted fraction up to the density's
   discretisation, contact shadows included, at the price of noise in each pair's estimate.
 
-  ``draws`` rows per pair, each with its own drawn point, average the pair's estimate: the noise
-  falls as 1/sqrt(draws) at draws times the rays.
+  ``draws`` rows per pair, each with its own drawn point, average the pair's estimate; row d draws
+  from the stratum [d, d + 1) / draws of the density's cumulative distribution, so a pair's rows
+  spread over its receiver as the density does, at draws times the rays.
 
 The density is piecewise constant over the receiver's 16 congruent sub-triangles (two midpoint
 subdivisions), each valued at its centroid. End points lie on the samples' 1/D barycentric lattice,
@@ -96,7 +97,8 @@ class EndPoints:
             target = (g @ centres)[lit] / total[lit, None]                       # barycentric
             out[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
         else:
-            u = uniforms(self.seed, i, receivers, 2 * draw)
+            # row ``draw`` takes its own stratum of the density's CDF: the pair's rows cover it evenly
+            u = (draw + uniforms(self.seed, i, receivers, 2 * draw)) / self.draws
             v = uniforms(self.seed, i, receivers, 2 * draw + 1)
             cdf = np.cumsum(g, axis=1) / np.where(lit, total, 1)[:, None]
             cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
