@@ -50,6 +50,7 @@ import _shared  # noqa: F401  (tests/ on the path: the tests' scenes and oracles
 from _run_header import print_run_header
 from blockray.host_driver.radiosity import formfactor as ff
 from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.radiosity.elements import level_corners
 from blockray.host_driver.render.render import render
 
 from oracles import clip_front, contour_oracle, far_pair, random_pair
@@ -263,13 +264,9 @@ def _kernel(p, n_p, q, n_q):
 
 
 def _sub_triangles(T, levels):
-    """The 4^levels congruent sub-triangles of each triangle, in _sub_centroids' order: (N, 4^levels, 3, 3)."""
-    tris = T[:, None]
-    for _ in range(levels):
-        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
-    return tris
+    """The 4^levels congruent sub-triangles of each triangle, in the element table's order (the first
+    cut outermost): (N, 4^levels, 3, 3)."""
+    return np.einsum("cvk,nkd->ncvd", level_corners(levels), T)
 
 
 def _draw(rng, T, g, levels):
@@ -415,7 +412,7 @@ def estimators(args):
                     bits[m] = clear(i, W, J[m], y[m][None])[0]
             elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
-                cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
+                cell = np.arange(SP.shape[1]) // 4 ** (levels - 1)   # _sub_centroids' order: the first cut outermost
                 v = np.zeros(len(J))
                 for m in range(len(J)):
                     mass = np.array([g[m, cell == q].sum() for q in range(4)])

@@ -12,7 +12,10 @@ import pytest
 from blockray.errors import ParameterError
 from blockray.exact import blocked_reference, patch_normals
 from blockray.board import BlockRay
+from blockray.host_driver.radiosity import formfactor
 from blockray.host_driver.traverse.endpoints import EndPoints
+from blockray.host_driver.traverse.visibility import Visibility, visible_fraction
+from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.host_driver.board.golden import GoldenBoard
 from blockray.host_driver.render.options import RenderOptions
 from blockray.params import BoardParams
@@ -247,9 +250,6 @@ def test_rows_per_pair_average_the_exact_predicate_of_each_draw():
     """``end_draws`` rows per pair: each pair's clear fraction is the mean over its draws of the
     exact predicate's weighted clear fraction, from the weights each draw gives (checked ray by ray
     here on the quantised scene)."""
-    from blockray.host_driver import formfactor
-    from blockray.host_driver.visibility import Visibility, visible_fraction
-    from blockray.host_driver.voxel import VoxelGrid
     samples, draws = SampleScheme(4, 2), 3
     scene = scattered_scene(11, n=24)
     board = ModelBoard(BoardParams(rows=3, cols=2, boards=1, bits=14))

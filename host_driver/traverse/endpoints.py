@@ -33,22 +33,13 @@ from functools import lru_cache
 import numpy as np
 
 from ...errors import ParameterError
+from ..radiosity.elements import level_corners
 
 __all__ = ["ENDS", "EndPoints", "MAX_DRAWS"]
 
 ENDS = ("centroid", "kernel", "draw")
 MAX_DRAWS = 64       # rows per pair under ``draw``
 _LEVELS = 2          # 4^2 sub-triangles carry the density
-
-
-def _sub_barycentric(levels):
-    """(C, 3, 3) barycentric corners of the 4^levels congruent sub-triangles of the unit triangle."""
-    tris = np.eye(3)[None]
-    for _ in range(levels):
-        a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 1) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])])
-    return tris
 
 
 def _mix(x):
@@ -118,7 +109,7 @@ def _lattice(D, p):
     a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
     w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
     w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
-    sub = _sub_barycentric(_LEVELS)                                    # (C, 3, 3)
+    sub = level_corners(_LEVELS)                                       # (C, 3, 3)
     # the sub-triangle holding each lattice point: barycentric coordinates within each sub-triangle
     x = w / D
     inv = np.linalg.inv(sub.transpose(0, 2, 1))                       # (C, 3, 3): corners as columns
