@@ -50,6 +50,7 @@ import _shared  # noqa: F401  (tests/ on the path: the tests' scenes and oracles
 from _run_header import print_run_header
 from blockray.host_driver.radiosity import closed_form, cubature, formfactor as ff, point_factor, ray_weights
 from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.radiosity.elements import level_corners
 from blockray.host_driver.render.render import render
 
 from oracles import clip_front, contour_oracle, far_pair, random_pair
@@ -264,13 +265,9 @@ def _kernel(p, n_p, q, n_q):
 
 
 def _sub_triangles(T, levels):
-    """The 4^levels congruent sub-triangles of each triangle, in _sub_centroids' order: (N, 4^levels, 3, 3)."""
-    tris = T[:, None]
-    for _ in range(levels):
-        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
-    return tris
+    """The 4^levels congruent sub-triangles of each triangle, in the element table's order (the first
+    cut outermost): (N, 4^levels, 3, 3)."""
+    return np.einsum("cvk,nkd->ncvd", level_corners(levels), T)
 
 
 def _draw(rng, T, g, levels):
@@ -334,10 +331,12 @@ def rules(args):
         runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
         for rule, seed in runs:
             t = time.perf_counter()
+            ends = {"end_lattice": args.end_lattice if rule != "centroid" else 1,
+                    "end_draws": args.end_draws if rule == "draw" else 1}
             res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
-                         end_seed=seed)
+                         end_seed=seed, **ends)
             bal = absorbed_balance(scene, res.radiosity)
-            label = rule if rule != "draw" else f"draw, seed {seed}"
+            label = res.report["end_points"]
             print(f"| {name} | {scene.patches} | {label} | " + ", ".join(f"{100 * x:+.3f}%" for x in bal)
                   + f" | {res.report['rays']} | {time.perf_counter() - t:.0f} |", flush=True)
 
@@ -414,7 +413,7 @@ def estimators(args):
                     bits[m] = clear(i, W, J[m], y[m][None])[0]
             elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
-                cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
+                cell = np.arange(SP.shape[1]) // 4 ** (levels - 1)   # _sub_centroids' order: the first cut outermost
                 v = np.zeros(len(J))
                 for m in range(len(J)):
                     mass = np.array([g[m, cell == q].sum() for q in range(4)])
@@ -722,6 +721,8 @@ def main(argv=None):
     ru.add_argument("--seeds", type=int, default=3, help="draw: seeds 0 .. N-1")
     ru.add_argument("--rules", nargs="+", default=["centroid", "kernel", "draw"])
     ru.add_argument("--tolerance", type=float, default=1e-6)
+    ru.add_argument("--end-draws", type=int, default=1, help="draw: rows per pair")
+    ru.add_argument("--end-lattice", type=int, default=1, help="kernel, draw: the end-point lattice's refinement")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")

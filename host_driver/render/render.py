@@ -94,7 +94,8 @@ def _resume(scene, board, options, params, checkpoint):
         "board": board.name, "bits": b.params.bits, "voxels": ray.voxels, "samples": ray.samples.count,
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
-        "end_points": ray.end_points, "end_seed": ray.end_seed,
+        "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
+        "end_lattice": ray.end_lattice,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
         "rows": params.rows, "cols": params.cols, "boards": params.boards})
 
@@ -134,7 +135,7 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
     stats = TraversalStats(grid, sample_fraction=ray.stats_fraction)
     vis = Visibility(scene, board, grid, samples, rows=params.rows, cols=params.cols,
                      traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats,
-                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed))
+                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed, ray.end_draws))
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
     if checkpoint is not None and cache is not None:
@@ -276,6 +277,14 @@ class _Run:
     resume: object = None
 
 
+def _ends_label(ray):
+    """The report's end-point rule: its name, with the draw's seed, rows per pair and lattice."""
+    extra = [f"seed {ray.end_seed}"] if ray.end_points == "draw" else []
+    extra += [f"{ray.end_draws} draws"] if ray.end_draws > 1 else []
+    extra += [f"lattice 1/{ray.samples.denominator}"] if ray.end_lattice > 1 else []
+    return ray.end_points + (f" ({', '.join(extra)})" if extra else "")
+
+
 def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds, traversal_stats, cpu_seconds=None):
     """The keys of ``--report`` (the board's own counters last, never overriding the host's)."""
     scene, params, ray, solve = run.scene, run.params, run.options.ray, run.options.solve
@@ -292,7 +301,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "samples": ray.samples.count,
         "traversal": ray.traversal,
         "packing": ray.packing,
-        "end_points": ray.end_points if ray.end_points != "draw" else f"draw (seed {ray.end_seed})",
+        "end_points": _ends_label(ray),
         "partition": getattr(run.board, "partition", None),
         "solver": solve.solver,
         "sets": int(run.options.run.sets),
@@ -338,7 +347,7 @@ def _render_sets(run, grid, *, progress, echo):
         job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
                      partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
                      stats_fraction=ray.stats_fraction, threads=threads, end_points=ray.end_points,
-                     end_seed=ray.end_seed)
+                     end_seed=ray.end_seed, end_draws=ray.end_draws)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
                                                     _morton(grid.cell_of(scene.centroids)), job,
                                                     solver=solve.solver, tolerance=solve.tolerance,

@@ -226,16 +226,22 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         shooters = np.concatenate([np.full(len(forward), i, dtype=np.int64), reverse])
         targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
         weights = ray_weights.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
-        ends = None
+        ends, draws = None, 1
         if vis.ends is not None and vis.ends.rule != "centroid":
-            # i's own rows end where the rule puts them; reverse rows at i's centroid
-            ends = np.concatenate([vis.ends.weights(i, forward),
-                                   np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
+            # i's own rows end where the rule puts them, ``draws`` rows per pair (all in i's one
+            # column); reverse rows at i's centroid
+            draws, nf = vis.ends.draws, len(forward)
+            ends = np.concatenate([vis.ends.weights(i, forward, d) for d in range(draws)]
+                                  + [np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
+            shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), reverse])
+            targets = np.concatenate([np.tile(forward, draws), targets[nf:]])
+            weights = np.concatenate([np.tile(weights[:nf], (draws, 1)), weights[nf:]])
     frac = np.empty(len(receivers))
     # the column count as one call per column would give it: i's own (even if empty), one per reverse
     f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends)
-    frac[direct] = f[:len(forward)]
-    frac[~direct] = f[len(forward):]
+    split = draws * len(forward)
+    frac[direct] = f[:split].reshape(draws, len(forward)).mean(axis=0)
+    frac[~direct] = f[split:]
     return frac
 
 
