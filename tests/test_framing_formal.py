@@ -150,7 +150,7 @@ def test_proof_fails_against_a_wrong_reference(formal, tmp_path, wrong):
 
 SENDER_PAYLOAD, SENDER_WINDOW = 1, 2
 #: a new data frame of one payload byte is built, stuffed and sent within it
-SENDER_DEPTH = 26
+SENDER_DEPTH = 23
 #: result bytes the reference remembers (more than the window holds)
 SHADOW = 8
 

@@ -27,7 +27,10 @@ COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "tests", "blocks", "
 def _compare(scene, params, bits, transport=ulx3s_sim_transport, **kw):
     model = render(scene, backend="model", params=params, bits=bits, **kw)
     board = BoardDriver(params.with_(bits=bits), name="ulx3s-sim", transport=transport)
-    sim = render(scene, board=board, params=params, bits=bits, **kw)
+    try:
+        sim = render(scene, board=board, params=params, bits=bits, **kw)
+    finally:
+        board.close()
     assert np.array_equal(model.radiosity, sim.radiosity)
     for key in COUNTERS:
         assert model.report[key] == sim.report[key], key
@@ -101,14 +104,16 @@ def _check_faults(links):
 def test_room_at_1e_3_faults_both_ways(tmp_path, max_edge, samples, voxels, seed):
     """The room at 1e-3 faults per byte through the Python API (so the oracle sees the
     injectors' records): the render equals the model's, and what each side counted is what the
-    faults injected imply; the seeds put faults both ways."""
+    faults injected imply. The upload's thousands of bytes always meet faults; the few hundred
+    result bytes may not (seed 5 on the smaller room: 7 corrupted chunks to the board, none back;
+    tests/test_uart_sim.py has both ways)."""
     from scenes import room_scene
     print("seed", seed)
     transport, links = _faulty_links(1e-3, seed)
     _compare(room_scene(tmp_path, max_edge), BoardParams(rows=2, cols=2, boards=1), 10, transport=transport,
              samples=samples, max_shots=1, voxels=voxels)
-    to_boards, from_boards = _check_faults(links)
-    assert to_boards and from_boards
+    to_boards, _ = _check_faults(links)
+    assert to_boards
 
 
 @pytest.mark.slow
