@@ -47,8 +47,10 @@ from .lean_model import LEAN_EXACT_LATENCY, default_lean_depth
 _EXACT_LATENCY = {"filtered": EXACT_LATENCY, "lean": LEAN_EXACT_LATENCY}
 
 
-def _default_format(cell, bits):
-    return lean_format(bits) if cell == "lean" else default_format(bits)
+def _format(cell, bits, fmt):
+    """The filter of a filtered or lean board: ``fmt`` or the cell's default; the lean cell's
+    always rounds w_k from its inputs (:func:`~blockray.filtered.lean_format`)."""
+    return lean_format(bits, fmt) if cell == "lean" else fmt or default_format(bits)
 
 
 def _array_depth(cell):
@@ -96,7 +98,7 @@ class BoardModel:
         self.params = params
         self.cell = check_cell(cell)
         if cell != "exact":             # filtered or lean: the same hand-off, its exact unit's latency
-            self.filter_format = filter_format or _default_format(cell, params.bits)
+            self.filter_format = _format(cell, params.bits, filter_format)
             self.depth = depth or _array_depth(cell)
             self.timing = timing or BoardTiming.for_cell(cell)
         else:
@@ -287,7 +289,7 @@ class ModelBoard(CountingBoard):
     def prepare(self, scene, samples):
         q = self._quantise(scene, samples)
         if self.cell != "exact":
-            self.filter_format = self._filter_format or _default_format(self.cell, q.bits)
+            self.filter_format = _format(self.cell, q.bits, self._filter_format)
         self.memories = None
 
     def load(self, grid):
@@ -344,7 +346,7 @@ class ModelBoard(CountingBoard):
         kinds, undecided = kernel.filtered_steps(
             q.shooters, ends, batch.col_off, batch.shooter_patch, batch.shooter_sample,
             batch.row_off, end_of_row, batch.vox_off, batch.voxels,
-            self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off)
+            self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off, f.w_input_bits or 0)
         total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
         for b, steps in enumerate(step_off[-1]):
             lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth, _EXACT_LATENCY[self.cell])

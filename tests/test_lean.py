@@ -16,12 +16,12 @@ from amaranth.sim import Simulator
 
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
-from blockray.filtered import FilterFormat, lean_format
+from blockray.filtered import FilterFormat, lean_format, rounded_receiver_filter_terms
 from blockray.host_driver.render import render
 from blockray.params import BoardParams
-from blockray.records import pack_array, patch_columns, patch_layout
+from blockray.records import pack_array, patch_columns, patch_layout, point_columns, point_layout
 from blockray.rtl.board import BoardTop
-from blockray.rtl.lean import LeanArray, LeanExact
+from blockray.rtl.lean import LeanArray, LeanExact, LeanReceiver
 from blockray.sim.cocotb_support import build_verilator, run_cocotb
 from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
@@ -44,6 +44,51 @@ def _single_tests(tests, first_mark=True):
         if first_mark:
             steps.append(Mark())
     return steps
+
+
+@pytest.mark.parametrize("bits,fmt", [(16, FilterFormat(9, 9, 12)), (16, FilterFormat(4, 5, 3)), (20, FilterFormat(9, 9, 14)),
+                                      (6, FilterFormat(7, 9, 12))], ids=str)
+def test_lean_receiver_terms_equal_the_model(bits, fmt):
+    """LeanReceiver against :func:`blockray.filtered.rounded_receiver_filter_terms` and the exact
+    pQ, term by term, one test per cycle with gaps, at its latency 7: 300 hard and 300 random
+    tests (B = 6 with 12-bit inputs: nothing rounded)."""
+    seed = 3500 + bits
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    tests = hard_cases(bits)[::40][:300] + random_tests(bits, 300, rng)
+    dQ, E = tests.Q[:, None] - tests.V, np.roll(tests.V, -1, axis=-2) - tests.V
+    want = rounded_receiver_filter_terms(dQ, E, fmt)
+    pq = np.einsum("tc,tc->t", tests.Q - tests.V[:, 0], tests.n)
+    dut = LeanReceiver(bits, fmt)
+    qw = pack_array(point_layout(bits), point_columns(tests.Q))
+    vw = pack_array(patch_layout(bits), patch_columns(tests.V, tests.n))
+    gaps = rng.random(2 * len(tests)) < 0.2
+    got = []
+
+    async def bench(ctx):
+        t = 0
+        for gap in gaps:
+            if not gap and t < len(tests):
+                ctx.set(dut.point.as_value(), qw[t])
+                ctx.set(dut.patch.as_value(), vw[t])
+            ctx.set(dut.valid, int(not gap and t < len(tests)))
+            t += int(not gap and t < len(tests))
+            await ctx.tick()
+            if ctx.get(dut.terms_valid):
+                v = ctx.get(dut.terms)
+                got.append(([[v.m[k][c] for c in range(3)] for k in range(3)], [v.pos[k] for k in range(3)],
+                            [v.neg[k] for k in range(3)], [(v.truncated >> k) & 1 for k in range(3)],
+                            ctx.get(dut.plane_out)))
+    sim = Simulator(dut)
+    sim.add_clock(1e-8)
+    sim.add_testbench(bench)
+    sim.run()
+    assert len(got) == min(len(tests), int((~gaps).sum()))
+    for i, (m, pos, neg, trunc, plane) in enumerate(got):
+        assert m == want["m"][i].tolist(), i
+        assert (pos, neg, trunc) == (want["pos"][i].tolist(), want["neg"][i].tolist(),
+                                     want["truncated"][i].astype(int).tolist()), i
+        assert plane == pq[i], i
 
 
 def test_model_constants_are_the_rtls():
@@ -214,23 +259,24 @@ def test_parameters_are_checked():
         LeanArray(8, 2, 2, address_bits=0)
     with pytest.raises(ValueError, match="depth"):
         LeanArray(8, 2, 2, depth=2)
-    assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
 
 
 def test_model_board_lean_equals_exact(rtl_room):
     """The model board with the lean cell (``--cell lean --board model``) and behind the byte
-    link: radiosity and tests equal the exact cell's; at 3 x 3 bits the broadcast stalls for the
-    shared exact unit, and the model behind the link counts the same per-board cycles."""
+    link: radiosity and tests equal the exact cell's; at 3 x 3 bits (w_k from 5-bit inputs, so
+    B = 10 rounds them) the broadcast stalls for the shared exact unit, and the model behind the
+    link (``BoardModel``: blockray.filtered) counts the same per-board cycles as the model board
+    (``ModelBoard``: the compiled kernel)."""
     def run(board, **cell):
         return render(rtl_room, backend=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
 
     exact = run("model")
-    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3))
+    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3, 5))
     assert np.array_equal(lean.radiosity, exact.radiosity)
     for key in ("tests_issued", "tests_useful", "blocks", "rays"):
         assert lean.report[key] == exact.report[key], key
     assert (np.array(lean.report["board_cycles_per_board"]) > np.array(exact.report["board_cycles_per_board"])).all()
-    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3))
+    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3, 5))
     assert np.array_equal(link.radiosity, lean.radiosity)
     for key in ("board_cycles_per_board", "tests_issued_per_board"):
         assert link.report[key] == lean.report[key], key
