@@ -222,6 +222,8 @@ class LeanArray(FilteredArray):
         return FilteredArray.default_depth(extra_latency) + LeanExact.latency + 4
 
     def _receiver_edge(self, m, r):
+        if self._fmt.w_input_bits is None:          # w_k exact, then rounded by the filter
+            return super()._receiver_edge(m, r)
         unit = m.submodules[f"receiver_{r}"] = LeanReceiver(self._bits, self._fmt)
         m.d.comb += [unit.point.eq(self.receivers[r]), unit.patch.eq(self.patch), unit.valid.eq(self.valid)]
         return unit

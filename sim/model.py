@@ -47,10 +47,8 @@ from .lean_model import LEAN_EXACT_LATENCY, default_lean_depth
 _EXACT_LATENCY = {"filtered": EXACT_LATENCY, "lean": LEAN_EXACT_LATENCY}
 
 
-def _format(cell, bits, fmt):
-    """The filter of a filtered or lean board: ``fmt`` or the cell's default; the lean cell's
-    always rounds w_k from its inputs (:func:`~blockray.filtered.lean_format`)."""
-    return lean_format(bits, fmt) if cell == "lean" else fmt or default_format(bits)
+def _default_format(cell, bits):
+    return lean_format(bits) if cell == "lean" else default_format(bits)
 
 
 def _array_depth(cell):
@@ -98,7 +96,7 @@ class BoardModel:
         self.params = params
         self.cell = check_cell(cell)
         if cell != "exact":             # filtered or lean: the same hand-off, its exact unit's latency
-            self.filter_format = _format(cell, params.bits, filter_format)
+            self.filter_format = filter_format or _default_format(cell, params.bits)
             self.depth = depth or _array_depth(cell)
             self.timing = timing or BoardTiming.for_cell(cell)
         else:
@@ -289,7 +287,7 @@ class ModelBoard(CountingBoard):
     def prepare(self, scene, samples):
         q = self._quantise(scene, samples)
         if self.cell != "exact":
-            self.filter_format = _format(self.cell, q.bits, self._filter_format)
+            self.filter_format = self._filter_format or _default_format(self.cell, q.bits)
         self.memories = None
 
     def load(self, grid):

@@ -97,7 +97,8 @@ def test_model_constants_are_the_rtls():
     assert default_lean_depth() == LeanArray.default_depth(2) == 33       # behind the board's memory
 
 
-@pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4))])
+@pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4)),
+                                      (16, FilterFormat(9, 9, 12))])
 def test_model_bits_equal_the_reference_on_processor_vectors(bits, fmt):
     """Every delivered bit of the model (filter where decided, exact unit where not) equals the
     independent orient3d predicate, on hard cases and random blocks, one test per record."""
@@ -225,6 +226,7 @@ def _compare(bits, rows, cols, fmt, depth, steps, V, n, run=_run_rtl):
 
 
 @pytest.mark.parametrize("bits,fmt,depth,count", [(6, FilterFormat(3, 3), None, 160), (16, None, None, 160),
+                                                   (16, FilterFormat(9, 9, 12), None, 160),
                                                    (16, FilterFormat(3, 4), 5, 120)])
 def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
     """1 x 1 lean array, one test per record and a marker after each: cycles and bits equal the
@@ -240,6 +242,7 @@ def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
 
 
 @pytest.mark.parametrize("bits,rows,cols,fmt,depth,seed", [(8, 2, 2, FilterFormat(3, 3), None, 3301),
+                                                           (8, 2, 2, FilterFormat(3, 3, 4), None, 3304),
                                                            (8, 2, 3, FilterFormat(3, 3), 6, 3302),
                                                            (12, 2, 2, None, None, 3303)])
 def test_rtl_equals_model_on_blocks(bits, rows, cols, fmt, depth, seed):

@@ -145,9 +145,7 @@ def test_the_wider_bound_is_needed():
 
 
 def test_lean_format():
-    assert lean_format(16) == FilterFormat(9, 9, LEAN_INPUT_BITS)
-    assert lean_format(6) == FilterFormat(7, 9, LEAN_INPUT_BITS)
-    assert lean_format(16, FilterFormat(3, 4)) == FilterFormat(3, 4, LEAN_INPUT_BITS)
+    assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
     assert lean_format(16, FilterFormat(3, 4, 5)) == FilterFormat(3, 4, 5)
     assert str(FilterFormat(9, 9, 12)) == "d9w9i12" and str(FilterFormat(9, 9)) == "d9w9"
 
