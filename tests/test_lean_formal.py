@@ -27,7 +27,7 @@ def _check(tmp_path, harness, mode, depth, timeout=1800):
     return result
 
 
-@pytest.mark.parametrize("mode", ["bmc", "cover"])
+@pytest.mark.parametrize("mode", [pytest.param("bmc", marks=pytest.mark.slow), "cover"])     # bmc: ~3 min
 def test_tag_queue_properties_bounded(tmp_path, mode):
     """LeanResolve (1 x 2 tests per record, depth 4) under every input sequence of 20 cycles."""
     result = _check(tmp_path, ArrayHandoffHarness(lean=True), mode, LEAN_BMC_DEPTH)
