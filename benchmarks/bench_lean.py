@@ -27,7 +27,7 @@ import numpy as np
 from blockray.filtered import FilterFormat, filtered_block
 
 from _run_header import print_run_header
-from bench_filter import part_verify
+from bench_filter import block_tests, part_verify, voxel_records
 
 #: the exact-w_k 9 x 9 filter (the lean cell before w_k was rounded from its inputs) and the lean
 #: formats at input widths 10 to 14
@@ -35,33 +35,24 @@ FORMATS = [FilterFormat(9, 9)] + [FilterFormat(9, 9, m) for m in (10, 11, 12, 13
 
 
 def _rate_board(formats):
-    from blockray.memory import registration
     from blockray.sim.model import ModelBoard
 
     class RateBoard(ModelBoard):
         def load(self, grid):
             super().load(grid)
-            vox, pat, nvox = registration(grid)
-            self._records = np.split(pat, np.cumsum(np.bincount(vox, minlength=nvox))[:-1])
+            self._records = voxel_records(grid)
             self.rates = {str(f): dict.fromkeys(("tests", "undecided", "cycles", "cycles_undecided"), 0)
                           for f in formats}
 
         def run(self, blocks):
-            q = self.quantised
-            for block in blocks:
-                recs = [self._records[v] for v in block.voxels]
-                patches = np.concatenate(recs) if recs else np.zeros(0, dtype=np.int64)
-                if not len(patches) or not block.rays:
-                    continue
-                P = q.shooters[block.shooter_patch, block.shooter_sample]
-                Q = q.receivers[block.receiver_patch]
+            for P, Q, V, n in block_tests(self._records, self.quantised, blocks):
                 for f in formats:
-                    decided, _ = filtered_block(P, Q, q.vertices[patches], q.normals[patches], f)
+                    decided, _ = filtered_block(P, Q, V, n, f)
                     per_cycle = (~decided).sum(axis=(0, 1))
                     s = self.rates[str(f)]
                     s["tests"] += decided.size
                     s["undecided"] += int(per_cycle.sum())
-                    s["cycles"] += len(patches)
+                    s["cycles"] += len(V)
                     s["cycles_undecided"] += int((per_cycle > 0).sum())
             return super().run(blocks)
 
