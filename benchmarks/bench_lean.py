@@ -60,8 +60,8 @@ def _rate_board(formats):
 
 
 def part_rate(scene_name, max_shots, formats):
-    from blockray.host_driver.builtin import load_scene
-    from blockray.host_driver.render import render
+    from blockray.host_driver.scene.builtin import load_scene
+    from blockray.host_driver.render.render import render
     from blockray.params import BoardParams
     board = _rate_board(formats)(BoardParams())
     t0 = time.perf_counter()
