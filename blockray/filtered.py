@@ -80,6 +80,9 @@ def check_cell(cell, filter_format=None):
     if filter_format is not None and cell not in ("filtered", "lean"):
         raise ParameterError(f"filter_bits sets the filter's format; it needs cell filtered or lean, not {cell!r}",
                              parameter="filter_bits")
+    if cell == "filtered" and getattr(filter_format, "w_input_bits", None) is not None:
+        raise ParameterError(f"filter {filter_format} rounds w_k from its inputs, which only the lean cell does",
+                             parameter="filter_bits")
     return cell
 
 

@@ -15,8 +15,8 @@ from hypothesis import given, settings, strategies as st
 
 from blockray.errors import ParameterError
 from blockray.exact import block_terms, blocked_block, blocked_reference, edge_terms, patch_normals
-from blockray.filtered import (LEAN_INPUT_BITS, FilterFormat, cell_certificates, filter_decision, filtered_block,
-                               lean_format, rounded_receiver_filter_terms, shooter_filter_terms)
+from blockray.filtered import (LEAN_INPUT_BITS, FilterFormat, cell_certificates, check_cell, filter_decision,
+                               filtered_block, lean_format, rounded_receiver_filter_terms, shooter_filter_terms)
 
 from processor_vectors import hard_cases, random_tests
 from test_filtered import _check_tests
@@ -154,6 +154,13 @@ def test_bad_input_width_names_the_parameter():
     with pytest.raises(ParameterError, match="w_input_bits") as e:
         FilterFormat(9, 9, 19)
     assert e.value.parameter == "w_input_bits"
+
+
+def test_only_the_lean_cell_takes_rounded_inputs():
+    assert check_cell("lean", FilterFormat(9, 9, 12)) == "lean"
+    with pytest.raises(ParameterError, match="only the lean cell") as e:
+        check_cell("filtered", FilterFormat(9, 9, 12))
+    assert e.value.parameter == "filter_bits"
 
 
 def test_the_exact_w_decision_refuses_a_lean_format():
