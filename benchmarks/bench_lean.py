@@ -5,13 +5,18 @@ widths, in one run.
     python benchmarks/bench_lean.py --part verify --queries 1000000
     python benchmarks/bench_lean.py --part rate --scene cornell --max-shots 40
     python benchmarks/bench_lean.py --part rate --scene room --max-shots 40
+    python benchmarks/bench_lean.py --part degenerate --queries 1000000
     python benchmarks/bench_lean.py --part units               # Yosys synth_ecp5 per unit, B = 16
 
 ``verify`` is bench_filter.py's (random and hard-case queries, each against
 :func:`blockray.exact.blocked_reference`; ``wrong`` must be 0). ``rate``: every test of a
 progressive render with the model board goes through each filter (``filtered_block``, so the
 lean formats take the rounded-input path); prints the undecided fraction and the fraction of
-broadcast cycles (one record) with an undecided test. ``units``: Yosys (synth_ecp5, no nextpnr)
+broadcast cycles (one record) with an undecided test. ``degenerate``: the tests' near-degenerate
+blocks (tests/processor_vectors.py ``near_degenerate``: rays through a patch's vertices, edges and
+plane, rotated, scaled and rounded to the grid; B = 8, 12, 16, 20 in turn), every certified sign
+against the exact s_k and every decided bit against ``blocked_block``; ``wrong`` must be 0.
+``units``: Yosys (synth_ecp5, no nextpnr)
 resources of each part of a lean array at B = 16, side by side: the row unit with exact w_k
 (ReceiverUnit + ReceiverFilter, 9 x 9), the lean row unit (``LeanReceiver``) with its products on
 DSPs and with w_k's on LUTs (``rounded``), the lean column unit, the 9 x 9 cell on DSPs and on
@@ -75,6 +80,41 @@ def part_rate(scene_name, max_shots, formats):
     return 0
 
 
+def part_degenerate(queries, seed):
+    import _shared  # noqa: F401  (tests/ on the path)
+    from blockray.exact import block_terms, blocked_block, edge_terms, patch_normals
+    from blockray.filtered import cell_certificates, rounded_receiver_filter_terms, shooter_filter_terms
+    from processor_vectors import near_degenerate
+    formats = [f for f in FORMATS if f.w_input_bits in (None, 12, 14)] + [FilterFormat(4, 5, 3)]
+    print(f"degenerate: seed={seed}, target {queries} queries, filters {', '.join(map(str, formats))}", flush=True)
+    rng = np.random.default_rng(seed)
+    stats = {str(f): {"undecided": 0, "wrong": 0} for f in formats}
+    total, t0 = 0, time.perf_counter()
+    while total < queries:
+        for bits in (8, 12, 16, 20):
+            for P, Q, V in near_degenerate(bits, 500, rng):
+                n = patch_normals(V)
+                _, _, sides = block_terms(P, Q, V, n)
+                exact = blocked_block(P, Q, V, n)
+                dP, dQ, _ = edge_terms(P, Q, V)
+                for f in formats:
+                    decided, blocked = filtered_block(P, Q, V, n, f)
+                    s = stats[str(f)]
+                    s["undecided"] += int((~decided).sum())
+                    s["wrong"] += int((decided & (blocked != exact)).sum())
+                    if f.w_input_bits is not None:
+                        c = cell_certificates(shooter_filter_terms(dP[None], f), rounded_receiver_filter_terms(
+                            dQ[:, None], np.roll(V, -1, axis=-2) - V, f))
+                        s["wrong"] += int((c["ge"] & (sides < 0)).sum() + (c["gt"] & (sides <= 0)).sum()
+                                          + (c["le"] & (sides > 0)).sum() + (c["lt"] & (sides >= 0)).sum())
+                total += exact.size
+    print(f"{total} queries in {time.perf_counter() - t0:.0f} s")
+    print(f"{'filter':12s} {'undecided':>10s} {'rate':>9s} {'wrong':>6s}")
+    for f, s in stats.items():
+        print(f"{f:12s} {s['undecided']:10d} {s['undecided'] / total:9.2e} {s['wrong']:6d}")
+    return 1 if any(s["wrong"] for s in stats.values()) else 0
+
+
 def _units(bits):
     """(name, component, fabric units) of each part of a lean array at B = ``bits``."""
     from amaranth.hdl import Module
@@ -131,7 +171,7 @@ def part_units(bits, only):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--part", choices=["verify", "rate", "units"], required=True)
+    p.add_argument("--part", choices=["verify", "degenerate", "rate", "units"], required=True)
     p.add_argument("--queries", type=int, default=10 ** 6)
     p.add_argument("--seed", type=int, default=None, help="default: fresh, printed")
     p.add_argument("--scene", default="cornell")
@@ -140,9 +180,11 @@ def main(argv=None):
     p.add_argument("--only", nargs="*", default=[], help="units: names containing these words")
     args = p.parse_args(argv)
     print_run_header()
+    seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % (1 << 32))
     if args.part == "verify":
-        seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % (1 << 32))
         return part_verify(args.queries, seed, FORMATS)
+    if args.part == "degenerate":
+        return part_degenerate(args.queries, seed)
     if args.part == "units":
         return part_units(args.bits, args.only)
     return part_rate(args.scene, args.max_shots, FORMATS)
