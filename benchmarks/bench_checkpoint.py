@@ -1,4 +1,4 @@
-"""Seconds to write one checkpoint (host_driver/checkpoint.py) of a progressive solve of N
+"""Seconds to write one checkpoint (host_driver/render/checkpoint.py) of a progressive solve of N
 patches: atomically (temporary file, fsync, rename; what --checkpoint does) side by side with
 its peer, a plain ``numpy.savez`` over the same file (no fsync, no rename), in one run.
 
@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from _run_header import print_run_header
-from blockray.host_driver.checkpoint import FILE, Checkpoint
+from blockray.host_driver.render.checkpoint import FILE, Checkpoint
 
 
 def main():

@@ -1,9 +1,9 @@
-"""Energy balance of closed scenes with and without contact-line splitting (host_driver/contact.py).
+"""Energy balance of closed scenes with and without contact-line splitting (host_driver/scene/contact.py).
 
     python benchmarks/bench_contact.py room cornell-closed --board model --tolerance 1e-4
 
 Prints one markdown row per scene and setting: patches, what the split did, the solve, and
-absorbed / emitted - 1 per channel (host_driver/closure.py's absorbed_balance). ``--row-sums``
+absorbed / emitted - 1 per channel (host_driver/radiosity/closure.py's absorbed_balance). ``--row-sums``
 instead solves by Jacobi (every column of visible factors) and prints, per group, the area-weighted
 mean of each patch's visible row sum sum_i F_ji minus 1 (0 in a closed scene), and its extremes. ``cornell-closed`` is
 the built-in cornell file with a front wall over its opening (its floor as published, running under
@@ -16,9 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from blockray.host_driver.builtin import DEFAULT_MAX_EDGE, load_scene, path
-from blockray.host_driver.closure import absorbed_balance
-from blockray.host_driver.render import render
+from blockray.host_driver.scene.builtin import DEFAULT_MAX_EDGE, load_scene, path
+from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.render.render import render
 
 #: The opening at z = 0: the floor's and the ceiling's front corners (the red wall is slanted, so
 #: it is not the bounding box's face), counter-clockwise from inside the box: it faces +z, inwards.

@@ -110,8 +110,8 @@ def _filter_board(formats):
 
 
 def part_rate(scene_name, max_shots, bits, formats):
-    from blockray.host_driver.builtin import load_scene
-    from blockray.host_driver.render import render
+    from blockray.host_driver.scene.builtin import load_scene
+    from blockray.host_driver.render.render import render
     from blockray.params import BoardParams
     scene = load_scene(scene_name)
     board = _filter_board(formats)(BoardParams(bits=bits))

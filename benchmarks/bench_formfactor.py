@@ -20,7 +20,7 @@
 ``git show 10cb08c:host_driver/formfactor.py > host_driver/_formfactor_before.py``.
 
 ``table``: random triangle pairs of each kind (each wholly in front of the other, so the oracles'
-unclipped integrands apply), every method of host_driver/formfactor.py forced on each pair, and
+unclipped integrands apply), every method of host_driver/radiosity/formfactor.py forced on each pair, and
 pyviewfactor's SA-30 kernel, against the double contour integral with the inner integral in closed
 form and the outer one by mpmath's adaptive quadrature at 30 digits. Prints a markdown table of
 the largest relative error per method and kind. Numbers go into docs/formfactors.md.
@@ -29,7 +29,7 @@ the largest relative error per method and kind. Numbers go into docs/formfactors
 thread: CPU microseconds per pair of the closed form alone (``target=0``, the reference) and of
 the default (far pairs by cubature), the pairs per method, and pyviewfactor's SA-30 kernel on the
 first ``--peer-pairs`` of them (the peer); and the share of the pairs a render computes once
-(each unordered pair, :class:`~blockray.host_driver.formfactor.PairCache`).
+(each unordered pair, :class:`~blockray.host_driver.radiosity.formfactor.PairCache`).
 
 ``grazing``: a seeded sample of cornell's grazing pairs (a centroid cosine below ``--cosine``,
 centroids over ``--distance`` apart; pairs coplanar to rounding, cosines below 1e-12, left out),
@@ -48,9 +48,9 @@ import numpy as np
 
 import _shared  # noqa: F401  (tests/ on the path: the tests' scenes and oracles)
 from _run_header import print_run_header
-from blockray.host_driver import formfactor as ff
-from blockray.host_driver.closure import absorbed_balance
-from blockray.host_driver.render import render
+from blockray.host_driver.radiosity import formfactor as ff
+from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.render.render import render
 
 from oracles import clip_front, contour_oracle, far_pair, random_pair
 from scenes import box_with_block, closed_box_with_slab, closed_scenes
@@ -121,7 +121,7 @@ def energy(args):
 
 def closure(args):
     """Each closed scene rendered once with ``closure=args.mode``: the raw visible factors'
-    summation and reciprocity errors (host_driver/closure.py), the size of the correction, and the
+    summation and reciprocity errors (host_driver/radiosity/closure.py), the size of the correction, and the
     energy balance solved with the raw and the corrected factors."""
     import json
     for name, scene in closed_scenes():
@@ -142,9 +142,9 @@ def boards(args):
     count tests differently (golden: rays x patches of the block's voxels; model: the hardware's
     tests, records streamed x R x S), so rays/s is the like-for-like figure. Each board's first
     shooter compiles its kernels and is not timed."""
-    from blockray.host_driver.builtin import load_scene
-    from blockray.host_driver.render import make_board, Visibility
-    from blockray.host_driver.voxel import VoxelGrid, default_voxels
+    from blockray.host_driver.scene.builtin import load_scene
+    from blockray.host_driver.render.render import make_board, Visibility
+    from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
     from blockray.params import BoardParams
     from blockray.samples import SampleScheme
     from blockray import threads
@@ -318,7 +318,7 @@ def _study_scene(name):
     if name == "block":
         return box_with_block()
     if name == "slab":
-        from blockray.host_driver.contact import split_contacts
+        from blockray.host_driver.scene.contact import split_contacts
         return split_contacts(closed_box_with_slab())[0]
     return next(s for n, s in closed_scenes() if n.startswith(name))
 
@@ -347,7 +347,7 @@ def estimators(args):
     factor to j, formfactor.sample_weights; KxK: the point-to-point kernel), rays decided by the
     exact predicate over every patch (exact_float.blocked_rays), Jacobi to 1e-9."""
     from blockray.exact_float import blocked_rays
-    from blockray.host_driver.solver import jacobi
+    from blockray.host_driver.radiosity.solver import jacobi
     from blockray.samples import SampleScheme
     scene = _study_scene(args.scene)
     K, levels = args.samples, 3
@@ -453,8 +453,8 @@ def estimators(args):
 def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
-    from blockray.host_driver.render import make_board, Visibility
-    from blockray.host_driver.voxel import VoxelGrid, default_voxels
+    from blockray.host_driver.render.render import make_board, Visibility
+    from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
     from blockray.params import BoardParams
     from blockray.samples import SampleScheme
     scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))
@@ -487,7 +487,7 @@ def row_sums(args):
 
 def speed(args):
     from blockray import threads
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     for name in args.scenes:
         scene = load_scene(name)
         V = scene.patch_vertices
@@ -535,7 +535,7 @@ def by_method(S, R):
 
 
 def grazing(args):
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("cornell")
     V = scene.patch_vertices
     I, J = [], []
@@ -589,7 +589,7 @@ def _every_step_pairs(scene, step):
 def trigger(args):
     """The closed form's actual error (mpmath) against its estimate u S / F on pairs that trigger
     the recomputation (64 u S > FAR_TARGET F)."""
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     V = load_scene("cornell").patch_vertices
     I, J = _every_step_pairs(load_scene("cornell"), 8)
     rng = np.random.default_rng(args.seed)
@@ -624,7 +624,7 @@ def versus(args):
 def _versus(name):
     from blockray import threads
     from blockray.host_driver import _formfactor_before as old
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene(name)
     V, N = scene.patch_vertices, scene.patches
     I, J = _every_step_pairs(scene, 8)
@@ -660,7 +660,7 @@ def _versus(name):
 def unresolved(args):
     """The pairs of every 8th shooter that no route certifies within FAR_TARGET (method
     "unresolved"): how many, their largest F, and the worst four against the mpmath oracle."""
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     for name in args.scenes:
         scene = load_scene(name)
         V, A = scene.patch_vertices, scene.areas

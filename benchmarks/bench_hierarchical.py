@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 from _run_header import print_run_header
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.render import render
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.render import render
 
 RAW = 1e9          # no subdivision: the input triangles
 

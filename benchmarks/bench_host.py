@@ -26,8 +26,8 @@ import time
 import numpy as np
 
 from _run_header import print_run_header
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.render import make_board, render
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.render import make_board, render
 from blockray.params import BoardParams
 
 PHASES = ("formfactor", "commands", "traverse", "board", "solve")
@@ -100,7 +100,7 @@ def traverse_only(scene, board, batches, voxels, threads):
     """CPU us per ray of the block traversal kernel alone (VoxelGrid.traverse_blocks, no packing,
     no statistics) on the render's batches, one call per batch as the render makes them."""
     from blockray import threads as host_threads
-    from blockray.host_driver.voxel import VoxelGrid
+    from blockray.host_driver.traverse.voxel import VoxelGrid
     grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
     points = board.samples.points(scene.patch_vertices)
     inputs = [(points[b.shooter_patch, b.shooter_sample], b.col_off, scene.centroids[b.receiver_patch], b.row_off)
@@ -158,7 +158,7 @@ def main(argv=None):
         row["render_rays_per_cpu_s"] = round(rays / r["cpu_seconds"]["total"])      # the whole render
         try:
             P, Q, bits = queries(scene, board, batches, args.embree_rays)
-            from blockray.host_driver.peer import embree_occluded
+            from blockray.host_driver.traverse.peer import embree_occluded
             hit, e_wall, e_cpu, build = embree_occluded(scene, P, Q)
             row["embree"] = {"rays": len(P), "cpu_us_per_ray": round(e_cpu / len(P) * 1e6, 4),
                              "wall_us_per_ray": round(e_wall / len(P) * 1e6, 4), "build_cpu_s": round(build, 3),

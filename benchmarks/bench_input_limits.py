@@ -25,9 +25,9 @@ import numpy as np
 
 from _run_header import print_run_header
 
-from blockray.host_driver import builtin
-from blockray.host_driver.image import render_image
-from blockray.host_driver.objload import subdivide, subdivision_lower_bound
+from blockray.host_driver.scene import builtin
+from blockray.host_driver.render.image import render_image
+from blockray.host_driver.scene.objload import subdivide, subdivision_lower_bound
 
 
 def image_memory(sizes=(512, 1024)):
@@ -61,7 +61,7 @@ def board_conversion(depth):
     bits = sum(board_memory_bits(BoardParams(patch_depth=depth)))
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "blockray.cli", "verilog", "board", "--patch-depth", str(depth),
+        subprocess.run([sys.executable, "-m", "blockray.host_driver.cli", "verilog", "board", "--patch-depth", str(depth),
                         "--out", os.path.join(tmp, "board.v")], check=True)
         seconds = time.perf_counter() - start
     rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024      # Linux: KiB

@@ -5,8 +5,8 @@ fixed-width records it replaced.
 
 For each scene and board shape (8 x 8 array, P = 8; and a one-part 2 x 2 board) the renderer's
 block rays of ``--shooters`` random shooter columns (all receivers, one batch per shooter as the
-renderer sends them; seeded) go through :class:`~blockray.host_driver.driver.BoardDriver` over
-:class:`~blockray.host_driver.simulated.ModelTransport` (the bit-exact model behind the link),
+renderer sends them; seeded) go through :class:`~blockray.host_driver.board.driver.BoardDriver` over
+:class:`~blockray.host_driver.board.simulated.ModelTransport` (the bit-exact model behind the link),
 and the driver's ``link`` counters give the bytes on one board's link per ray: the block commands
 (BEGIN_BLOCK, LOAD_POINTS, VOXEL, END_BLOCK), one READ_COUNTERS per batch, and the results
 (blocked words, the batch's counter snapshot). The blocked bits are checked against
@@ -27,11 +27,11 @@ import platform
 
 import numpy as np
 
-from blockray.host_driver import builtin
-from blockray.host_driver.driver import BoardDriver
-from blockray.host_driver.render import Visibility
-from blockray.host_driver.simulated import ModelTransport
-from blockray.host_driver.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.scene import builtin
+from blockray.host_driver.board.driver import BoardDriver
+from blockray.host_driver.render.render import Visibility
+from blockray.host_driver.board.simulated import ModelTransport
+from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard

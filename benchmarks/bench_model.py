@@ -30,7 +30,7 @@ from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.protocol import BeginBlock, EndBlock, LoadReceiver, LoadShooter, Voxel
 from blockray.sim.model import BoardModel, ModelBoard
-from blockray.host_driver.board import BlockRay
+from blockray.board import BlockRay
 
 import _shared  # noqa: F401  (tests/ on the path: the tests' scenes)
 from scenes import mesh_scene
@@ -185,21 +185,21 @@ def part_throughput(seed, patches=2000, blocks=300):
 
 
 def _load_scene(name):
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     return load_scene(name)
 
 
 def part_float(scene_name, seed, rays=20000, bits_range=range(10, 21)):
     """Per-ray disagreement of the model (quantised scene) with the golden board (float64 scene)."""
     from blockray.fixedpoint import quantise, choose_bits
-    from blockray.host_driver.golden import GoldenBoard
+    from blockray.host_driver.board.golden import GoldenBoard
     scene = _load_scene(scene_name)
     samples = SampleScheme(8)
     rng = np.random.default_rng(seed)
     N = scene.patches
     # only rays the render casts: pairs that can exchange light (formfactor.exchange_mask), which
     # excludes coplanar pairs (a ray between two patches of one flat wall has form factor 0)
-    from blockray.host_driver.formfactor import exchange_mask
+    from blockray.host_driver.radiosity.formfactor import exchange_mask
     i = rng.integers(0, N, rays)
     k = rng.integers(0, samples.count, rays)
     j = np.empty_like(i)
@@ -243,7 +243,7 @@ def _diag(P, Q, V, n):
 
 def part_render(scene_name, max_shots, bits_range=range(10, 21)):
     """Speed-versus-error table: renders with --board model at each B against --board golden."""
-    from blockray.host_driver.render import render
+    from blockray.host_driver.render.render import render
     scene = _load_scene(scene_name)
     t0 = time.perf_counter()
     gold = render(scene, backend="golden", max_shots=max_shots)

@@ -42,14 +42,14 @@ from bench_formfactor import change_stats
 
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.host_driver import formfactor, solver as solvers
-from blockray.host_driver.backends import make_board
-from blockray.host_driver.board import BlockBits
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.output import write_patches_csv
-from blockray.host_driver.render import render
-from blockray.host_driver.visibility import Visibility, _clear_bits
-from blockray.host_driver.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.radiosity import formfactor, solver as solvers
+from blockray.host_driver.board.backends import make_board
+from blockray.board import BlockBits
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.output import write_patches_csv
+from blockray.host_driver.render.render import render
+from blockray.host_driver.traverse.visibility import Visibility, _clear_bits
+from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
 
 SAMPLES = SampleScheme(8)
 

@@ -10,8 +10,8 @@ renderer's block rays of ``--shooters`` shooter columns (one batch per shooter, 
 does) through three boards:
 
 * ``native``: ``--board verilator``, the BoardDriver over one
-  :class:`~blockray.host_driver.native.NativeTransport` per board (the C++ loop, sim/native/);
-* ``cocotb``: the BoardDriver over one :class:`~blockray.host_driver.simulated.VerilatorTransport`
+  :class:`~blockray.host_driver.board.native.NativeTransport` per board (the C++ loop, sim/native/);
+* ``cocotb``: the BoardDriver over one :class:`~blockray.host_driver.board.simulated.VerilatorTransport`
   per board (one Verilator process per board under cocotb, sim/rtl_harness.py);
 * ``model``: :class:`~blockray.sim.model.ModelBoard`.
 
@@ -39,11 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
-from blockray.host_driver import builtin
-from blockray.host_driver.backends import make_board
-from blockray.host_driver.driver import BoardDriver
-from blockray.host_driver.render import Visibility, render
-from blockray.host_driver.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.scene import builtin
+from blockray.host_driver.board.backends import make_board
+from blockray.host_driver.board.driver import BoardDriver
+from blockray.host_driver.render.render import Visibility, render
+from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard
@@ -53,7 +53,7 @@ COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "board_cycles_per_bo
 
 
 def _boards(params):
-    from blockray.host_driver.simulated import VerilatorTransport
+    from blockray.host_driver.board.simulated import VerilatorTransport
     return {"native": lambda: make_board("verilator", params),
             "cocotb": lambda: BoardDriver(params, name="verilator-cocotb",
                                           transport=lambda p, b: VerilatorTransport(p)),
@@ -130,7 +130,7 @@ def full(scene_name):
 
 
 def clock(libraries, cycles, repeat):
-    from blockray.host_driver.native import native_build
+    from blockray.host_driver.board.native import native_build
     from blockray.sim.native import NativeBoard, NativeBuild, NativeRunError
 
     params = BoardParams(bits=17, patch_depth=256, voxel_depth=125)

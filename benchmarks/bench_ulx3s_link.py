@@ -6,7 +6,7 @@ UART, and the array's own rate.
 
 A one-part board, by default the array ``blockray bitstream`` builds (1 x 2 at B = 16, docs/ulx3s.md): the renderer's
 block rays of ``--shooters`` random shooter columns go through the host driver over the bit-exact
-model behind the link (:class:`~blockray.host_driver.simulated.ModelTransport`, counted here at
+model behind the link (:class:`~blockray.host_driver.board.simulated.ModelTransport`, counted here at
 the transport: every byte the driver sends and receives, identify and load excluded). The link's
 own framing is added (:mod:`blockray.link`): a header byte per result frame (counted as one frame
 per result record: the board sends each as it forms, at UART pace) and a credit grant byte per
@@ -20,13 +20,13 @@ import time
 
 import numpy as np
 
-from blockray.host_driver import builtin
+from blockray.host_driver.scene import builtin
 from blockray.link import DEFAULT_BAUD
-from blockray.host_driver.driver import BoardDriver
-from blockray.host_driver.framed import FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
-from blockray.host_driver.render import Visibility
-from blockray.host_driver.simulated import ModelTransport
-from blockray.host_driver.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.board.driver import BoardDriver
+from blockray.host_driver.board.framed import FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
+from blockray.host_driver.render.render import Visibility
+from blockray.host_driver.board.simulated import ModelTransport
+from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS
@@ -68,7 +68,7 @@ def _framed(core, faults):
 
 def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS, faults=None):
     """Bytes on one board's link for the block rays; ``faults``: through the framed link with
-    them (:class:`~blockray.host_driver.framed.LinkFaults`), else the credited link's figures."""
+    them (:class:`~blockray.host_driver.board.framed.LinkFaults`), else the credited link's figures."""
     scene = builtin.load(scene_name)
     samples = SampleScheme(8)
     params = BoardParams(rows=rows, cols=cols, boards=1, bits=None)

@@ -1,7 +1,7 @@
-"""``python -m blockray``: the command line (blockray/cli.py)."""
+"""``python -m blockray``: the command line (host_driver/cli.py)."""
 
 import sys
 
-from .cli import main
+from .host_driver.cli import main
 
 sys.exit(main())

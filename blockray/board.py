@@ -1,6 +1,6 @@
 """The board interface: block rays in, one blocked/clear bit per ray out.
 
-Every back-end (``golden`` float64, ``model`` bit-exact, the driven boards of host_driver/driver.py) implements
+Every back-end (``golden`` float64, ``model`` bit-exact, the driven boards of host_driver/board/driver.py) implements
 :class:`Board`, and the host driver talks to nothing else. A **block ray** is the paper's bundle:
 the rays from S_b shooter sample points to one end point on each of R_b receiver patches (every
 shooter-receiver pair is a ray), together with the voxels the bundle visits. A row's end point is

@@ -18,7 +18,7 @@ _OPTION = "\x1f"
 def option(name):
     """The parameter ``name`` inside an error's message. A library caller reads ``name`` (the
     parameter of the function or options object it set); the CLI prints the command-line option
-    that sets it (``--name``; blockray/cli.py spells the exceptions)."""
+    that sets it (``--name``; host_driver/cli.py spells the exceptions)."""
     return f"{_OPTION}{name}{_OPTION}"
 
 

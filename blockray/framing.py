@@ -1,5 +1,5 @@
 """Link integrity: frames with a sequence number, an acknowledgement, a length and a CRC-32, COBS
-framed, resent go-back-N. One definition for the host (:mod:`blockray.host_driver.framed`) and
+framed, resent go-back-N. One definition for the host (:mod:`blockray.host_driver.board.framed`) and
 the board's side (the model behind ``model-link``; the RTL is to follow it byte for byte).
 
 A frame before stuffing (docs/board-protocol.md, "Link integrity")::

@@ -1,6 +1,6 @@
 """The serial link's constants (the framing itself is :mod:`blockray.framing`, the gateware
 :mod:`blockray.rtl.link` and :mod:`blockray.rtl.framing`, the host's transport
-:mod:`blockray.host_driver.serial_link`)."""
+:mod:`blockray.host_driver.board.serial_link`)."""
 
 __all__ = ["DEFAULT_BAUD"]
 

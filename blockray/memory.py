@@ -2,7 +2,7 @@
 boards, and the commands that fill them and run a block ray.
 
 Shared by the bit-exact model (sim/model.py), which computes with these memories directly, and
-the host driver (host_driver/driver.py), which sends them to real or simulated boards.
+the host driver (host_driver/board/driver.py), which sends them to real or simulated boards.
 
 Memory layout of a board: patch records in voxel order (a patch registered in k voxels occupies k
 words over the boards; within a voxel in increasing patch id) and a voxel table of (start, count)

@@ -3,7 +3,7 @@ the compact byte format on the link.
 
 One definition serves the gateware (``rtl/board.py`` executes the wide command record,
 ``rtl/core.py`` decodes the byte stream into it), the bit-exact model (``sim/model.py`` executes
-the typed commands), the host driver (``host_driver/driver.py`` encodes them and decodes results)
+the typed commands), the host driver (``host_driver/board/driver.py`` encodes them and decodes results)
 and the testbenches. docs/board-protocol.md embeds :func:`describe`'s output (a test keeps them
 equal).
 

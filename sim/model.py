@@ -10,7 +10,7 @@ Two levels:
   run block rays and OR their bits. It computes the same memories, bits and cycles as building each
   board's command stream and executing it (a test checks that), but gathers a whole block's records
   at once. It is a model of the hardware only: the host's side (commands, encoding, transports)
-  is host_driver/driver.py.
+  is host_driver/board/driver.py.
 
 Commands are the typed records of :mod:`blockray.protocol` (docs/board-protocol.md); their costs
 :class:`blockray.timing.BoardTiming`. Result word: bit ``r * S + s`` is 1 when the ray from

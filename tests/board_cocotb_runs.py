@@ -48,9 +48,9 @@ def run_batch(build, params, runs, tag):
 def cornell_partition(rows, cols, boards, bits, *, voxels=4, shooters=(5, 600), stride=37):
     """The Cornell box through the host driver: params sized for the largest partition, the
     ModelBoard, and its block rays (the renderer's Visibility blocks)."""
-    from blockray.host_driver import builtin
-    from blockray.host_driver.render import Visibility
-    from blockray.host_driver.voxel import VoxelGrid
+    from blockray.host_driver.scene import builtin
+    from blockray.host_driver.render.render import Visibility
+    from blockray.host_driver.traverse.voxel import VoxelGrid
     from blockray.samples import SampleScheme
 
     scene = builtin.load("cornell")

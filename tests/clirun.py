@@ -2,7 +2,7 @@
 
 import json
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 
 
 def cli(capsys, argv):

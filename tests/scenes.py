@@ -5,11 +5,11 @@ import itertools
 
 import numpy as np
 
-from blockray.host_driver.builtin import CAMERAS, DEFAULT_MAX_EDGE, path
-from blockray.host_driver.objload import load_obj, subdivide
-from blockray.host_driver.render import Visibility
-from blockray.host_driver.scene import Scene
-from blockray.host_driver.voxel import VoxelGrid
+from blockray.host_driver.scene.builtin import CAMERAS, DEFAULT_MAX_EDGE, path
+from blockray.host_driver.scene.objload import load_obj, subdivide
+from blockray.host_driver.render.render import Visibility
+from blockray.host_driver.scene.scene import Scene
+from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 

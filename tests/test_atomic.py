@@ -96,7 +96,7 @@ def test_modes_links_and_devices(tmp_path):
 _LIMITED = textwrap.dedent("""
     import resource, signal, sys
     from blockray import atomic
-    from blockray.cli import main
+    from blockray.host_driver.cli import main
     limit = int(sys.argv[1])
     add = atomic.Outputs.add
 
@@ -153,7 +153,7 @@ _HOOKED = textwrap.dedent("""
     # SIGINT ignored, and the child would inherit that
     signal.signal(signal.SIGINT, signal.default_int_handler)
     from blockray import atomic
-    from blockray.cli import main
+    from blockray.host_driver.cli import main
     option, ready, fifo = sys.argv[1:4]
     add = atomic.Outputs.add
 
@@ -206,9 +206,9 @@ def test_vcd_is_replaced_with_the_outputs_or_left_as_it_was(tmp_path, capsys, mo
     renamed with the render's other outputs. A render that fails, or gets SIGTERM, while the
     waveforms are being written leaves the previous files (tests/test_rtl_board.py: a render that succeeds writes
     them, and leaves no temporary)."""
-    from blockray.cli import main
-    from blockray.host_driver.simulated import AmaranthTransport
-    from blockray.host_driver.transport import TransportError
+    from blockray.host_driver.cli import main
+    from blockray.host_driver.board.simulated import AmaranthTransport
+    from blockray.host_driver.board.transport import TransportError
     from scenes import RTL_BITS, room_scene
     room_scene(tmp_path, 1.5)
     vcd, csv = tmp_path / "w.vcd", tmp_path / "w.csv"

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.params import BoardParams
 from blockray.synth import bitstream
 

@@ -1,4 +1,4 @@
-"""Checkpoints and resume (host_driver/checkpoint.py): a render killed (SIGKILL) at a seeded random
+"""Checkpoints and resume (host_driver/render/checkpoint.py): a render killed (SIGKILL) at a seeded random
 step, or in the middle of writing its checkpoint, and resumed, writes the same CSV and image as an
 uninterrupted render, bit for bit, with each solver; a checkpoint of another render is refused."""
 
@@ -12,10 +12,10 @@ import textwrap
 import numpy as np
 import pytest
 
-from blockray.cli import main
-from blockray.host_driver import solver as solvers
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.checkpoint import FILE
+from blockray.host_driver.cli import main
+from blockray.host_driver.radiosity import solver as solvers
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.checkpoint import FILE
 
 SCENE = ["cornell", "--max-edge", "300", "--samples", "2", "--size", "32", "--quiet"]
 #: per solver: its options and the checkpoints (steps) an uninterrupted render writes
@@ -28,8 +28,8 @@ SOLVERS = {"progressive": (["--max-shots", "12"], 12), "jacobi": (["--tolerance"
 _KILLED = textwrap.dedent("""
     import os, signal, sys
     from blockray import atomic
-    from blockray.cli import main
-    from blockray.host_driver import checkpoint
+    from blockray.host_driver.cli import main
+    from blockray.host_driver.render import checkpoint
     kill, where = int(sys.argv[1]), sys.argv[2]
     checkpoint.INTERVAL = 0
     save, fsync, count = checkpoint.Checkpoint.save, atomic._fsync, [0]
@@ -90,7 +90,7 @@ def test_a_checkpoint_of_another_render_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.strip() == f"blockray: error: --resume {folder}: no checkpoint there ({FILE}); a " \
                                         f"render writes one with --checkpoint", err
-    from blockray.host_driver import checkpoint
+    from blockray.host_driver.render import checkpoint
     interval, checkpoint.INTERVAL = checkpoint.INTERVAL, 0
     try:
         assert main(argv + ["--checkpoint", str(folder)]) == 0

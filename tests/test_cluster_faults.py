@@ -1,5 +1,5 @@
 """A --sets render on a Dask cluster that loses a worker, or its scheduler, or every worker
-(host_driver/cluster.py). Workers are killed (SIGKILL) at each phase: while casting, during the
+(host_driver/cluster/cluster.py). Workers are killed (SIGKILL) at each phase: while casting, during the
 sweeps, holding the only copy of an input after Dask dropped the other replicas; the scheduler
 during the cast or the sweeps. A lost worker's tasks run again and the radiosity is the same, bit
 for bit; a lost scheduler or no worker at all ends the render with exit 2 and one line, in
@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blockray.cli import main
-from blockray.host_driver import checkpoint as checkpoints, cluster as clusters
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.render import render
+from blockray.host_driver.cli import main
+from blockray.host_driver.render import checkpoint as checkpoints
+from blockray.host_driver.cluster import cluster as clusters
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.render import render
 
 DASK = str(Path(sys.executable).with_name("dask"))
 SCENE = dict(max_edge=400)

@@ -1,4 +1,4 @@
-"""Contact lines (host_driver/contact.py): patches split where objects rest on them, covered pieces
+"""Contact lines (host_driver/scene/contact.py): patches split where objects rest on them, covered pieces
 dropped. Areas are checked against the footprints' closed forms; that the pieces tile the patch is
 checked by sampling points with barycentric tests (no shapely, which the splitter uses)."""
 
@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from blockray.cli import main
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.contact import rounding, split_contacts
-from blockray.host_driver.render import render
+from blockray.host_driver.cli import main
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.scene.contact import rounding, split_contacts
+from blockray.host_driver.render.render import render
 
 from scenes import balance, closed_box_with_slab, make_scene, prism, rect, rectangle
 
@@ -172,7 +172,7 @@ def test_against_a_wall_the_wall_closes_the_footprint():
 
 
 def test_builtin_room_covered_areas():
-    """The room's covered areas by hand (host_driver/scenes/make_scenes.py): the back wall loses 3
+    """The room's covered areas by hand (host_driver/scene/scenes/make_scenes.py): the back wall loses 3
     sconces (0.4 x 0.12) + 2 bookshelf sides (0.03 x 1.8) + 5 shelves (1.14 x 0.03) = 0.423 m^2; the
     right wall 3 sconces + the sofa back (0.85 x 2.2) and arms (2 x 0.6 x 0.2) = 2.254; the floor 4 table
     legs (0.06^2), 16 chair legs (0.04^2), 2 shelf sides (0.03 x 0.35), the sofa (0.7 x 2.2 + 0.2 x 2.2

@@ -1,4 +1,4 @@
-"""Rows that end at their own points (host_driver/endpoints.py, BlockRay.receiver_weights): every
+"""Rows that end at their own points (host_driver/traverse/endpoints.py, BlockRay.receiver_weights): every
 board tests the ray to the point the weights give, and the rules put the points where they say.
 
 Oracles: the exact predicate on end points computed here from the weights (integer arithmetic),
@@ -11,10 +11,10 @@ import pytest
 
 from blockray.errors import ParameterError
 from blockray.exact import blocked_reference, patch_normals
-from blockray.host_driver.board import BlockRay
-from blockray.host_driver.endpoints import EndPoints
-from blockray.host_driver.golden import GoldenBoard
-from blockray.host_driver.options import RenderOptions
+from blockray.board import BlockRay
+from blockray.host_driver.traverse.endpoints import EndPoints
+from blockray.host_driver.board.golden import GoldenBoard
+from blockray.host_driver.render.options import RenderOptions
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import BoardModel, ModelBoard

@@ -8,10 +8,10 @@ the table in docs/formfactors.md from the same scenes.
 import numpy as np
 import pytest
 
-from blockray.host_driver.closure import absorbed_balance
-from blockray.host_driver.formfactor import form_factor_matrix
-from blockray.host_driver.render import render
-from blockray.host_driver.solver import jacobi
+from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.radiosity.formfactor import form_factor_matrix
+from blockray.host_driver.render.render import render
+from blockray.host_driver.radiosity.solver import jacobi
 
 from scenes import balance, closed_scenes, make_scene
 
@@ -45,7 +45,7 @@ def test_empty_closed_box_absorbs_what_it_emits():
 @pytest.mark.parametrize("prefix", ["empty closed box", "icosphere", "cornell closed"])
 def test_closed_scene_render_balance(prefix):
     """Full renders on the golden board (visibility by 8 rays per pair) with view-factor
-    enforcement (host_driver/closure.py): within 0.05% per channel. The raw factors' balance (not
+    enforcement (host_driver/radiosity/closure.py): within 0.05% per channel. The raw factors' balance (not
     within 0.05% with occluders, docs/formfactors.md) is printed from the report."""
     scene = _scene(prefix)
     result = render(scene, backend="golden", tolerance=1e-6, closure="enforce")
@@ -82,8 +82,8 @@ def test_builtin_room_has_no_open_boxes():
     another surface along its whole length (a contact line, cut at load): no object is open where
     light could get in. Books open at the back once let the wall patches behind them see the
     books' insides (visible row sums of 0.21 there)."""
-    from blockray.host_driver.builtin import path
-    from blockray.host_driver.objload import load_obj
+    from blockray.host_driver.scene.builtin import path
+    from blockray.host_driver.scene.objload import load_obj
     raw = load_obj(path("room"), name="room")
     T, V = raw.triangles, raw.vertices[raw.triangles]
     normals = np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0])

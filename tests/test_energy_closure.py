@@ -1,4 +1,4 @@
-"""View-factor enforcement for closed scenes (host_driver/closure.py): reciprocity and the
+"""View-factor enforcement for closed scenes (host_driver/radiosity/closure.py): reciprocity and the
 summation rule restored, the correction reported, and energy that adds up (issue 17).
 
 Every balance here is computed in the test from B, E, rho and A (``_balance``), not by the
@@ -10,10 +10,10 @@ import pytest
 
 from scenes import box_with_block, closed_box, make_scene
 from blockray.errors import ParameterError
-from blockray.host_driver import closure
-from blockray.host_driver.formfactor import form_factor_matrix
-from blockray.host_driver.render import render
-from blockray.host_driver.solver import jacobi
+from blockray.host_driver.radiosity import closure
+from blockray.host_driver.radiosity.formfactor import form_factor_matrix
+from blockray.host_driver.render.render import render
+from blockray.host_driver.radiosity.solver import jacobi
 
 SEED = 1717
 

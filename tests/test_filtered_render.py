@@ -12,9 +12,9 @@ import json
 import numpy as np
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.filtered import FilterFormat
-from blockray.host_driver.render import render
+from blockray.host_driver.render.render import render
 
 from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
 

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from blockray.host_driver.formfactor import (METHODS, exchange_mask, form_factor_matrix, pair_factors,
+from blockray.host_driver.radiosity.formfactor import (METHODS, exchange_mask, form_factor_matrix, pair_factors,
                                              point_to_triangles, triangle_to_points, unoccluded_factors)
 
 from oracles import (clip_front, contour_oracle, corner_closed_form, far_pair, parallel_closed_form,
@@ -314,7 +314,7 @@ def test_exchange_mask_rules():
 def test_clausen_against_mpmath():
     """The two-branch Taylor form of Cl2 (13 terms near 0, 26 near pi) against mpmath."""
     import mpmath as mp
-    from blockray.host_driver.formfactor import _cl2
+    from blockray.host_driver.radiosity.formfactor import _cl2
     seed = 1313
     print(f"seed={seed}")
     x = np.random.default_rng(seed).uniform(-2 * math.pi, 2 * math.pi, 2000)
@@ -339,7 +339,7 @@ def test_far_pairs_within_their_bound_of_the_closed_form():
     """Random far pairs: the default (cubature wherever its bound allows, at FAR_TARGET) against the
     exact closed form (``target=0``) and, where they differ by more than the target, against the
     mpmath oracle."""
-    from blockray.host_driver.formfactor import FAR_TARGET
+    from blockray.host_driver.radiosity.formfactor import FAR_TARGET
     seed = 1315
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)
@@ -376,7 +376,7 @@ def test_far_pairs_within_their_bound_of_the_closed_form():
 
 def test_pair_cache_reuses_the_same_bits():
     """Columns through a PairCache (each unordered pair computed once) equal the uncached ones."""
-    from blockray.host_driver.formfactor import PairCache
+    from blockray.host_driver.radiosity.formfactor import PairCache
     tris, _ = closed_box(2)
     scene = make_scene(tris)
     cache = PairCache(scene)
@@ -389,7 +389,7 @@ def test_pair_cache_reuses_the_same_bits():
 
 def test_pair_sample_weights_equal_the_per_pair_ones():
     """The reverse rays' weights of many pairs in one call, bit for bit the per-pair ones."""
-    from blockray.host_driver.formfactor import pair_sample_weights, sample_weights
+    from blockray.host_driver.radiosity.formfactor import pair_sample_weights, sample_weights
     from blockray.samples import SampleScheme
     tris, _ = closed_box(2)
     tris = np.concatenate([tris, rectangle([0.2, 0.2, 0.3], [0.5, 0, 0.1], [0, 0.4, 0.2], 1, 1)])
@@ -402,7 +402,7 @@ def test_pair_sample_weights_equal_the_per_pair_ones():
     many = pair_sample_weights(scene, samples, shooters, receivers)
     one = np.array([sample_weights(scene, samples, i, [j])[0] for i, j in zip(shooters, receivers)])
     assert (many == one).all() and (many > 0).any() and (many == 0).any()
-    from blockray.host_driver.formfactor import samples_in_front
+    from blockray.host_driver.radiosity.formfactor import samples_in_front
     V = scene.patch_vertices
     for i, j, row in zip(shooters[:10], receivers[:10], many[:10]):      # the definition, pair by pair
         points = samples.points(V[i][None])[0]
@@ -449,7 +449,7 @@ def _check_grazing(pairs, label):
     """Each (shooter, receiver, clipped receiver, clipped shooter) against the mpmath oracle of the
     clipped polygons: the default within FAR_TARGET (1e-6, a tenth of issue 17's 1e-5); returns
     the closed form's worst error."""
-    from blockray.host_driver.formfactor import FAR_TARGET
+    from blockray.host_driver.radiosity.formfactor import FAR_TARGET
     used = np.zeros(len(METHODS), dtype=np.int64)
     worst_closed = 0.0
     for Ti, Tj, P, Q in pairs:
@@ -496,7 +496,7 @@ CORNELL_GRAZING = [(630, 688), (623, 693), (650, 735), (634, 692)]
 
 
 def test_cornell_worst_grazing_pairs_against_the_oracle():
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     V = load_scene("cornell", contact=False).patch_vertices       # the pairs' indices are the uncut scene's
     pairs = [(V[i], V[j], clip_front(V[j], V[i]), clip_front(V[i], V[j])) for i, j in CORNELL_GRAZING]
     worst_closed, _ = _check_grazing(pairs, "cornell")

@@ -20,7 +20,7 @@ import os
 import numpy as np
 from hypothesis import HealthCheck, Phase, assume, given, seed, settings, strategies as st
 
-from blockray.host_driver.formfactor import FAR_TARGET, METHODS, pair_factors
+from blockray.host_driver.radiosity.formfactor import FAR_TARGET, METHODS, pair_factors
 from oracles import clip_front, contour_oracle
 
 SEED = int(os.environ.get("BLOCKRAY_FF_SEED", "34"))

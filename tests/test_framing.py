@@ -1,4 +1,4 @@
-"""Link integrity (blockray/framing.py, host_driver/framed.py): the CRC against independent
+"""Link integrity (blockray/framing.py, host_driver/board/framed.py): the CRC against independent
 implementations, frames, resynchronisation after garbage, the go-back-N window, two endpoints
 over a faulty line, and renders through ``--board model-link --link-faults`` that must equal the
 fault-free render byte for byte or end with exit 2 and one line. Seeded; the seeds are printed."""
@@ -9,14 +9,14 @@ import zlib
 
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.framing import (MAX_PAYLOAD, RESEND, Endpoint, Frame, FrameError, FrameSplitter, LinkConfig, crc32,
                               encode_frame, parse_frame, wire_frame_bytes)
-from blockray.host_driver.framed import FaultInjector, FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
-from blockray.host_driver.driver import BoardDriver
-from blockray.host_driver.render import render
-from blockray.host_driver.simulated import ModelTransport
-from blockray.host_driver.transport import TransportError
+from blockray.host_driver.board.framed import FaultInjector, FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
+from blockray.host_driver.board.driver import BoardDriver
+from blockray.host_driver.render.render import render
+from blockray.host_driver.board.simulated import ModelTransport
+from blockray.host_driver.board.transport import TransportError
 
 import clirun
 from scenes import RTL_PARAMS, room_scene

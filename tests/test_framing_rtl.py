@@ -15,7 +15,7 @@ from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
 from blockray.framing import STATUS, Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
-from blockray.host_driver.framed import FaultInjector
+from blockray.host_driver.board.framed import FaultInjector
 from blockray.rtl.framing import FramedBridge, FrameReceiver
 
 

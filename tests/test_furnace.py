@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from blockray.host_driver.formfactor import form_factor_matrix
+from blockray.host_driver.radiosity.formfactor import form_factor_matrix
 from scenes import closed_box, make_scene
 
 RHO, E = 0.5, 1.0
@@ -96,7 +96,7 @@ def write_obj(path, T, decimals):
 def test_the_issue_cube_renders_B_2_through_the_golden_board(tmp_path):
     """The issue's cube: 6 x 6 per face, vertices at multiples of 1/6 written as 0.166666667,
     rendered by the CLI with the golden board (rays included): B = 2 within 1e-6, exit 0."""
-    from blockray.cli import main
+    from blockray.host_driver.cli import main
     obj = tmp_path / "cube.obj"
     write_obj(obj, closed_box(6, 1.0)[0], 9)
     csv = tmp_path / "cube.csv"

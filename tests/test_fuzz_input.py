@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, given, note, seed, settings, strategies as st
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from scenes import BOX, BOX_MTL
 
 SEED = int(os.environ.get("BLOCKRAY_FUZZ_SEED", "18"))

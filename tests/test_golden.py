@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from blockray.exact import blocked_block, blocked_reference, patch_normals
-from blockray.host_driver.board import BlockRay
-from blockray.host_driver.golden import GoldenBoard
+from blockray.board import BlockRay
+from blockray.host_driver.board.golden import GoldenBoard
 from blockray.samples import SampleScheme
 
 from scenes import make_scene, rectangle
@@ -312,8 +312,8 @@ def test_tiny_facing_triangles_beside_a_huge_one():
     """Issue 18 regression: two facing triangles 1e-3 across, 5e-5 apart, next to a triangle 1e6
     across. A tolerance scaled to the whole scene (1e-10 of 1e6 = 1e-4) took them for coplanar and
     gave the receiver B = 0; exact signs give it its first-bounce radiosity rho E F."""
-    from blockray.host_driver.formfactor import pair_factors
-    from blockray.host_driver.render import render
+    from blockray.host_driver.radiosity.formfactor import pair_factors
+    from blockray.host_driver.render.render import render
     lo = np.array([[0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]])                 # normal +z: the receiver
     hi = lo[::-1] + [0, 0, 5e-5]                                            # normal -z: the emitter
     huge = np.array([[-5e5, -5e5, -10.0], [-5e5, 5e5, -10.0], [5e5, -5e5, -10.0]])   # below, facing down

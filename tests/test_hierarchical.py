@@ -1,4 +1,4 @@
-"""--solver hierarchical (host_driver/hierarchical.py, host_driver/elements.py) against oracles
+"""--solver hierarchical (host_driver/render/hierarchical.py, host_driver/radiosity/elements.py) against oracles
 that share no code with it: Howell's closed forms for parallel and perpendicular squares and for a
 point above a rectangle, computed here; a receiver hidden by a blocker (radiosity exactly its
 emission); closed furnaces, where B = E / (1 - rho) everywhere; the energy balance of a closed
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from blockray.errors import ParameterError
-from blockray.host_driver.elements import ElementPoints
-from blockray.host_driver.render import render
+from blockray.host_driver.radiosity.elements import ElementPoints
+from blockray.host_driver.render.render import render
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard
 
@@ -202,7 +202,7 @@ def test_model_and_golden_same_blocked_bits():
                                             ({"closure": "symmetric"}, "closure"),
                                             ({"end_points": "kernel"}, "end_points")])
 def test_bad_options_named(flat, parameter):
-    from blockray.host_driver.options import RenderOptions
+    from blockray.host_driver.render.options import RenderOptions
     with pytest.raises(ParameterError) as e:
         RenderOptions.of(solver="hierarchical", **flat)
     assert e.value.parameter == parameter
@@ -241,7 +241,7 @@ def test_cli_writes_leaves_and_report(tmp_path, capsys):
     import csv
     import json
     from clirun import cli
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     out = {k: tmp_path / f"o.{k}" for k in ("csv", "json", "png")}
     code, err = cli(capsys, ["render", "cornell", "--max-edge", "1e9", "--solver", "hierarchical", "--epsilon", "1e-2",
                              "--patches", out["csv"], "--report", out["json"], "--image", out["png"], "--size", 32])
@@ -274,7 +274,7 @@ def test_cornell_verilator_same_as_model():
     levels) on the simulated RTL (2 x 2 array, P = 2): the model's visible fractions, radiosity,
     tests and board cycles exactly. About 60 s with the B = 20 harness's first build."""
     from scenes import RTL_PARAMS
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("cornell", max_edge=1e9)
     model, rtl = (render(scene, backend=b, params=RTL_PARAMS, solver="hierarchical", epsilon=1e-2)
                   for b in ("model", "verilator"))

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from blockray import extras
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.errors import ParameterError, SceneError
-from blockray.host_driver import builtin
-from blockray.host_driver.objload import (LoadLimits, TOKEN_CHARS, load_obj, subdivide, subdivision_lower_bound)
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.render import render
-from blockray.host_driver.scene import COORDINATE_LIMIT
+from blockray.host_driver.scene import builtin
+from blockray.host_driver.scene.objload import (LoadLimits, TOKEN_CHARS, load_obj, subdivide, subdivision_lower_bound)
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.render import render
+from blockray.host_driver.scene.scene import COORDINATE_LIMIT
 
 from clirun import assert_one_line_error, cli
 from scenes import BOX, BOX_MTL, write
@@ -34,7 +34,7 @@ def subprocess_cli(argv, timeout=60):
     """(exit status, stderr, seconds) of the installed CLI in a fresh process, killed after
     ``timeout`` seconds (a hang fails the test instead of stalling the suite)."""
     start = time.perf_counter()
-    result = subprocess.run([sys.executable, "-m", "blockray.cli", *map(str, argv)], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "blockray.host_driver.cli", *map(str, argv)], capture_output=True,
                             text=True, timeout=timeout)
     return result.returncode, result.stderr, time.perf_counter() - start
 
@@ -42,7 +42,7 @@ def subprocess_cli(argv, timeout=60):
 @pytest.fixture
 def no_render(monkeypatch):
     """Fail the test if the render starts: the checks under test must come before it."""
-    import blockray.host_driver.render as render_module
+    import blockray.host_driver.render.render as render_module
 
     def refuse(*args, **kwargs):
         raise AssertionError("the render started before the bad option was refused")
@@ -418,7 +418,7 @@ def test_nul_in_a_material_library_name_is_an_error(tmp_path):
 
 
 def test_gathering_solver_matrix_beyond_memory_is_refused(capsys, no_render, monkeypatch):
-    from blockray.host_driver import solver
+    from blockray.host_driver.radiosity import solver
     # cornell's 966 patches (928, cut round the blocks): a 7.1 MiB matrix, refused under a 4 MiB limit;
     # progressive needs none
     monkeypatch.setattr(solver, "MAX_MATRIX_BYTES", 4 << 20)
@@ -487,7 +487,7 @@ def test_verilator_board_under_a_memory_ulimit_is_a_one_line_error(tmp_path):
     def limited():
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     path = write(tmp_path, BOX, BOX_MTL, name="box")
-    result = subprocess.run([sys.executable, "-m", "blockray.cli", "render", str(path), "--board", "verilator",
+    result = subprocess.run([sys.executable, "-m", "blockray.host_driver.cli", "render", str(path), "--board", "verilator",
                              "--rows", "1", "--cols", "1", "--quiet"], capture_output=True, text=True,
                             timeout=120, preexec_fn=limited)
     assert_one_line_error(result.returncode, result.stderr, "Verilog conversion", "mmap failed to reserve",

@@ -7,9 +7,9 @@ import pytest
 from PIL import Image
 
 from blockray.errors import ParameterError
-from blockray.host_driver.image import render_image, save_png, vertex_radiosity
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.scene import Camera
+from blockray.host_driver.render.image import render_image, save_png, vertex_radiosity
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.scene.scene import Camera
 
 from scenes import make_scene
 

@@ -1,6 +1,6 @@
 """Run-time invariants of the solvers and the render (issue 34): no non-finite radiosity, form
 factor or residual is written, and a solve that would diverge ends with one line, exit status 2,
-naming the patch (host_driver/solver.py, "Invariants")."""
+naming the patch (host_driver/radiosity/solver.py, "Invariants")."""
 
 import json
 
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from blockray.errors import SolveError
-from blockray.host_driver import formfactor, solver
-from blockray.host_driver.closure import absorbed_balance
-from blockray.host_driver.formfactor import form_factor_matrix
-from blockray.host_driver.objload import load_obj
-from blockray.host_driver.output import write_patches_csv, write_report_json
-from blockray.host_driver.render import render
+from blockray.host_driver.radiosity import formfactor, solver
+from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.radiosity.formfactor import form_factor_matrix
+from blockray.host_driver.scene.objload import load_obj
+from blockray.host_driver.render.output import write_patches_csv, write_report_json
+from blockray.host_driver.render.render import render
 
 from scenes import closed_box, make_scene
 from clirun import assert_one_line_error, cli
@@ -135,7 +135,7 @@ def test_gathering_divergence_names_the_largest_row_sum(box, gather):
 
 
 def test_sweeps_without_the_matrix_name_the_patch_that_moved_or_went_non_finite(box):
-    # the host + board sets' form (host_driver/cluster.py): only the sweep is known
+    # the host + board sets' form (host_driver/cluster/cluster.py): only the sweep is known
     scene, F = box
     E, rho = scene.emission, scene.reflectance
     with pytest.raises(SolveError, match=r"residual grew from .* after \d+ sweeps; patch \d+'s radiosity moved most"):
@@ -192,7 +192,7 @@ def test_check_finite_names_the_patch(box):
 
 
 def test_row_sums_of_the_sets_totals_are_those_of_the_columns(box):
-    # host + board sets send each shooter's share of the sums (host_driver/cluster.py)
+    # host + board sets send each shooter's share of the sums (host_driver/cluster/cluster.py)
     scene, F = box
     A = scene.areas
     whole = solver.column_sums(scene, F)

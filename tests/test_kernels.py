@@ -6,11 +6,11 @@ tests/test_hard_cases.py via BoardModel.execute.)"""
 import numpy as np
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.exact import blocked_reference, patch_normals
 from blockray import threads
-from blockray.host_driver.render import render
-from blockray.host_driver.voxel import TraversalStats, VoxelGrid
+from blockray.host_driver.render.render import render
+from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim import kernel
@@ -135,7 +135,8 @@ def test_traversals_do_not_depend_on_the_thread_count(parallel_always):
 
 def test_sample_weights_do_not_depend_on_the_thread_count(monkeypatch):
     """The rays' weights of many pairs, serial and on the pool with each thread count: the same bits."""
-    from blockray.host_driver import builtin, formfactor
+    from blockray.host_driver.scene import builtin
+    from blockray.host_driver.radiosity import formfactor
     scene, samples = builtin.load("cornell"), SampleScheme(8)
     rng = rng_for("weights-threads")
     shooters, receivers = rng.integers(0, scene.patches, 400), rng.integers(0, scene.patches, 400)
@@ -177,7 +178,7 @@ def test_stats_of_a_batch_equal_the_blocks_one_by_one():
 
 
 def test_render_does_not_depend_on_the_thread_count(parallel_always):
-    from blockray.host_driver import builtin
+    from blockray.host_driver.scene import builtin
     scene = builtin.load("cornell")
     runs = [render(scene, backend="model", max_shots=6, threads=n) for n in thread_counts()]
     for r in runs[1:]:

@@ -4,7 +4,11 @@ Every ``import`` and ``from ... import`` of the package's sources is read with :
 (including imports inside functions: a lazy import is still a dependency), resolved to a
 ``blockray.*`` module, and checked against the layers:
 
-    blockray (shared base)  <  rtl  <  synth, sim  <  host_driver  <  cli (blockray/cli.py)  <  __main__
+    blockray (shared base)  <  rtl  <  synth, sim  <  host_driver  <  __main__
+
+and inside host_driver, its subpackages in the order of the render's flow:
+
+    scene, radiosity, board  <  traverse  <  cluster  <  render  <  cli (host_driver/cli.py)
 
 A module may import its own package and the packages of lower layers only; synth and sim, on the
 same layer, may not import each other. Module-level cycles are refused everywhere.
@@ -17,10 +21,17 @@ ROOT = Path(__file__).resolve().parent.parent
 #: source folder -> package (pyproject's package-dir)
 FOLDERS = {"blockray": "blockray", "rtl": "blockray.rtl", "sim": "blockray.sim",
            "host_driver": "blockray.host_driver", "synth": "blockray.synth"}
-#: package (or top module) -> layer
+#: package (or top module) -> layer; a module's layer is that of its longest listed prefix
 LAYERS = {"blockray": 0, "blockray.rtl": 1, "blockray.synth": 2, "blockray.sim": 2,
-          "blockray.host_driver": 3, "blockray.cli": 4,
-          "blockray.__main__": 5}     # python -m blockray: the entry point above the CLI
+          "blockray.host_driver": 3,
+          # the scene, the form factors and solvers, the board driver with its transports: side by side
+          "blockray.host_driver.scene": 3, "blockray.host_driver.radiosity": 3,
+          "blockray.host_driver.board": 3,
+          "blockray.host_driver.traverse": 4,     # voxel grid, block rays, visibility (form factors' weights)
+          "blockray.host_driver.cluster": 5,      # --sets over Dask: boards, traversal, solvers
+          "blockray.host_driver.render": 6,       # the render paths, their options and outputs, sweep
+          "blockray.host_driver.cli": 7,
+          "blockray.__main__": 8}     # python -m blockray: the entry point above the CLI
 #: known violations, each with the issue that removes it (the test fails once it is gone, so the
 #: entry is deleted with the fix)
 KNOWN = {}
@@ -29,11 +40,14 @@ KNOWN_CYCLES = {}
 
 
 def modules():
-    """{module name: path} of every source file."""
+    """{module name: path} of every source file (subpackages: folders with an ``__init__.py``)."""
     out = {}
     for folder, package in FOLDERS.items():
-        for path in sorted((ROOT / folder).glob("*.py")):
-            name = package if path.stem == "__init__" else f"{package}.{path.stem}"
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = path.relative_to(ROOT / folder).parts
+            if not all((ROOT / folder).joinpath(*parts[:i], "__init__.py").exists() for i in range(len(parts))):
+                continue                                     # a script beside data, not a module
+            name = ".".join([package, *parts[:-1]] + ([] if path.stem == "__init__" else [path.stem]))
             out[name] = path
     return out
 
@@ -60,10 +74,12 @@ def imports(name, path, known):
 
 
 def layer(module):
-    if module in LAYERS:
-        return module, LAYERS[module]
-    package = module.rsplit(".", 1)[0]
-    return package, LAYERS[package]
+    """(package, rank) of the longest LAYERS prefix of ``module``."""
+    parts = module.split(".")
+    for n in range(len(parts), 0, -1):
+        if ".".join(parts[:n]) in LAYERS:
+            return ".".join(parts[:n]), LAYERS[".".join(parts[:n])]
+    raise KeyError(module)
 
 
 def graph():
@@ -125,5 +141,5 @@ def test_the_checker_sees_imports():
     g = graph()
     assert "blockray.protocol" in g["blockray.rtl.board"]                 # relative, two dots
     assert "blockray.rtl.core" in g["blockray.sim.rtl_harness"]           # inside a function
-    assert "blockray.host_driver.render" in g["blockray.cli"]
-    assert "blockray.sim.model" in g["blockray.host_driver.backends"]
+    assert "blockray.host_driver.render.render" in g["blockray.host_driver.cli"]
+    assert "blockray.sim.model" in g["blockray.host_driver.board.backends"]

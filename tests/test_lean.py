@@ -17,7 +17,7 @@ from amaranth.sim import Simulator
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
 from blockray.filtered import FilterFormat, lean_format
-from blockray.host_driver.render import render
+from blockray.host_driver.render.render import render
 from blockray.params import BoardParams
 from blockray.records import pack_array, patch_columns, patch_layout
 from blockray.rtl.board import BoardTop

@@ -5,7 +5,7 @@ import pytest
 
 from blockray.errors import CapacityError, ParameterError
 from blockray.exact import blocked_reference, blocked_block
-from blockray.host_driver.board import BlockRay
+from blockray.board import BlockRay
 from blockray.params import BoardParams
 from blockray.records import patch_layout, unpack_array
 from blockray.samples import SampleScheme
@@ -230,7 +230,7 @@ def test_execute_rejects_bad_addresses():
 def test_margin_keeps_host_voxel_traversal_conservative(bits):
     """With the host's VoxelGrid grown by board.margin, the blocks' voxels hold every patch that
     blocks a quantised ray: the answer equals testing all patches (coarse B: large displacement)."""
-    from blockray.host_driver.voxel import VoxelGrid
+    from blockray.host_driver.traverse.voxel import VoxelGrid
     samples = SampleScheme(8)
     scene = random_scene(10 + bits, n=60)
     board = ModelBoard(BoardParams(rows=8, cols=8, boards=4, bits=bits))
@@ -277,7 +277,7 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
 
 def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
     # A sliver far thinner than the grid step at B = 10 flattens; the user is told, not left guessing.
-    from blockray.host_driver.objload import load_obj
+    from blockray.host_driver.scene.objload import load_obj
     from blockray.samples import SampleScheme
     from blockray.sim.model import ModelBoard, QuantisationWarning
     obj = ["v 0 0 0", "v 100 0 0", "v 0 100 0", "v 100 100 0", "v 50 50 0.001", "v 60 50 0.001", "v 55 50.0001 0.002",

@@ -1,4 +1,4 @@
-"""The native Verilator harness (sim/native/, host_driver/native.py): the board's Verilog clocked
+"""The native Verilator harness (sim/native/, host_driver/board/native.py): the board's Verilog clocked
 by a C++ loop, the transport of ``--board verilator``.
 
 * RTL = model, bit for bit and cycle for cycle (every counter of the report, the board's cycle
@@ -16,10 +16,10 @@ native harness is cached by content (docs/rtl-render.md, "Build").
 import numpy as np
 import pytest
 
-from blockray.cli import main
-from blockray.host_driver import builtin
-from blockray.host_driver.backends import make_board
-from blockray.host_driver.render import render
+from blockray.host_driver.cli import main
+from blockray.host_driver.scene import builtin
+from blockray.host_driver.board.backends import make_board
+from blockray.host_driver.render.render import render
 from blockray.params import BoardParams
 from blockray.sim.drive import HostTiming
 from blockray.sim.native import NativeBuildError, Ports, build_native

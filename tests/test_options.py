@@ -1,4 +1,4 @@
-"""The render configuration (host_driver/options.py): one frozen object built from flat names or
+"""The render configuration (host_driver/render/options.py): one frozen object built from flat names or
 the command line, each bad value refused with the parameter (and on the command line the
 option) that set it, before any scene is read."""
 
@@ -6,10 +6,10 @@ import dataclasses
 
 import pytest
 
-from blockray.cli import _option, build_parser, main
+from blockray.host_driver.cli import _option, build_parser, main
 from blockray.errors import ParameterError
 from blockray.filtered import FilterFormat
-from blockray.host_driver.options import BoardOptions, RenderOptions
+from blockray.host_driver.render.options import BoardOptions, RenderOptions
 from blockray.params import BoardParams
 
 
@@ -77,7 +77,7 @@ def test_from_args_is_of_with_the_options_names():
 
 
 def test_render_takes_options_or_names_not_both():
-    from blockray.host_driver.render import render
+    from blockray.host_driver.render.render import render
     with pytest.raises(TypeError, match="not both"):
         render(None, options=RenderOptions.of(), solver="jacobi")
 

@@ -3,10 +3,11 @@ fails or is interrupted; a board the CLI builds (--link-faults) likewise."""
 
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.errors import SolveError
-from blockray.host_driver import backends, render as renders
-from blockray.host_driver.builtin import load_scene
+from blockray.host_driver.board import backends
+from blockray.host_driver.render import render as renders
+from blockray.host_driver.scene.builtin import load_scene
 
 
 @pytest.fixture

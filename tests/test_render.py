@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from blockray.cli import main
-from blockray.host_driver.objload import load_obj
-from blockray.host_driver.render import render
+from blockray.host_driver.cli import main
+from blockray.host_driver.scene.objload import load_obj
+from blockray.host_driver.render.render import render
 
 from scenes import box_faces, write_obj
 
@@ -165,7 +165,7 @@ def test_gathering_render_returns_the_factors_progressive_refinement_shoots(tmp_
     # benchmarks/bench_room_ties.py solves a board's F again (exactly, and by progressive
     # refinement): the F a gathering render returns must be the one it solved with, column for
     # column the one a progressive render shoots, so both solves reproduce the renders to the bit.
-    from blockray.host_driver import solver as solvers
+    from blockray.host_driver.radiosity import solver as solvers
     scene = _occluded_room(tmp_path)
     gathered = render(scene, backend="model", voxels=4, solver="jacobi", tolerance=1e-8)
     F = gathered.factors
@@ -186,7 +186,7 @@ def test_cli_board_choices_come_from_the_registry(capsys, monkeypatch):
     """--board lists the registry's back-ends (exactly, in order) and their help; an unknown name
     is refused (exit 2) with the choices, and the link-timing options need a board simulated
     cycle by cycle."""
-    from blockray.host_driver.backends import BACKENDS
+    from blockray.host_driver.board.backends import BACKENDS
     # argparse wraps help to the terminal's width, breaking lines at hyphens too ("model-" /
     # "link"): a terminal too wide to wrap anything keeps each phrase on one line
     monkeypatch.setenv("COLUMNS", "100000")
@@ -212,7 +212,7 @@ def test_model_within_1e_4_of_golden(scene):
     """The fixed-point model's radiosity is within 1e-4 RMS relative of the golden board's on the
     built-in scenes at their default B, in each channel and over all channels, as
     docs/formfactors.md and benchmarks/bench_render.py measure it (room: 15 min of golden)."""
-    from blockray.host_driver import builtin
+    from blockray.host_driver.scene import builtin
     scene = builtin.load(scene)
     golden = render(scene, backend="golden").radiosity
     model = render(scene, backend="model").radiosity

@@ -1,5 +1,5 @@
-"""Full radiosity runs through the host driver and simulated boards (host_driver/driver.py over
-the transports of host_driver/simulated.py).
+"""Full radiosity runs through the host driver and simulated boards (host_driver/board/driver.py over
+the transports of host_driver/board/simulated.py).
 
 A small scene goes through every back-end (golden, model, amaranth, verilator): the simulated RTL
 must give the model's blocked bits, per-patch radiosity to the last bit and counters exactly; the
@@ -14,14 +14,14 @@ import random
 import numpy as np
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.errors import CapacityError
-from blockray.host_driver.backends import make_board
-from blockray.host_driver.driver import BoardDriver, blocked_bits
-from blockray.host_driver.render import render
-from blockray.host_driver.simulated import ModelTransport
-from blockray.host_driver.transport import TransportError
-from blockray.host_driver.voxel import VoxelGrid
+from blockray.host_driver.board.backends import make_board
+from blockray.host_driver.board.driver import BoardDriver, blocked_bits
+from blockray.host_driver.render.render import render
+from blockray.host_driver.board.simulated import ModelTransport
+from blockray.host_driver.board.transport import TransportError
+from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.params import BoardParams
 from blockray.protocol import MAGIC, BoardResult, ResultKind
 from blockray.samples import SampleScheme
@@ -95,8 +95,8 @@ def test_blocked_bits_and_block_cycles_equal_the_model(scene, backend):
     expect = model.run(blocks[:len(blocks) // 2]) + model.run(blocks[len(blocks) // 2:])
     host = (HostTiming(0.2, burst=0.003, burst_length=(30, 200)),
             HostTiming(0.3, burst=0.003, burst_length=(30, 200)), seed) if backend != "verilator-cocotb" else None
-    if backend == "verilator-cocotb":          # the cocotb route (host_driver/simulated.py)
-        from blockray.host_driver.simulated import VerilatorTransport
+    if backend == "verilator-cocotb":          # the cocotb route (host_driver/board/simulated.py)
+        from blockray.host_driver.board.simulated import VerilatorTransport
         board = BoardDriver(PARAMS, transport=lambda p, b: VerilatorTransport(p))
     else:
         board = make_board(backend, PARAMS, host=host)
@@ -226,7 +226,7 @@ def test_verilator_vcd(scene, tmp_path):
 def test_amaranth_transport_reset_and_silence():
     """The transport's reset clears the board (counters restart, queued bytes dropped), and a
     board that owes nothing makes recv fail with a clear error instead of hanging."""
-    from blockray.host_driver.simulated import AmaranthTransport
+    from blockray.host_driver.board.simulated import AmaranthTransport
     from blockray.protocol import BoardProtocol, Identify, ReadCounters, Voxel
     params = BoardParams(rows=2, cols=2, bits=8, patch_depth=8, voxel_depth=4)
     proto = BoardProtocol(params)

@@ -1,4 +1,4 @@
-"""Scale-out over host + board sets (host_driver/scaleout.py, solver.gauss_seidel_sets)."""
+"""Scale-out over host + board sets (host_driver/cluster/scaleout.py, solver.gauss_seidel_sets)."""
 
 import json
 import logging
@@ -11,13 +11,13 @@ import time
 import numpy as np
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.errors import ParameterError
-from blockray.host_driver import solver as solvers
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.render import render
-from blockray.host_driver.scaleout import assign_sets, exchange_bytes_per_sweep
-from blockray.host_driver.scene import Scene
+from blockray.host_driver.radiosity import solver as solvers
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.render import render
+from blockray.host_driver.cluster.scaleout import assign_sets, exchange_bytes_per_sweep
+from blockray.host_driver.scene.scene import Scene
 
 
 def _random_system(seed, n=40):
@@ -266,7 +266,7 @@ def test_quiet_silences_dask(tmp_path):
     """--quiet: nothing on stderr, Dask's INFO lines included (the local cluster's start and close)."""
     import subprocess
     import sys
-    done = subprocess.run([sys.executable, "-m", "blockray.cli", "render", "cornell", "--max-edge", "1000",
+    done = subprocess.run([sys.executable, "-m", "blockray.host_driver.cli", "render", "cornell", "--max-edge", "1000",
                            "--solver", "jacobi", "--sets", "2", "--workers", "1", "--quiet",
                            "--patches", str(tmp_path / "p.csv")], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0 and done.stderr == "", done.stderr

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from blockray.errors import ParameterError, SceneError
-from blockray.host_driver import builtin
-from blockray.host_driver.objload import (DEFAULT_REFLECTANCE, SceneWarning, load_obj, subdivide)
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.scene import Scene
+from blockray.host_driver.scene import builtin
+from blockray.host_driver.scene.objload import (DEFAULT_REFLECTANCE, SceneWarning, load_obj, subdivide)
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.scene.scene import Scene
 
 MTL = """\
 newmtl white
@@ -291,7 +291,7 @@ def test_cornell_loads_with_published_camera():
     assert (s.reflectance[groups(s, "red_wall")] == [0.65, 0.05, 0.05]).all()
     assert (s.reflectance[groups(s, "green_wall")] == [0.12, 0.45, 0.15]).all()
     # --max-edge overrides the default subdivision; the file's 46 triangles, or 58 with the floor's
-    # two cut round the blocks' footprints (host_driver/contact.py)
+    # two cut round the blocks' footprints (host_driver/scene/contact.py)
     assert load_scene("cornell", max_edge=1e9, contact=False).patches == 46
     assert load_scene("cornell", max_edge=1e9).patches == 58
 
@@ -393,7 +393,7 @@ def test_load_scene_path_and_unknown_name(tmp_path):
         load_scene("no-such-scene")
 
 
-SCENES = Path(__file__).resolve().parents[1] / "host_driver" / "scenes"   # the source tree
+SCENES = Path(__file__).resolve().parents[1] / "host_driver" / "scene" / "scenes"   # the source tree
 
 
 def make_scenes_module():

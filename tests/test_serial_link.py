@@ -13,15 +13,15 @@ import tty
 import numpy as np
 import pytest
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.framing import BOARD_LINK, Endpoint
-from blockray.host_driver.backends import build_board
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.options import RenderOptions
-from blockray.host_driver.render import render
-from blockray.host_driver.serial_link import SerialTransport
+from blockray.host_driver.board.backends import build_board
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.render.options import RenderOptions
+from blockray.host_driver.render.render import render
+from blockray.host_driver.board.serial_link import SerialTransport
 from blockray.params import BoardParams
-from blockray.host_driver.transport import TransportError
+from blockray.host_driver.board.transport import TransportError
 
 
 @pytest.fixture
@@ -117,7 +117,7 @@ class ModelPtyBoard(PtyBoard):
     (the bitstream's configuration) behind the board's half of the framed link."""
 
     def __init__(self, fd, params):
-        from blockray.host_driver.simulated import ModelTransport
+        from blockray.host_driver.board.simulated import ModelTransport
         super().__init__(fd, seed=0)
         self.model = ModelTransport(params)
 

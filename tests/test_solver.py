@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from blockray.host_driver.formfactor import form_factor_matrix
-from blockray.host_driver.solver import (ambient, gauss_seidel, jacobi, progressive_refinement,
+from blockray.host_driver.radiosity.formfactor import form_factor_matrix
+from blockray.host_driver.radiosity.solver import (ambient, gauss_seidel, jacobi, progressive_refinement,
                                          residual)
 
 from scenes import closed_box, make_scene
@@ -161,7 +161,7 @@ def test_gauss_seidel_needs_fewer_sweeps(box):
 def test_first_shot_from_a_square_light():
     """D.3 diagnostic: after the light's shots, B_j = rho_j E_L F_{j -> L}, with F from the
     closed form for a differential element under a rectangle (four corner rectangles)."""
-    from blockray.host_driver.formfactor import unoccluded_factors
+    from blockray.host_driver.radiosity.formfactor import unoccluded_factors
     from oracles import corner_closed_form
     from scenes import rectangle
 
@@ -186,7 +186,7 @@ def test_first_shot_from_a_square_light():
 def test_compiled_shot_is_the_numpy_arithmetic():
     """One shot in the compiled kernel, bit for bit the numpy expressions it replaces (random
     scenes of many magnitudes, zero reflectances, factors and unshot rows; seeded)."""
-    from blockray.host_driver.solver import _shoot
+    from blockray.host_driver.radiosity.solver import _shoot
     seed = 1305
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)

@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from blockray.host_driver.sweep import map_to_mesh, pareto_front, parse_vary, points
+from blockray.host_driver.render.sweep import map_to_mesh, pareto_front, parse_vary, points
 from clirun import cli
 from scenes import room_obj
 

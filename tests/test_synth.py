@@ -14,7 +14,7 @@ from amaranth.lib import wiring
 from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
-from blockray.cli import main
+from blockray.host_driver.cli import main
 from blockray.synth.nextpnr import DEVICES, SPEEDS, check_speed, dsp_estimate, nextpnr_args
 from blockray.synth.wrap import LfsrHarness
 

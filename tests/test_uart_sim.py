@@ -7,8 +7,8 @@ import random
 
 import pytest
 
-from blockray.host_driver.framed import LinkFaults
-from blockray.host_driver.uart_sim import UartSimTransport
+from blockray.host_driver.board.framed import LinkFaults
+from blockray.host_driver.board.uart_sim import UartSimTransport
 from blockray.rtl.link import EchoCore
 
 from link_cores import echo

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import clirun
-from blockray.host_driver.driver import BoardDriver
-from blockray.host_driver.render import render
-from blockray.host_driver.ulx3s import ulx3s_sim_transport
+from blockray.host_driver.board.driver import BoardDriver
+from blockray.host_driver.render.render import render
+from blockray.host_driver.board.ulx3s import ulx3s_sim_transport
 from blockray.params import BoardParams
 
 pytestmark = pytest.mark.cocotb
@@ -39,7 +39,7 @@ def test_small_scene_equals_the_model(tmp_path):
 
 @pytest.mark.slow
 def test_cornell_equals_the_model():
-    from blockray.host_driver.builtin import load_scene
+    from blockray.host_driver.scene.builtin import load_scene
     _compare(load_scene("cornell"), BoardParams(rows=2, cols=2, boards=1), None, max_shots=2)
 
 

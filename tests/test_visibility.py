@@ -5,11 +5,11 @@ one ray per block."""
 import numpy as np
 import pytest
 
-from blockray.host_driver import formfactor
-from blockray.host_driver.backends import make_board
-from blockray.host_driver.builtin import load_scene
-from blockray.host_driver.visibility import Phases, Visibility, visible_fraction
-from blockray.host_driver.voxel import TraversalStats, VoxelGrid
+from blockray.host_driver.radiosity import formfactor
+from blockray.host_driver.board.backends import make_board
+from blockray.host_driver.scene.builtin import load_scene
+from blockray.host_driver.traverse.visibility import Phases, Visibility, visible_fraction
+from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 

@@ -1,7 +1,7 @@
 """Voxel grid: registration against brute force, per-ray DDA against the segment, block rays
 against their member rays, statistics and the cost model.
 
-The references here are independent of host_driver/voxel.py: a voxel's grown box is tested by
+The references here are independent of host_driver/traverse/voxel.py: a voxel's grown box is tested by
 plain comparisons over every index, a segment against a box by the slab method, and a triangle
 against a box by Sutherland-Hodgman clipping. Adversarial cases use a grid with unit voxels at
 the origin (lo = 0, hi = v), so grid lines, corners and faces are exact in floating point.
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from blockray.errors import ParameterError
-from blockray.host_driver.voxel import TraversalStats, VoxelGrid, cost_model, default_voxels
+from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid, cost_model, default_voxels
 
 SEED = 20240611
 
@@ -451,7 +451,7 @@ def test_default_voxels_minimises_the_model():
 
 def test_block_voxels_many_matches_single_calls(monkeypatch):
     """A batch (cut into sub-batches of a few blocks, as a large one is) equals the blocks one by one."""
-    from blockray.host_driver import voxel
+    from blockray.host_driver.traverse import voxel
     rng = rng_for("block-many")
     for v, margin in ((1, 0.0), (2, 0.25), (7, 0.0), (32, 0.1)):
         grid = unit_grid(v, margin)

@@ -1,0 +1,251 @@
+"""The host side of the board protocol: block rays in, commands out over P transports, blocked
+bits and counters back.
+
+:class:`BoardDriver` is a :class:`~blockray.board.Board` towards the render loop. It quantises the
+scene and partitions the patch records over the P boards (:mod:`blockray.memory`, as the model
+does), identifies every board, loads its memories, turns each batch of block rays into command
+records (:mod:`blockray.protocol`), encodes them in the wire format, sends them through each
+board's :class:`~blockray.host_driver.board.transport.Transport`, decodes the results and keeps the
+counters. Nothing of the model is used for the answer: the blocked bits and every counter come
+from the boards.
+
+Counters. The host sends ``IDENTIFY`` and the memory load, then ``READ_COUNTERS``; after each
+batch of blocks another ``READ_COUNTERS``. A batch's board cycles on board b are the difference of
+the two snapshots minus one (the earlier ``READ_COUNTERS``'s own cycle, docs/board-protocol.md),
+its tests the difference; ``load_cycles_per_board`` is the first snapshot minus IDENTIFY's cycle.
+From these the driver forms exactly the model's report (:class:`~blockray.board.CountingBoard`).
+``link`` in the report counts the bytes on the links.
+"""
+
+import numpy as np
+
+from ...board import CountingBoard
+from ...errors import CapacityError, ParameterError, option
+from ...fixedpoint import DEFAULT_MAX_ERROR
+from ...memory import BoardMemories, check_partition
+from ...params import BoardParams
+from ...protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
+                        fit_params)
+from .framed import integrity_report
+from .transport import TransportError
+
+__all__ = ["BoardDriver", "blocked_bits"]
+
+
+def blocked_bits(words, rows, cols):
+    """Blocked words (bit r * cols + s) -> (K, rows, cols) bool."""
+    n = (rows * cols + 7) // 8
+    if not words:
+        return np.zeros((0, rows, cols), dtype=bool)
+    raw = np.frombuffer(b"".join(int(w).to_bytes(n, "little") for w in words), dtype=np.uint8)
+    bits = np.unpackbits(raw.reshape(len(words), n), axis=1, bitorder="little")[:, :rows * cols]
+    return bits.reshape(len(words), rows, cols).astype(bool)
+
+
+def _decode(protocol, b, transport, data):
+    """One result; a corrupted one (an unknown tag) is a TransportError naming the link."""
+    try:
+        return protocol.decode_result(data)
+    except ParameterError as e:
+        where = getattr(transport, "where", "the link")
+        raise TransportError(f"board {b} ({where}): a corrupted result: {e}") from None
+
+
+class BoardDriver(CountingBoard):
+    """P boards behind the host's Board interface, each reached through its own transport.
+
+    ``transport(params, board)`` opens board ``board``'s :class:`Transport` for the built
+    configuration ``params``. ``fit``: size the boards' memories for the scene
+    (:func:`~blockray.protocol.fit_params`, simulated boards built per scene); otherwise the
+    boards are built for ``params`` as given (real hardware). Either way a scene that does not fit
+    ``params``' memories raises :class:`CapacityError` before any transport opens (followed by
+    ``hint``, what to change, if given). ``params.bits`` (None by default: chosen for the scene),
+    ``max_error``, ``partition``: as :class:`~blockray.sim.model.ModelBoard`.
+    """
+
+    def __init__(self, params=None, *, transport, name="driver", fit=True,
+                 max_error=DEFAULT_MAX_ERROR, partition="deal", cell="exact", hint=None):
+        self._take(params or BoardParams(bits=None))
+        self.hint = hint
+        self.cell = cell
+        self.name = name
+        self.max_error, self.fit = max_error, fit
+        self.partition = check_partition(partition)
+        self._open = transport
+        self.transports = []
+        self.quantised = None
+        self.timing = None
+        self.board_params = None
+        self.identities = []
+        self._stats = {}
+        self._reset_counters()
+
+    # -- Board interface -------------------------------------------------------------------------
+
+    def prepare(self, scene, samples):
+        # with the filtered cell the drain of a batch's last END_BLOCK depends on the data: the
+        # report counts its least (the boards' own cycles are exact)
+        self._quantise(scene, samples)
+
+    def load(self, grid):
+        if self.quantised is None:
+            raise RuntimeError("prepare() before load()")
+        p = self.params
+        self.memory = mem = BoardMemories(self.quantised, grid, p, self.partition)
+        try:
+            check_capacity(p, records=mem.records, voxels=mem.nvox)     # before any transport opens
+        except CapacityError as e:
+            if self.hint is None:
+                raise
+            raise CapacityError(f"{e.spelled(option)}; {self.hint}") from None
+        self.board_params = fit_params(p, records=mem.records, voxels=mem.nvox) if self.fit else p
+        self.protocol = BoardProtocol(self.board_params)
+        self._read_counters = self.protocol.encode(ReadCounters())
+        self.close()
+        self._bytes_sent = self._bytes_received = 0
+        self.transports = [self._open(self.board_params, b) for b in range(p.boards)]
+        self.identities = self.identify()
+        batches = [self.protocol.encode_all(mem.load_commands(b)) + self._read_counters for b in range(p.boards)]
+        snaps = self._exchange(batches, blocks=0)
+        self._last = {name: snaps[name] for name in ("cycles", "tests_issued", "tests_useful")}
+        self.load_cycles = [int(c) - 1 for c in snaps["cycles"]]          # minus IDENTIFY's own cycle
+
+    def run(self, blocks):
+        if not self.transports:
+            raise RuntimeError("load() before run()")
+        if not blocks:
+            return []
+        p = self.params
+        for block in blocks:
+            self.check_block(block)
+        wire = b"".join(self.protocol.encode_all(self.memory.block_commands(b)) for b in blocks)
+        snaps, words = self._exchange([wire + self._read_counters] * p.boards, blocks=len(blocks))
+        diff = {name: snaps[name] - self._last[name] for name in self._last}
+        self._last = snaps
+        self._add_batch(diff["cycles"] - 1)                               # (P,)
+        self._issued_b += diff["tests_issued"]
+        self._useful_b += diff["tests_useful"]
+        self._blocks += len(blocks)
+        self._rays += sum(b.rays for b in blocks)
+        self._voxels += sum(len(b.voxels) for b in blocks)
+        self._links_used.update(range(p.boards))
+        ored = [0] * len(blocks)
+        for board_words in words:
+            for k, w in enumerate(board_words):
+                ored[k] |= w
+        bits = blocked_bits(ored, p.rows, p.cols)
+        return [bits[k, :len(bl.receiver_patch), :len(bl.shooter_patch)].copy() for k, bl in enumerate(blocks)]
+
+    def counters(self):
+        out = super().counters()
+        bp = self.board_params
+        rays, links = max(1, self._rays), max(1, len(self._links_used))
+        block_bytes = self._block_bytes_sent + self._block_bytes_received
+        out["link"] = {
+            "bytes_sent": self._bytes_sent, "bytes_received": self._bytes_received,
+            "block_bytes_sent": self._block_bytes_sent, "block_bytes_received": self._block_bytes_received,
+            "voxels_per_block": self._voxels / max(1, self._blocks),
+            "rays_per_block": self._rays / max(1, self._blocks),
+            # one board's link (every board gets the same block commands and sends its results)
+            "bytes_per_ray": block_bytes / links / rays,
+        }
+        stats = [t.stats() for t in self.transports] if self.transports else self._stats.get("transports")
+        out["driver"] = {
+            "backend": self.name,
+            "params": None if bp is None else {"rows": bp.rows, "cols": bp.cols, "boards": bp.boards, "bits": bp.bits,
+                                               "patch_depth": bp.patch_depth, "voxel_depth": bp.voxel_depth},
+            "transports": stats,
+        }
+        integrity = integrity_report(stats or [])
+        if integrity is not None:           # a framed link: frames resent and errors seen
+            out["link_integrity"] = integrity
+        return out
+
+    def _reset_counters(self):
+        super()._reset_counters()
+        self._bytes_sent = self._bytes_received = 0
+        self._block_bytes_sent = self._block_bytes_received = 0
+        self._voxels = 0
+        self._links_used = set()
+
+    # -- the links ---------------------------------------------------------------------------------
+
+    def identify(self):
+        """Send IDENTIFY to every board; check each answers with the protocol's magic and version
+        and the configuration the host expects. Returns the identities."""
+        want = self.protocol.identity()
+        out = self.identities_of(self.transports, self.protocol)
+        self._bytes_sent += len(self.protocol.encode(Identify())) * len(self.transports)
+        self._bytes_received += self.protocol.result_bytes(ResultKind.IDENTITY) * len(self.transports)
+        for b, ident in enumerate(out):
+            if ident != want:
+                diff = ", ".join(f"{k} {ident[k]} (host {want[k]})" for k in want if ident[k] != want[k])
+                raise CapacityError(f"board {b} was built for another configuration: {diff}")
+        return out
+
+    @staticmethod
+    def identities_of(transports, protocol):
+        """What each board behind ``transports`` answers to IDENTIFY (an IDENTIFY and its result
+        do not depend on the configuration: any ``protocol`` reads them), each checked to be a
+        blockray board of this protocol's magic and version."""
+        n = protocol.result_bytes(ResultKind.IDENTITY)
+        request = protocol.encode(Identify())
+        for t in transports:
+            t.send(request)
+            t.expect(n)
+        out = []
+        for b, t in enumerate(transports):
+            got = _decode(protocol, b, t, t.recv(n))
+            if got.kind is not ResultKind.IDENTITY:
+                raise TransportError(f"board {b}: answered IDENTIFY with a {got.kind.name} result")
+            ident = got.identity
+            if ident["magic"] != MAGIC or ident["version"] != VERSION:
+                raise TransportError(f"board {b}: magic {ident['magic']:#06x} version {ident['version']} is not a "
+                                     f"blockray board of protocol version {VERSION} (magic {MAGIC:#06x})")
+            out.append(ident)
+        return out
+
+    def _decode(self, b, transport, data):
+        return _decode(self.protocol, b, transport, data)
+
+    def _recv(self, transport, n):
+        data = transport.recv(n)
+        self._bytes_received += len(data)
+        return data
+
+    def _exchange(self, batches, *, blocks):
+        """Send each board its batch (``blocks`` END_BLOCKs then one READ_COUNTERS); return the
+        counter snapshots as (P,) arrays per counter, and (if ``blocks``) each board's blocked words."""
+        proto = self.protocol
+        nb, nc = proto.result_bytes(ResultKind.BLOCKED), proto.result_bytes(ResultKind.COUNTERS)
+        expect = blocks * nb + nc
+        for t, data in zip(self.transports, batches):
+            t.send(data)
+            t.expect(expect)
+            self._bytes_sent += len(data)
+        if blocks:
+            self._block_bytes_sent += sum(len(d) for d in batches)
+            self._block_bytes_received += expect * len(batches)
+        snaps = {name: [] for name in ("cycles", "tests_issued", "tests_useful")}
+        words = []
+        for b, t in enumerate(self.transports):
+            data = self._recv(t, expect)
+            results = [self._decode(b, t, data[k * nb:(k + 1) * nb]) for k in range(blocks)]
+            results.append(self._decode(b, t, data[blocks * nb:]))
+            kinds = [r.kind for r in results]
+            if kinds != [ResultKind.BLOCKED] * blocks + [ResultKind.COUNTERS]:
+                raise TransportError(f"board {b}: result kinds {[k.name for k in kinds[:8]]}... do not follow the commands")
+            words.append([r.blocked for r in results[:-1]])
+            for name in snaps:
+                snaps[name].append(results[-1].counters[name])
+        snaps = {name: np.array(v, dtype=np.int64) for name, v in snaps.items()}
+        return (snaps, words) if blocks else snaps
+
+    def close(self):
+        """Close the transports (``render`` calls this at the end)."""
+        if self.transports:
+            self._stats = {"transports": [t.stats() for t in self.transports]}
+        for t in self.transports:
+            t.close()
+        self.transports = []
+

@@ -1,0 +1,133 @@
+"""The native Verilator transport: one board's Verilog under Verilator, clocked by a C++ loop in a
+shared library (:mod:`blockray.sim.native`), whole buffers of bytes per call, no Python per cycle.
+
+:class:`NativeTransport` buffers what :meth:`~NativeTransport.send` gets; :meth:`~NativeTransport.expect`
+hands the buffer to the board on the transport's own thread (ctypes releases the GIL, so the P
+boards of a driver run concurrently), :meth:`~NativeTransport.recv` waits for it. The host's
+timing on the two byte streams is :mod:`blockray.sim.drive`'s (idle, back-pressure, bursts, from
+the same seed as ``--board amaranth``), so a run is cycle for cycle the Amaranth transport's.
+"""
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor, TimeoutError as FutureTimeout
+
+from .simulated import _Buffered
+from .transport import TransportError
+
+__all__ = ["NativeTransport", "native_build"]
+
+_builds = {}
+_builds_lock = threading.Lock()
+
+
+def native_build(params, *, cell="exact", filter_format=None, trace=False):
+    """The native harness of :class:`~blockray.rtl.core.BoardCore` for ``params`` (built once per
+    process and design, cached on disk by content and found there by parameters and RTL source
+    without a Verilog conversion: :func:`blockray.sim.native.build_native`)."""
+    from ...rtl.core import BoardCore
+    from ...sim.native import build_native, compiler_version
+
+    key = (params, cell, filter_format, bool(trace))
+    with _builds_lock:
+        if key not in _builds:
+            compiler_version()              # before the conversion: a missing compiler says so at once
+            name = f"native_{params.rows}x{params.cols}_b{params.bits}" + ("" if cell == "exact" else f"_{cell}")
+            _builds[key] = build_native(lambda: BoardCore(params, cell=cell, filter_format=filter_format), name=name,
+                                        trace=trace, source=repr((params, cell, filter_format)))
+        return _builds[key]
+
+
+class NativeTransport(_Buffered):
+    """One :class:`~blockray.rtl.core.BoardCore` for ``params`` in the native harness.
+
+    ``idle`` / ``backpressure``: :class:`~blockray.sim.drive.HostTiming` on the command and result
+    streams, ``seed`` seeds them (as :class:`~blockray.host_driver.board.simulated.AmaranthTransport`).
+    ``vcd``: build with ``--trace`` and write a waveform. ``patience``: clock cycles without a byte
+    moving, once every command byte was taken, before :meth:`recv` gives up (default: longer than
+    any command takes, as the Amaranth transport)."""
+
+    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell="exact", filter_format=None,
+                 patience=None):
+        from ...sim.drive import HostTiming
+        from ...sim.native import NativeBoard
+
+        super().__init__(vcd=vcd)
+        self.params = params
+        t0 = time.perf_counter()
+        self.build = native_build(params, cell=cell, filter_format=filter_format, trace=vcd is not None)
+        self.build_seconds = time.perf_counter() - t0
+        # the Verilated model is not thread-safe: every call on the board runs on this one thread
+        self._thread = ThreadPoolExecutor(1, thread_name_prefix="blockray-native")
+        self._board = self._thread.submit(
+            NativeBoard, self.build, idle=idle or HostTiming(), backpressure=backpressure or HostTiming(), seed=seed,
+            vcd=vcd, patience=patience or params.patch_depth + 4096).result()
+        self._out = bytearray()
+        self._pending = None
+        self.simulator_seconds = 0.0
+        self.batches = 0
+
+    @property
+    def cycles(self):
+        """Clock cycles simulated so far (between batches, the board's clock stops)."""
+        self._wait()
+        return self._board.cycles
+
+    def send(self, data):
+        self._out += data
+
+    def expect(self, count):
+        self._wait()
+        self._start(count - len(self._in))
+
+    def _start(self, want):
+        data = bytes(self._out)
+        self._out.clear()
+        self._pending = self._thread.submit(self._board.run, data, max(want, 0))
+        self.batches += 1
+
+    def _wait(self, timeout=None):
+        from ...sim.native import NativeRunError
+
+        if self._pending is not None:
+            t0 = time.perf_counter()
+            try:
+                self._in += self._pending.result(timeout)
+            except FutureTimeout:
+                raise TransportError(f"the native Verilator board did not answer in {timeout} s") from None
+            except NativeRunError as e:
+                raise TransportError(str(e)) from None
+            finally:
+                if self._pending.done():
+                    self._pending = None
+                self.simulator_seconds += time.perf_counter() - t0
+
+    def recv(self, count, *, timeout=None):
+        self._wait(timeout)
+        if len(self._in) < count:
+            self._start(count - len(self._in))
+            self._wait(timeout)
+        if len(self._in) < count:
+            raise TransportError(f"the native Verilator board sent {len(self._in)} of {count} result bytes")
+        return self._take(count)
+
+    def reset(self):
+        try:
+            self._wait()
+        except TransportError:
+            pass
+        self._out.clear()
+        self._in.clear()
+        self._thread.submit(self._board.reset).result()
+
+    def stats(self):
+        return {"simulated_clock_cycles": int(self.cycles), "simulator_seconds": self.simulator_seconds,
+                "batches": self.batches}
+
+    def close(self):
+        if self._board is None:
+            return
+        self._pending = None
+        self._thread.submit(self._board.close).result()
+        self._thread.shutdown()
+        self._board = None

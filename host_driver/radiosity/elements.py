@@ -1,0 +1,127 @@
+"""Elements of hierarchical radiosity: the quadtree of each input triangle, and the board's table of
+their end points.
+
+An input triangle (level 0) splits by 4-way midpoint subdivision: children (a, ab, ca),
+(ab, b, bc), (ca, bc, c) and the middle (ab, bc, ca), all of the parent's orientation and a
+quarter of its area. Every element of level <= L has corners whose barycentric weights on its
+input triangle are integers over 2**L, so an element's sample point ``sum_k w_k V_k / D``
+(:class:`~blockray.samples.SampleScheme`) is an integer combination of the input triangle's
+corners over ``D 2**L``. :class:`ElementPoints` lists those points for every element of every
+level up to ``max_level``, as a sample scheme of denominator ``D 2**L``: the quantiser then puts
+the input vertices on multiples of ``D 2**L`` (L more coordinate bits than the uniform render), and
+every element point is an exact integer on its input triangle's plane, so the board's strict
+plane test needs no epsilon for sub-element end points either. The golden board takes the same
+rational points exactly.
+
+Element numbering within an input triangle: level-major, ``offset(l) + q`` for the element of
+path number q at level l (``offset(l) = (4**l - 1) / 3``); element q's children at level l + 1 are
+``4 q + c``, c = 0..3 in the order above.
+"""
+
+import numpy as np
+
+from ...errors import ParameterError
+from ...params import MAX_BITS
+
+__all__ = ["ElementPoints", "level_offset", "children_of", "MAX_LEVEL"]
+
+#: Deepest level of the point table: (4**(L+1) - 1) / 3 elements of K + 1 points per input
+#: triangle (L = 4: 341 elements, 3069 points at K = 8, 74 KB per triangle as int64 on the model).
+MAX_LEVEL = 4
+
+
+def level_offset(level):
+    """Index of the first element of ``level`` in an input triangle's table."""
+    return (4 ** level - 1) // 3
+
+
+def children_of(node, level):
+    """Table indices (4,) of the children of element ``node`` (of ``level``)."""
+    q = node - level_offset(level)
+    return level_offset(level + 1) + 4 * q + np.arange(4)
+
+
+def _corner_weights(max_level):
+    """(E, 3, 3) int64: corner v of element m as integer weights (over 2**max_level) on the input
+    triangle's corners, every element of levels 0..max_level in table order."""
+    unit = 1 << max_level
+    levels = [np.eye(3, dtype=np.int64)[None] * unit]
+    for _ in range(max_level):
+        t = levels[-1]
+        a, b, c = t[:, 0], t[:, 1], t[:, 2]
+        ab, bc, ca = (a + b) // 2, (b + c) // 2, (c + a) // 2       # exact: multiples of 2 here
+        kids = np.stack([np.stack(x, axis=1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))], axis=1)
+        levels.append(kids.reshape(-1, 3, 3))
+    return np.concatenate(levels)
+
+
+class ElementPoints:
+    """The end points of every element up to ``max_level``, as a sample scheme for the board.
+
+    Point ``m (K + 1) + k`` of an input triangle is sample k (k < K) of its element m, or its
+    centroid (k = K). A block ray's columns address the table as ``(patch, point)``; its rows end
+    at ``receiver_weights`` (blockray/board.py) taken from it, ``weights[point]``.
+    """
+
+    def __init__(self, samples, max_level):
+        if not 0 <= max_level <= MAX_LEVEL:
+            raise ParameterError(f"min_area asks for elements {max_level} levels below the input triangles; at most "
+                                 f"{MAX_LEVEL} are supported (each level costs a coordinate bit of the board's "
+                                 f"{MAX_BITS} and 4x the point table)", parameter="min_area")
+        self.samples, self.max_level = samples, int(max_level)
+        self.K = samples.count
+        self.per_element = self.K + 1
+        self.corners = _corner_weights(self.max_level)                       # (E, 3, 3) over 2**L
+        sample_w = np.einsum("kv,mvp->mkp", samples.weights, self.corners)
+        centre_w = np.einsum("v,mvp->mp", samples.centroid_weights, self.corners)[:, None]
+        self.weights = np.concatenate([sample_w, centre_w], axis=1).reshape(-1, 3)
+        self.count = len(self.weights)
+        self.denominator = samples.denominator << self.max_level
+        assert (self.weights.sum(axis=1) == self.denominator).all()
+
+    @property
+    def elements(self):
+        """Elements per input triangle in the table."""
+        return len(self.corners)
+
+    @property
+    def prime(self):
+        return self.samples.prime
+
+    @property
+    def centroid_weights(self):
+        return np.full(3, self.denominator // 3, dtype=np.int64)
+
+    def sample_index(self, node):
+        """(len(node), K) table indices of the K samples of elements ``node``."""
+        return np.asarray(node, dtype=np.int64)[:, None] * self.per_element + np.arange(self.K)
+
+    def centre_index(self, node):
+        """Table index of the centroid of elements ``node``."""
+        return np.asarray(node, dtype=np.int64) * self.per_element + self.K
+
+    def element_vertices(self, vertices, node):
+        """Float corners (M, 3, 3) of elements ``node`` of input triangles ``vertices`` (M, 3, 3)."""
+        w = self.corners[np.asarray(node, dtype=np.int64)] / float(1 << self.max_level)
+        return np.einsum("mvp,mpc->mvc", w, np.asarray(vertices, dtype=np.float64))
+
+    def point(self, vertices, index):
+        """Float points (M, 3) of table points ``index`` of input triangles ``vertices`` (M, 3, 3)."""
+        w = self.weights[np.asarray(index, dtype=np.int64)] / float(self.denominator)
+        return np.einsum("mp,mpc->mc", w, np.asarray(vertices, dtype=np.float64))
+
+    # -- the SampleScheme interface the boards and the quantiser use --------------------------------
+
+    def points(self, vertices):
+        v = np.asarray(vertices, dtype=np.float64)
+        return np.einsum("kj,njc->nkc", self.weights / self.denominator, v)
+
+    def points_int(self, vertices):
+        num = np.einsum("kj,njc->nkc", self.weights, np.asarray(vertices, dtype=np.int64))
+        assert (num % self.denominator == 0).all(), "vertex coordinates must be multiples of D 2**L"
+        return num // self.denominator
+
+    def centroids_int(self, vertices):
+        s = np.asarray(vertices, dtype=np.int64).sum(axis=1)
+        assert (s % 3 == 0).all()
+        return s // 3

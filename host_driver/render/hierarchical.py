@@ -1,0 +1,447 @@
+"""Hierarchical radiosity (Hanrahan, Salzman and Aupperle 1991) with every link's visibility
+answered by the board: ``--solver hierarchical``.
+
+**Elements.** Each input triangle is the root of a quadtree of elements (host_driver/radiosity/elements.py:
+4-way midpoint subdivision, end points exact on the board's grid at one coordinate bit per level).
+
+**Links.** A link (r <- s) carries light from source element s to receiver element r with the
+unoccluded patch-to-patch factor ``F_rs`` of the two elements (the pair kernel of
+host_driver/radiosity/formfactor.py, exact or certified to 1e-6) times the visible fraction ``v_rs`` the
+board reports. The initial links join every pair of input triangles that can exchange light
+(:func:`~blockray.host_driver.radiosity.formfactor.exchange_mask`): s**2 of them for s input triangles;
+clustering (Smits, Arvo and Greenberg 1994) is not built.
+
+**Visibility.** A link's rays run from the K sample points of its source to its receiver's
+centroid, or, where that centroid is not strictly in front of the source's plane, from the
+receiver's samples to the source's centroid (visibility is symmetric). A ray counts where its
+sample lies strictly in front of the far element's plane (the light it stands for reaches it);
+the visible fraction is the clear share of the rays that count (of all K if none does). The
+rays are grouped as today's: the links cast from one element, their end points sorted by voxel,
+runs of at most R end points times chunks of at most S samples, one block ray each, so every
+back-end of the registry answers them unchanged.
+
+**Refinement oracle.** A link's transported power bound ``b = max_rgb B_s * F_rs * A_r`` (F
+unoccluded) is compared with ``epsilon`` times the scene's emitted power ``sum_j A_j max_rgb
+E_j``; links whose visibility is certain (every counted ray clear, or every one blocked) count
+``b / 2``, so shadow boundaries refine first. A link over the threshold is replaced by four
+links to the children of its larger element, while that element's children are at least
+``min_area``. Rounds: solve, refine with that solution, cast the new links, until no link
+refines. The other links of a receiver that is split move to its children (:func:`push_to_leaves`),
+so links end on leaves and a leaf's factors partition its sources.
+
+**Solve.** Jacobi over the links with push-pull (HSA's gathering): every element gathers
+``G_p = sum_links F v B_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
+ancestors)``; pulling up, an element's radiosity is the mean of its four children's (equal
+areas). The residual is :mod:`~blockray.host_driver.radiosity.solver`'s, on the leaves: ``sum A |B' - B|
+/ sum A E``, RGB summed.
+
+**Outputs.** The leaves as a :class:`~blockray.host_driver.scene.scene.Scene` (the image, energy
+balance and tests take it as any scene), and a CSV row per leaf with its input triangle and level.
+"""
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...errors import CapacityError, SolveError, option
+from ...exact_float import plane_signs
+from ..radiosity import formfactor
+from ...board import BlockBatch, BlockBits, ranges
+from ..radiosity.elements import ElementPoints, children_of
+from ..scene.scene import Scene
+from ..traverse.visibility import Phases
+from ..traverse.voxel import VoxelGrid, default_voxels
+
+__all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_leaves_csv", "max_level_for",
+           "CERTAIN_WEIGHT", "LEAF_COLUMNS"]
+
+#: Share of the power bound a link of certain visibility counts in the oracle.
+CERTAIN_WEIGHT = 0.5
+
+LEAF_COLUMNS = ["leaf", "patch", "level", "group", "area", "cx", "cy", "cz", "B_r", "B_g", "B_b"]
+
+
+def max_level_for(scene, min_area):
+    """The deepest level whose elements are still at least ``min_area`` (None: 3 levels)."""
+    if min_area is None:
+        return 3
+    largest = float(scene.areas.max(initial=0.0))
+    if largest <= min_area:
+        return 0
+    return int(math.floor(math.log(largest / min_area, 4) + 1e-12))
+
+
+@dataclass
+class Hierarchy:
+    """The elements: ``patch`` (input triangle), ``node`` (index in its triangle's table of
+    host_driver/radiosity/elements.py), ``level``, ``parent`` (-1: a root), ``child`` (first of four
+    consecutive children, -1: a leaf). Element i < N is input triangle i."""
+    scene: object
+    points: ElementPoints
+    patch: np.ndarray = None
+    node: np.ndarray = None
+    level: np.ndarray = None
+    parent: np.ndarray = None
+    child: np.ndarray = None
+
+    def __post_init__(self):
+        N = self.scene.patches
+        self.patch, self.node = np.arange(N), np.zeros(N, np.int64)
+        self.level, self.parent, self.child = np.zeros(N, np.int64), np.full(N, -1), np.full(N, -1)
+
+    def __len__(self):
+        return len(self.patch)
+
+    @property
+    def areas(self):
+        return self.scene.areas[self.patch] / 4.0 ** self.level
+
+    def vertices(self, e):
+        """Float corners (M, 3, 3) of elements ``e``."""
+        return self.points.element_vertices(self.scene.patch_vertices[self.patch[e]], self.node[e])
+
+    def split(self, e):
+        """Give the leaves among elements ``e`` their four children (appended)."""
+        e = np.unique(np.asarray(e, dtype=np.int64))
+        e = e[self.child[e] < 0]
+        if not len(e):
+            return
+        first = len(self) + 4 * np.arange(len(e))
+        kids = np.concatenate([children_of(n, lv) for n, lv in zip(self.node[e], self.level[e])])
+        self.child[e] = first
+        self.patch = np.concatenate([self.patch, np.repeat(self.patch[e], 4)])
+        self.node = np.concatenate([self.node, kids])
+        self.level = np.concatenate([self.level, np.repeat(self.level[e] + 1, 4)])
+        self.parent = np.concatenate([self.parent, np.repeat(e, 4)])
+        self.child = np.concatenate([self.child, np.full(4 * len(e), -1)])
+
+    def leaves(self):
+        return np.flatnonzero(self.child < 0)
+
+
+@dataclass
+class Links:
+    """Links (receiver ``recv`` <- source ``src``): unoccluded factor ``F`` (from the receiver),
+    visible fraction ``vis``, and ``partial`` (neither every counted ray clear nor every one
+    blocked)."""
+    recv: np.ndarray
+    src: np.ndarray
+    F: np.ndarray
+    vis: np.ndarray = None
+    partial: np.ndarray = None
+
+    def __len__(self):
+        return len(self.recv)
+
+    def take(self, keep):
+        return Links(self.recv[keep], self.src[keep], self.F[keep], self.vis[keep], self.partial[keep])
+
+    @staticmethod
+    def join(a, b):
+        cat = np.concatenate
+        return Links(cat([a.recv, b.recv]), cat([a.src, b.src]), cat([a.F, b.F]), cat([a.vis, b.vis]),
+                     cat([a.partial, b.partial]))
+
+
+def initial_links(scene):
+    """Every (j <- i) pair of input triangles that can exchange light, with its exact factor."""
+    cache = formfactor.PairCache(scene)
+    recv, src, F = [], [], []
+    for i in range(scene.patches):
+        f = formfactor.unoccluded_factors(scene, i, cache=cache)
+        j = np.flatnonzero(f > 0)
+        recv.append(j), src.append(np.full(len(j), i)), F.append(f[j])
+    cat = lambda xs: np.concatenate(xs) if xs else np.zeros(0)
+    return Links(cat(recv).astype(np.int64), cat(src).astype(np.int64), cat(F).astype(np.float64))
+
+
+def element_factors(h, recv, src):
+    """Unoccluded ``F_rs`` of element pairs (the pair kernel, as the uniform render's)."""
+    if not len(recv):
+        return np.zeros(0)
+    return formfactor.pair_factors(h.vertices(src), h.vertices(recv)) / h.areas[recv]
+
+
+class LinkCaster:
+    """Casts the rays of links through ``board`` as block rays (module docstring) and counts them."""
+
+    #: links cast per board batch (bounds the host's arrays)
+    CHUNK = 65536
+
+    def __init__(self, h, board, grid, *, rows, cols, phases):
+        self.h, self.board, self.grid, self.rows, self.cols, self.phases = h, board, grid, rows, cols, phases
+        self.rays = self.blocks = 0
+
+    def cast(self, links):
+        """Set ``links.vis`` and ``links.partial`` from the board's blocked bits."""
+        vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
+        for a in range(0, len(links), self.CHUNK):
+            part = slice(a, a + self.CHUNK)
+            vis[part], partial[part] = self._fractions(links.recv[part], links.src[part])
+        links.vis, links.partial = vis, partial
+
+    def _fractions(self, recv, src):
+        h, pts = self.h, self.h.points
+        V, K = h.scene.patch_vertices, pts.K
+        with self.phases.timed("formfactor"):
+            # forward (source samples -> receiver centroid) where that centroid is in front of the source
+            ahead = plane_signs(V[h.patch[src]], V[h.patch[recv]], pts.weights[pts.centre_index(h.node[recv])]) > 0
+            caster, target = np.where(ahead, src, recv), np.where(ahead, recv, src)
+            samples = pts.sample_index(h.node[caster]).ravel()
+            counts = (plane_signs(np.repeat(V[h.patch[target]], K, axis=0), np.repeat(V[h.patch[caster]], K, axis=0),
+                                  pts.weights[samples]) > 0).reshape(-1, K)
+        clear = self._clear(caster, target)
+        counted = np.where(counts.any(axis=1, keepdims=True), counts, True)
+        n_clear = (clear & counted).sum(axis=1)
+        n = counted.sum(axis=1)
+        return n_clear / n, (n_clear > 0) & (n_clear < n)
+
+    def _clear(self, caster, target):
+        """(n, K) bool: ray k of link m (sample k of ``caster[m]`` to the centroid of ``target[m]``) is clear."""
+        batch, row_link, col_k = self._blocks(caster, target)
+        with self.phases.timed("board"):
+            bits = self.board.run(batch)
+        flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
+            [np.asarray(b, dtype=bool).ravel() for b in bits] or [np.zeros(0, bool)])
+        rb, cb = batch.rows, batch.cols
+        block = np.repeat(np.arange(len(batch)), rb * cb)
+        t = np.arange(len(flat)) - batch.ray_off[block]
+        clear = np.zeros((len(caster), self.h.points.K), dtype=bool)
+        clear[row_link[batch.row_off[block] + t // cb[block]], col_k[batch.col_off[block] + t % cb[block]]] = ~flat
+        self.rays += batch.rays
+        self.blocks += len(batch)
+        return clear
+
+    def _blocks(self, caster, target):
+        """The block rays of the links (caster -> target centroid): each caster's end points grouped by
+        voxel, runs of at most R of them times chunks of at most S of its samples. Returns the
+        BlockBatch, the link of each row and the sample (0..K-1) of each column."""
+        h, pts, grid = self.h, self.h.points, self.grid
+        V, K, n = h.scene.patch_vertices, pts.K, len(caster)
+        with self.phases.timed("commands"):
+            end_node = pts.centre_index(h.node[target])
+            ends = pts.point(V[h.patch[target]], end_node)
+            voxel = grid.voxel_of(ends)
+            order = np.lexsort((voxel, caster))
+            c, v = caster[order], voxel[order]
+            first = np.ones(n, dtype=bool)
+            first[1:] = (c[1:] != c[:-1]) | (v[1:] != v[:-1])
+            pos = np.arange(n) - np.flatnonzero(first)[np.cumsum(first) - 1]
+            run_start = np.flatnonzero(pos % self.rows == 0)
+            run_len = np.diff(np.append(run_start, n))
+            chunk_start = np.arange(0, K, self.cols)
+            chunk_len = np.minimum(self.cols, K - chunk_start)
+            rows, cols = np.repeat(run_len, len(chunk_start)), np.tile(chunk_len, len(run_start))
+            row_link = order[ranges(np.repeat(run_start, len(chunk_start)), rows)]
+            col_k = ranges(np.tile(chunk_start, len(run_start)), cols)
+            col_elem = np.repeat(np.repeat(c[run_start], len(chunk_start)), cols)
+            shooter_patch = h.patch[col_elem]
+            shooter_point = h.node[col_elem] * pts.per_element + col_k
+            receiver_patch, receiver_weights = h.patch[target[row_link]], pts.weights[end_node[row_link]]
+            row_off = np.concatenate([[0], np.cumsum(rows)])
+            col_off = np.concatenate([[0], np.cumsum(cols)])
+            starts = pts.point(V[shooter_patch], shooter_point)
+        with self.phases.timed("traverse"):
+            vox, vox_off, _, _ = grid.traverse_blocks(starts, col_off, ends[row_link], row_off, nonempty_only=True)
+        batch = BlockBatch(shooter_patch, shooter_point, col_off, receiver_patch, row_off, vox, vox_off,
+                           receiver_weights)
+        return batch, row_link, col_k
+
+
+def refine(h, links, B, threshold, min_area, max_level):
+    """Split the links whose oracle exceeds ``threshold`` (module docstring), splitting elements as
+    needed: ``(recv, src, kept)``, the new links' ends (factors not computed, not cast) and the
+    links kept."""
+    A = h.areas
+    bound = B[links.src].max(axis=1) * links.F * A[links.recv]
+    bound = np.where(links.partial, bound, CERTAIN_WEIGHT * bound)
+    can = lambda e: (h.level[e] < max_level) & (A[e] / 4 >= min_area)
+    larger_recv = A[links.recv] >= A[links.src]
+    first, second = np.where(larger_recv, links.recv, links.src), np.where(larger_recv, links.src, links.recv)
+    split_recv = np.where(can(first), larger_recv, ~larger_recv)
+    chosen = (bound > threshold) & (can(first) | can(second))
+    e = np.where(split_recv, links.recv, links.src)[chosen]
+    h.split(e)
+    kids = (h.child[e][:, None] + np.arange(4)).ravel()
+    recv = np.where(np.repeat(split_recv[chosen], 4), kids, np.repeat(links.recv[chosen], 4))
+    src = np.where(np.repeat(split_recv[chosen], 4), np.repeat(links.src[chosen], 4), kids)
+    return recv, src, links.take(~chosen)
+
+
+def push_to_leaves(h, links):
+    """``links`` with every link whose receiver has children replaced by links to the children:
+    each its own exact unoccluded factor, the visible fraction the board gave the parent link.
+    So every receiver is a leaf and a leaf's factors partition its sources: the unoccluded
+    factors of a leaf in a closed scene sum to 1 (not so with the ancestors' averages, which a
+    leaf gathering through its ancestors' links would mix)."""
+    while True:
+        down = h.child[links.recv] >= 0
+        if not down.any():
+            return links
+        moved = links.take(down)
+        recv = (h.child[moved.recv][:, None] + np.arange(4)).ravel()
+        src = np.repeat(moved.src, 4)
+        F = element_factors(h, recv, src)
+        pushed = Links(recv, src, F, np.repeat(moved.vis, 4), np.repeat(moved.partial, 4)).take(F > 0)
+        links = Links.join(links.take(~down), pushed)
+
+
+def solve_links(h, links, B, *, tolerance, max_iterations):
+    """Jacobi sweeps with push-pull from ``B`` (every element's radiosity, (M, 3)): ``(B, sweeps,
+    residual, history)``, B the iterate whose residual is reported (as solver.jacobi_sweeps)."""
+    scene = h.scene
+    E, rho, A = scene.emission[h.patch], scene.reflectance[h.patch], h.areas
+    leaves = h.leaves()
+    depth = int(h.level.max(initial=0))
+    down = [np.flatnonzero(h.level == lv) for lv in range(1, depth + 1)]
+    up = [np.flatnonzero((h.level == lv) & (h.child >= 0)) for lv in range(depth - 1, -1, -1)]
+    w = links.F * links.vis
+    emitted = float((A[leaves, None] * E[leaves]).sum())
+    history = []
+    for sweep in range(max_iterations + 1):
+        G = np.stack([np.bincount(links.recv, w * B[links.src, c], minlength=len(h)) for c in range(3)], axis=1)
+        for idx in down:                          # push: a leaf gathers through its ancestors' links too
+            G[idx] += G[h.parent[idx]]
+        new = np.empty_like(B)
+        new[leaves] = E[leaves] + rho[leaves] * G[leaves]
+        for idx in up:                            # pull: the area mean of the four equal children
+            new[idx] = sum(new[h.child[idx] + c] for c in range(4)) / 4
+        change = float((A[leaves, None] * np.abs(new[leaves] - B[leaves])).sum())
+        res = change / emitted if emitted else (0.0 if change == 0 else float("inf"))
+        history.append(res)
+        if not (np.isfinite(res) and res <= 2.0 * history[0]):
+            raise SolveError(f"solve diverged: the hierarchical residual grew from {history[0]:.3g} to {res:.3g} "
+                             f"after {sweep} sweeps (link factors wrong?)")
+        if res < tolerance or sweep == max_iterations:
+            return B, sweep, res, history
+        B = new
+
+
+@dataclass
+class HierarchicalResult:
+    """What :func:`render_hierarchical` gives back: the leaves as a scene and their radiosity,
+    the solve's numbers and the report's keys."""
+    leaves: Scene
+    radiosity: np.ndarray
+    hierarchy: Hierarchy
+    links: Links
+    residual: float
+    iterations: int
+    history: list = field(default_factory=list)
+    report: dict = field(default_factory=dict)
+
+
+def render_hierarchical(scene, board, options, *, phases=None):
+    """``--solver hierarchical`` on a built ``board`` (see the module docstring)."""
+    solve, ray = options.solve, options.ray
+    params = getattr(board, "params", None) or options.board.params
+    phases = phases or Phases()
+    t0, c0 = time.perf_counter(), time.process_time()
+    min_area = 0.0 if solve.min_area is None else solve.min_area
+    points = ElementPoints(ray.samples, max_level_for(scene, solve.min_area))
+    with phases.timed("prepare"):
+        try:
+            board.prepare(scene, points)
+        except CapacityError as e:
+            if not points.max_level:
+                raise
+            raise CapacityError(f"{e.spelled(option)}; {points.max_level} of them are the element levels "
+                                f"{option('min_area')} asks for (one bit each): use a larger {option('min_area')}") from None
+    voxels = ray.voxels or default_voxels(scene.patches, parallelism=1)
+    with phases.timed("voxelise"):
+        grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
+    with phases.timed("load"):
+        board.load(grid)
+    h = Hierarchy(scene, points)
+    caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+    with phases.timed("formfactor"):
+        links = initial_links(scene)
+    caster.cast(links)
+    B = np.array(scene.emission, dtype=np.float64)
+    threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
+    rounds = sweeps = 0
+    while True:
+        with phases.timed("solve"):
+            B, done, res, history = solve_links(h, links, B, tolerance=solve.tolerance,
+                                                max_iterations=solve.max_iterations)
+        sweeps += done
+        with phases.timed("formfactor"):
+                recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
+        if not len(recv):
+            break
+        rounds += 1
+        B = np.concatenate([B, B[h.parent[len(B):]]])
+        with phases.timed("formfactor"):
+            F = element_factors(h, recv, src)
+            new = Links(recv[F > 0], src[F > 0], F[F > 0])
+            kept = push_to_leaves(h, kept)
+        caster.cast(new)
+        links = Links.join(kept, new)
+    leaves = h.leaves()
+    out = leaf_scene(h, leaves)
+    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history)
+    result.report = _report(result, board, options, caster, rounds, voxels, phases, t0, c0)
+    return result
+
+
+def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
+    """The ``--report`` keys of a hierarchical render (the board's counters last, never overriding)."""
+    from ..radiosity.closure import absorbed_balance
+    h, solve, scene = result.hierarchy, options.solve, result.hierarchy.scene
+    leaves = h.leaves()
+    counters = board.counters()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        balance = absorbed_balance(result.leaves, result.radiosity)
+    report = {
+        "scene": scene.name, "source": scene.source, "patches": int(scene.patches), "solver": "hierarchical",
+        "board": board.name, "samples": options.ray.samples.count, "voxels": int(voxels),
+        "epsilon": solve.epsilon, "min_area": solve.min_area, "max_level": h.points.max_level,
+        "tolerance": solve.tolerance, "links": len(result.links), "leaves": int(len(leaves)),
+        "elements": int(len(h)), "elements_per_level": np.bincount(h.level).tolist(),
+        "leaves_per_level": np.bincount(h.level[leaves], minlength=h.points.max_level + 1).tolist(),
+        "refinement_rounds": int(rounds), "iterations": int(result.iterations), "shots": 0,
+        "residual": float(result.residual), "rays": int(caster.rays), "blocks": int(caster.blocks),
+        "tests": int(counters.get("tests", 0)),
+        "absorbed_balance": [float(b) if np.isfinite(b) else None for b in balance],
+    }
+    for name, times in (("seconds", phases.seconds), ("cpu_seconds", phases.cpu)):
+        report[name] = dict(times)
+    report["seconds"]["total"] = time.perf_counter() - t0
+    report["cpu_seconds"]["total"] = time.process_time() - c0
+    report.update({k: v for k, v in counters.items() if k not in report})
+    return report
+
+
+def leaf_scene(h, leaves):
+    """The leaf elements ``leaves`` as a :class:`Scene` (each its own three vertices), their
+    material and group their input triangle's."""
+    scene, p = h.scene, h.patch[leaves]
+    return Scene(name=scene.name, vertices=h.vertices(leaves).reshape(-1, 3),
+                 triangles=np.arange(3 * len(leaves)).reshape(-1, 3), reflectance=scene.reflectance[p],
+                 emission=scene.emission[p], group=scene.group[p], group_names=list(scene.group_names),
+                 camera=scene.camera, source=scene.source)
+
+
+def write_leaves_csv(path, result, outputs=None):
+    """One row per leaf: ``leaf,patch,level,group,area,cx,cy,cz,B_r,B_g,B_b`` (``patch``: its
+    input triangle)."""
+    import csv
+    from ...atomic import write_file
+    from ...errors import printable
+    h, leaves, B = result.hierarchy, result.hierarchy.leaves(), result.radiosity
+    bad = np.flatnonzero(~np.isfinite(B).all(axis=1))
+    if len(bad):
+        raise SolveError(f"{option('patches')} {printable(path, 200)}: leaf {int(bad[0])}'s radiosity is "
+                         f"{B[bad[0]].tolist()}; not written")
+    out = result.leaves
+
+    def write(f):
+        w = csv.writer(f)
+        w.writerow(LEAF_COLUMNS)
+        for m, e in enumerate(leaves):
+            g = out.group_names[out.group[m]] if out.group_names else str(out.group[m])
+            w.writerow([m, int(h.patch[e]), int(h.level[e]), g, repr(float(out.areas[m])),
+                        *(repr(float(x)) for x in out.centroids[m]), *(repr(float(x)) for x in B[m])])
+    write_file(path, "--patches", write, outputs=outputs)

@@ -1,0 +1,281 @@
+"""One render configuration: :class:`RenderOptions`, frozen and validated when it is built.
+
+Its groups: :class:`BoardOptions` (which back-end of the registry, host_driver/board/backends.py, and
+how it is built), :class:`RayOptions` (the voxel grid, the sample points and how block rays are
+formed), :class:`SolveOptions` (the solver and when it stops) and :class:`SetOptions` (host +
+board sets on a Dask cluster, the host's cores). The CLI builds one with
+:meth:`RenderOptions.from_args`, a library caller with :meth:`RenderOptions.of` from the flat
+names (the CLI's option names with ``_`` for ``-``), and :func:`~blockray.host_driver.render.render.render`
+takes it as a whole. A bad value raises :class:`~blockray.errors.ParameterError` naming its
+parameter (the CLI names the option that set it).
+
+B, the coordinate bits, travels in the board's :class:`~blockray.params.BoardParams`
+(``BoardOptions.params.bits``): the B asked for, or None (the default here): the board chooses it
+for the scene (a real board: the B its bitstream was built for). The board resolves it once, when
+it quantises the scene; from there on the quantised scene and the board's params carry it.
+"""
+
+import math
+from dataclasses import dataclass, field, fields
+
+from ...errors import ParameterError, option
+from ...params import BoardParams
+from ...samples import SampleScheme
+from ...link import DEFAULT_BAUD
+
+__all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "filter_format",
+           "host_timing"]
+
+SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
+
+
+def _one_of(name, value, choices):
+    if value not in choices:
+        raise ParameterError(f"{name} must be one of {', '.join(choices)}, not {value!r}",
+                             parameter=name)
+    return value
+
+
+def _integer(value):
+    return not isinstance(value, bool) and isinstance(value, int)
+
+
+@dataclass(frozen=True)
+class BoardOptions:
+    """The board: ``backend`` (a name of the registry, ``--board``), the machine's ``params``
+    (R, S, P and B, None by default: chosen per scene; the memories of a board built per scene
+    are fitted to it), ``partition``, the processor ``cell`` and its ``filter_format``,
+    a waveform ``vcd``, the simulated host's ``host`` timing ``(idle, backpressure, seed)``,
+    link ``faults`` (:class:`~blockray.host_driver.board.framed.LinkFaults`), and for a real board its
+    serial ``port`` (one per board) and ``baud``."""
+    backend: str = "model"
+    params: BoardParams = field(default_factory=lambda: BoardParams(bits=None))
+    partition: str = "deal"
+    cell: str = "exact"
+    filter_format: object = None
+    vcd: object = None
+    host: tuple = None
+    faults: object = None
+    port: tuple = ()
+    baud: int = DEFAULT_BAUD
+
+    def __post_init__(self):
+        from ..board.backends import backend, check_board       # (the registry imports nothing of this module)
+        entry = backend(self.backend)
+        if not isinstance(self.params, BoardParams):
+            raise ParameterError(f"board params must be BoardParams, not {self.params!r}", parameter="params")
+        if self.params.bits is not None:
+            if not entry.quantises:
+                raise ParameterError(f"bits applies to boards that quantise the scene; the {self.backend} board "
+                                     f"is float64", parameter="bits")
+        check_board(self)
+        if isinstance(self.port, str):
+            object.__setattr__(self, "port", tuple(p for p in self.port.split(",") if p))
+        if not _integer(self.baud) or self.baud < 1:
+            raise ParameterError(f"baud must be a positive integer, not {self.baud!r}", parameter="baud")
+
+
+@dataclass(frozen=True)
+class RayOptions:
+    """The voxel grid (``voxels`` per axis; None: the paper's cost model chooses), the shooter
+    ``samples`` (a count or a :class:`~blockray.samples.SampleScheme`), the ``traversal`` and
+    ``packing`` of block rays, where each row ends on its receiver (``end_points``, a rule of
+    host_driver/traverse/endpoints.py, with ``end_seed`` for ``draw``), and the fraction of rays whose
+    traversal is measured."""
+    voxels: int = None
+    samples: SampleScheme = 8
+    traversal: str = "block"
+    packing: str = "voxel"
+    end_points: str = "centroid"
+    end_seed: int = 0
+    stats_fraction: float = 0.02
+
+    def __post_init__(self):
+        from ..traverse.visibility import PACKINGS, TRAVERSALS
+        if self.voxels is not None and (not _integer(self.voxels) or not 1 <= self.voxels <= 256):
+            raise ParameterError(f"voxels must be an integer from 1 to 256, not {self.voxels!r}", parameter="voxels")
+        if not isinstance(self.samples, SampleScheme):
+            object.__setattr__(self, "samples", SampleScheme(self.samples))
+        _one_of("traversal", self.traversal, TRAVERSALS)
+        _one_of("packing", self.packing, PACKINGS)
+        from ..traverse.endpoints import ENDS
+        _one_of("end_points", self.end_points, ENDS)
+        if not _integer(self.end_seed) or not 0 <= self.end_seed < 2 ** 63:
+            raise ParameterError(f"end_seed must be an integer from 0 to 2**63 - 1, not {self.end_seed!r}",
+                                 parameter="end_seed")
+        if not 0 <= self.stats_fraction <= 1:
+            raise ParameterError(f"stats_fraction must be from 0 to 1, not {self.stats_fraction!r}",
+                                 parameter="stats_fraction")
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """The ``solver``, its stopping ``tolerance``, ``max_shots`` (progressive) and
+    ``max_iterations`` (gathering), the ``closure`` of the visible form factors, and the
+    hierarchical solver's refinement threshold ``epsilon`` (a fraction of the emitted power) and
+    smallest element ``min_area`` (None: 3 levels below each input triangle), host_driver/render/hierarchical.py."""
+    solver: str = "progressive"
+    tolerance: float = 1e-3
+    max_shots: int = None
+    max_iterations: int = 200
+    closure: str = "off"
+    epsilon: float = 1e-3
+    min_area: float = None
+
+    def __post_init__(self):
+        from ..radiosity.closure import MODES
+        _one_of("solver", self.solver, SOLVERS)
+        if not (isinstance(self.tolerance, (int, float)) and math.isfinite(self.tolerance) and self.tolerance > 0):
+            raise ParameterError(f"tolerance must be a positive number, not {self.tolerance!r}",
+                                 parameter="tolerance")
+        if self.max_shots is not None and (not _integer(self.max_shots) or self.max_shots < 1):
+            raise ParameterError(f"max_shots must be at least 1, not {self.max_shots!r}", parameter="max_shots")
+        if not _integer(self.max_iterations) or self.max_iterations < 1:
+            raise ParameterError(f"max_iterations must be at least 1, not {self.max_iterations!r}",
+                                 parameter="max_iterations")
+        _one_of("closure", self.closure, MODES)
+        for name in ("epsilon", "min_area"):
+            value = getattr(self, name)
+            if value is None and name == "min_area":
+                continue
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ParameterError(f"{name} must be a positive number, not {value!r}", parameter=name)
+        if self.solver == "hierarchical" and self.closure != "off":
+            raise ParameterError(f"{option('closure')} corrects a full matrix of patch factors; the hierarchical solver has "
+                                 "links, not a matrix", parameter="closure")
+
+
+@dataclass(frozen=True)
+class SetOptions:
+    """Where the work runs: ``sets`` host + board sets on a Dask cluster, the user's at
+    ``scheduler`` or a local one of ``workers`` processes; ``threads``: cores of the compiled host
+    kernels (None: all; the result does not depend on it)."""
+    sets: int = 1
+    scheduler: str = None
+    workers: int = None
+    threads: int = None
+
+    def __post_init__(self):
+        if not _integer(self.sets) or self.sets < 1:
+            raise ParameterError(f"sets must be a positive integer, not {self.sets!r}", parameter="sets")
+        for name in ("workers", "threads"):
+            value = getattr(self, name)
+            if value is not None and (not _integer(value) or value < 1):
+                raise ParameterError(f"{name} must be a positive integer, not {value!r}", parameter=name)
+        if self.scheduler is not None and self.workers is not None:
+            raise ParameterError(f"{option('workers')} sizes the local cluster; a cluster joined with {option('scheduler')} "
+                                 "has its own "
+                                 "workers", parameter="workers")
+
+    @property
+    def distributed(self):
+        """The render runs on a Dask cluster."""
+        return self.sets != 1 or self.scheduler is not None or self.workers is not None
+
+
+def filter_format(text):
+    """``--filter-bits D[:W]`` as a :class:`~blockray.filtered.FilterFormat` (None when not given)."""
+    if text is None:
+        return None
+    from ...filtered import FilterFormat
+    parts = text.split(":")
+    if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
+        raise ParameterError(f"filter_bits must be D or D:W (integers), not {text!r}", parameter="filter_bits")
+    bits = [int(p) for p in parts]
+    return FilterFormat(bits[0], bits[-1])
+
+
+def host_timing(args):
+    """The simulated host's link timing from ``--link-idle``, ``--link-backpressure``,
+    ``--link-bursts``, ``--link-seed``: ``(idle, backpressure, seed)``, None if it never stalls."""
+    from ...sim.drive import HostTiming
+    if not (args.link_idle or args.link_backpressure or args.link_bursts):
+        return None
+    try:
+        idle = HostTiming(rate=args.link_idle, burst=args.link_bursts)
+        pressure = HostTiming(rate=args.link_backpressure, burst=args.link_bursts)
+    except ValueError as e:
+        raise ParameterError(f"{option('host')}: {e}", parameter="host") from None
+    return idle, pressure, args.link_seed
+
+
+def _faults(args):
+    from ..board.framed import LinkFaults
+    return LinkFaults(args.link_faults, args.link_seed)
+
+
+_GROUPS = {"board": BoardOptions, "ray": RayOptions, "solve": SolveOptions, "run": SetOptions}
+
+#: what makes a render distributed (SetOptions.distributed), as an error names it
+_DISTRIBUTED = f"{option('sets')}, {option('scheduler')} or {option('workers')}"
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Everything a render is configured by, in four groups; see the module docstring."""
+    board: BoardOptions = field(default_factory=BoardOptions)
+    ray: RayOptions = field(default_factory=RayOptions)
+    solve: SolveOptions = field(default_factory=SolveOptions)
+    run: SetOptions = field(default_factory=SetOptions)
+
+    def __post_init__(self):
+        b, s = self.board, self.solve
+        if s.solver == "hierarchical" and self.ray.end_points != "centroid":
+            raise ParameterError(f"{option('end_points')}: the hierarchical solver's rays end at its elements' centroids",
+                                 parameter="end_points")
+        if not self.run.distributed:
+            return
+        if s.closure != "off":
+            raise ParameterError(f"{option('closure')} needs the whole form-factor matrix on one host; it cannot be used "
+                                 f"with {_DISTRIBUTED}", parameter="closure")
+        if s.solver in ("progressive", "hierarchical"):
+            raise ParameterError(f"{option('sets')}: host + board sets solve by gathering over a matrix; use "
+                                 f"{option('solver')} jacobi or gauss-seidel, not {s.solver}", parameter="sets")
+        if b.vcd is not None:
+            raise ParameterError(f"{option('vcd')} traces one board's simulation; it cannot be used with {_DISTRIBUTED}",
+                                 parameter="vcd")
+        if b.host is not None:
+            raise ParameterError(f"{option('host')} drive one simulated board; they cannot be used with {_DISTRIBUTED}",
+                                 parameter="host")
+        if b.faults is not None:
+            raise ParameterError(f"{option('link_faults')} injects faults on one set's links; it cannot be used with "
+                                 f"{_DISTRIBUTED}", parameter="link_faults")
+        if b.cell != "exact":
+            raise ParameterError(f"{option('cell')} filtered runs one set (not with {_DISTRIBUTED})",
+                                 parameter="cell")
+
+    @classmethod
+    def of(cls, **flat):
+        """From the flat names of the groups' fields (``backend``, ``samples``, ``solver``,
+        ``sets``, ...); ``rows``, ``cols``, ``boards``, ``bits`` set the board's params."""
+        groups = {name: {} for name in _GROUPS}
+        owner = {f.name: name for name, group in _GROUPS.items() for f in fields(group)}
+        array = {k: flat.pop(k) for k in ("rows", "cols", "boards", "bits") if k in flat}
+        for key, value in flat.items():
+            if key not in owner:
+                raise TypeError(f"RenderOptions.of() got an unknown option {key!r}")
+            groups[owner[key]][key] = value
+        if array:
+            params = groups["board"].get("params") or BoardParams(bits=None)
+            groups["board"]["params"] = params.with_(**array)
+        if groups["board"].get("params") is None:
+            groups["board"].pop("params", None)
+        return cls(**{name: _GROUPS[name](**values) for name, values in groups.items()})
+
+    @classmethod
+    def from_args(cls, args):
+        """From the ``blockray render`` command line (the parsed ``args``: the flat names, and
+        ``board``, ``filter_bits``, ``link_*`` as the options give them)."""
+        flat = {f.name: getattr(args, f.name) for group in _GROUPS.values() for f in fields(group)
+                if hasattr(args, f.name)}
+        flat.update(backend=args.board, rows=args.rows, cols=args.cols, boards=args.boards, bits=args.bits,
+                    filter_format=filter_format(args.filter_bits), host=host_timing(args),
+                    faults=None if args.link_faults is None else _faults(args))
+        return cls.of(**flat)
+
+    def with_(self, **flat):
+        """A copy with the flat options changed."""
+        values = {f.name: getattr(getattr(self, group), f.name)
+                  for group, cls_ in _GROUPS.items() for f in fields(cls_)}
+        values.update(flat)
+        return RenderOptions.of(**values)

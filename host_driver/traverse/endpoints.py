@@ -1,0 +1,131 @@
+"""Where a block ray's row ends on its receiver: the rule behind the raw visibility estimate.
+
+A pair's visible factor is its exact unoccluded factor times the weighted clear fraction of K rays
+from the shooter's samples to one end point on the receiver (visibility.py). Which point decides
+the estimate's bias (docs/formfactors.md, "The raw visibility estimate's bias"):
+
+- ``centroid``: the receiver's area centroid, the paper's block ray. Unbiased only for the
+  area-weighted visible fraction; shadows whose edges fall anywhere across the receiver are
+  misweighted towards the part far from the shooter, and contact shadows (which always lie along
+  the contact line, away from the centroid) are missed.
+- ``kernel``: the receiver's centroid weighted by the point-to-point kernel cos cos / r^2 summed
+  over the shooter's samples: removes the first-order (kernel-gradient) part of the bias, not the
+  contact shadows.
+- ``draw``: a point drawn from that same kernel density over the receiver, per pair, from a hash
+  of (seed, shooter, receiver): unbiased for the kernel-weighted fraction up to the density's
+  discretisation, contact shadows included, at the price of noise in each pair's estimate.
+
+The density is piecewise constant over the receiver's 16 congruent sub-triangles (two midpoint
+subdivisions), each valued at its centroid. End points lie on the samples' 1/D barycentric lattice,
+strictly inside the receiver and with no weight a multiple of p (samples.py: off the scene's design
+grid), so they are exact integers on the board's grid and exact rationals on the golden board.
+"""
+
+from functools import lru_cache
+
+import numpy as np
+
+from ...errors import ParameterError
+
+__all__ = ["ENDS", "EndPoints"]
+
+ENDS = ("centroid", "kernel", "draw")
+_LEVELS = 2          # 4^2 sub-triangles carry the density
+
+
+def _sub_barycentric(levels):
+    """(C, 3, 3) barycentric corners of the 4^levels congruent sub-triangles of the unit triangle."""
+    tris = np.eye(3)[None]
+    for _ in range(levels):
+        a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tris = np.concatenate([np.stack(x, 1) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])])
+    return tris
+
+
+def _mix(x):
+    """splitmix64 finaliser on uint64 arrays: a well-spread hash of each value."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def uniforms(seed, i, receivers, stream):
+    """(R,) floats in [0, 1) from (seed, shooter i, receiver, stream): the same for a pair whatever
+    batch, order or process it is cast in."""
+    with np.errstate(over="ignore"):
+        key = _mix(np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(i))
+        key = _mix(key ^ (np.asarray(receivers, dtype=np.uint64) * np.uint64(0xD1B54A32D192ED03) + np.uint64(stream)))
+    return (key >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+class EndPoints:
+    """Each (shooter, receiver) pair's end point under ``rule`` (one of :data:`ENDS`), as integer
+    barycentric weights over the receiver's corners summing to the sample denominator D."""
+
+    def __init__(self, scene, samples, rule="centroid", seed=0):
+        if rule not in ENDS:
+            raise ParameterError(f"end point rule must be one of {', '.join(ENDS)}, not {rule!r}", parameter="end_points")
+        self.scene, self.samples, self.rule, self.seed = scene, samples, rule, int(seed)
+        self.D, self.p = int(samples.denominator), int(samples.prime)
+
+    def weights(self, i, receivers):
+        """(R, 3) int64 end-point weights of shooter i's pairs with ``receivers``; None for
+        ``centroid`` (the board's own centroids)."""
+        if self.rule == "centroid":
+            return None
+        receivers = np.asarray(receivers, dtype=np.int64)
+        w, members, count, centres = _lattice(self.D, self.p)
+        V = self.scene.patch_vertices
+        Y = np.einsum("cj,rjd->rcd", centres, V[receivers])                   # (R, C, 3) sub-centroids
+        X = self.samples.points(V[i][None])[0]                                # (K, 3) shooter samples
+        g = _kernel_sum(X, self.scene.normals[i], Y, self.scene.normals[receivers])   # (R, C)
+        total = g.sum(axis=1)
+        out = np.tile(np.full(3, self.D // 3, dtype=np.int64), (len(receivers), 1))
+        lit = total > 0
+        if self.rule == "kernel":
+            target = (g @ centres)[lit] / total[lit, None]                       # barycentric
+            out[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
+        else:
+            u = uniforms(self.seed, i, receivers, 0)
+            v = uniforms(self.seed, i, receivers, 1)
+            cdf = np.cumsum(g, axis=1) / np.where(lit, total, 1)[:, None]
+            cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
+            pick = members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]
+            out[lit] = w[pick[lit]]
+        # a point behind the shooter's plane (a straddling receiver) keeps the centroid, in front
+        Q = np.einsum("rk,rkd->rd", out / self.D, V[receivers])
+        behind = ((Q - V[i][0]) @ self.scene.normals[i]) <= 0
+        out[behind] = self.D // 3
+        return out
+
+
+@lru_cache(maxsize=None)
+def _lattice(D, p):
+    """Allowed weights (L, 3) on the 1/D lattice; per sub-triangle the indices of those inside it
+    (padded rows) and their count; the sub-triangles' barycentric centroids (C, 3)."""
+    a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
+    w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
+    w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
+    sub = _sub_barycentric(_LEVELS)                                    # (C, 3, 3)
+    # the sub-triangle holding each lattice point: barycentric coordinates within each sub-triangle
+    x = w / D
+    inv = np.linalg.inv(sub.transpose(0, 2, 1))                       # (C, 3, 3): corners as columns
+    local = np.einsum("cij,lj->lci", inv, x)                           # (L, C, 3)
+    owner = np.argmax(local.min(axis=2), axis=1)                       # the one it lies deepest inside
+    count = np.bincount(owner, minlength=len(sub))
+    assert count.min() > 0, "every sub-triangle holds a lattice point"
+    members = np.zeros((len(sub), count.max()), dtype=np.int64)
+    for c in range(len(sub)):
+        members[c, :count[c]] = np.flatnonzero(owner == c)
+    return w, members, count, sub.mean(axis=1)
+
+
+def _kernel_sum(X, n_i, Y, n_j):
+    """(R, C) sum over the shooter points X (K, 3) of cos cos / r^2 (each cosine clipped at 0) to
+    the points Y (R, C, 3) of receivers with normals n_j (R, 3); n_i, n_j need not be unit."""
+    d = Y[:, :, None, :] - X[None, None]                                       # (R, C, K, 3)
+    r2 = (d * d).sum(-1)
+    ci = np.maximum((d * n_i).sum(-1), 0)
+    cj = np.maximum(-(d * n_j[:, None, None, :]).sum(-1), 0)
+    return (ci * cj / np.maximum(r2, 1e-300) ** 2).sum(axis=2)
