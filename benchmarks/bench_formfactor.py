@@ -48,8 +48,9 @@ import numpy as np
 
 import _shared  # noqa: F401  (tests/ on the path: the tests' scenes and oracles)
 from _run_header import print_run_header
-from blockray.host_driver.radiosity import formfactor as ff
+from blockray.host_driver.radiosity import closed_form, cubature, formfactor as ff, point_factor, ray_weights
 from blockray.host_driver.radiosity.closure import absorbed_balance
+from blockray.host_driver.radiosity.elements import level_corners
 from blockray.host_driver.render.render import render
 
 from oracles import clip_front, contour_oracle, far_pair, random_pair
@@ -70,10 +71,10 @@ def forced(Ti, Tj):
     poly = np.empty((4, 3))
     c = Tj.mean(axis=0)
     out = {"closed form": ff.pair_factors(Ti[None], Tj[None], target=0.0)[0],
-           "centroid": Aj * ff._lambert(c[0], c[1], c[2], nj[0], nj[1], nj[2], Ti, poly),
-           "7-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE7, ff._RULE7_W, poly),
-           "25-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE25, ff._RULE25_W, poly),
-           "64-point": Aj * ff._cubature(Ti, Tj, nj[0], nj[1], nj[2], ff._RULE64, ff._RULE64_W, poly)}
+           "centroid": Aj * point_factor._lambert(c[0], c[1], c[2], nj[0], nj[1], nj[2], Ti, poly),
+           "7-point": Aj * cubature._cubature(Ti, Tj, nj[0], nj[1], nj[2], cubature._RULE7, cubature._RULE7_W, poly),
+           "25-point": Aj * cubature._cubature(Ti, Tj, nj[0], nj[1], nj[2], cubature._RULE25, cubature._RULE25_W, poly),
+           "64-point": Aj * cubature._cubature(Ti, Tj, nj[0], nj[1], nj[2], cubature._RULE64, cubature._RULE64_W, poly)}
     stats = np.zeros(len(ff.METHODS), dtype=np.int64)
     out["default"] = ff.pair_factors(Ti[None], Tj[None], stats=stats)[0]
     return out, ff.METHODS[int(np.argmax(stats))]
@@ -144,7 +145,8 @@ def boards(args):
     shooter compiles its kernels and is not timed."""
     from blockray.host_driver.scene.builtin import load_scene
     from blockray.host_driver.render.render import make_board, Visibility
-    from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    from blockray.host_driver.traverse.cost import default_voxels
     from blockray.params import BoardParams
     from blockray.samples import SampleScheme
     from blockray import threads
@@ -234,10 +236,10 @@ def end_points(args):
     for i in range(0, 192, 6):
         f = ff.unoccluded_factors(scene, i)
         rec = np.flatnonzero(f > 0)
-        front_i = ff.samples_in_front(scene, samples, i, rec).astype(float)     # (R, K)
+        front_i = ray_weights.samples_in_front(scene, samples, i, rec).astype(float)     # (R, K)
         vis = {1: np.zeros(len(rec)), K: np.zeros(len(rec))}
         for r, j in enumerate(rec):
-            front_j = ff.samples_in_front(scene, samples, j, [i])[0].astype(float)
+            front_j = ray_weights.samples_in_front(scene, samples, j, [i])[0].astype(float)
             for M, Q_w, mask in ((1, np.ones((1, 3), dtype=np.int64), np.ones(1)), (K, W, front_j)):
                 clear = ~blocked_rays(np.repeat(V[i][None], K, axis=0), W, np.repeat(V[j][None], M, axis=0), Q_w, V)
                 w = mask[:, None] * front_i[r][None, :]
@@ -263,13 +265,9 @@ def _kernel(p, n_p, q, n_q):
 
 
 def _sub_triangles(T, levels):
-    """The 4^levels congruent sub-triangles of each triangle, in _sub_centroids' order: (N, 4^levels, 3, 3)."""
-    tris = T[:, None]
-    for _ in range(levels):
-        a, b, c = tris[:, :, 0], tris[:, :, 1], tris[:, :, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 2) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])], axis=1)
-    return tris
+    """The 4^levels congruent sub-triangles of each triangle, in the element table's order (the first
+    cut outermost): (N, 4^levels, 3, 3)."""
+    return np.einsum("cvk,nkd->ncvd", level_corners(levels), T)
 
 
 def _draw(rng, T, g, levels):
@@ -333,10 +331,12 @@ def rules(args):
         runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
         for rule, seed in runs:
             t = time.perf_counter()
+            ends = {"end_lattice": args.end_lattice if rule != "centroid" else 1,
+                    "end_draws": args.end_draws if rule == "draw" else 1}
             res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
-                         end_seed=seed)
+                         end_seed=seed, **ends)
             bal = absorbed_balance(scene, res.radiosity)
-            label = rule if rule != "draw" else f"draw, seed {seed}"
+            label = res.report["end_points"]
             print(f"| {name} | {scene.patches} | {label} | " + ", ".join(f"{100 * x:+.3f}%" for x in bal)
                   + f" | {res.report['rays']} | {time.perf_counter() - t:.0f} |", flush=True)
 
@@ -373,8 +373,8 @@ def estimators(args):
         J = np.flatnonzero(F[:, i] > 0)
         if not len(J):
             continue
-        w = ff.pair_sample_weights(scene, samples, np.full(len(J), i), J)                      # (J, K)
-        front = ff.centroid_in_front(scene, i, J)
+        w = ray_weights.pair_sample_weights(scene, samples, np.full(len(J), i), J)                      # (J, K)
+        front = ray_weights.centroid_in_front(scene, i, J)
         for e in args.which:
             bits = np.zeros((len(J), K))
             weights = w
@@ -386,7 +386,7 @@ def estimators(args):
                 for m in np.flatnonzero(~front):                                             # reverse rays
                     j = J[m]
                     bits[m] = clear(j, W, i, [[1, 1, 1]])[0]
-                    weights[m] = ff.pair_sample_weights(scene, samples, [j], [i])[0]
+                    weights[m] = ray_weights.pair_sample_weights(scene, samples, [j], [i])[0]
             elif e.startswith("pair-centroid"):
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
                 # (a pair whose kernel vanishes at every cubature point keeps j's centroid)
@@ -413,7 +413,7 @@ def estimators(args):
                     bits[m] = clear(i, W, J[m], y[m][None])[0]
             elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
-                cell = np.arange(SP.shape[1]) % 4                  # _sub_centroids' order: the first cut innermost
+                cell = np.arange(SP.shape[1]) // 4 ** (levels - 1)   # _sub_centroids' order: the first cut outermost
                 v = np.zeros(len(J))
                 for m in range(len(J)):
                     mass = np.array([g[m, cell == q].sum() for q in range(4)])
@@ -428,7 +428,7 @@ def estimators(args):
                 Y = X[J]
                 g = _kernel(X[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None])       # (J, K, K)
                 if e == "KxK-area":         # j's points in front of i's plane, equally
-                    ahead = np.array([ff.samples_in_front(scene, samples, j, [i])[0] for j in J], dtype=float)
+                    ahead = np.array([ray_weights.samples_in_front(scene, samples, j, [i])[0] for j in J], dtype=float)
                     g = w[:, :, None] * ahead[:, None, :]
                 elif e == "KxK-sum":        # j's points by the kernel summed over i
                     u = _kernel(SPi[i][None, :, None], nrm[i], Y[:, None], nrm[J][:, None, None]).sum(axis=1)
@@ -454,7 +454,8 @@ def row_sums(args):
     """Visible row sums sum_j F_ij v_ij / 1 - 1 of the box's shooters in the icosphere scene, with
     the render's visibility (render.shoot's rule) at a given shooter sample count."""
     from blockray.host_driver.render.render import make_board, Visibility
-    from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    from blockray.host_driver.traverse.cost import default_voxels
     from blockray.params import BoardParams
     from blockray.samples import SampleScheme
     scene = next(s for name, s in closed_scenes() if name.startswith("icosphere"))
@@ -471,10 +472,10 @@ def row_sums(args):
         for i in range(0, 192, 6):                          # every 6th triangle of the box
             f = ff.unoccluded_factors(scene, i)
             rec = np.flatnonzero(f > 0)
-            direct = ff.centroid_in_front(scene, i, rec)
+            direct = ray_weights.centroid_in_front(scene, i, rec)
             v = np.empty(len(rec))
-            weigh = ff.sample_weights if args.kernel else (
-                lambda sc, sa, a, b: ff.samples_in_front(sc, sa, a, b).astype(float))
+            weigh = ray_weights.sample_weights if args.kernel else (
+                lambda sc, sa, a, b: ray_weights.samples_in_front(sc, sa, a, b).astype(float))
             v[direct] = vis.clear_fraction(i, rec[direct], weigh(scene, samples, i, rec[direct]))
             for m in np.flatnonzero(~direct):
                 j = rec[m]
@@ -601,7 +602,7 @@ def trigger(args):
             continue
         P4, Q4 = np.zeros((4, 3)), np.zeros((4, 3))
         P4[:len(P)], Q4[:len(Q)] = P, Q
-        value, size, _, _ = ff._contour(P4, len(P), Q4, len(Q), ff.EDGE_TARGET)
+        value, size, _, _ = closed_form._contour(P4, len(P), Q4, len(Q), closed_form.EDGE_TARGET)
         if value == 0.0:
             continue
         estimate = 2.0 ** -53 * size / value
@@ -720,6 +721,8 @@ def main(argv=None):
     ru.add_argument("--seeds", type=int, default=3, help="draw: seeds 0 .. N-1")
     ru.add_argument("--rules", nargs="+", default=["centroid", "kernel", "draw"])
     ru.add_argument("--tolerance", type=float, default=1e-6)
+    ru.add_argument("--end-draws", type=int, default=1, help="draw: rows per pair")
+    ru.add_argument("--end-lattice", type=int, default=1, help="kernel, draw: the end-point lattice's refinement")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")

@@ -31,7 +31,8 @@ from blockray.host_driver.scene import builtin
 from blockray.host_driver.board.driver import BoardDriver
 from blockray.host_driver.render.render import Visibility
 from blockray.host_driver.board.simulated import ModelTransport
-from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard

@@ -32,7 +32,7 @@ import numpy as np
 from _run_header import print_run_header
 from blockray.host_driver.scene.builtin import load_scene
 from blockray.host_driver.render.render import render
-from blockray.host_driver.traverse.voxel import cost_model, default_voxels
+from blockray.host_driver.traverse.cost import cost_model, default_voxels
 from blockray.params import BoardParams
 
 DEFAULT_CONFIGS = "1x1x1,1x2x2,2x2x2,2x4x4,4x4x4,4x8x8,8x8x8"

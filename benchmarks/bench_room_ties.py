@@ -42,14 +42,15 @@ from bench_formfactor import change_stats
 
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.host_driver.radiosity import formfactor, solver as solvers
+from blockray.host_driver.radiosity import formfactor, ray_weights, solver as solvers
 from blockray.host_driver.board.backends import make_board
 from blockray.board import BlockBits
 from blockray.host_driver.scene.builtin import load_scene
 from blockray.host_driver.render.output import write_patches_csv
 from blockray.host_driver.render.render import render
 from blockray.host_driver.traverse.visibility import Visibility, _clear_bits
-from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import default_voxels
 
 SAMPLES = SampleScheme(8)
 
@@ -154,7 +155,7 @@ def _pairs_into(scene, receivers):
 def _ray_ends(scene, I, J):
     """For pairs (I[m] shooter, J[m] receiver), the patches whose samples start the render's rays
     and whose centroid ends them: i's samples to j's centroid, or the reverse rays."""
-    direct = np.array([formfactor.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)], dtype=bool)
+    direct = np.array([ray_weights.centroid_in_front(scene, i, np.array([j]))[0] for i, j in zip(I, J)], dtype=bool)
     return np.where(direct, I, J), np.where(direct, J, I)
 
 
@@ -184,7 +185,7 @@ def ties(args):
         print("the boards' F are identical: no ray differs")
         return
     S, T = _ray_ends(scene, I, J)
-    W = formfactor.pair_sample_weights(scene, SAMPLES, S, T)
+    W = ray_weights.pair_sample_weights(scene, SAMPLES, S, T)
 
     def fraction(bits):
         total = W.sum(axis=1)

@@ -43,7 +43,8 @@ from blockray.host_driver.scene import builtin
 from blockray.host_driver.board.backends import make_board
 from blockray.host_driver.board.driver import BoardDriver
 from blockray.host_driver.render.render import Visibility, render
-from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim.model import ModelBoard

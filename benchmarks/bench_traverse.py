@@ -15,7 +15,8 @@ import time
 import numpy as np
 
 from blockray.host_driver.scene import builtin
-from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import TraversalStats, default_voxels
 from blockray.samples import SampleScheme
 
 

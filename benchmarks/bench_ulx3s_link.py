@@ -26,7 +26,8 @@ from blockray.host_driver.board.driver import BoardDriver
 from blockray.host_driver.board.framed import FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.render.render import Visibility
 from blockray.host_driver.board.simulated import ModelTransport
-from blockray.host_driver.traverse.voxel import VoxelGrid, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS

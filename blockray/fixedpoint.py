@@ -210,6 +210,9 @@ def choose_bits(scene, samples, *, max_error=DEFAULT_MAX_ERROR):
             return bits
     why = (f"{len(q.degenerate)} patches degenerate" if len(q.degenerate)
            else f"max vertex displacement {q.displacement:.3g} > {max_error:g} x diagonal {q.diagonal:.3g}")
+    lattice = getattr(samples, "end_lattice", 1)
+    if lattice > 1:
+        why += f" (the end-point lattice {lattice} takes {lattice.bit_length() - 1} of the bits)"
     raise CapacityError(f"scene {scene.name!r} cannot be represented with at most {MAX_BITS} "
                         f"coordinate bits: at {MAX_BITS} bits {why}")
 

@@ -34,7 +34,10 @@ import numpy as np
 
 from .errors import ParameterError
 
-__all__ = ["SampleScheme"]
+__all__ = ["SampleScheme", "END_LATTICES"]
+
+#: allowed end-point lattice refinements (powers of two: each doubling costs one coordinate bit)
+END_LATTICES = (1, 2, 4, 8, 16)
 
 
 def _primes_from(start):
@@ -99,10 +102,17 @@ def _balanced(cells):
 @dataclass(frozen=True)
 class SampleScheme:
     count: int = 8
+    #: the end-point lattice's refinement: weights count in 1/(3p end_lattice) steps, so rows can end
+    #: that much nearer a receiver's edges (host_driver/endpoints.py); costs log2 of it in coordinate bits
+    end_lattice: int = 1
 
     def __post_init__(self):
         if isinstance(self.count, bool) or not isinstance(self.count, int) or not 1 <= self.count <= 64:
             raise ParameterError(f"shooter samples must be an integer from 1 to 64, not {self.count!r}")
+        e = self.end_lattice
+        if isinstance(e, bool) or not isinstance(e, int) or e not in END_LATTICES:
+            raise ParameterError(f"end_lattice must be one of {', '.join(map(str, END_LATTICES))}, not {e!r}",
+                                 parameter="end_lattice")
 
     @property
     def n(self):
@@ -125,8 +135,8 @@ class SampleScheme:
 
     @property
     def denominator(self):
-        """D = 3p: weights of every sample (and of the centroid) sum to D."""
-        return 3 * self.prime
+        """D = 3p end_lattice: weights of every sample (and of the centroid) sum to D."""
+        return 3 * self.prime * self.end_lattice
 
     @cached_property
     def weights(self):
@@ -134,11 +144,11 @@ class SampleScheme:
         cells = self._lattice[1]
         if self.count < len(cells):
             cells = [cells[i] for i in np.round(np.arange(self.count) * len(cells) / self.count).astype(int)]
-        return _balanced(cells)
+        return _balanced(cells) * self.end_lattice
 
     @property
     def centroid_weights(self):
-        return np.array([self.prime] * 3, dtype=np.int64)
+        return np.array([self.prime * self.end_lattice] * 3, dtype=np.int64)
 
     def points(self, vertices):
         """Float sample points of triangles (N, 3, 3) -> (N, K, 3)."""

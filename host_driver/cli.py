@@ -159,6 +159,7 @@ def _check_render(args):
 
 def _render_parser(sub):
     from .traverse.endpoints import ENDS
+    from ..samples import END_LATTICES
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -182,6 +183,12 @@ def _render_parser(sub):
                         "weighted by the light the shooter sends (kernel), or a point drawn from that light per "
                         "pair (draw); docs/formfactors.md measures what each gives")
     p.add_argument("--end-seed", type=int, default=0, metavar="N", help="seed of --end-points draw")
+    p.add_argument("--end-draws", type=int, default=1, metavar="M",
+                   help="--end-points draw: rows per pair, each to its own drawn point (M times the rays, "
+                        "1/sqrt(M) the noise)")
+    p.add_argument("--end-lattice", type=int, default=1, choices=END_LATTICES, metavar="N",
+                   help="--end-points kernel/draw: end points on a lattice N times finer, so they reach N times "
+                        "nearer the receivers' edges (contact shadows); costs log2(N) coordinate bits")
     p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel", "hierarchical"],
                    help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "
                         "leaf element)")

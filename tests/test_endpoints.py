@@ -12,7 +12,10 @@ import pytest
 from blockray.errors import ParameterError
 from blockray.exact import blocked_reference, patch_normals
 from blockray.board import BlockRay
+from blockray.host_driver.radiosity import ray_weights
 from blockray.host_driver.traverse.endpoints import EndPoints
+from blockray.host_driver.traverse.visibility import Visibility, visible_fraction
+from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.host_driver.board.golden import GoldenBoard
 from blockray.host_driver.render.options import RenderOptions
 from blockray.params import BoardParams
@@ -210,3 +213,84 @@ def test_end_point_options_are_checked():
     with pytest.raises(ParameterError):
         RenderOptions.of(end_seed=-1)
     assert RenderOptions.of(end_points="draw", end_seed=3).ray.end_points == "draw"
+
+
+@pytest.mark.parametrize("count", [1, 8, 32, 64])
+@pytest.mark.parametrize("lattice", [2, 8, 16])
+def test_a_finer_end_lattice_keeps_the_sample_points(count, lattice):
+    """Only the denominator changes: the same float sample points and centroid, weights summing to
+    3 p lattice, none a multiple of p."""
+    base, fine = SampleScheme(count), SampleScheme(count, lattice)
+    V = np.random.default_rng(0).random((5, 3, 3))
+    assert fine.denominator == 3 * base.prime * lattice and fine.prime == base.prime
+    np.testing.assert_allclose(fine.points(V), base.points(V), rtol=0, atol=1e-15)
+    assert (fine.weights.sum(1) == fine.denominator).all() and (fine.weights % fine.prime != 0).all()
+    np.testing.assert_array_equal(fine.centroid_weights * 3, [fine.denominator] * 3)
+
+
+def test_drawn_points_on_a_finer_lattice_reach_the_edge_strip():
+    """On the 1/D lattice no point comes nearer than 1/D to an edge; on a lattice 8 times finer the
+    draws reach into that strip, and still follow the kernel's mass."""
+    scene = _pair_scene()
+    fine = SampleScheme(8, 8)
+    Df = fine.denominator
+    seeds = range(500, 2500)
+    W = np.array([EndPoints(scene, fine, "draw", seed=s).weights(0, [1])[0] for s in seeds])
+    assert (W.sum(1) == Df).all() and (W >= 1).all() and (W % fine.prime != 0).all()
+    near = (W.min(axis=1) < Df // D).mean()          # nearer an edge than the coarse lattice allows
+    bary, g = _kernel_on_fine_grid(scene)
+    strip = g[bary.min(axis=1) < 1 / D].sum() / g.sum()
+    print(f"kernel mass in the strip {strip:.3f}, drawn there {near:.3f}")
+    # the density is constant over each of 16 sub-triangles, so it spreads a corner's peak over its
+    # cell: the draws reach the strip, though not with all of the kernel's mass there
+    assert strip > 0.1 and 0.6 * strip < near < strip + 0.05
+
+
+def test_rows_per_pair_average_the_exact_predicate_of_each_draw():
+    """``end_draws`` rows per pair: each pair's clear fraction is the mean over its draws of the
+    exact predicate's weighted clear fraction, from the weights each draw gives (checked ray by ray
+    here on the quantised scene)."""
+    samples, draws = SampleScheme(4, 2), 3
+    scene = scattered_scene(11, n=24)
+    board = ModelBoard(BoardParams(rows=3, cols=2, boards=1, bits=14))
+    board.prepare(scene, samples)
+    grid = VoxelGrid(scene.patch_vertices, 3, margin=board.margin)
+    board.load(grid)
+    ends = EndPoints(scene, samples, "draw", seed=4, draws=draws)
+    vis = Visibility(scene, board, grid, samples, rows=3, cols=2, ends=ends)
+    q, Dq = board.quantised, samples.denominator
+    checked = partial = 0
+    for i in range(0, scene.patches, 3):
+        J = np.array([j for j in range(scene.patches) if j != i])
+        J = J[ray_weights.centroid_in_front(scene, i, J)]
+        frac = visible_fraction(scene, vis, samples, i, J, vis.phases)
+        a = ray_weights.pair_sample_weights(scene, samples, np.full(len(J), i), J)
+        for m, j in enumerate(J):
+            if a[m].sum() == 0:
+                continue
+            clear = np.zeros(samples.count)
+            for d in range(draws):
+                w = ends.weights(i, [j], d)[0]
+                Q = ((w[:, None] * q.vertices[j]).sum(0) // Dq).tolist()
+                clear += [not any(blocked_reference(q.shooters[i, k].tolist(), Q, *q.vertices[t].tolist())
+                                  for t in range(scene.patches)) for k in range(samples.count)]
+            expect = (a[m] * clear).sum() / (draws * a[m].sum())
+            assert frac[m] == pytest.approx(expect, rel=1e-12, abs=1e-15), (i, j)
+            checked += 1
+            partial += 0 < expect < 1
+    assert checked > 40 and partial > 10, (checked, partial)
+
+
+def test_end_lattice_and_draws_options_are_checked():
+    for bad, name in ((dict(end_points="draw", end_lattice=3), "end_lattice"),
+                      (dict(end_lattice=4), "end_lattice"),                     # centroid: bits for nothing
+                      (dict(end_points="draw", end_draws=0), "end_draws"),
+                      (dict(end_points="kernel", end_draws=2), "end_draws"),
+                      (dict(end_points="draw", samples=SampleScheme(8, 4), end_lattice=2), "end_lattice")):
+        with pytest.raises(ParameterError) as e:
+            RenderOptions.of(**bad)
+        assert e.value.parameter == name, bad
+    o = RenderOptions.of(end_points="draw", end_lattice=4, end_draws=2)
+    assert o.ray.samples == SampleScheme(8, 4)
+    assert o.with_(end_lattice=2).ray.samples == SampleScheme(8, 2)
+    assert RenderOptions.of(end_points="draw", samples=SampleScheme(8, 4)).ray.end_lattice == 4

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from blockray.host_driver.radiosity.formfactor import (METHODS, exchange_mask, form_factor_matrix, pair_factors,
-                                             point_to_triangles, triangle_to_points, unoccluded_factors)
+                                                       unoccluded_factors)
+from blockray.host_driver.radiosity.point_factor import point_to_triangles, triangle_to_points
 
 from oracles import (clip_front, contour_oracle, corner_closed_form, far_pair, parallel_closed_form,
                      parallel_offset_closed_form, perpendicular_closed_form, random_pair)
@@ -314,7 +315,7 @@ def test_exchange_mask_rules():
 def test_clausen_against_mpmath():
     """The two-branch Taylor form of Cl2 (13 terms near 0, 26 near pi) against mpmath."""
     import mpmath as mp
-    from blockray.host_driver.radiosity.formfactor import _cl2
+    from blockray.host_driver.radiosity.special import _cl2
     seed = 1313
     print(f"seed={seed}")
     x = np.random.default_rng(seed).uniform(-2 * math.pi, 2 * math.pi, 2000)
@@ -389,7 +390,7 @@ def test_pair_cache_reuses_the_same_bits():
 
 def test_pair_sample_weights_equal_the_per_pair_ones():
     """The reverse rays' weights of many pairs in one call, bit for bit the per-pair ones."""
-    from blockray.host_driver.radiosity.formfactor import pair_sample_weights, sample_weights
+    from blockray.host_driver.radiosity.ray_weights import pair_sample_weights, sample_weights
     from blockray.samples import SampleScheme
     tris, _ = closed_box(2)
     tris = np.concatenate([tris, rectangle([0.2, 0.2, 0.3], [0.5, 0, 0.1], [0, 0.4, 0.2], 1, 1)])
@@ -402,7 +403,7 @@ def test_pair_sample_weights_equal_the_per_pair_ones():
     many = pair_sample_weights(scene, samples, shooters, receivers)
     one = np.array([sample_weights(scene, samples, i, [j])[0] for i, j in zip(shooters, receivers)])
     assert (many == one).all() and (many > 0).any() and (many == 0).any()
-    from blockray.host_driver.radiosity.formfactor import samples_in_front
+    from blockray.host_driver.radiosity.ray_weights import samples_in_front
     V = scene.patch_vertices
     for i, j, row in zip(shooters[:10], receivers[:10], many[:10]):      # the definition, pair by pair
         points = samples.points(V[i][None])[0]

@@ -10,7 +10,8 @@ from blockray.host_driver.cli import main
 from blockray.exact import blocked_reference, patch_normals
 from blockray import threads
 from blockray.host_driver.render.render import render
-from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import TraversalStats
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.sim import kernel
@@ -136,20 +137,20 @@ def test_traversals_do_not_depend_on_the_thread_count(parallel_always):
 def test_sample_weights_do_not_depend_on_the_thread_count(monkeypatch):
     """The rays' weights of many pairs, serial and on the pool with each thread count: the same bits."""
     from blockray.host_driver.scene import builtin
-    from blockray.host_driver.radiosity import formfactor
+    from blockray.host_driver.radiosity import ray_weights
     scene, samples = builtin.load("cornell"), SampleScheme(8)
     rng = rng_for("weights-threads")
     shooters, receivers = rng.integers(0, scene.patches, 400), rng.integers(0, scene.patches, 400)
-    points = formfactor.weight_points(scene, samples)
+    points = ray_weights.weight_points(scene, samples)
     monkeypatch.setattr(threads, "PARALLEL_MIN_RAYS", 1 << 40)
-    serial = formfactor.pair_sample_weights(scene, samples, shooters, receivers, points=points)
+    serial = ray_weights.pair_sample_weights(scene, samples, shooters, receivers, points=points)
     monkeypatch.setattr(threads, "PARALLEL_MIN_RAYS", 0)
     for n in thread_counts():
         with threads.using(n):
-            np.testing.assert_array_equal(formfactor.pair_sample_weights(scene, samples, shooters, receivers,
+            np.testing.assert_array_equal(ray_weights.pair_sample_weights(scene, samples, shooters, receivers,
                                                                          points=points), serial)
     # the caller's points are those the function computes for the shooters alone
-    np.testing.assert_array_equal(formfactor.pair_sample_weights(scene, samples, shooters, receivers), serial)
+    np.testing.assert_array_equal(ray_weights.pair_sample_weights(scene, samples, shooters, receivers), serial)
     assert (serial > 0).any() and (serial == 0).any()
 
 

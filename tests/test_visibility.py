@@ -5,11 +5,12 @@ one ray per block."""
 import numpy as np
 import pytest
 
-from blockray.host_driver.radiosity import formfactor
+from blockray.host_driver.radiosity import formfactor, ray_weights
 from blockray.host_driver.board.backends import make_board
 from blockray.host_driver.scene.builtin import load_scene
 from blockray.host_driver.traverse.visibility import Phases, Visibility, visible_fraction
-from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import TraversalStats
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 
@@ -52,7 +53,7 @@ def _straddled_shooters(scene, count, seed):
     out = []
     for i in rng.permutation(scene.patches):
         receivers = np.flatnonzero(formfactor.unoccluded_factors(scene, int(i)) > 0)
-        if (~formfactor.centroid_in_front(scene, int(i), receivers)).sum() >= 2:
+        if (~ray_weights.centroid_in_front(scene, int(i), receivers)).sum() >= 2:
             out.append((int(i), receivers))
         if len(out) == count:
             return out
@@ -75,12 +76,12 @@ def test_a_column_in_one_batch_equals_one_batch_per_column(cornell, packing):
     for i, receivers in shooters:
         frac = visible_fraction(scene, one, samples, i, receivers, one.phases)
         # the old way: i's own column, then one column (one batch) per reverse receiver
-        direct = formfactor.centroid_in_front(scene, i, receivers)
+        direct = ray_weights.centroid_in_front(scene, i, receivers)
         old = np.empty(len(receivers))
         old[direct] = many.clear_fraction(i, receivers[direct],
-                                          formfactor.sample_weights(scene, samples, i, receivers[direct]))
+                                          ray_weights.sample_weights(scene, samples, i, receivers[direct]))
         for m in np.flatnonzero(~direct):
-            w = formfactor.pair_sample_weights(scene, samples, [receivers[m]], [i])
+            w = ray_weights.pair_sample_weights(scene, samples, [receivers[m]], [i])
             old[m] = many.clear_fraction(receivers[m], np.array([i]), w)[0]
         assert np.array_equal(frac, old), i
         reversed_pairs += int((~direct).sum())
@@ -110,7 +111,7 @@ def test_pair_fractions_do_not_depend_on_the_packing(cornell):
     a, b = rng.choice(scene.patches, 2, replace=False)
     shooters = np.array([a] * 20 + [b] * 15 + [a] * 10)
     receivers = rng.choice(np.setdiff1d(np.arange(scene.patches), [a, b]), len(shooters), replace=False)
-    weights = formfactor.pair_sample_weights(scene, samples, shooters, receivers)
+    weights = ray_weights.pair_sample_weights(scene, samples, shooters, receivers)
     packed, _ = _visibility(scene, samples)
     per_ray, _ = _visibility(scene, samples, traversal="ray")
     f_packed = packed.pair_clear_fraction(shooters, receivers, weights)

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from blockray.errors import ParameterError
-from blockray.host_driver.traverse.voxel import TraversalStats, VoxelGrid, cost_model, default_voxels
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.host_driver.traverse.cost import TraversalStats, cost_model, default_voxels
 
 SEED = 20240611
 

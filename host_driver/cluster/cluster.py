@@ -129,6 +129,7 @@ class SetJob:
     stats_fraction: float
     end_points: str = "centroid"
     end_seed: int = 0
+    end_draws: int = 1
     threads: object = None     # cores for this worker's compiled kernels (None: its default)
 
 
@@ -176,7 +177,7 @@ def cast_set(k, scene, grid, owner, job):
     """On a worker: set k builds its board, loads the grid and casts the rays ending on its own
     patches, shooter by shooter. Returns its :class:`SetRows`."""
     from distributed import get_worker
-    from ..traverse.voxel import TraversalStats
+    from ..traverse.cost import TraversalStats
     t0, cpu0 = time.perf_counter(), time.process_time()
     if job.threads is not None:
         set_threads(min(job.threads, available()))
@@ -191,7 +192,7 @@ def cast_set(k, scene, grid, owner, job):
         stats = TraversalStats(grid, sample_fraction=job.stats_fraction, seed=k)
         vis = Visibility(scene, board, grid, job.samples, rows=job.params.rows, cols=job.params.cols,
                          traversal=job.traversal, packing=job.packing, phases=phases, stats=stats,
-                         ends=EndPoints(scene, job.samples, job.end_points, job.end_seed))
+                         ends=EndPoints(scene, job.samples, job.end_points, job.end_seed, job.end_draws))
         receivers = _Receivers(scene, own)
         F = np.zeros((len(own), scene.patches))
         for i in range(scene.patches):

@@ -23,7 +23,7 @@ import numpy as np
 from ...errors import ParameterError
 from ...params import MAX_BITS
 
-__all__ = ["ElementPoints", "level_offset", "children_of", "MAX_LEVEL"]
+__all__ = ["ElementPoints", "level_offset", "level_corners", "children_of", "MAX_LEVEL"]
 
 #: Deepest level of the point table: (4**(L+1) - 1) / 3 elements of K + 1 points per input
 #: triangle (L = 4: 341 elements, 3069 points at K = 8, 74 KB per triangle as int64 on the model).
@@ -39,6 +39,12 @@ def children_of(node, level):
     """Table indices (4,) of the children of element ``node`` (of ``level``)."""
     q = node - level_offset(level)
     return level_offset(level + 1) + 4 * q + np.arange(4)
+
+
+def level_corners(level):
+    """(4**level, 3, 3) barycentric corners of the elements ``level`` levels below a triangle, in
+    table order: the four children of one parent together, so neighbours in the order are near."""
+    return _corner_weights(level)[level_offset(level):] / float(1 << level)
 
 
 def _corner_weights(max_level):

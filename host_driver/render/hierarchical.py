@@ -52,7 +52,8 @@ from ...board import BlockBatch, BlockBits, ranges
 from ..radiosity.elements import ElementPoints, children_of
 from ..scene.scene import Scene
 from ..traverse.visibility import Phases
-from ..traverse.voxel import VoxelGrid, default_voxels
+from ..traverse.voxel import VoxelGrid
+from ..traverse.cost import default_voxels
 
 __all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_leaves_csv", "max_level_for",
            "CERTAIN_WEIGHT", "LEAF_COLUMNS"]

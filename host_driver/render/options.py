@@ -80,7 +80,8 @@ class RayOptions:
     """The voxel grid (``voxels`` per axis; None: the paper's cost model chooses), the shooter
     ``samples`` (a count or a :class:`~blockray.samples.SampleScheme`), the ``traversal`` and
     ``packing`` of block rays, where each row ends on its receiver (``end_points``, a rule of
-    host_driver/traverse/endpoints.py, with ``end_seed`` for ``draw``), and the fraction of rays whose
+    host_driver/traverse/endpoints.py, with ``end_seed`` and ``end_draws`` rows per pair for ``draw``, on a
+    lattice ``end_lattice`` times finer than the samples'), and the fraction of rays whose
     traversal is measured."""
     voxels: int = None
     samples: SampleScheme = 8
@@ -88,18 +89,35 @@ class RayOptions:
     packing: str = "voxel"
     end_points: str = "centroid"
     end_seed: int = 0
+    end_draws: int = 1
+    end_lattice: int = 1
     stats_fraction: float = 0.02
 
     def __post_init__(self):
         from ..traverse.visibility import PACKINGS, TRAVERSALS
         if self.voxels is not None and (not _integer(self.voxels) or not 1 <= self.voxels <= 256):
             raise ParameterError(f"voxels must be an integer from 1 to 256, not {self.voxels!r}", parameter="voxels")
-        if not isinstance(self.samples, SampleScheme):
-            object.__setattr__(self, "samples", SampleScheme(self.samples))
+        count = self.samples
+        if isinstance(self.samples, SampleScheme):       # a scheme's own lattice, unless it contradicts
+            count, own = self.samples.count, self.samples.end_lattice
+            if own != self.end_lattice and 1 not in (own, self.end_lattice):
+                raise ParameterError(f"end_lattice {self.end_lattice} contradicts the samples' {own}",
+                                     parameter="end_lattice")
+            object.__setattr__(self, "end_lattice", max(own, self.end_lattice))
+        object.__setattr__(self, "samples", SampleScheme(count, self.end_lattice))
         _one_of("traversal", self.traversal, TRAVERSALS)
         _one_of("packing", self.packing, PACKINGS)
-        from ..traverse.endpoints import ENDS
+        from ..traverse.endpoints import ENDS, MAX_DRAWS
         _one_of("end_points", self.end_points, ENDS)
+        if self.end_lattice != 1 and self.end_points == "centroid":
+            raise ParameterError(f"end_lattice {self.end_lattice} only moves end points of the kernel and draw rules; "
+                                 "the centroid rule would spend its bits for nothing", parameter="end_lattice")
+        if not _integer(self.end_draws) or not 1 <= self.end_draws <= MAX_DRAWS:
+            raise ParameterError(f"end_draws must be an integer from 1 to {MAX_DRAWS}, not {self.end_draws!r}",
+                                 parameter="end_draws")
+        if self.end_draws > 1 and self.end_points != "draw":
+            raise ParameterError(f"end_draws {self.end_draws} needs the draw rule: the {self.end_points} rule gives "
+                                 "every row of a pair the same point", parameter="end_draws")
         if not _integer(self.end_seed) or not 0 <= self.end_seed < 2 ** 63:
             raise ParameterError(f"end_seed must be an integer from 0 to 2**63 - 1, not {self.end_seed!r}",
                                  parameter="end_seed")
@@ -277,5 +295,6 @@ class RenderOptions:
         """A copy with the flat options changed."""
         values = {f.name: getattr(getattr(self, group), f.name)
                   for group, cls_ in _GROUPS.items() for f in fields(cls_)}
+        values["samples"] = self.ray.samples.count          # its lattice travels as end_lattice
         values.update(flat)
         return RenderOptions.of(**values)

@@ -6,7 +6,7 @@ into visible form factors and solves for radiosity.
 
 Visibility of a (shooter i, receiver j) pair is the fraction of the rays from i's sample points to
 j's centroid that the board reports clear, each ray weighted by the light its sample sends to j
-(:func:`~blockray.host_driver.radiosity.formfactor.sample_weights`: 0 from samples behind j's plane); for a
+(:func:`~blockray.host_driver.radiosity.ray_weights.sample_weights`: 0 from samples behind j's plane); for a
 receiver whose centroid lies behind i's plane, the reverse rays (from j's samples to i's centroid);
 the form factor is the exact patch-to-patch factor ``F_ji``
 (:func:`~blockray.host_driver.radiosity.formfactor.unoccluded_factors`) times that fraction. Rays are cast
@@ -27,7 +27,8 @@ from ..radiosity import closure as closures, formfactor, solver as solvers
 from ..cluster.scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
 from ..traverse.endpoints import EndPoints
 from ..traverse.visibility import TRAVERSALS, Phases, Visibility, _morton, visible_fraction
-from ..traverse.voxel import VoxelGrid, default_voxels, TraversalStats
+from ..traverse.voxel import VoxelGrid
+from ..traverse.cost import TraversalStats, default_voxels
 
 __all__ = ["RenderResult", "RenderOptions", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
 
@@ -93,7 +94,8 @@ def _resume(scene, board, options, params, checkpoint):
         "board": board.name, "bits": b.params.bits, "voxels": ray.voxels, "samples": ray.samples.count,
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
-        "end_points": ray.end_points, "end_seed": ray.end_seed,
+        "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
+        "end_lattice": ray.end_lattice,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
         "rows": params.rows, "cols": params.cols, "boards": params.boards})
 
@@ -133,7 +135,7 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
     stats = TraversalStats(grid, sample_fraction=ray.stats_fraction)
     vis = Visibility(scene, board, grid, samples, rows=params.rows, cols=params.cols,
                      traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats,
-                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed))
+                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed, ray.end_draws))
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
     if checkpoint is not None and cache is not None:
@@ -275,6 +277,14 @@ class _Run:
     resume: object = None
 
 
+def _ends_label(ray):
+    """The report's end-point rule: its name, with the draw's seed, rows per pair and lattice."""
+    extra = [f"seed {ray.end_seed}"] if ray.end_points == "draw" else []
+    extra += [f"{ray.end_draws} draws"] if ray.end_draws > 1 else []
+    extra += [f"lattice 1/{ray.samples.denominator}"] if ray.end_lattice > 1 else []
+    return ray.end_points + (f" ({', '.join(extra)})" if extra else "")
+
+
 def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds, traversal_stats, cpu_seconds=None):
     """The keys of ``--report`` (the board's own counters last, never overriding the host's)."""
     scene, params, ray, solve = run.scene, run.params, run.options.ray, run.options.solve
@@ -291,7 +301,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "samples": ray.samples.count,
         "traversal": ray.traversal,
         "packing": ray.packing,
-        "end_points": ray.end_points if ray.end_points != "draw" else f"draw (seed {ray.end_seed})",
+        "end_points": _ends_label(ray),
         "partition": getattr(run.board, "partition", None),
         "solver": solve.solver,
         "sets": int(run.options.run.sets),
@@ -337,7 +347,7 @@ def _render_sets(run, grid, *, progress, echo):
         job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
                      partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
                      stats_fraction=ray.stats_fraction, threads=threads, end_points=ray.end_points,
-                     end_seed=ray.end_seed)
+                     end_seed=ray.end_seed, end_draws=ray.end_draws)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
                                                     _morton(grid.cell_of(scene.centroids)), job,
                                                     solver=solve.solver, tolerance=solve.tolerance,

@@ -31,6 +31,7 @@ import numpy as np
 from ...atomic import Outputs
 from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
+from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
@@ -73,6 +74,8 @@ SETTINGS = {
     "packing": Setting("--packing", str, ("voxel", "fill")),
     "end-points": Setting("--end-points", str, ENDS),
     "end-seed": Setting("--end-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),
+    "end-draws": Setting("--end-draws", int, check=_positive),
+    "end-lattice": Setting("--end-lattice", int, END_LATTICES),
     "contact": Setting("--contact", str, ("on", "off")),
     "rows": Setting("--rows", int, check=_positive),
     "cols": Setting("--cols", int, check=_positive),

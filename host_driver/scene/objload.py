@@ -297,6 +297,161 @@ def _triangulate(poly, p):
     return triangles
 
 
+class _ObjReader:
+    """One OBJ file's statements as they are read: vertices, faces (index triples) with their group
+    and material, and the materials of the libraries read so far. Errors name the file and line."""
+
+    def __init__(self, path, limits):
+        self.path, self.folder, self.limits = path, path.parent, limits
+        self.vertices, self.texcoords, self.normals = [], 0, 0
+        self.faces, self.face_group, self.face_mat = [], [], []
+        self.group_names, self.group_ids = [], {}
+        self.materials = {}
+        self.libraries = set()                     # real paths of the MTL files read
+        self.usemtl_lines = {}                     # material name -> first OBJ line using it
+        self.group, self.material = None, None
+
+    def statement(self, lineno, key, fields):
+        handler = self._HANDLERS.get(key)
+        if handler is not None:
+            handler(self, lineno, fields)
+        elif key in _OBJ_FREEFORM:
+            raise SceneError(f"free-form geometry ('{key}') is not supported", path=self.path, line=lineno)
+        elif key not in _OBJ_IGNORED:
+            raise SceneError(f"unknown statement {_token(key)}", path=self.path, line=lineno)
+
+    def _vertex(self, lineno, fields):
+        values = _numbers(fields, (3, 4, 6), self.path, lineno, "v")
+        for f, c in zip(fields, values[:3]):
+            if not abs(c) <= COORDINATE_LIMIT:
+                raise SceneError(f"vertex coordinate {_token(f)} is beyond +-{COORDINATE_LIMIT:g}, "
+                                 f"the range the boards compute in (scale the scene down)",
+                                 path=self.path, line=lineno)
+        self.vertices.append(values[:3])
+
+    def _texcoord(self, lineno, fields):
+        _numbers(fields, (1, 2, 3), self.path, lineno, "vt")
+        self.texcoords += 1
+
+    def _normal(self, lineno, fields):
+        _numbers(fields, (3,), self.path, lineno, "vn")
+        self.normals += 1
+
+    def _index(self, token, count, lineno, kind):
+        if not _INT.fullmatch(token):
+            raise SceneError(f"bad {kind} index {_token(token)} in 'f'", path=self.path, line=lineno)
+        i = int(token)
+        if i > 0 and i <= count:
+            return i - 1
+        if i < 0 and -i <= count:
+            return count + i
+        raise SceneError(f"{kind} index {i} out of range (there are {count} {kind}s so far)",
+                         path=self.path, line=lineno)
+
+    def _face(self, lineno, fields):
+        if len(fields) < 3:
+            raise SceneError(f"'f' needs at least 3 corners, got {len(fields)}", path=self.path, line=lineno)
+        poly = []
+        for corner in fields:
+            parts = corner.split("/")
+            if len(parts) > 3 or not parts[0]:
+                raise SceneError(f"bad face corner {_token(corner)}", path=self.path, line=lineno)
+            poly.append(self._index(parts[0], len(self.vertices), lineno, "vertex"))
+            if len(parts) > 1 and parts[1]:
+                self._index(parts[1], self.texcoords, lineno, "texture coordinate")
+            if len(parts) > 2 and parts[2]:
+                self._index(parts[2], self.normals, lineno, "normal")
+        try:
+            triangles = _triangulate(poly, np.array([self.vertices[i] for i in poly], dtype=np.float64))
+        except ValueError as e:
+            raise SceneError(str(e), path=self.path, line=lineno) from None
+        g = self._group_id(self.group if self.group is not None else "default")
+        for tri in triangles:
+            self.faces.append(tri)
+            self.face_group.append(g)
+            self.face_mat.append(self.material)
+
+    def _group_id(self, gname):
+        if gname not in self.group_ids:
+            self.group_ids[gname] = len(self.group_names)
+            self.group_names.append(_shown(gname))
+        return self.group_ids[gname]
+
+    def _set_group(self, lineno, fields):
+        self.group = " ".join(fields) if fields else "default"
+
+    def _mtllib(self, lineno, fields):
+        path, folder, limits = self.path, self.folder, self.limits
+        if not fields:
+            raise SceneError("'mtllib' needs a file name", path=path, line=lineno)
+        # one file name with blanks, else several names; a path outside the folder tree is
+        # not even looked at unless allowed (whether it exists is not revealed)
+        whole = " ".join(fields)
+        names = fields
+        if len(fields) > 1 and _may_read(folder, whole, limits) and (folder / whole).is_file():
+            names = [whole]
+        for mtl in names:
+            if "\0" in mtl:           # no file name holds one; os.path would raise
+                raise SceneError(f"material library {_token(mtl)} is not a file name", path=path,
+                                 line=lineno)
+            if not _may_read(folder, mtl, limits):
+                raise SceneError(f"material library {_token(mtl)} is outside the scene's folder "
+                                 f"(allow it with --allow-mtl-outside)", path=path, line=lineno)
+            real = os.path.realpath(folder / mtl)
+            if real not in self.libraries:          # a library named again is not read twice
+                self.libraries.add(real)
+                _load_mtl(folder / mtl, self.materials, limits, path, lineno, mtl)
+
+    def _usemtl(self, lineno, fields):
+        if not fields:
+            raise SceneError("'usemtl' needs a material name", path=self.path, line=lineno)
+        self.material = " ".join(fields)
+        self.usemtl_lines.setdefault(self.material, lineno)
+
+    _HANDLERS = {"v": _vertex, "vt": _texcoord, "vn": _normal, "f": _face, "o": _set_group,
+                 "g": _set_group, "mtllib": _mtllib, "usemtl": _usemtl}
+
+    def patches(self):
+        """(coordinates, triangles, reflectance, emission, group) of the faces read: every
+        material used defined, coincident positions merged, unused vertices and zero-area
+        triangles dropped (with a :class:`SceneWarning` to load_obj's caller)."""
+        path = self.path
+        for mname, lineno in self.usemtl_lines.items():
+            if mname not in self.materials:
+                raise SceneError(f"unknown material {_token(mname)}{_not_utf8(mname)}", path=path, line=lineno)
+        if not self.faces:
+            raise SceneError("the scene has no triangles", path=path)
+        coords, tris = _weld(self.vertices, self.faces)
+        refl = np.array([self.materials[m].reflectance if m is not None else DEFAULT_REFLECTANCE
+                         for m in self.face_mat], dtype=np.float64)
+        emis = np.array([self.materials[m].emission if m is not None else (0.0, 0.0, 0.0)
+                         for m in self.face_mat], dtype=np.float64)
+        groups = np.array(self.face_group, dtype=np.int64)
+
+        keep = ~_degenerate(coords[tris])
+        dropped = int(np.count_nonzero(~keep))
+        if dropped:
+            warnings.warn(f"{printable(path, 200)}: dropped {dropped} zero-area triangle{'s' if dropped > 1 else ''}",
+                          SceneWarning, stacklevel=3)
+            if not keep.any():
+                raise SceneError("the scene has no triangles of non-zero area", path=path)
+            tris, refl, emis, groups = tris[keep], refl[keep], emis[keep], groups[keep]
+            used, tris = np.unique(tris, return_inverse=True)
+            tris = tris.reshape(-1, 3)
+            coords = coords[used]
+        return coords, tris, refl, emis, groups
+
+
+def _weld(vertices, faces):
+    """(coordinates, triangles): exactly coincident positions merged, unused vertices dropped."""
+    coords = np.array(vertices, dtype=np.float64) + 0.0   # + 0.0 turns -0.0 into 0.0 for unique
+    tris = np.array(faces, dtype=np.int64)
+    unique, inverse = np.unique(coords, axis=0, return_inverse=True)
+    tris = inverse.reshape(-1)[tris]
+    used, tris = np.unique(tris, return_inverse=True)
+    return unique[used], tris.reshape(-1, 3)
+
+
 def load_obj(path, *, max_edge=None, name=None, limits=None):
     """Load a Wavefront OBJ file (and its MTL files) as a :class:`Scene`.
 
@@ -328,141 +483,13 @@ def load_obj(path, *, max_edge=None, name=None, limits=None):
         Zero-area triangles were dropped (the message counts them).
     """
     path = Path(path)
-    folder = path.parent
     limits = LoadLimits() if limits is None else limits
-    vertices, texcoords, normals = [], 0, 0
-    faces, face_group, face_mat = [], [], []   # faces: list of index triples
-    group_names, group_ids = [], {}
-    materials = {}
-    libraries = set()                          # real paths of the MTL files read
-    usemtl_lines = {}                          # material name -> first OBJ line using it
-    group, material = None, None
-
-    def group_id(gname):
-        if gname not in group_ids:
-            group_ids[gname] = len(group_names)
-            group_names.append(_shown(gname))
-        return group_ids[gname]
-
-    def resolve(token, count, lineno, kind):
-        if not _INT.fullmatch(token):
-            raise SceneError(f"bad {kind} index {_token(token)} in 'f'", path=path, line=lineno)
-        i = int(token)
-        if i > 0 and i <= count:
-            return i - 1
-        if i < 0 and -i <= count:
-            return count + i
-        raise SceneError(f"{kind} index {i} out of range (there are {count} {kind}s so far)",
-                         path=path, line=lineno)
-
+    obj = _ObjReader(path, limits)
     for lineno, key, fields in _read_lines(path, limits, what="scene file"):
-        if key == "v":
-            values = _numbers(fields, (3, 4, 6), path, lineno, "v")
-            for f, c in zip(fields, values[:3]):
-                if not abs(c) <= COORDINATE_LIMIT:
-                    raise SceneError(f"vertex coordinate {_token(f)} is beyond +-{COORDINATE_LIMIT:g}, "
-                                     f"the range the boards compute in (scale the scene down)",
-                                     path=path, line=lineno)
-            vertices.append(values[:3])
-        elif key == "vt":
-            _numbers(fields, (1, 2, 3), path, lineno, "vt")
-            texcoords += 1
-        elif key == "vn":
-            _numbers(fields, (3,), path, lineno, "vn")
-            normals += 1
-        elif key == "f":
-            if len(fields) < 3:
-                raise SceneError(f"'f' needs at least 3 corners, got {len(fields)}",
-                                 path=path, line=lineno)
-            poly = []
-            for corner in fields:
-                parts = corner.split("/")
-                if len(parts) > 3 or not parts[0]:
-                    raise SceneError(f"bad face corner {_token(corner)}", path=path, line=lineno)
-                poly.append(resolve(parts[0], len(vertices), lineno, "vertex"))
-                if len(parts) > 1 and parts[1]:
-                    resolve(parts[1], texcoords, lineno, "texture coordinate")
-                if len(parts) > 2 and parts[2]:
-                    resolve(parts[2], normals, lineno, "normal")
-            try:
-                triangles = _triangulate(poly, np.array([vertices[i] for i in poly], dtype=np.float64))
-            except ValueError as e:
-                raise SceneError(str(e), path=path, line=lineno) from None
-            g = group_id(group if group is not None else "default")
-            for tri in triangles:
-                faces.append(tri)
-                face_group.append(g)
-                face_mat.append(material)
-        elif key in ("o", "g"):
-            group = " ".join(fields) if fields else "default"
-        elif key == "mtllib":
-            if not fields:
-                raise SceneError("'mtllib' needs a file name", path=path, line=lineno)
-            # one file name with blanks, else several names; a path outside the folder tree is
-            # not even looked at unless allowed (whether it exists is not revealed)
-            whole = " ".join(fields)
-            names = fields
-            if len(fields) > 1 and _may_read(folder, whole, limits) and (folder / whole).is_file():
-                names = [whole]
-            for mtl in names:
-                if "\0" in mtl:           # no file name holds one; os.path would raise
-                    raise SceneError(f"material library {_token(mtl)} is not a file name", path=path,
-                                     line=lineno)
-                if not _may_read(folder, mtl, limits):
-                    raise SceneError(f"material library {_token(mtl)} is outside the scene's folder "
-                                     f"(allow it with --allow-mtl-outside)", path=path, line=lineno)
-                real = os.path.realpath(folder / mtl)
-                if real not in libraries:          # a library named again is not read twice
-                    libraries.add(real)
-                    _load_mtl(folder / mtl, materials, limits, path, lineno, mtl)
-        elif key == "usemtl":
-            if not fields:
-                raise SceneError("'usemtl' needs a material name", path=path, line=lineno)
-            material = " ".join(fields)
-            usemtl_lines.setdefault(material, lineno)
-        elif key in _OBJ_IGNORED:
-            pass
-        elif key in _OBJ_FREEFORM:
-            raise SceneError(f"free-form geometry ('{key}') is not supported", path=path, line=lineno)
-        else:
-            raise SceneError(f"unknown statement {_token(key)}", path=path, line=lineno)
-
-    for mname, lineno in usemtl_lines.items():
-        if mname not in materials:
-            raise SceneError(f"unknown material {_token(mname)}{_not_utf8(mname)}", path=path, line=lineno)
-
-    if not faces:
-        raise SceneError("the scene has no triangles", path=path)
-
-    coords = np.array(vertices, dtype=np.float64) + 0.0   # + 0.0 turns -0.0 into 0.0 for unique
-    tris = np.array(faces, dtype=np.int64)
-    # Merge exactly coincident positions and drop unused vertices.
-    unique, inverse = np.unique(coords, axis=0, return_inverse=True)
-    tris = inverse.reshape(-1)[tris]
-    used, tris = np.unique(tris, return_inverse=True)
-    tris = tris.reshape(-1, 3)
-    coords = unique[used]
-
-    refl = np.array([materials[m].reflectance if m is not None else DEFAULT_REFLECTANCE
-                     for m in face_mat], dtype=np.float64)
-    emis = np.array([materials[m].emission if m is not None else (0.0, 0.0, 0.0)
-                     for m in face_mat], dtype=np.float64)
-    groups = np.array(face_group, dtype=np.int64)
-
-    keep = ~_degenerate(coords[tris])
-    dropped = int(np.count_nonzero(~keep))
-    if dropped:
-        warnings.warn(f"{printable(path, 200)}: dropped {dropped} zero-area triangle{'s' if dropped > 1 else ''}",
-                      SceneWarning, stacklevel=2)
-        if not keep.any():
-            raise SceneError("the scene has no triangles of non-zero area", path=path)
-        tris, refl, emis, groups = tris[keep], refl[keep], emis[keep], groups[keep]
-        used, tris = np.unique(tris, return_inverse=True)
-        tris = tris.reshape(-1, 3)
-        coords = coords[used]
-
+        obj.statement(lineno, key, fields)
+    coords, tris, refl, emis, groups = obj.patches()
     scene = Scene(name=name if name is not None else path.stem, vertices=coords, triangles=tris,
-                  reflectance=refl, emission=emis, group=groups, group_names=group_names,
+                  reflectance=refl, emission=emis, group=groups, group_names=obj.group_names,
                   source=str(path))
     check_range(scene.vertices, path=path)
     if max_edge is not None:

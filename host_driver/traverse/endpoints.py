@@ -15,10 +15,17 @@ the estimate's bias (docs/formfactors.md, "The raw visibility estimate's bias"):
   of (seed, shooter, receiver): unbiased for the kernel-weighted fraction up to the density's
   discretisation, contact shadows included, at the price of noise in each pair's estimate.
 
+  ``draws`` rows per pair, each with its own drawn point, average the pair's estimate; row d draws
+  from the stratum [d, d + 1) / draws of the density's cumulative distribution, so a pair's rows
+  spread over its receiver as the density does, at draws times the rays.
+
 The density is piecewise constant over the receiver's 16 congruent sub-triangles (two midpoint
 subdivisions), each valued at its centroid. End points lie on the samples' 1/D barycentric lattice,
 strictly inside the receiver and with no weight a multiple of p (samples.py: off the scene's design
 grid), so they are exact integers on the board's grid and exact rationals on the golden board.
+Being strictly inside, no point lies in the strip within 1/D of the receiver's edges, where contact
+shadows are: ``SampleScheme.end_lattice`` makes D finer to narrow that strip, at a coordinate bit
+per doubling.
 """
 
 from functools import lru_cache
@@ -26,21 +33,13 @@ from functools import lru_cache
 import numpy as np
 
 from ...errors import ParameterError
+from ..radiosity.elements import level_corners
 
-__all__ = ["ENDS", "EndPoints"]
+__all__ = ["ENDS", "EndPoints", "MAX_DRAWS"]
 
 ENDS = ("centroid", "kernel", "draw")
+MAX_DRAWS = 64       # rows per pair under ``draw``
 _LEVELS = 2          # 4^2 sub-triangles carry the density
-
-
-def _sub_barycentric(levels):
-    """(C, 3, 3) barycentric corners of the 4^levels congruent sub-triangles of the unit triangle."""
-    tris = np.eye(3)[None]
-    for _ in range(levels):
-        a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        tris = np.concatenate([np.stack(x, 1) for x in ([a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca])])
-    return tris
 
 
 def _mix(x):
@@ -63,15 +62,17 @@ class EndPoints:
     """Each (shooter, receiver) pair's end point under ``rule`` (one of :data:`ENDS`), as integer
     barycentric weights over the receiver's corners summing to the sample denominator D."""
 
-    def __init__(self, scene, samples, rule="centroid", seed=0):
+    def __init__(self, scene, samples, rule="centroid", seed=0, draws=1):
         if rule not in ENDS:
             raise ParameterError(f"end point rule must be one of {', '.join(ENDS)}, not {rule!r}", parameter="end_points")
-        self.scene, self.samples, self.rule, self.seed = scene, samples, rule, int(seed)
+        if not 1 <= draws <= (MAX_DRAWS if rule == "draw" else 1):
+            raise ParameterError(f"end_draws {draws} needs the draw rule and at most {MAX_DRAWS}", parameter="end_draws")
+        self.scene, self.samples, self.rule, self.seed, self.draws = scene, samples, rule, int(seed), int(draws)
         self.D, self.p = int(samples.denominator), int(samples.prime)
 
-    def weights(self, i, receivers):
-        """(R, 3) int64 end-point weights of shooter i's pairs with ``receivers``; None for
-        ``centroid`` (the board's own centroids)."""
+    def weights(self, i, receivers, draw=0):
+        """(R, 3) int64 end-point weights of shooter i's pairs with ``receivers`` (the pair's row
+        ``draw`` of ``draws``); None for ``centroid`` (the board's own centroids)."""
         if self.rule == "centroid":
             return None
         receivers = np.asarray(receivers, dtype=np.int64)
@@ -87,8 +88,9 @@ class EndPoints:
             target = (g @ centres)[lit] / total[lit, None]                       # barycentric
             out[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
         else:
-            u = uniforms(self.seed, i, receivers, 0)
-            v = uniforms(self.seed, i, receivers, 1)
+            # row ``draw`` takes its own stratum of the density's CDF: the pair's rows cover it evenly
+            u = (draw + uniforms(self.seed, i, receivers, 2 * draw)) / self.draws
+            v = uniforms(self.seed, i, receivers, 2 * draw + 1)
             cdf = np.cumsum(g, axis=1) / np.where(lit, total, 1)[:, None]
             cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
             pick = members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]
@@ -107,7 +109,7 @@ def _lattice(D, p):
     a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
     w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
     w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
-    sub = _sub_barycentric(_LEVELS)                                    # (C, 3, 3)
+    sub = level_corners(_LEVELS)                                       # (C, 3, 3)
     # the sub-triangle holding each lattice point: barycentric coordinates within each sub-triangle
     x = w / D
     inv = np.linalg.inv(sub.transpose(0, 2, 1))                       # (C, 3, 3): corners as columns

@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit
 
 from ...errors import ParameterError, option
-from ..radiosity import formfactor
+from ..radiosity import ray_weights
 from ...board import BlockBatch, BlockBits, ranges
 
 __all__ = ["Phases", "Visibility", "visible_fraction", "TRAVERSALS", "PACKINGS"]
@@ -76,7 +76,7 @@ class Visibility:
         self.stats = stats
         self.ends = ends        # an endpoints.EndPoints choosing each pair's end point; None: centroids
         self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
-        self.weight_points = formfactor.weight_points(scene, samples)    # the same, as the ray weights take them
+        self.weight_points = ray_weights.weight_points(scene, samples)    # the same, as the ray weights take them
         self.centroids = scene.centroids
         self.end_voxel = grid.voxel_of(self.centroids)
         self.end_morton = _morton(grid.cell_of(self.centroids))
@@ -219,23 +219,29 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
     """
     receivers = np.asarray(receivers, dtype=np.int64)
     with phases.timed("formfactor"):
-        direct = formfactor.centroid_in_front(scene, i, receivers)
+        direct = ray_weights.centroid_in_front(scene, i, receivers)
         forward = receivers[direct]
         reverse = receivers[~direct]
         # i's own rays first, then one column per reverse receiver, each in receiver order
         shooters = np.concatenate([np.full(len(forward), i, dtype=np.int64), reverse])
         targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
-        weights = formfactor.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
-        ends = None
+        weights = ray_weights.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
+        ends, draws = None, 1
         if vis.ends is not None and vis.ends.rule != "centroid":
-            # i's own rows end where the rule puts them; reverse rows at i's centroid
-            ends = np.concatenate([vis.ends.weights(i, forward),
-                                   np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
+            # i's own rows end where the rule puts them, ``draws`` rows per pair (all in i's one
+            # column); reverse rows at i's centroid
+            draws, nf = vis.ends.draws, len(forward)
+            ends = np.concatenate([vis.ends.weights(i, forward, d) for d in range(draws)]
+                                  + [np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
+            shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), reverse])
+            targets = np.concatenate([np.tile(forward, draws), targets[nf:]])
+            weights = np.concatenate([np.tile(weights[:nf], (draws, 1)), weights[nf:]])
     frac = np.empty(len(receivers))
     # the column count as one call per column would give it: i's own (even if empty), one per reverse
     f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends)
-    frac[direct] = f[:len(forward)]
-    frac[~direct] = f[len(forward):]
+    split = draws * len(forward)
+    frac[direct] = f[:split].reshape(draws, len(forward)).mean(axis=0)
+    frac[~direct] = f[split:]
     return frac
 
 
