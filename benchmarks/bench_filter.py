@@ -67,30 +67,40 @@ def part_verify(queries, seed, formats):
     return 1 if any(s["wrong"] or s["result"] for s in stats.values()) else 0
 
 
+def voxel_records(grid):
+    """The patch records of each voxel of ``grid`` (its registration), as the board streams them."""
+    from blockray.memory import registration
+    vox, pat, nvox = registration(grid)
+    return np.split(pat, np.cumsum(np.bincount(vox, minlength=nvox))[:-1])
+
+
+def block_tests(records, quantised, blocks):
+    """(P, Q, V, n) of each block with rays and records: the tests the model board answers."""
+    q = quantised
+    for block in blocks:
+        recs = [records[v] for v in block.voxels]
+        patches = np.concatenate(recs) if recs else np.zeros(0, dtype=np.int64)
+        if not len(patches) or not block.rays:
+            continue
+        yield (q.shooters[block.shooter_patch, block.shooter_sample], q.receivers[block.receiver_patch],
+               q.vertices[patches], q.normals[patches])
+
+
 def _filter_board(formats):
     """A ModelBoard that also runs every test it answers through the filters (Board interface
     only: the tests are rebuilt from the blocks and the grid's registration)."""
-    from blockray.sim.model import ModelBoard, registration
+    from blockray.sim.model import ModelBoard
 
     class FilterCountingBoard(ModelBoard):
         def load(self, grid):
             super().load(grid)
-            vox, pat, nvox = registration(grid)
-            self._records = np.split(pat, np.cumsum(np.bincount(vox, minlength=nvox))[:-1])
+            self._records = voxel_records(grid)
             self.filter_stats = {str(f): dict.fromkeys(
                 ("tests", "crossing", "undecided", "cycles", "cycles_undecided", "max_per_cycle"), 0)
                 for f in formats}
 
         def run(self, blocks):
-            q = self.quantised
-            for block in blocks:
-                recs = [self._records[v] for v in block.voxels]
-                patches = np.concatenate(recs) if recs else np.zeros(0, dtype=np.int64)
-                if not len(patches) or not block.rays:
-                    continue
-                P = q.shooters[block.shooter_patch, block.shooter_sample]
-                Q = q.receivers[block.receiver_patch]
-                V, n = q.vertices[patches], q.normals[patches]
+            for P, Q, V, n in block_tests(self._records, self.quantised, blocks):
                 dP, dQ, w = edge_terms(P, Q, V)
                 pP, pQ = plane_sides(dP, dQ, n)
                 crossing = plane_crossing(pP, pQ)
@@ -101,7 +111,7 @@ def _filter_board(formats):
                     s["tests"] += decided.size
                     s["crossing"] += int(crossing.sum())
                     s["undecided"] += int(per_cycle.sum())
-                    s["cycles"] += len(patches)
+                    s["cycles"] += len(V)
                     s["cycles_undecided"] += int((per_cycle > 0).sum())
                     s["max_per_cycle"] = max(s["max_per_cycle"], int(per_cycle.max()))
             return super().run(blocks)

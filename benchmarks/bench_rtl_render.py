@@ -3,6 +3,7 @@ the bit-exact model side by side on the same batches, and full renders.
 
     python benchmarks/bench_rtl_render.py [--shooters 20]                 # speed, three routes
     python benchmarks/bench_rtl_render.py --full [--scene cornell]        # + full renders: native, model
+    python benchmarks/bench_rtl_render.py --no-speed --clock [--library LIB ...]   # one idle board's clock
 
 Part 1 loads the Cornell box on P = 8 boards of 8 x 8 processors at its B and sends the
 renderer's block rays of ``--shooters`` shooter columns (one batch per shooter, as the renderer
@@ -22,12 +23,19 @@ board cycles per second (the model's ``board_cycles_per_board`` summed over the 
 Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
 with ``--board verilator`` and ``--board model``, checks that the radiosity and every counter are
 equal and prints both wall times and the native board cycles per second.
+
+Part 3 (``--clock``) clocks one idle 8 x 8 board at B = 17 (the Cornell box's fitted design) in
+the native harness for ``--cycles`` cycles and prints its clock cycles per second: the Verilated
+model's evaluation alone, without the link or the host. ``--library`` adds other builds of the
+native harness (``libblockray_native.so`` of another RTL, from the build cache) to the same run,
+measured in turn, each ``--repeat`` times.
 """
 
 import argparse
 import os
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -122,6 +130,30 @@ def full(scene_name):
           f"{clock / board:,.0f} clock cycles/s per board, over the report's board phase ({board:.0f} s)")
 
 
+def clock(libraries, cycles, repeat):
+    from blockray.host_driver.board.native import native_build
+    from blockray.sim.native import NativeBoard, NativeBuild, NativeRunError
+
+    params = BoardParams(bits=17, patch_depth=256, voxel_depth=125)
+    current = native_build(params)
+    builds = {"this RTL": current}
+    builds.update({str(lib): NativeBuild(Path(lib), Path(lib).parent, False, 0.0, True) for lib in libraries})
+    print(f"load average {os.getloadavg()[0]:.1f}; one idle 8 x 8 board, B = 17, {cycles} cycles; "
+          f"this RTL's build {current.seconds:.0f} s{' (cached)' if current.cached else ''}")
+    for _ in range(repeat):
+        for name, build in builds.items():
+            board = NativeBoard(build, patience=cycles)
+            board.reset()
+            t0 = time.perf_counter()
+            try:
+                board.run(b"", 1)               # no commands: clocks until its patience runs out
+            except NativeRunError:
+                pass
+            wall = time.perf_counter() - t0
+            print(f"  {name}: {board.cycles / wall:,.0f} clock cycles/s", flush=True)
+            board.close()
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shooters", type=int, default=20, help="shooter columns for the speed measurement")
@@ -129,11 +161,17 @@ def main():
     ap.add_argument("--full", action="store_true", help="also render the whole scene, native and model")
     ap.add_argument("--scene", default="cornell", help="--full: the built-in scene")
     ap.add_argument("--no-speed", action="store_true", help="skip part 1")
+    ap.add_argument("--clock", action="store_true", help="one idle board's clock cycles/s in the native harness")
+    ap.add_argument("--library", action="append", default=[], help="--clock: another build's libblockray_native.so")
+    ap.add_argument("--cycles", type=int, default=40000, help="--clock: cycles per measurement")
+    ap.add_argument("--repeat", type=int, default=3, help="--clock: measurements per build")
     args = ap.parse_args()
     if not args.no_speed:
         speed(args.shooters, args.routes.split(","))
     if args.full:
         full(args.scene)
+    if args.clock:
+        clock(args.library, args.cycles, args.repeat)
 
 
 if __name__ == "__main__":

@@ -32,45 +32,66 @@ __all__ = ["filter_terms_layout", "ShooterFilter", "ReceiverFilter", "FilteredPr
            "InOrderResolve", "ArrayResolve", "FilteredArray", "array_item_layout"]
 
 
-def filter_terms_layout(bits):
+def sum_bits(bits, fmt):
+    """Width of a unit's sums Pos, Neg for ``bits``-bit mantissas: bits + 1 (at most
+    3 * 2**(bits-1) + 3); bits + 2 in the lean format (``fmt.w_input_bits`` set: the column's
+    2 Pd + Nd, at most 3 * 2**bits)."""
+    return bits + (1 if fmt.w_input_bits is None else 2)
+
+
+def filter_terms_layout(bits, sums=None):
     """A unit's filter output for its three vectors: mantissas ``m[k][c]`` (signed ``bits``), the
-    sums ``pos[k]``, ``neg[k]`` (unsigned bits + 1: at most 3 * 2**(bits-1) + 3) and
+    sums ``pos[k]``, ``neg[k]`` (unsigned ``sums`` bits, default bits + 1: :func:`sum_bits`) and
     ``truncated[k]`` (exponent > 0)."""
+    sums = bits + 1 if sums is None else sums
     return data.StructLayout({
         "m": data.ArrayLayout(data.ArrayLayout(signed(bits), 3), 3),
-        "pos": data.ArrayLayout(unsigned(bits + 1), 3),
-        "neg": data.ArrayLayout(unsigned(bits + 1), 3),
+        "pos": data.ArrayLayout(unsigned(sums), 3),
+        "neg": data.ArrayLayout(unsigned(sums), 3),
         "truncated": unsigned(3),
     })
 
 
-def _truncate(m, x, bits, name, one):
-    """Three stages of :func:`blockray.filtered.truncate` and the unit's sums for vector ``x``
-    (three signed values): stage 1 the exponent (OR of the magnitudes, leading one), stage 2 the
-    mantissas ``x >> e`` and [e > 0], stage 3 Pos and Neg (``one``: add [e > 0] to each
-    non-negative mantissa, the row unit's Pw). Returns (mantissas, truncated, pos, neg)."""
+def _exponent(m, x, bits, name, floor=None):
+    """Stage 1 of :func:`blockray.filtered.truncate` of vector ``x`` (three signed values): ``x``
+    and its exponent (OR of the magnitudes, leading one) registered. ``floor`` = (condition,
+    least): the exponent is at least ``least`` where ``condition`` holds (the lean row's w^).
+    Returns (registered x, exponent)."""
     width = len(x[0])
     x1 = [Signal(signed(width), name=f"{name}_x1_{c}") for c in range(3)]
-    e1 = Signal(range(max(2, width)), name=f"{name}_e1")
+    e1 = Signal(range(max(2, width, floor[1] + 1 if floor else 0)), name=f"{name}_e1")
     magnitude = Signal(width - 1, name=f"{name}_mag")
     m.d.comb += magnitude.eq(sum_or(Mux(v[-1], ~v, v)[:width - 1] for v in x))
     e0 = Signal.like(e1, name=f"{name}_e0")
     for i in range(bits - 1, width - 1):          # leading one at i: bit length i + 1
         with m.If(magnitude[i]):
             m.d.comb += e0.eq(i + 2 - bits)       # later statements win: the highest one
-    m.d.sync += [e1.eq(e0)] + [r.eq(v) for r, v in zip(x1, x)]
+    if floor is not None:
+        condition, least = floor
+        m.d.sync += e1.eq(Mux(condition & (e0 < least), least, e0))
+    else:
+        m.d.sync += e1.eq(e0)
+    m.d.sync += [r.eq(v) for r, v in zip(x1, x)]
+    return x1, e1
 
+
+def _truncate(m, x, bits, name, one, *, sums=None, floor=None, sum_width=None):
+    """Three stages of :func:`blockray.filtered.truncate` and the unit's sums for vector ``x``
+    (three signed values): stage 1 the exponent (:func:`_exponent`), stage 2 the mantissas
+    ``x >> e`` and [e > 0], stage 3 Pos and Neg (``one``: add [e > 0] to each non-negative
+    mantissa, the row unit's Pw; ``sums``: a function of the mantissas giving (Pos, Neg)
+    expressions instead, ``sum_width`` bits). Returns (mantissas, truncated, pos, neg)."""
+    x1, e1 = _exponent(m, x, bits, name, floor)
     m2 = [Signal(signed(bits), name=f"{name}_m2_{c}") for c in range(3)]
     t2 = Signal(name=f"{name}_t2")
     m.d.sync += [r.eq((v >> e1)[:bits]) for r, v in zip(m2, x1)] + [t2.eq(e1 != 0)]
 
-    pos = Signal(bits + 1, name=f"{name}_pos3")
-    neg = Signal(bits + 1, name=f"{name}_neg3")
-    extra = t2 if one else 0
-    m.d.sync += [
-        pos.eq(sum(Mux(v < 0, 0, v + extra) for v in m2)),
-        neg.eq(sum(Mux(v < 0, -v, 0) for v in m2)),
-    ]
+    pos = Signal(sum_width or bits + 1, name=f"{name}_pos3")
+    neg = Signal(sum_width or bits + 1, name=f"{name}_neg3")
+    if sums is None:
+        extra = t2 if one else 0
+        sums = lambda v: (sum(Mux(c < 0, 0, c + extra) for c in v), sum(Mux(c < 0, -c, 0) for c in v))
+    m.d.sync += [a.eq(b) for a, b in zip((pos, neg), sums(m2))]
     return [_delay(m, v, 1, f"{name}_m3_{c}") for c, v in enumerate(m2)], _delay(m, t2, 1, f"{name}_t3"), pos, neg
 
 
@@ -103,7 +124,7 @@ class _Filter(wiring.Component):
         super().__init__({
             "exact": In(self.exact_layout(bits)),
             "valid": In(1),
-            "terms": Out(filter_terms_layout(self.mantissa_bits)),
+            "terms": Out(filter_terms_layout(self.mantissa_bits, sum_bits(self.mantissa_bits, fmt))),
             "plane_out": Out(signed(Widths(bits).orient)),
             "terms_valid": Out(1),
         })
@@ -112,7 +133,8 @@ class _Filter(wiring.Component):
         m = Module()
         for k in range(3):
             vector = getattr(self.exact, self.vectors)[k]
-            mant, trunc, pos, neg = _truncate(m, [vector[c] for c in _AXES], self.mantissa_bits, f"f{k}", self.one)
+            mant, trunc, pos, neg = _truncate(m, [vector[c] for c in _AXES], self.mantissa_bits, f"f{k}", self.one,
+                                              sums=self._sums(), sum_width=sum_bits(self.mantissa_bits, self._fmt))
             for c in range(3):
                 m.d.comb += self.terms.m[k][c].eq(mant[c])
             m.d.comb += [self.terms.pos[k].eq(pos), self.terms.neg[k].eq(neg), self.terms.truncated[k].eq(trunc)]
@@ -124,9 +146,15 @@ class _Filter(wiring.Component):
 
 
 class ShooterFilter(_Filter):
-    """Column unit's filter: d^_k, Pd_k, Nd_k, [a_k > 0] from the exact d_k (latency 3)."""
+    """Column unit's filter: d^_k, Pd_k, Nd_k, [a_k > 0] from the exact d_k (latency 3); in the
+    lean format (rows with w^ from rounded inputs) Pd' = 2 Pd + Nd, Nd' = Pd + 2 Nd."""
     exact_layout = staticmethod(shooter_terms_layout)
     vectors, plane, one = "d", "pp", False
+
+    def _sums(self):
+        if self._fmt.w_input_bits is None:
+            return None
+        return lambda v: (sum(Mux(c < 0, -c, c << 1) for c in v), sum(Mux(c < 0, -(c << 1), c) for c in v))
 
     @property
     def mantissa_bits(self):
@@ -141,6 +169,9 @@ class ReceiverFilter(_Filter):
     @property
     def mantissa_bits(self):
         return self._fmt.w_bits
+
+    def _sums(self):
+        return None
 
 
 class FilteredProcessor(wiring.Component):
@@ -159,8 +190,8 @@ class FilteredProcessor(wiring.Component):
     def __init__(self, fmt):
         self._fmt = fmt
         super().__init__({
-            "shooter": In(filter_terms_layout(fmt.d_bits)),
-            "receiver": In(filter_terms_layout(fmt.w_bits)),
+            "shooter": In(filter_terms_layout(fmt.d_bits, sum_bits(fmt.d_bits, fmt))),
+            "receiver": In(filter_terms_layout(fmt.w_bits, sum_bits(fmt.w_bits, fmt))),
             "crossing": In(1),
             "valid": In(1),
             "decided": Out(1),
@@ -564,6 +595,11 @@ class FilteredArray(_FilteredCells, wiring.Component):
                      filt.exact.eq(unit.terms), filt.valid.eq(unit.terms_valid)]
         return filt
 
+    def _receiver_edge(self, m, r):
+        """Row ``r``'s unit and filter; returns what the cells take (``terms``, ``plane_out``,
+        ``terms_valid``, ``exact``)."""
+        return self._edge_unit(m, f"receiver_{r}", ReceiverUnit, ReceiverFilter, self.receivers[r])
+
     def _resolve(self):
         """The hand-off with the array's exact unit."""
         return ArrayResolve(self._bits, self._rows, self._cols, self._mark_shape, self._depth)
@@ -581,8 +617,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
         m = Module()
         B, R, S, fmt = self._bits, self._rows, self._cols, self._fmt
         shooters = [self._edge_unit(m, f"shooter_{s}", ShooterUnit, ShooterFilter, self.shooters[s]) for s in range(S)]
-        receivers = [self._edge_unit(m, f"receiver_{r}", ReceiverUnit, ReceiverFilter, self.receivers[r])
-                     for r in range(R)]
+        receivers = [self._receiver_edge(m, r) for r in range(R)]
 
         m.submodules.resolve = resolve = self._resolve()
         hand = resolve.i.payload

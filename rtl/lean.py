@@ -19,18 +19,22 @@ enters the array.
         patch_read  a read port of the patch memory (registered read, one cycle)
 """
 
-from amaranth.hdl import Module, Mux, Signal, unsigned
+from amaranth.hdl import Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
 from ..filtered import lean_format
-from ..records import patch_layout, point_layout
-from .filtered import ArrayResolve, FilteredArray, sum_or
-from .processor import Processor, ReceiverUnit, ShooterUnit, _delay
+from ..params import Widths
+from ..records import patch_layout, point_layout, vector_layout
+from .filtered import (ArrayResolve, FilteredArray, _exponent, _Filter, _truncate, filter_terms_layout, sum_bits,
+                       sum_or)
+from .platform import product_platform
+from .processor import _AXES, _VERTICES, Processor, ReceiverUnit, ShooterUnit, _combine, _delay, _dot_sums, _product
 
-__all__ = ["LeanExact", "LeanResolve", "LeanArray", "lean_format", "tag_layout", "DEFAULT_ADDRESS_BITS"]
+__all__ = ["LeanReceiver", "LeanExact", "LeanResolve", "LeanArray", "lean_format", "tag_layout",
+           "DEFAULT_ADDRESS_BITS"]
 
 #: patch memory address width of a stand-alone array (the board's is its memory's)
 DEFAULT_ADDRESS_BITS = 12
@@ -47,6 +51,69 @@ def tag_layout(address_bits, slots):
     """What a record with undecided tests queues beside its undecided mask: its patch address
     and its end-point memory slot."""
     return data.StructLayout({"address": unsigned(address_bits), "slot": range(slots)})
+
+
+class LeanReceiver(wiring.Component):
+    """The lean array's row unit: pQ exactly, and w^_k, Pw'_k, Nw'_k, [b_k > 0] of w_k from
+    ``fmt.w_input_bits``-bit mantissas of dQ_k = Q - V_k and e_k = V_{k+1} - V_k
+    (:func:`blockray.filtered.rounded_receiver_filter_terms`), never w_k itself.
+
+    Stage 1: dQ_k, e_k and their exponents; 2: the mantissas q, g (the products' operand
+    registers); 3: the 18 products q_a g_b (m_i x m_i, :func:`~blockray.rtl.processor._product`);
+    4: W = q x g (exact, 2 m_i + 1 bits); 5-7: W's exponent (at least m_i + 2 where an input was
+    rounded), w^ and the sums. pQ: the ReceiverUnit's (stage 4), delayed to 7. The ports and
+    latency (7) of a ReceiverUnit followed by its ReceiverFilter: ``terms``, ``plane_out``,
+    ``terms_valid``. Its products answer to the fabric-units key ``receiver``, the 18 of w_k also to
+    ``rounded`` (``--fabric-units rounded``: on LUTs, pQ on DSPs).
+    """
+
+    latency = ReceiverUnit.latency + _Filter.latency
+
+    def __init__(self, bits, fmt):
+        self._bits, self._fmt = bits, fmt
+        super().__init__({
+            "point": In(point_layout(bits)), "patch": In(patch_layout(bits)), "valid": In(1),
+            "terms": Out(filter_terms_layout(fmt.w_bits, sum_bits(fmt.w_bits, fmt))),
+            "plane_out": Out(signed(Widths(bits).orient)),
+            "terms_valid": Out(1),
+        })
+
+    def elaborate(self, platform):
+        m = Module()
+        w, f = Widths(self._bits), self._fmt
+        inputs = f.w_input_bits
+        platform = product_platform(platform, "receiver")
+        rounded = product_platform(platform, "rounded")
+        dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
+        e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
+        for k, vertex in enumerate(_VERTICES):
+            for c in _AXES:
+                m.d.comb += [dq0[k][c].eq(self.point[c] - self.patch[vertex][c]),
+                             e0[k][c].eq(self.patch[_VERTICES[(k + 1) % 3]][c] - self.patch[vertex][c])]
+        pq4 = Signal(signed(w.orient), name="pq_4")
+        sums3 = _dot_sums(m, [(dq0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pq", platform)
+        m.d.sync += pq4.eq(_combine(sums3, w.orient))
+        for k in range(3):
+            q1, al1 = _exponent(m, [dq0[k][c] for c in _AXES], inputs, f"q{k}")
+            g1, be1 = _exponent(m, [e0[k][c] for c in _AXES], inputs, f"g{k}")
+            q = [(v >> al1)[:inputs].as_signed() for v in q1]
+            g = [(v >> be1)[:inputs].as_signed() for v in g1]
+            W4 = []
+            for i, c in enumerate(_AXES):       # (q x g)_c = q_{c+1} g_{c+2} - q_{c+2} g_{c+1}
+                a, b = (i + 1) % 3, (i + 2) % 3
+                plus = _product(m, q[a], g[b], 2 * inputs, f"w{k}_{c}_plus_3", rounded)
+                minus = _product(m, q[b], g[a], 2 * inputs, f"w{k}_{c}_minus_3", rounded)
+                W4.append(Signal(signed(2 * inputs + 1), name=f"W{k}_{c}_4"))
+                m.d.sync += W4[-1].eq(plus - minus)
+            rounded4 = _delay(m, (al1 != 0) | (be1 != 0), 3, f"rounded{k}")
+            mant, trunc, pos, neg = _truncate(
+                m, W4, f.w_bits, f"f{k}", False, floor=(rounded4, inputs + 2), sum_width=sum_bits(f.w_bits, f),
+                sums=lambda v: (sum(Mux(c < -2, 0, c + 2) for c in v), sum(Mux(c > 1, 0, 1 - c) for c in v)))
+            m.d.comb += [self.terms.m[k][c].eq(mant[c]) for c in range(3)]
+            m.d.comb += [self.terms.pos[k].eq(pos), self.terms.neg[k].eq(neg), self.terms.truncated[k].eq(trunc)]
+        m.d.comb += [self.plane_out.eq(_delay(m, pq4, 3, "pq")),
+                     self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))]
+        return m
 
 
 class LeanExact(wiring.Component):
@@ -142,7 +209,7 @@ class LeanArray(FilteredArray):
             raise ParameterError(f"address_bits must be an integer from 1 to 24, not {address_bits!r}",
                                  parameter="address_bits")
         self._address_bits = address_bits
-        super().__init__(bits, rows, cols, fmt=fmt if fmt is not None else lean_format(bits),
+        super().__init__(bits, rows, cols, fmt=lean_format(bits, fmt),
                          depth=depth if depth is not None else self.default_depth(), mark_shape=mark_shape)
         self._MustUse__silence = False
 
@@ -153,6 +220,13 @@ class LeanArray(FilteredArray):
     @classmethod
     def default_depth(cls, extra_latency=0):
         return FilteredArray.default_depth(extra_latency) + LeanExact.latency + 4
+
+    def _receiver_edge(self, m, r):
+        if self._fmt.w_input_bits is None:          # w_k exact, then rounded by the filter
+            return super()._receiver_edge(m, r)
+        unit = m.submodules[f"receiver_{r}"] = LeanReceiver(self._bits, self._fmt)
+        m.d.comb += [unit.point.eq(self.receivers[r]), unit.patch.eq(self.patch), unit.valid.eq(self.valid)]
+        return unit
 
     def _resolve(self):
         # made here, so that _queue_terms can wire its read ports to the memories

@@ -259,10 +259,12 @@ def _dot_sums(m, pairs, width, name, platform=None):
 
 
 def _combine(groups, width):
-    """``sum(term << shift)`` of ``{shift: term}`` (a value; callers truncate it to ``width``)."""
+    """``sum(term << shift)`` of ``{shift: term}`` modulo 2**``width`` (a value; callers truncate
+    it to ``width``). Each addend is cut to ``width`` bits first: the same low bits, but no
+    sign-extended adder wider than 64 bits, which Verilator evaluates word by word."""
     total = 0
     for shift, term in sorted(groups.items()):
-        total = total + (term << shift) if shift else total + term
+        total = total + term[:width - shift].shift_left(shift)
     return total
 
 

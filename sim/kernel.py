@@ -189,22 +189,44 @@ def run_blocks(shooters, receivers, col_off, shooter_patch, shooter_sample, row_
 # -- the filtered cell's undecided tests (issue 16) ----------------------------------------------
 
 @njit(cache=True, inline="always")
-def _truncate3(x0, x1, x2, bits, out, row):
-    """:func:`blockray.filtered.truncate` of one vector: mantissas into ``out[row, 0:3]``;
-    returns [e > 0]."""
+def _exponent3(x0, x1, x2, bits):
+    """The shared exponent of :func:`blockray.filtered.truncate` of one vector."""
     mag = max(~x0 if x0 < 0 else x0, ~x1 if x1 < 0 else x1, ~x2 if x2 < 0 else x2)
     e = 0
     while (mag >> (e + bits - 1)) != 0:
         e += 1
+    return e
+
+
+@njit(cache=True, inline="always")
+def _truncate3(x0, x1, x2, bits, out, row):
+    """:func:`blockray.filtered.truncate` of one vector: mantissas into ``out[row, 0:3]``;
+    returns [e > 0]."""
+    e = _exponent3(x0, x1, x2, bits)
     out[row, 0], out[row, 1], out[row, 2] = x0 >> e, x1 >> e, x2 >> e
     return e > 0
 
 
+@njit(cache=True, inline="always")
+def _rounded_w(dx, dy, dz, ex, ey, ez, w_bits, inputs, out, row):
+    """:func:`blockray.filtered.rounded_receiver_filter_terms` of one w_k = dQ_k x e_k (the lean
+    cell): w^ into ``out[row, 0:3]``; returns [b > 0]."""
+    al, be = _exponent3(dx, dy, dz, inputs), _exponent3(ex, ey, ez, inputs)
+    dx, dy, dz, ex, ey, ez = dx >> al, dy >> al, dz >> al, ex >> be, ey >> be, ez >> be
+    w0, w1, w2 = dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex
+    k = _exponent3(w0, w1, w2, w_bits)
+    if al + be > 0:
+        k = max(k, inputs + 2)
+    out[row, 0], out[row, 1], out[row, 2] = w0 >> k, w1 >> k, w2 >> k
+    return al + be + k > 0
+
+
 @njit(cache=True)
-def _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw):
+def _record_undecided(P, Q, V, n, t, d_bits, w_bits, w_input, md, td, mw, tw):
     """Tests of the block (every receiver Q[r] and shooter P[s]) against record t that the
-    filter (:func:`blockray.filtered.filter_decision`) leaves undecided. Scratch: md (S*3, 3),
-    td (S*3,), mw (R*3, 3), tw (R*3,)."""
+    filter (:func:`blockray.filtered.filter_decision`; with ``w_input`` > 0 the lean cell's,
+    w_k from ``w_input``-bit inputs) leaves undecided. Scratch: md (S*3, 3), td (S*3,),
+    mw (R*3, 3), tw (R*3,)."""
     R, S = Q.shape[0], P.shape[0]
     sp = np.empty(S, np.int64)
     for s in range(S):
@@ -223,7 +245,11 @@ def _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw):
             j = (k + 1) % 3
             dx, dy, dz = Q[r, 0] - V[t, k, 0], Q[r, 1] - V[t, k, 1], Q[r, 2] - V[t, k, 2]
             ex, ey, ez = V[t, j, 0] - V[t, k, 0], V[t, j, 1] - V[t, k, 1], V[t, j, 2] - V[t, k, 2]
-            tw[3 * r + k] = _truncate3(dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex, w_bits, mw, 3 * r + k)
+            if w_input:
+                tw[3 * r + k] = _rounded_w(dx, dy, dz, ex, ey, ez, w_bits, w_input, mw, 3 * r + k)
+            else:
+                tw[3 * r + k] = _truncate3(dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex, w_bits, mw,
+                                           3 * r + k)
         for s in range(S):
             if sp[s] * sq >= 0:
                 continue                                  # not crossing: decided
@@ -237,8 +263,14 @@ def _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw):
                     dot += x * y
                     pd += max(x, 0)
                     nd += max(-x, 0)
-                    pw += y + b if y >= 0 else 0
-                    nw += max(-y, 0)
+                    if w_input:                     # the lean sums: tau in (-1, 2)
+                        pw += max(y + 2, 0)
+                        nw += max(1 - y, 0)
+                    else:
+                        pw += y + b if y >= 0 else 0
+                        nw += max(-y, 0)
+                if w_input:
+                    pd, nd = 2 * pd + nd, pd + 2 * nd
                 lo = (nd if b else 0) + (nw if a else 0)
                 hi = (pd if b else 0) + (pw if a else 0)
                 all_ge &= dot >= lo
@@ -252,7 +284,7 @@ def _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw):
 
 @njit(cache=True)
 def _block_steps(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-                 vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided):
+                 vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, w_input, step_off, kinds, undecided):
     c0, c1, r0, r1 = col_off[b], col_off[b + 1], row_off[b], row_off[b + 1]
     S, R = c1 - c0, r1 - r0
     P, Q = _block_points(shooters, receivers, shooter_patch, shooter_sample, receiver_patch, c0, c1, r0, r1)
@@ -267,29 +299,31 @@ def _block_steps(b, shooters, receivers, col_off, shooter_patch, shooter_sample,
                 i += 1
             for t in range(start[p, x], start[p, x] + count[p, x]):
                 kinds[p, i] = 2
-                undecided[p, i] = _record_undecided(P, Q, V, n, t, d_bits, w_bits, md, td, mw, tw)
+                undecided[p, i] = _record_undecided(P, Q, V, n, t, d_bits, w_bits, w_input, md, td, mw, tw)
                 i += 1
         kinds[p, i] = 3                                       # END_BLOCK's marker
 
 
 @njit(cache=True, parallel=True)
 def _steps_par(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-               vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided):
+               vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, w_input, step_off, kinds, undecided):
     for b in prange(len(col_off) - 1):
         _block_steps(b, shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-                     vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided)
+                     vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, w_input, step_off, kinds,
+                     undecided)
 
 
 def filtered_steps(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-                   vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off):
+                   vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, w_input=0):
     """The filtered board's steps of a batch on each board (the arguments of :func:`run_blocks`;
     ``loads`` (B,) the LOAD_POINTS commands of each block, ``step_off`` (B + 1, P) where each
     block's steps start): ``kinds`` (P, N) the steps (0 plain, 1 an empty voxel's bubble, 2 a
     record, 3 END_BLOCK's marker: :data:`blockray.sim.filtered_model.STEP_PLAIN` ...) and
     ``undecided`` (P, N) each record's tests the filter leaves undecided (every test of the
-    block's rows and columns is evaluated: no early exit, the hardware tests them all)."""
+    block's rows and columns is evaluated: no early exit, the hardware tests them all; ``w_input``:
+    the lean cell's input width, 0 for w_k rounded from its exact value)."""
     kinds = np.zeros((start.shape[0], int(step_off[-1].max())), np.int64)
     undecided = np.zeros_like(kinds)
     _steps_par(shooters, receivers, col_off, shooter_patch, shooter_sample, row_off, receiver_patch,
-               vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, step_off, kinds, undecided)
+               vox_off, voxels, start, count, V, n, loads, d_bits, w_bits, w_input, step_off, kinds, undecided)
     return kinds, undecided

@@ -94,7 +94,7 @@ class LeanArrayModel:
 
     def __init__(self, bits, rows, cols, fmt=None, depth=None):
         self.bits, self.rows, self.cols = bits, rows, cols
-        self.fmt = fmt if fmt is not None else lean_format(bits)
+        self.fmt = lean_format(bits, fmt)
         self.depth = depth if depth is not None else default_lean_depth(0)
 
     def run(self, steps, vertices, normals):

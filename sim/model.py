@@ -344,7 +344,7 @@ class ModelBoard(CountingBoard):
         kinds, undecided = kernel.filtered_steps(
             q.shooters, ends, batch.col_off, batch.shooter_patch, batch.shooter_sample,
             batch.row_off, end_of_row, batch.vox_off, batch.voxels,
-            self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off)
+            self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off, f.w_input_bits or 0)
         total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
         for b, steps in enumerate(step_off[-1]):
             lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth, _EXACT_LATENCY[self.cell])

@@ -1,6 +1,7 @@
 """Formal harnesses of the filtered cell's hand-offs (rtl/filtered.py): :class:`HandoffHarness`
 drives the 1 x 1 array's ``InOrderResolve``, :class:`ArrayHandoffHarness` the R x S array's
-``ArrayResolve``, each with an exact-unit stand-in, the properties as ``Assert`` / ``Cover`` and,
+``ArrayResolve`` (or, ``lean=True``, the lean array's tag queue ``LeanResolve``, rtl/lean.py),
+each with an exact-unit stand-in, the properties as ``Assert`` / ``Cover`` and,
 with ``invariants=True``, the invariants that make them inductive. The proofs that use them are
 tests/test_filtered_formal.py (the properties are described there) and
 benchmarks/bench_formal.py; they run through :func:`blockray.synth.formal.prove`.
@@ -218,9 +219,17 @@ class ExactStandIn(wiring.Component):
     def answer(shooter, receiver):
         return shooter.pp[0] ^ receiver.pq[1] ^ shooter.d[2].z[-1]
 
+    @classmethod
+    def test_answer(cls, terms, r, s, cols=None):
+        """The answer for test (r, s) of a queued record's ``terms``."""
+        return cls.answer(terms.shooters[s], terms.receivers[r])
+
+    def _answer(self):
+        return self.answer(self.shooter, self.receiver)
+
     def elaborate(self, platform):
         m = Module()
-        valid, blocked = self.valid, self.answer(self.shooter, self.receiver)
+        valid, blocked = self.valid, self._answer()
         if self.fault == "drop":
             valid = _drop_once(m, valid, self.fault_now)
         for v, b in zip(self.stages, self.answers):
@@ -230,6 +239,31 @@ class ExactStandIn(wiring.Component):
             valid = _again(m, valid, self.fault_now)
         m.d.comb += [self.result_valid.eq(valid), self.blocked.eq(blocked)]
         return m
+
+
+class LeanStandIn(ExactStandIn):
+    """:class:`~blockray.rtl.lean.LeanExact`'s ports and latency (9): a test is its record's tag
+    (``terms``: patch address, end-point slot) and its bit ``which``; it answers the tag's
+    address bit at the test's index, XOR the slot's low bit (so a test answered for another
+    test's bit or another record's tag is caught). ``fault`` as :class:`ExactStandIn`'s."""
+
+    def __init__(self, rows, cols, address_bits, slots, fault=None):
+        from blockray.rtl.lean import LeanExact, tag_layout
+        self.fault, self.cols = fault, cols
+        self.stages = [Signal(name=f"valid_{n}") for n in range(LeanExact.latency)]
+        self.answers = [Signal(name=f"blocked_{n}") for n in range(LeanExact.latency)]
+        wiring.Component.__init__(self, {
+            "which": In(rows * cols), "terms": In(tag_layout(address_bits, slots)),
+            "valid": In(1), "first": In(1), "fault_now": In(1),
+            "blocked": wiring.Out(1), "result_valid": wiring.Out(1),
+        })
+
+    @staticmethod
+    def test_answer(terms, r, s, cols=None):
+        return terms.address[r * cols + s] ^ terms.slot[0]
+
+    def _answer(self):
+        return ((self.terms.address & self.which) != 0) ^ self.terms.slot[0]
 
 
 class ArrayHandoffHarness(wiring.Component):
@@ -245,11 +279,17 @@ class ArrayHandoffHarness(wiring.Component):
     inductive (:meth:`_invariants`); ``fault``: a broken exact unit (:class:`ExactStandIn`)."""
 
     def __init__(self, depth=ARRAY_DEPTH, tag_bits=TAG_BITS, *, bits=ARRAY_BITS, rows=ARRAY_ROWS, cols=ARRAY_COLS,
-                 invariants=False, fault=None):
+                 invariants=False, fault=None, lean=False):
         from blockray.rtl.filtered import ArrayResolve
+        from blockray.rtl.lean import LeanResolve
         self.depth, self.tag_bits, self.rows, self.cols, self.invariants = depth, tag_bits, rows, cols, invariants
-        self.exact = ExactStandIn(bits, fault)
-        self.dut = ArrayResolve(bits, rows, cols, unsigned(tag_bits), depth, exact_unit=lambda: self.exact)
+        if lean:            # the lean array's: tags to LeanExact (latency 9); address bits = the tests
+            self.exact = LeanStandIn(rows, cols, rows * cols, depth, fault)
+            self.dut = LeanResolve(bits, rows, cols, unsigned(tag_bits), depth, exact_unit=lambda: self.exact,
+                                   address_bits=rows * cols)
+        else:
+            self.exact = ExactStandIn(bits, fault)
+            self.dut = ArrayResolve(bits, rows, cols, unsigned(tag_bits), depth, exact_unit=lambda: self.exact)
         super().__init__({
             "i_valid": In(1), "i_mark": In(1), "i_first": In(1), "i_blocked": In(rows * cols),
             "i_undecided": In(rows * cols), "i_terms": In(self.dut.i.payload.shape()["terms"].shape),
@@ -279,7 +319,7 @@ class ArrayHandoffHarness(wiring.Component):
 
         # per test, the filter's answer when decided, else the exact unit's for its row and column
         terms = dut.i.payload.terms
-        answers = Cat(*(Mux(undecided[r * S + s], ExactStandIn.answer(terms.shooters[s], terms.receivers[r]),
+        answers = Cat(*(Mux(undecided[r * S + s], self.exact.test_answer(terms, r, s, S),
                             self.i_blocked[r * S + s]) for r in range(R) for s in range(S)))
         if self.invariants:             # every item checked against the shadow
             self._invariants(m, accept, deliver, inside, delivered, undecided, answers)
@@ -293,7 +333,8 @@ class ArrayHandoffHarness(wiring.Component):
                 with m.If(~mark):
                     m.d.comb += Assert(out.blocked == expected, "wrong answer")
 
-        _progress(m, inside, deliver, RS * self.depth + 8, "deadlock: items inside and nothing delivered")
+        _progress(m, inside, deliver, RS * self.depth + self.dut.exact_latency + 4,
+                  "deadlock: items inside and nothing delivered")
         m.d.comb += [Cover(inside == self.depth), Cover((inside == self.depth) & deliver & (out.blocked != 0))]
         return m
 

@@ -79,7 +79,7 @@ def _lean_unit(unit, params, fmt):
     from ..rtl.filtered import FilteredProcessor
     from ..rtl.lean import LeanArray, lean_format
     if unit == "cell":
-        return FilteredProcessor(fmt if fmt is not None else lean_format(params.bits))
+        return FilteredProcessor(lean_format(params.bits, fmt))
     rows, cols = (1, 1) if unit == "processor" else (params.rows, params.cols)
     return LeanArray(params.bits, rows, cols, fmt=fmt, address_bits=max(1, (params.patch_depth - 1).bit_length()))
 

@@ -126,3 +126,33 @@ def random_tests(bits, count, rng, shooters=4, receivers=4, patches=8):
         blocks.append(block(P, Q, V))
     tests = _concat(blocks)
     return tests[rng.permutation(len(tests))[:count]]
+
+
+def _rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.diag(r))
+
+
+def near_degenerate(bits, count, rng):
+    """``count`` blocks (P (2, 3), Q (2, 3), V (4, 3, 3)) whose rays pass through a vertex, an edge
+    point or the plane of the first patch (the others share its edges), drawn in [0, 1]**3, then
+    rotated, scaled and translated and rounded to the B-bit grid (so the coincidences are
+    rounded, not exact)."""
+    L = (1 << bits) - 1
+    for _ in range(count):
+        V = rng.random((3, 3))
+        t = rng.choice([0.0, 0.5, rng.random()])
+        X = V[0] + t * (V[1] - V[0]) if rng.random() < 0.7 else V.mean(axis=0)
+        d = rng.normal(size=3)
+        P = X - rng.uniform(0.05, 1, (2, 1)) * d
+        Q = X + rng.uniform(0.05, 1, (2, 1)) * d
+        if rng.random() < 0.3:                                        # in the plane
+            Q = P + np.cross(V[1] - V[0], np.cross(V[1] - V[0], V[2] - V[0]))[None] * 0.3
+        fan = np.stack([V, [V[1], V[0], V[2] * 2 - V[0]], [V[0], V[2], V[1] + V[2] - V[0]], V[[2, 1, 0]]])
+        points = np.concatenate([fan.reshape(-1, 3), P, Q])
+        centre = points.mean(axis=0)
+        points = (points - centre) @ _rotation(rng).T
+        scale = rng.choice([1.0, 1e-2, 1e-4]) * L / max(1e-9, np.ptp(points))
+        points = points * scale + rng.uniform(0.3, 0.7) * L
+        points = np.clip(np.rint(points), 0, L).astype(np.int64)
+        yield points[12:14], points[14:16], points[:12].reshape(4, 3, 3)

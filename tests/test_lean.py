@@ -16,12 +16,12 @@ from amaranth.sim import Simulator
 
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
-from blockray.filtered import FilterFormat, lean_format
+from blockray.filtered import FilterFormat, lean_format, rounded_receiver_filter_terms
 from blockray.host_driver.render.render import render
 from blockray.params import BoardParams
-from blockray.records import pack_array, patch_columns, patch_layout
+from blockray.records import pack_array, patch_columns, patch_layout, point_columns, point_layout
 from blockray.rtl.board import BoardTop
-from blockray.rtl.lean import LeanArray, LeanExact
+from blockray.rtl.lean import LeanArray, LeanExact, LeanReceiver
 from blockray.sim.cocotb_support import build_verilator, run_cocotb
 from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
@@ -46,13 +46,59 @@ def _single_tests(tests, first_mark=True):
     return steps
 
 
+@pytest.mark.parametrize("bits,fmt", [(16, FilterFormat(9, 9, 12)), (16, FilterFormat(4, 5, 3)), (20, FilterFormat(9, 9, 14)),
+                                      (6, FilterFormat(7, 9, 12))], ids=str)
+def test_lean_receiver_terms_equal_the_model(bits, fmt):
+    """LeanReceiver against :func:`blockray.filtered.rounded_receiver_filter_terms` and the exact
+    pQ, term by term, one test per cycle with gaps, at its latency 7: 300 hard and 300 random
+    tests (B = 6 with 12-bit inputs: nothing rounded)."""
+    seed = 3500 + bits
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    tests = hard_cases(bits)[::40][:300] + random_tests(bits, 300, rng)
+    dQ, E = tests.Q[:, None] - tests.V, np.roll(tests.V, -1, axis=-2) - tests.V
+    want = rounded_receiver_filter_terms(dQ, E, fmt)
+    pq = np.einsum("tc,tc->t", tests.Q - tests.V[:, 0], tests.n)
+    dut = LeanReceiver(bits, fmt)
+    qw = pack_array(point_layout(bits), point_columns(tests.Q))
+    vw = pack_array(patch_layout(bits), patch_columns(tests.V, tests.n))
+    gaps = rng.random(2 * len(tests)) < 0.2
+    got = []
+
+    async def bench(ctx):
+        t = 0
+        for gap in gaps:
+            if not gap and t < len(tests):
+                ctx.set(dut.point.as_value(), qw[t])
+                ctx.set(dut.patch.as_value(), vw[t])
+            ctx.set(dut.valid, int(not gap and t < len(tests)))
+            t += int(not gap and t < len(tests))
+            await ctx.tick()
+            if ctx.get(dut.terms_valid):
+                v = ctx.get(dut.terms)
+                got.append(([[v.m[k][c] for c in range(3)] for k in range(3)], [v.pos[k] for k in range(3)],
+                            [v.neg[k] for k in range(3)], [(v.truncated >> k) & 1 for k in range(3)],
+                            ctx.get(dut.plane_out)))
+    sim = Simulator(dut)
+    sim.add_clock(1e-8)
+    sim.add_testbench(bench)
+    sim.run()
+    assert len(got) == min(len(tests), int((~gaps).sum()))
+    for i, (m, pos, neg, trunc, plane) in enumerate(got):
+        assert m == want["m"][i].tolist(), i
+        assert (pos, neg, trunc) == (want["pos"][i].tolist(), want["neg"][i].tolist(),
+                                     want["truncated"][i].astype(int).tolist()), i
+        assert plane == pq[i], i
+
+
 def test_model_constants_are_the_rtls():
     assert LEAN_EXACT_LATENCY == LeanExact.latency == 9
     assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 31
     assert default_lean_depth() == LeanArray.default_depth(2) == 33       # behind the board's memory
 
 
-@pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4))])
+@pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4)),
+                                      (16, FilterFormat(9, 9, 12))])
 def test_model_bits_equal_the_reference_on_processor_vectors(bits, fmt):
     """Every delivered bit of the model (filter where decided, exact unit where not) equals the
     independent orient3d predicate, on hard cases and random blocks, one test per record."""
@@ -180,6 +226,7 @@ def _compare(bits, rows, cols, fmt, depth, steps, V, n, run=_run_rtl):
 
 
 @pytest.mark.parametrize("bits,fmt,depth,count", [(6, FilterFormat(3, 3), None, 160), (16, None, None, 160),
+                                                   (16, FilterFormat(9, 9, 12), None, 160),
                                                    (16, FilterFormat(3, 4), 5, 120)])
 def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
     """1 x 1 lean array, one test per record and a marker after each: cycles and bits equal the
@@ -195,6 +242,7 @@ def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
 
 
 @pytest.mark.parametrize("bits,rows,cols,fmt,depth,seed", [(8, 2, 2, FilterFormat(3, 3), None, 3301),
+                                                           (8, 2, 2, FilterFormat(3, 3, 4), None, 3304),
                                                            (8, 2, 3, FilterFormat(3, 3), 6, 3302),
                                                            (12, 2, 2, None, None, 3303)])
 def test_rtl_equals_model_on_blocks(bits, rows, cols, fmt, depth, seed):
@@ -214,23 +262,24 @@ def test_parameters_are_checked():
         LeanArray(8, 2, 2, address_bits=0)
     with pytest.raises(ValueError, match="depth"):
         LeanArray(8, 2, 2, depth=2)
-    assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
 
 
 def test_model_board_lean_equals_exact(rtl_room):
     """The model board with the lean cell (``--cell lean --board model``) and behind the byte
-    link: radiosity and tests equal the exact cell's; at 3 x 3 bits the broadcast stalls for the
-    shared exact unit, and the model behind the link counts the same per-board cycles."""
+    link: radiosity and tests equal the exact cell's; at 3 x 3 bits (w_k from 5-bit inputs, so
+    B = 10 rounds them) the broadcast stalls for the shared exact unit, and the model behind the
+    link (``BoardModel``: blockray.filtered) counts the same per-board cycles as the model board
+    (``ModelBoard``: the compiled kernel)."""
     def run(board, **cell):
         return render(rtl_room, backend=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
 
     exact = run("model")
-    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3))
+    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3, 5))
     assert np.array_equal(lean.radiosity, exact.radiosity)
     for key in ("tests_issued", "tests_useful", "blocks", "rays"):
         assert lean.report[key] == exact.report[key], key
     assert (np.array(lean.report["board_cycles_per_board"]) > np.array(exact.report["board_cycles_per_board"])).all()
-    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3))
+    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3, 5))
     assert np.array_equal(link.radiosity, lean.radiosity)
     for key in ("board_cycles_per_board", "tests_issued_per_board"):
         assert link.report[key] == lean.report[key], key

