@@ -73,6 +73,13 @@ class EndPoints:
     def weights(self, i, receivers, draw=0):
         """(R, 3) int64 end-point weights of shooter i's pairs with ``receivers`` (the pair's row
         ``draw`` of ``draws``); None for ``centroid`` (the board's own centroids)."""
+        return self._ends(i, receivers, [draw])
+
+    def rows(self, i, receivers):
+        """(draws R, 3): :meth:`weights` of every row ``draw`` in turn, the density computed once."""
+        return self._ends(i, receivers, range(self.draws))
+
+    def _ends(self, i, receivers, draws):
         if self.rule == "centroid":
             return None
         receivers = np.asarray(receivers, dtype=np.int64)
@@ -82,24 +89,26 @@ class EndPoints:
         X = self.samples.points(V[i][None])[0]                                # (K, 3) shooter samples
         g = _kernel_sum(X, self.scene.normals[i], Y, self.scene.normals[receivers])   # (R, C)
         total = g.sum(axis=1)
-        out = np.tile(np.full(3, self.D // 3, dtype=np.int64), (len(receivers), 1))
         lit = total > 0
-        if self.rule == "kernel":
-            target = (g @ centres)[lit] / total[lit, None]                       # barycentric
-            out[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
-        else:
-            # row ``draw`` takes its own stratum of the density's CDF: the pair's rows cover it evenly
-            u = (draw + uniforms(self.seed, i, receivers, 2 * draw)) / self.draws
-            v = uniforms(self.seed, i, receivers, 2 * draw + 1)
-            cdf = np.cumsum(g, axis=1) / np.where(lit, total, 1)[:, None]
-            cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
-            pick = members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]
-            out[lit] = w[pick[lit]]
-        # a point behind the shooter's plane (a straddling receiver) keeps the centroid, in front
-        Q = np.einsum("rk,rkd->rd", out / self.D, V[receivers])
-        behind = ((Q - V[i][0]) @ self.scene.normals[i]) <= 0
-        out[behind] = self.D // 3
-        return out
+        cdf = np.cumsum(g, axis=1) / np.where(lit, total, 1)[:, None]
+        out = []
+        for draw in draws:
+            row = np.tile(np.full(3, self.D // 3, dtype=np.int64), (len(receivers), 1))
+            if self.rule == "kernel":
+                target = (g @ centres)[lit] / total[lit, None]                   # barycentric
+                row[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
+            else:
+                # row ``draw`` takes its own stratum of the density's CDF: the pair's rows cover it evenly
+                u = (draw + uniforms(self.seed, i, receivers, 2 * draw)) / self.draws
+                v = uniforms(self.seed, i, receivers, 2 * draw + 1)
+                cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
+                pick = members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]
+                row[lit] = w[pick[lit]]
+            # a point behind the shooter's plane (a straddling receiver) keeps the centroid, in front
+            Q = np.einsum("rk,rkd->rd", row / self.D, V[receivers])
+            row[((Q - V[i][0]) @ self.scene.normals[i]) <= 0] = self.D // 3
+            out.append(row)
+        return np.concatenate(out)
 
 
 @lru_cache(maxsize=None)

@@ -231,7 +231,7 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
             # i's own rows end where the rule puts them, ``draws`` rows per pair (all in i's one
             # column); reverse rows at i's centroid
             draws, nf = vis.ends.draws, len(forward)
-            ends = np.concatenate([vis.ends.weights(i, forward, d) for d in range(draws)]
+            ends = np.concatenate([vis.ends.rows(i, forward)]
                                   + [np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
             shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), reverse])
             targets = np.concatenate([np.tile(forward, draws), targets[nf:]])
