@@ -30,10 +30,20 @@ refines. The other links of a receiver that is split move to its children (:func
 so links end on leaves and a leaf's factors partition its sources.
 
 **Solve.** Jacobi over the links with push-pull (HSA's gathering): every element gathers
-``G_p = sum_links F v B_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
+``G_p = sum_links u_r F v S_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
 ancestors)``; pulling up, an element's radiosity is the mean of its four children's (equal
-areas). The residual is :mod:`~blockray.host_driver.radiosity.solver`'s, on the leaves: ``sum A |B' - B|
-/ sum A E``, RGB summed.
+areas), and ``S_s`` the mean of ``w B`` over its leaves. The residual is
+:mod:`~blockray.host_driver.radiosity.solver`'s, on the leaves: ``sum A |B' - B| / sum A E``, RGB summed.
+
+**Balance.** A link from a source coarser than its receiver spreads the source's mean radiosity
+with the source's mean factor, so leaf l's light leaves through its ancestors' links with the
+factor sum ``c_l = sum F_sr v`` (``F_sr = A_r F_rs / A_s``, s the ancestor), not the sum ``g_l``
+it gathers, and absorbed minus emitted power is ``sum_l A_l B_l (c_l - 1)`` (closed scene).
+:func:`transport_scales` finds receiver scales ``u`` and source scales ``w`` (Sinkhorn) with which
+every leaf still gathers ``g_l`` and now shoots ``g_l``: a source of uniform radiosity delivers
+what it did, and a closed scene whose leaves see a factor sum of 1 balances to the solve's
+tolerance. ``--closure enforce`` takes 1 for every leaf's two sums instead (closed scenes, the
+visibility estimate's own error included; refused beyond closure.MAX_CORRECTION).
 
 **Outputs.** The leaves as a :class:`~blockray.host_driver.scene.scene.Scene` (the image, energy
 balance and tests take it as any scene), and a CSV row per leaf with its input triangle and level.
@@ -45,7 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...errors import CapacityError, SolveError, option
+from ...errors import CapacityError, ParameterError, SolveError, option
 from ...exact_float import plane_signs
 from ..radiosity import formfactor
 from ...board import BlockBatch, BlockBits, ranges
@@ -289,26 +299,104 @@ def push_to_leaves(h, links):
         links = Links.join(links.take(~down), pushed)
 
 
-def solve_links(h, links, B, *, tolerance, max_iterations):
-    """Jacobi sweeps with push-pull from ``B`` (every element's radiosity, (M, 3)): ``(B, sweeps,
-    residual, history)``, B the iterate whose residual is reported (as solver.jacobi_sweeps)."""
-    scene = h.scene
-    E, rho, A = scene.emission[h.patch], scene.reflectance[h.patch], h.areas
-    leaves = h.leaves()
+def level_steps(h):
+    """``(down, up)``: the elements of levels 1.. (top first), for pushing to children, and the
+    inner elements of levels ..0 (deepest first), for pulling from them."""
     depth = int(h.level.max(initial=0))
     down = [np.flatnonzero(h.level == lv) for lv in range(1, depth + 1)]
     up = [np.flatnonzero((h.level == lv) & (h.child >= 0)) for lv in range(depth - 1, -1, -1)]
-    w = links.F * links.vis
+    return down, up
+
+
+def pull_means(h, x, up):
+    """``x`` (leaves set) with every inner element the mean of its four equal children (in place)."""
+    for idx in up:
+        x[idx] = sum(x[h.child[idx] + c] for c in range(4)) / 4
+    return x
+
+
+def push_sums(h, x, down):
+    """``x`` with every element's value plus its ancestors' (in place)."""
+    for idx in down:
+        x[idx] += x[h.parent[idx]]
+    return x
+
+
+def shooter_sums(h, links, u, down):
+    """Per element: ``sum F_sr v u_r`` over the links whose source is it or an ancestor, the share
+    of a leaf's light its ancestors' links deliver (``F_sr = A_r F_rs / A_s``)."""
+    A = h.areas
+    return push_sums(h, np.bincount(links.src, u[links.recv] * A[links.recv] * links.F * links.vis / A[links.src],
+                                    minlength=len(h)), down)
+
+
+def transport_scales(h, links, *, closed=False, tolerance=1e-14, max_iterations=200):
+    """Receiver scales ``u`` and source scales ``w`` (per element; used on the leaves) with which
+    every leaf gathers and shoots the same factor sum (module docstring, "Balance"): its own
+    gathered sum ``g = sum F v``; ``closed``: 1 (0 where a leaf that gathers sees nothing).
+    Leaves of zero reflectance gather nothing, so only ``closed`` sets what they shoot.
+    Alternating Sinkhorn scaling; returns ``(u, w, info)``."""
+    down, up = level_steps(h)
+    leaves, n = h.leaves(), len(h)
+    Fv = links.F * links.vis
+    g = np.bincount(links.recv, Fv, minlength=n)[leaves]
+    gathers = (h.scene.reflectance[h.patch[leaves]] > 0).any(axis=1)
+    target = np.where(gathers, g > 0, 1.0) if closed else g
+    u, w = np.ones(n), np.ones(n)
+    gathered = target if closed else g
+    raw = shooter_sums(h, links, u, down)[leaves]
+    fitted = (raw > 0) & (gathers | closed)
+    for it in range(1, max_iterations + 1):
+        R = np.bincount(links.recv, Fv * pull_means(h, w.copy(), up)[links.src], minlength=n)[leaves]
+        u[leaves] = np.divide(gathered, R, out=np.ones_like(R), where=R > 0)
+        shot = w[leaves] * shooter_sums(h, links, u, down)[leaves]
+        ratio = np.divide(target, shot, out=np.ones_like(shot), where=fitted & (shot > 0))
+        w[leaves] *= ratio
+        residual = float(np.abs(ratio - 1).max(initial=0.0))
+        if residual <= tolerance:
+            break
+    live = gathers & (g > 0) & (raw > 0)
+    info = {"iterations": it, "residual": residual, "raw_shooter_sum": _range(raw[live] / g[live] - 1),
+            "receiver_scale": _range(u[leaves]), "source_scale": _range(w[leaves]), "closed": bool(closed)}
+    if closed:
+        seen = gathers & (g > 0)
+        info["closure_change"] = float(np.abs(g[seen] - 1).max(initial=0.0))
+    return u, w, info
+
+
+def check_closed(info):
+    """Raise ParameterError (naming ``--closure``) where :func:`transport_scales` closed the
+    scene's leaves by more than closure.MAX_CORRECTION, or could not."""
+    from ..radiosity.closure import MAX_CORRECTION
+    if info["closure_change"] > MAX_CORRECTION or info["residual"] > 1e-9:
+        raise ParameterError(f"{option('closure')} enforce: a leaf gathers a factor sum {info['closure_change']:.3g} from 1 "
+                             f"(at most {MAX_CORRECTION:g}; scaling residual {info['residual']:.3g}); the scene is not "
+                             f"closed, or its visibility too coarse to enforce", parameter="closure")
+
+
+def _range(x):
+    return [float(x.min(initial=np.inf)), float(x.max(initial=-np.inf))] if len(x) else [0.0, 0.0]
+
+
+def solve_links(h, links, B, scales, *, tolerance, max_iterations):
+    """Jacobi sweeps with push-pull from ``B`` (every element's radiosity, (M, 3)) over the links
+    scaled by ``scales = (u, w)`` (:func:`transport_scales`): ``(B, sweeps, residual, history)``,
+    B the iterate whose residual is reported (as solver.jacobi_sweeps)."""
+    scene = h.scene
+    E, rho, A = scene.emission[h.patch], scene.reflectance[h.patch], h.areas
+    leaves = h.leaves()
+    down, up = level_steps(h)
+    u, w = scales
+    weight = links.F * links.vis * u[links.recv]
     emitted = float((A[leaves, None] * E[leaves]).sum())
     history = []
     for sweep in range(max_iterations + 1):
-        G = np.stack([np.bincount(links.recv, w * B[links.src, c], minlength=len(h)) for c in range(3)], axis=1)
-        for idx in down:                          # push: a leaf gathers through its ancestors' links too
-            G[idx] += G[h.parent[idx]]
+        shot = pull_means(h, w[:, None] * B, up)   # each leaf's light as its ancestors' links shoot it
+        G = np.stack([np.bincount(links.recv, weight * shot[links.src, c], minlength=len(h)) for c in range(3)], axis=1)
+        push_sums(h, G, down)                      # a leaf gathers through its ancestors' links too
         new = np.empty_like(B)
         new[leaves] = E[leaves] + rho[leaves] * G[leaves]
-        for idx in up:                            # pull: the area mean of the four equal children
-            new[idx] = sum(new[h.child[idx] + c] for c in range(4)) / 4
+        pull_means(h, new, up)                     # an element's radiosity: the mean of its leaves'
         change = float((A[leaves, None] * np.abs(new[leaves] - B[leaves])).sum())
         res = change / emitted if emitted else (0.0 if change == 0 else float("inf"))
         history.append(res)
@@ -331,6 +419,7 @@ class HierarchicalResult:
     residual: float
     iterations: int
     history: list = field(default_factory=list)
+    balance: dict = field(default_factory=dict)
     report: dict = field(default_factory=dict)
 
 
@@ -365,7 +454,8 @@ def render_hierarchical(scene, board, options, *, phases=None):
     rounds = sweeps = 0
     while True:
         with phases.timed("solve"):
-            B, done, res, history = solve_links(h, links, B, tolerance=solve.tolerance,
+            u, w, balance = transport_scales(h, links, closed=solve.closure == "enforce")
+            B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
                                                 max_iterations=solve.max_iterations)
         sweeps += done
         with phases.timed("formfactor"):
@@ -380,9 +470,11 @@ def render_hierarchical(scene, board, options, *, phases=None):
             kept = push_to_leaves(h, kept)
         caster.cast(new)
         links = Links.join(kept, new)
+    if solve.closure == "enforce":
+        check_closed(balance)
     leaves = h.leaves()
     out = leaf_scene(h, leaves)
-    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history)
+    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history, balance)
     result.report = _report(result, board, options, caster, rounds, voxels, phases, t0, c0)
     return result
 
@@ -406,6 +498,7 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
         "residual": float(result.residual), "rays": int(caster.rays), "blocks": int(caster.blocks),
         "tests": int(counters.get("tests", 0)),
         "absorbed_balance": [float(b) if np.isfinite(b) else None for b in balance],
+        "transport_balance": result.balance,
     }
     for name, times in (("seconds", phases.seconds), ("cpu_seconds", phases.cpu)):
         report[name] = dict(times)

@@ -158,9 +158,9 @@ class SolveOptions:
                 continue
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ParameterError(f"{name} must be a positive number, not {value!r}", parameter=name)
-        if self.solver == "hierarchical" and self.closure != "off":
-            raise ParameterError(f"{option('closure')} corrects a full matrix of patch factors; the hierarchical solver has "
-                                 "links, not a matrix", parameter="closure")
+        if self.solver == "hierarchical" and self.closure == "symmetric":
+            raise ParameterError(f"{option('closure')} symmetric averages the two directions of a pair of patches; the "
+                                 "hierarchical solver's links have no reverse twins (use off or enforce)", parameter="closure")
 
 
 @dataclass(frozen=True)
