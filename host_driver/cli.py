@@ -276,7 +276,12 @@ def _cmd_render(args):
                                                    checkpoint=_checkpoint(args)))
         if args.image:
             from .render.image import render_image, save_png
-            img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
+            if args.solver == "hierarchical":           # crack-free across the leaves' T-vertices
+                from .render.conforming import image_mesh
+                mesh, B, colours = image_mesh(result.solve)
+                img = render_image(mesh, B, width=args.size, height=args.size, colours=colours)
+            else:
+                img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
             save_png(args.image, img, outputs)
         if args.patches and args.solver == "hierarchical":
             from .render.hierarchical import write_leaves_csv

@@ -337,3 +337,46 @@ def test_cornell_verilator_same_as_model():
     assert np.array_equal(rtl.radiosity, model.radiosity)
     for key in ("rays", "tests", "board_cycles"):
         assert rtl.report[key] == model.report[key], key
+
+
+def _edge_spread(tris, colours, probes):
+    """Largest spread, over ``probes`` (M, 3), of the values the triangles (T, 3, 3) holding each
+    probe interpolate there (linear in the barycentric weights, solved here), and how many probes
+    two or more triangles hold."""
+    e1, e2 = tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
+    n = np.cross(e1, e2)
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    det = g11 * g22 - g12 * g12
+    spread, shared = 0.0, 0
+    for x in probes:
+        d = x - tris[:, 0]
+        b1, b2 = (d * e1).sum(1), (d * e2).sum(1)
+        u, v = (g22 * b1 - g12 * b2) / det, (g11 * b2 - g12 * b1) / det
+        on = (np.abs((d * n).sum(1)) <= 1e-9 * np.linalg.norm(n, axis=1)) & (np.minimum(np.minimum(u, v), 1 - u - v) >= -1e-9)
+        if on.sum() > 1:
+            values = ((1 - u - v)[:, None] * colours[:, 0] + u[:, None] * colours[:, 1] + v[:, None] * colours[:, 2])[on]
+            shared += 1
+            spread = max(spread, float(np.ptp(values, axis=0).max()))
+    return spread, shared
+
+
+def test_image_mesh_has_no_t_vertex_cracks():
+    """Along every leaf edge (7 probes each, away from its corners), the image mesh's triangles on
+    both sides interpolate the same radiosity, T-junctions included; shading each leaf from its
+    own corners (image.vertex_radiosity on the leaves) does not."""
+    from blockray.host_driver.render.conforming import image_mesh
+    from blockray.host_driver.render.image import vertex_radiosity
+    result = render(_occluded_pair(), backend="golden", solver="hierarchical", epsilon=1e-3, tolerance=1e-10)
+    h = result.solve.hierarchy
+    receiver = h.patch[h.leaves()] == 2
+    assert len(set(h.level[h.leaves()][receiver])) > 1                 # leaves of several levels meet
+    leaves = result.scene.patch_vertices
+    t = (np.arange(7) + 0.5) / 7
+    probes = np.concatenate([leaves[:, e, None] + t[:, None] * (leaves[:, (e + 1) % 3, None] - leaves[:, e, None])
+                             for e in range(3)], axis=1).reshape(-1, 3)
+    mesh, _, colours = image_mesh(result.solve)
+    spread, shared = _edge_spread(mesh.patch_vertices, colours, probes)
+    flat, _ = _edge_spread(leaves, vertex_radiosity(result.scene, result.radiosity), probes)
+    scale = float(result.radiosity.max())
+    print(f"{shared} shared probes; spread {spread:.2e} (conforming), {flat:.2e} (per leaf), B up to {scale:.3f}")
+    assert shared > 100 and spread < 1e-12 * scale and flat > 1e-3 * scale
