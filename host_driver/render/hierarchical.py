@@ -68,6 +68,10 @@ from ..traverse.cost import default_voxels
 __all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_leaves_csv", "max_level_for",
            "CERTAIN_WEIGHT", "LEAF_COLUMNS"]
 
+#: The scales' tolerance (largest ``|shot / target - 1|``) relative to the solve's: the power the
+#: scaling leaves unbalanced stays well below what the solve's residual leaves.
+SCALE_TOLERANCE = 1e-2
+
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
 
@@ -356,7 +360,7 @@ def transport_scales(h, links, *, closed=False, tolerance=1e-14, max_iterations=
         if residual <= tolerance:
             break
     live = gathers & (g > 0) & (raw > 0)
-    info = {"iterations": it, "residual": residual, "raw_shooter_sum": _range(raw[live] / g[live] - 1),
+    info = {"iterations": it, "residual": residual, "tolerance": tolerance, "raw_shooter_sum": _range(raw[live] / g[live] - 1),
             "receiver_scale": _range(u[leaves]), "source_scale": _range(w[leaves]), "closed": bool(closed)}
     if closed:
         seen = gathers & (g > 0)
@@ -368,7 +372,7 @@ def check_closed(info):
     """Raise ParameterError (naming ``--closure``) where :func:`transport_scales` closed the
     scene's leaves by more than closure.MAX_CORRECTION, or could not."""
     from ..radiosity.closure import MAX_CORRECTION
-    if info["closure_change"] > MAX_CORRECTION or info["residual"] > 1e-9:
+    if info["closure_change"] > MAX_CORRECTION or info["residual"] > info["tolerance"]:
         raise ParameterError(f"{option('closure')} enforce: a leaf gathers a factor sum {info['closure_change']:.3g} from 1 "
                              f"(at most {MAX_CORRECTION:g}; scaling residual {info['residual']:.3g}); the scene is not "
                              f"closed, or its visibility too coarse to enforce", parameter="closure")
@@ -423,13 +427,10 @@ class HierarchicalResult:
     report: dict = field(default_factory=dict)
 
 
-def render_hierarchical(scene, board, options, *, phases=None):
-    """``--solver hierarchical`` on a built ``board`` (see the module docstring)."""
-    solve, ray = options.solve, options.ray
-    params = getattr(board, "params", None) or options.board.params
-    phases = phases or Phases()
-    t0, c0 = time.perf_counter(), time.process_time()
-    min_area = 0.0 if solve.min_area is None else solve.min_area
+def prepare_board(scene, board, ray, solve, phases):
+    """Give ``board`` the scene with the element points as its samples and the voxel grid:
+    ``(points, grid, voxels)``. A ``min_area`` whose levels the board's bits cannot hold is a
+    CapacityError naming it."""
     points = ElementPoints(ray.samples, max_level_for(scene, solve.min_area))
     with phases.timed("prepare"):
         try:
@@ -444,22 +445,66 @@ def render_hierarchical(scene, board, options, *, phases=None):
         grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
     with phases.timed("load"):
         board.load(grid)
+    return points, grid, voxels
+
+
+def solve_state(h, links, B, rounds, sweeps, solved):
+    """What the rounds need to continue after a solve (a checkpoint): the elements, the links,
+    every element's B, the rounds and sweeps done, and that solve's residual history and balance."""
+    res, history, balance = solved
+    arrays = dict(patch=h.patch, node=h.node, level=h.level, parent=h.parent, child=h.child, recv=links.recv,
+                  src=links.src, F=links.F, vis=links.vis, partial=links.partial, B=B,
+                  history=np.array(history, dtype=np.float64))
+    return {"solver": "hierarchical", "shots": 0, "iterations": int(sweeps), "rounds": int(rounds),
+            "residual": float(res), "balance": balance, "arrays": arrays}
+
+
+def _restore(state, scene, points):
+    """:func:`solve_state`'s ``state`` back as ``(h, links, B, rounds, sweeps, solved)``."""
+    a = state["arrays"]
     h = Hierarchy(scene, points)
-    caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
-    with phases.timed("formfactor"):
-        links = initial_links(scene)
-    caster.cast(links)
-    B = np.array(scene.emission, dtype=np.float64)
-    threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
-    rounds = sweeps = 0
-    while True:
-        with phases.timed("solve"):
-            u, w, balance = transport_scales(h, links, closed=solve.closure == "enforce")
-            B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
-                                                max_iterations=solve.max_iterations)
-        sweeps += done
+    h.patch, h.node, h.level, h.parent, h.child = (np.array(a[k]) for k in ("patch", "node", "level", "parent", "child"))
+    links = Links(*(np.array(a[k]) for k in ("recv", "src", "F", "vis", "partial")))
+    solved = (float(state["residual"]), list(a["history"]), dict(state["balance"]))
+    return h, links, np.array(a["B"]), int(state["rounds"]), int(state["iterations"]), solved
+
+
+def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, resume=None):
+    """``--solver hierarchical`` on a built ``board`` (see the module docstring). ``checkpoint``:
+    called with :func:`solve_state` after every round's solve; ``resume``: such a state to
+    continue from (the same CSV, bit for bit, as a render never stopped)."""
+    solve, ray = options.solve, options.ray
+    params = getattr(board, "params", None) or options.board.params
+    phases = phases or Phases()
+    t0, c0 = time.perf_counter(), time.process_time()
+    min_area = 0.0 if solve.min_area is None else solve.min_area
+    points, grid, voxels = prepare_board(scene, board, ray, solve, phases)
+    if resume is None:
+        h = Hierarchy(scene, points)
+        caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
         with phases.timed("formfactor"):
-                recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
+            links = initial_links(scene)
+        caster.cast(links)
+        B, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), 0, 0, None
+    else:
+        h, links, B, rounds, sweeps, solved = _restore(resume, scene, points)
+        caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+    threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
+    while True:
+        if solved is None:
+            with phases.timed("solve"):
+                u, w, balance = transport_scales(h, links, closed=solve.closure == "enforce",
+                                                 tolerance=SCALE_TOLERANCE * solve.tolerance)
+                B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
+                                                    max_iterations=solve.max_iterations)
+            sweeps += done
+            solved = (res, history, balance)
+            if checkpoint is not None:
+                checkpoint(solve_state(h, links, B, rounds, sweeps, solved))
+        res, history, balance = solved
+        solved = None
+        with phases.timed("formfactor"):
+            recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
         if not len(recv):
             break
         rounds += 1
