@@ -380,3 +380,23 @@ def test_image_mesh_has_no_t_vertex_cracks():
     scale = float(result.radiosity.max())
     print(f"{shared} shared probes; spread {spread:.2e} (conforming), {flat:.2e} (per leaf), B up to {scale:.3f}")
     assert shared > 100 and spread < 1e-12 * scale and flat > 1e-3 * scale
+
+
+def test_sets_same_bits_and_csv_as_one_set(tmp_path):
+    """``sets=3`` on a LocalCluster of 2 workers: the links split by receiver and cast on each
+    set's own model board give every link the same visible fraction, the same hierarchy, the
+    same leaves' CSV byte for byte and the same rays and tests as one set."""
+    from blockray.host_driver.render.hierarchical import write_leaves_csv
+    scene = _occluded_pair()
+    one, three = (render(scene, backend="model", solver="hierarchical", epsilon=3e-3, tolerance=1e-8, **extra)
+                  for extra in ({}, {"sets": 3, "workers": 2}))
+    assert np.array_equal(one.solve.links.recv, three.solve.links.recv)
+    assert np.array_equal(one.solve.links.src, three.solve.links.src)
+    assert np.array_equal(one.solve.links.vis, three.solve.links.vis)
+    assert ((one.solve.links.vis > 0) & (one.solve.links.vis < 1)).any()
+    for name, r in (("one", one), ("three", three)):
+        write_leaves_csv(tmp_path / f"{name}.csv", r.solve)
+    assert (tmp_path / "one.csv").read_bytes() == (tmp_path / "three.csv").read_bytes()
+    assert three.report["sets"] == 3 and len(three.report["set_counters"]) == 3
+    for key in ("rays", "tests"):
+        assert three.report[key] == one.report[key], key

@@ -189,6 +189,9 @@ class LinkCaster:
         self.h, self.board, self.grid, self.rows, self.cols, self.phases = h, board, grid, rows, cols, phases
         self.rays = self.blocks = 0
 
+    def counters(self):
+        return self.board.counters()
+
     def cast(self, links):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -263,6 +266,82 @@ class LinkCaster:
         batch = BlockBatch(shooter_patch, shooter_point, col_off, receiver_patch, row_off, vox, vox_off,
                            receiver_weights)
         return batch, row_link, col_k
+
+
+class SetCaster:
+    """:class:`LinkCaster` on ``options.run.sets`` host + board sets of a Dask cluster (``cluster``
+    = ``(client, threads)``): the links split by their receiver's input triangle, the input
+    triangles cut into runs of equal count in Z-order of their centroids' voxels (scaleout.assign_sets),
+    each set casting its share on its own board (:func:`cast_on_set`). A ray's blocked bit does not
+    depend on the block it travels in, so the fractions equal one set's bit for bit."""
+
+    def __init__(self, cluster, h, board, grid, options, phases):
+        from ..cluster.cluster import SetJob, _hold
+        from ..cluster.scaleout import assign_sets
+        from ..traverse.visibility import _morton
+        b, ray = options.board, options.ray
+        (self.client, threads), self.h, self.phases = cluster, h, phases
+        params = getattr(board, "params", None) or b.params
+        quantised = getattr(board, "quantised", None)
+        self.job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
+                          partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
+                          stats_fraction=ray.stats_fraction, threads=threads)
+        self.owner = assign_sets(_morton(grid.cell_of(h.scene.centroids)), options.run.sets)
+        self.scene_f, self.grid_f = _hold(self.client, h.scene), _hold(self.client, grid)
+        self.rays = self.blocks = 0
+        self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
+
+    def cast(self, links):
+        from ..cluster.cluster import _results
+        h, sets = self.h, len(self.per_set)
+        part = self.owner[h.patch[links.recv]]
+        mine = [np.flatnonzero(part == k) for k in range(sets)]
+        with self.phases.timed("cluster"):
+            futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
+                                          h.patch, h.node, links.recv[m], links.src[m], pure=False) for m in mine]
+            answers = _results(self.client, futures)
+        links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
+        for m, (vis, partial, rays, blocks, counters), total in zip(mine, answers, self.per_set):
+            links.vis[m], links.partial[m] = vis, partial
+            total["rays"] += rays
+            total["blocks"] += blocks
+            for key, value in counters.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool):
+                    total["counters"][key] = total["counters"].get(key, 0) + value
+        self.rays, self.blocks = sum(t["rays"] for t in self.per_set), sum(t["blocks"] for t in self.per_set)
+
+    def counters(self):
+        from ..cluster.scaleout import combine_counters
+        out = combine_counters(self.owner, self.per_set, self.job.params.processors * self.job.params.boards)
+        out.pop("utilization", None)
+        return out
+
+
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
+    """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
+    element points to ``max_level``, loaded with the grid): ``(vis, partial, rays, blocks,
+    counters)``."""
+    from ..board.backends import make_board
+    from ...threads import available, set_threads
+    if job.threads is not None:
+        set_threads(min(job.threads, available()))
+    board = make_board(job.board, job.params, partition=job.partition)
+    try:
+        points = ElementPoints(job.samples, max_level)
+        board.prepare(scene, points)
+        board.load(grid)
+        h = Hierarchy(scene, points)
+        h.patch, h.node = patch, node
+        caster = LinkCaster(h, board, grid, rows=job.params.rows, cols=job.params.cols, phases=Phases())
+        links = Links(recv, src, np.zeros(len(recv)))
+        if len(links):
+            caster.cast(links)
+        else:
+            links.vis, links.partial = np.zeros(0), np.zeros(0, dtype=bool)
+        return links.vis, links.partial, caster.rays, caster.blocks, board.counters()
+    finally:
+        if hasattr(board, "close"):
+            board.close()
 
 
 def refine(h, links, B, threshold, min_area, max_level):
@@ -469,26 +548,31 @@ def _restore(state, scene, points):
     return h, links, np.array(a["B"]), int(state["rounds"]), int(state["iterations"]), solved
 
 
-def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, resume=None):
+def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, resume=None, cluster=None):
     """``--solver hierarchical`` on a built ``board`` (see the module docstring). ``checkpoint``:
     called with :func:`solve_state` after every round's solve; ``resume``: such a state to
-    continue from (the same CSV, bit for bit, as a render never stopped)."""
+    continue from (the same CSV, bit for bit, as a render never stopped). ``cluster``: a Dask
+    ``(client, threads)`` whose ``options.run.sets`` sets cast the links (:class:`SetCaster`)."""
     solve, ray = options.solve, options.ray
     params = getattr(board, "params", None) or options.board.params
     phases = phases or Phases()
     t0, c0 = time.perf_counter(), time.process_time()
     min_area = 0.0 if solve.min_area is None else solve.min_area
     points, grid, voxels = prepare_board(scene, board, ray, solve, phases)
+    if cluster is None:
+        make_caster = lambda h: LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+    else:
+        make_caster = lambda h: SetCaster(cluster, h, board, grid, options, phases)
     if resume is None:
         h = Hierarchy(scene, points)
-        caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+        caster = make_caster(h)
         with phases.timed("formfactor"):
             links = initial_links(scene)
         caster.cast(links)
         B, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), 0, 0, None
     else:
         h, links, B, rounds, sweeps, solved = _restore(resume, scene, points)
-        caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+        caster = make_caster(h)
     threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
     while True:
         if solved is None:
@@ -529,7 +613,7 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
     from ..radiosity.closure import absorbed_balance
     h, solve, scene = result.hierarchy, options.solve, result.hierarchy.scene
     leaves = h.leaves()
-    counters = board.counters()
+    counters = caster.counters()
     with np.errstate(divide="ignore", invalid="ignore"):
         balance = absorbed_balance(result.leaves, result.radiosity)
     report = {

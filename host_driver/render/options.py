@@ -243,10 +243,10 @@ class RenderOptions:
                                  parameter="end_points")
         if not self.run.distributed:
             return
-        if s.closure != "off":
+        if s.closure != "off" and s.solver != "hierarchical":
             raise ParameterError(f"{option('closure')} needs the whole form-factor matrix on one host; it cannot be used "
                                  f"with {_DISTRIBUTED}", parameter="closure")
-        if s.solver in ("progressive", "hierarchical"):
+        if s.solver == "progressive":
             raise ParameterError(f"{option('sets')}: host + board sets solve by gathering over a matrix; use "
                                  f"{option('solver')} jacobi or gauss-seidel, not {s.solver}", parameter="sets")
         if b.vcd is not None:

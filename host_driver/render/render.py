@@ -206,7 +206,15 @@ def _hierarchical(scene, board, options, checkpoint):
     params = getattr(board, "params", None) or options.board.params
     resume = _resume(scene, board, options, params, checkpoint)
     saving = None if checkpoint is None else checkpoint.save
-    h = render_hierarchical(scene, board, options, checkpoint=saving, resume=resume)
+    if options.run.distributed:
+        from ..cluster.cluster import cluster_client
+        check_sets(options.run.sets, scene.patches)
+        sets = options.run
+        with cluster_client(sets.scheduler, workers=sets.workers, sets=sets.sets) as cluster:
+            h = render_hierarchical(scene, board, options, checkpoint=saving, resume=resume, cluster=cluster)
+        h.report["sets"] = int(sets.sets)
+    else:
+        h = render_hierarchical(scene, board, options, checkpoint=saving, resume=resume)
     if resume is not None:
         h.report["resumed_from"] = {"shots": 0, "sweeps": int(resume["iterations"]), "rounds": int(resume["rounds"])}
     result = RenderResult(scene=h.leaves, radiosity=h.radiosity, solve=h, report=h.report)
