@@ -330,7 +330,8 @@ def test_cornell_verilator_same_as_model():
     from scenes import RTL_PARAMS
     from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("cornell", max_edge=1e9)
-    model, rtl = (render(scene, backend=b, params=RTL_PARAMS, solver="hierarchical", epsilon=1e-2)
+    params = RTL_PARAMS.with_(bits=None)                                # B chosen for the scene (RTL_PARAMS forces 10)
+    model, rtl = (render(scene, backend=b, params=params, solver="hierarchical", epsilon=1e-2)
                   for b in ("model", "verilator"))
     assert rtl.report["bits"] == model.report["bits"] == 20
     assert np.array_equal(rtl.solve.links.vis, model.solve.links.vis)

@@ -72,6 +72,10 @@ __all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_lea
 #: scaling leaves unbalanced stays well below what the solve's residual leaves.
 SCALE_TOLERANCE = 1e-2
 
+#: The scaling stops when its residual has not halved in this many passes (a leaf whose gathered
+#: and shot sums cannot both be met: in open scenes the scaling only tends to its limit).
+STALL = 10
+
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
 
@@ -429,15 +433,20 @@ def transport_scales(h, links, *, closed=False, tolerance=1e-14, max_iterations=
     gathered = target if closed else g
     raw = shooter_sums(h, links, u, down)[leaves]
     fitted = (raw > 0) & (gathers | closed)
+    rows = lambda: np.bincount(links.recv, Fv * pull_means(h, w.copy(), up)[links.src], minlength=n)[leaves]
+    history = []
     for it in range(1, max_iterations + 1):
-        R = np.bincount(links.recv, Fv * pull_means(h, w.copy(), up)[links.src], minlength=n)[leaves]
+        R = rows()
         u[leaves] = np.divide(gathered, R, out=np.ones_like(R), where=R > 0)
         shot = w[leaves] * shooter_sums(h, links, u, down)[leaves]
         ratio = np.divide(target, shot, out=np.ones_like(shot), where=fitted & (shot > 0))
         w[leaves] *= ratio
-        residual = float(np.abs(ratio - 1).max(initial=0.0))
-        if residual <= tolerance:
-            break
+        history.append(float(np.abs(ratio - 1).max(initial=0.0)))
+        if history[-1] <= tolerance or (it > STALL and history[-1] > 0.5 * history[-1 - STALL]):
+            break                           # converged, or a leaf's sums cannot both be met (open scenes)
+    residual = history[-1]
+    R = rows()                              # rows exact for the final w: a uniform source delivers g
+    u[leaves] = np.divide(gathered, R, out=np.ones_like(R), where=R > 0)
     live = gathers & (g > 0) & (raw > 0)
     info = {"iterations": it, "residual": residual, "tolerance": tolerance, "raw_shooter_sum": _range(raw[live] / g[live] - 1),
             "receiver_scale": _range(u[leaves]), "source_scale": _range(w[leaves]), "closed": bool(closed)}
