@@ -204,12 +204,14 @@ def _render_parser(sub):
     p.add_argument("--closure", default="off", choices=["off", "symmetric", "enforce"],
                    help="closed scenes only: build every column first, then make the visible form factors "
                         "reciprocal (symmetric) and also sum to 1 (enforce, symmetric scaling); the report's "
-                        "'closure' key gives the errors and the energy balance before and after")
+                        "'closure' key gives the errors and the energy balance before and after; "
+                        "--solver hierarchical: enforce makes every leaf gather and shoot a factor sum of 1")
     p.add_argument("--sets", type=_positive_int, default=1, metavar="K",
                    help="host + board sets working in parallel (the paper's section 6): each owns a region of "
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
-                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel); each set runs on "
-                        "a worker of a Dask cluster")
+                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel; hierarchical: the "
+                        "sets cast the links ending on their input triangles); each set runs on a worker of a Dask "
+                        "cluster")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the sets on the Dask cluster of this scheduler (e.g. tcp://host:8786, started with "
                         "`dask scheduler` and `dask worker`); default: a local cluster on 127.0.0.1, started and "
@@ -230,7 +232,7 @@ def _render_parser(sub):
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     out.add_argument("--checkpoint", metavar="DIR",
                      help="save the solve to DIR/checkpoint.npz as it runs (atomically, at most every 30 s: "
-                          "after a shot, or after a sweep); docs/robustness.md")
+                          "after a shot, a sweep, or a hierarchical refinement round); docs/robustness.md")
     out.add_argument("--resume", metavar="DIR",
                      help="continue the render whose checkpoint is in DIR (same scene and options, else "
                           "refused) and keep saving there; the outputs equal an uninterrupted render's")
@@ -277,7 +279,12 @@ def _cmd_render(args):
                                                    checkpoint=_checkpoint(args)))
         if args.image:
             from .render.image import render_image, save_png
-            img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
+            if args.solver == "hierarchical":           # crack-free across the leaves' T-vertices
+                from .render.conforming import image_mesh
+                mesh, B, colours = image_mesh(result.solve)
+                img = render_image(mesh, B, width=args.size, height=args.size, colours=colours)
+            else:
+                img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
             save_png(args.image, img, outputs)
         if args.patches and args.solver == "hierarchical":
             from .render.hierarchical import write_leaves_csv
