@@ -18,8 +18,7 @@ from blockray.exact import block_terms, blocked_block, blocked_reference, edge_t
 from blockray.filtered import (LEAN_INPUT_BITS, FilterFormat, cell_certificates, filter_decision, filtered_block,
                                rounded_receiver_filter_terms, shooter_filter_terms)
 
-from processor_vectors import hard_cases, near_degenerate, random_tests
-from test_filtered import _check_tests
+from processor_vectors import check_filter_decisions, hard_cases, near_degenerate, random_tests
 
 FORMATS = [FilterFormat(9, 9, LEAN_INPUT_BITS), FilterFormat(9, 9, 9), FilterFormat(4, 5, 3), FilterFormat(12, 12, 16)]
 
@@ -92,7 +91,7 @@ def test_processor_vectors_never_decided_wrong(bits, fmt):
     seed = 91 + bits
     print(f"seed {seed}")
     tests = hard_cases(bits) + random_tests(bits, 2000, np.random.default_rng(seed))
-    print(f"B = {bits}, {fmt}: {_check_tests(tests, fmt)} of {len(tests)} undecided")
+    print(f"B = {bits}, {fmt}: {check_filter_decisions(tests, fmt)} of {len(tests)} undecided")
 
 
 def test_the_wider_bound_is_needed():
