@@ -93,7 +93,8 @@ def _add_board_options(p):
 #: parameters whose command-line option is not ``--name`` (``d_bits``, ``w_bits``: the filter
 #: format's widths; ``host``: the simulated host's link timing; ``max_triangles``: LoadLimits')
 _OPTIONS = {"backend": "--board", "d_bits": "--filter-bits", "w_bits": "--filter-bits",
-            "host": "--link-idle / --link-backpressure / --link-bursts", "max_triangles": "--max-patches"}
+            "host": "--link-idle / --link-backpressure / --link-bursts", "max_triangles": "--max-patches",
+            "max_file_bytes": "--max-file-mb"}
 
 
 def _option(parameter):

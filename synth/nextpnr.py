@@ -106,13 +106,14 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     return cells + receiver + shooter
 
 
-def check_speed(speed, device, option="--speed"):
-    """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``."""
+def check_speed(speed, device, parameter="speed"):
+    """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``;
+    an error names ``parameter``."""
     if speed is None:
         return DEVICES[device]["speed"]
     if isinstance(speed, bool) or speed not in SPEEDS:
-        raise ParameterError(f"{option} must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
-                             f"grade), not {speed!r}")
+        raise ParameterError(f"{parameter} must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
+                             f"grade), not {speed!r}", parameter=parameter)
     return int(speed)
 
 
@@ -246,17 +247,17 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     and routes for that grade's delays, and may do better.
     """
     if router not in ("router1", "router2"):
-        raise ParameterError(f"--router must be router1 or router2, not {router!r}")
+        raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
     if unit not in UNITS:
         raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
     ecp5 = target_platform(target, fabric_units)        # None for generic
     if device not in DEVICES:
-        raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
+        raise ParameterError(f"device must be one of {', '.join(DEVICES)}, not {device!r}", parameter="device")
     speed = check_speed(speed, device)
-    others = {check_speed(g, device, "--also-speed") for g in also_speeds} - {speed}
+    others = {check_speed(g, device, "also_speed") for g in also_speeds} - {speed}
     retime = [speed] + sorted(others) if also_speeds else []       # the routed grade first
     if not (isinstance(freq, (int, float)) and freq > 0):
-        raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
+        raise ParameterError(f"freq must be a positive number of MHz, not {freq!r}", parameter="freq")
     params = BoardParams() if params is None else params
     check_cell(cell)                                     # not a Cell: fails here, before any tool
     report = {"unit": unit, "cell": cell.kind, "filter_format": None if cell.format is None else str(cell.format),
