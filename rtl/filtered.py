@@ -322,7 +322,8 @@ class _FilteredCells:
 
     def _configure(self, bits, fmt, depth):
         self._bits = check_bits(bits)
-        self._fmt = Cell("filtered", fmt).format_at(bits)       # default: d_k exact, w_k at 18 bits
+        # default: the filtered cell's (d_k exact, w_k at 18 bits); the lean array passes its own
+        self._fmt = fmt if fmt is not None else Cell("filtered").format_at(bits)
         self._depth = _check_depth(depth)
 
     @property

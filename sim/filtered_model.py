@@ -78,7 +78,7 @@ class FilteredIntersectorModel:
 
     def __init__(self, bits, fmt=None, depth=None):
         self.bits = bits
-        self.fmt = Cell("filtered", fmt).format_at(bits)
+        self.fmt = fmt if fmt is not None else Cell("filtered").format_at(bits)
         self.depth = depth if depth is not None else DATAPATH_LATENCY + EXACT_LATENCY + 4
 
     def answers(self, P, Q, V, n):
