@@ -161,6 +161,7 @@ def _check_render(args):
 def _render_parser(sub):
     from .traverse.endpoints import ENDS
     from ..samples import END_LATTICES
+    from .render.options import SOLVERS
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -190,7 +191,7 @@ def _render_parser(sub):
     p.add_argument("--end-lattice", type=int, default=1, choices=END_LATTICES, metavar="N",
                    help="--end-points kernel/draw: end points on a lattice N times finer, so they reach N times "
                         "nearer the receivers' edges (contact shadows); costs log2(N) coordinate bits")
-    p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel", "hierarchical"],
+    p.add_argument("--solver", default="progressive", choices=list(SOLVERS),
                    help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "
                         "leaf element)")
     p.add_argument("--epsilon", type=_positive_float, default=1e-3,
