@@ -119,7 +119,7 @@ def _units(bits):
     """(name, component, fabric units) of each part of a lean array at B = ``bits``."""
     from amaranth.hdl import Module
     from amaranth.lib import wiring
-    from blockray.filtered import lean_format
+    from blockray.cell import Cell
     from blockray.rtl.filtered import FilteredProcessor, ReceiverFilter, ShooterFilter
     from blockray.rtl.lean import LeanExact, LeanReceiver
     from blockray.rtl.processor import ReceiverUnit, ShooterUnit
@@ -140,7 +140,7 @@ def _units(bits):
                          self.plane_out.eq(f.plane_out)]
             return m
 
-    lean, exact_w = lean_format(bits), FilterFormat(9, 9)
+    lean, exact_w = Cell("lean").format_at(bits), FilterFormat(9, 9)
     return [("row, exact w_k", lambda: Edge(ReceiverUnit(bits), ReceiverFilter(bits, exact_w)), ()),
             ("row, lean", lambda: LeanReceiver(bits, lean), ()),
             ("row, lean, w_k on LUTs", lambda: LeanReceiver(bits, lean), ("rounded",)),

@@ -28,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+from blockray.cell import CELLS, Cell
 from blockray.params import BoardParams
 from blockray.synth.nextpnr import DEVICES, ROUTER, SPEEDS, dsp_estimate, synth_report
 
@@ -85,10 +86,10 @@ def cells(out, args):
     """Yosys counts (no place and route) of the 2 x 2 and 4 x 4 arrays of each cell at ``--bits``,
     side by side in one run: exact, filtered (default format) and lean (9 x 9 bits)."""
     for rows, cols in ((2, 2), (4, 4)):
-        for cell in ("exact", "filtered", "lean"):
-            run(f"array-{rows}x{cols}-B{args.bits}-{cell}-yosys", "array",
+        for kind in CELLS:
+            run(f"array-{rows}x{cols}-B{args.bits}-{kind}-yosys", "array",
                 BoardParams(rows=rows, cols=cols, bits=args.bits), out, device=args.device, place=False,
-                cell=cell, fabric_units=args.fabric_units)
+                cell=Cell(kind), fabric_units=args.fabric_units)
 
 
 def board(out, args):

@@ -64,45 +64,12 @@ from .exact import edge_terms, plane_sides, vertex_terms
 
 __all__ = ["FilterFormat", "MAX_FILTER_BITS", "MIN_FILTER_BITS", "truncate", "shooter_filter_terms",
            "receiver_filter_terms", "cell_certificates", "filter_decision", "filtered_block", "filtered_tests",
-           "CELLS", "check_cell", "default_format", "lean_format", "rounded_receiver_filter_terms",
-           "lean_filter_decision", "LEAN_INPUT_BITS"]
-
-#: a board's processor cell: the exact one, the filtered cell with an exact unit shared by the
-#: array, or the lean cell (the filter only; undecided tests leave as tags to a shared exact unit)
-CELLS = ("exact", "filtered", "lean")
-
-
-def check_cell(cell, filter_format=None):
-    """``cell`` if it names one of :data:`CELLS` (and, if a ``filter_format`` is given, has a
-    filter), else a ParameterError naming ``cell`` (``filter_bits``)."""
-    if cell not in CELLS:
-        raise ParameterError(f"cell must be one of {', '.join(CELLS)}, not {cell!r}", parameter="cell")
-    if filter_format is not None and cell not in ("filtered", "lean"):
-        raise ParameterError(f"filter_bits sets the filter's format; it needs cell filtered or lean, not {cell!r}",
-                             parameter="filter_bits")
-    if cell == "filtered" and getattr(filter_format, "w_input_bits", None) is not None:
-        raise ParameterError(f"filter {filter_format} rounds w_k from its inputs, which only the lean cell does",
-                             parameter="filter_bits")
-    return cell
-
-
-def default_format(bits):
-    """The filtered cell's default format at B = ``bits``: d_k exact (B + 1 bits, at most 18)
-    and w_k at 18 bits, one MULT18X18D per product."""
-    return FilterFormat(min(bits + 1, 18), 18)
+           "rounded_receiver_filter_terms", "lean_filter_decision", "LEAN_INPUT_BITS"]
 
 #: the mantissa width of the lean row unit's inputs dQ_k and e_k when w_k is rounded from them
 #: (``FilterFormat(9, 9, LEAN_INPUT_BITS)``; docs/processor.md, "w_k from rounded inputs": its
 #: undecided rates against the exact w_k's)
 LEAN_INPUT_BITS = 12
-
-
-def lean_format(bits, fmt=None):
-    """The lean cell's filter at B = ``bits``: ``fmt``, by default 9-bit mantissas for P - V_k
-    (B + 1 when that is fewer: d_k is then exact) and for w_k, w_k rounded from its exact value.
-    docs/fixed-point.md measures 1.3e-3 (cornell) and 1.9e-3 (room) undecided."""
-    return fmt if fmt is not None else FilterFormat(min(9, bits + 1), 9)
-
 
 #: mantissa widths: at most one signed MULT18X18D operand; at least a sign and one bit
 MIN_FILTER_BITS, MAX_FILTER_BITS = 2, 18

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ParameterError
-from .filtered import check_cell
+from .cell import Cell, check_cell
 from .protocol import POINTS_PER_LOAD, Op
 
 __all__ = ["Op", "BoardTiming", "POINTS_PER_LOAD", "load_commands_needed"]
@@ -74,9 +74,9 @@ class BoardTiming:
                 raise ParameterError(f"timing parameter {name} must be a non-negative integer, not {v!r}")
 
     @classmethod
-    def for_cell(cls, cell="exact", *, memory_latency=MEMORY_LATENCY):
+    def for_cell(cls, cell=Cell(), *, memory_latency=MEMORY_LATENCY):
         """The latencies of the RTL (:class:`blockray.rtl.board.BoardTop`) with processor cell
-        ``cell``; they do not depend on B (at B <= 20 every multiplier is one pipeline stage), and
+        ``cell`` (a :class:`~blockray.cell.Cell`); they do not depend on B (at B <= 20 every multiplier is one pipeline stage), and
         a test asserts them against the RTL's properties at several B.
 
         memory_latency 2: patch-memory read (1) + the broadcast register that fans the record out
@@ -84,11 +84,11 @@ class BoardTiming:
         products, partial sums, the sum joining the pieces) + processor (4: operand registers,
         partial products, partial sums, the joined sum with the decision and OR).
 
-        ``cell="filtered"``: the filtered array's least latency (:data:`FILTERED_LATENCY`); its
+        A filtering cell (filtered, lean): the filtered array's least latency (:data:`FILTERED_LATENCY`); its
         data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
         array's credits run out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
         """
-        if check_cell(cell) != "exact":          # filtered, lean: the same datapath and hand-off
+        if check_cell(cell).filtered:            # filtered, lean: the same datapath and hand-off
             return cls(processor_latency=FILTERED_LATENCY, memory_latency=memory_latency)
         return cls(processor_latency=UNIT_LATENCY + CELL_LATENCY, memory_latency=memory_latency)
 

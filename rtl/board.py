@@ -50,7 +50,7 @@ from ..params import BoardParams
 from ..records import point_layout
 from ..protocol import POINTS_PER_LOAD, BoardProtocol, Op, ResultKind
 from ..timing import BoardTiming
-from ..filtered import check_cell, default_format
+from ..cell import Cell, check_cell
 from .array import ProcessorArray
 from .filtered import FilteredArray
 from .memctrl import MemoryController
@@ -67,7 +67,8 @@ class BoardTop(wiring.Component):
     """One board: ``commands`` in, ``results`` out.
 
     Parameters: ``params`` (:class:`~blockray.params.BoardParams`; ``boards`` is ignored: a board
-    is one of the P); ``patch_init`` / ``table_init`` optional memory contents (tests).
+    is one of the P); ``patch_init`` / ``table_init`` optional memory contents (tests); ``cell``
+    the array's :class:`~blockray.cell.Cell` (exact or filtered; its format at ``params.bits``).
 
     Ports
     ``commands``  In stream of :attr:`protocol` ``.command_layout``.
@@ -76,15 +77,14 @@ class BoardTop(wiring.Component):
                   the other stream.
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=(), cell="exact", filter_format=None, depth=None):
+    def __init__(self, params, *, patch_init=(), table_init=(), cell=Cell(), depth=None):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
-        self._cell = check_cell(cell)
-        if cell == "lean":      # LeanArray needs the patch memory's second read port (docs/processor.md)
+        if check_cell(cell).lean:      # LeanArray needs the patch memory's second read port (docs/processor.md)
             raise ParameterError("the lean cell has no board yet (its array and model do: --board model, "
                                  "blockray synth array --cell lean)", parameter="cell")
-        self._filter_format = filter_format if filter_format is not None else default_format(params.bits)
+        self._cell = cell.at(params.bits)
         self._depth = depth if depth is not None else FilteredArray.default_depth(MemoryController.latency)
         self._params = params
         self._protocol = BoardProtocol(params)
@@ -106,14 +106,8 @@ class BoardTop(wiring.Component):
 
     @property
     def cell(self):
-        """``"exact"`` or ``"filtered"``: the array's cell."""
+        """The array's :class:`~blockray.cell.Cell`, exact or filtered, its format chosen."""
         return self._cell
-
-    @property
-    def filter_format(self):
-        """The filtered cell's :class:`~blockray.filtered.FilterFormat` (used when ``cell`` is
-        ``"filtered"``)."""
-        return self._filter_format
 
     @property
     def array_depth(self):
@@ -129,7 +123,7 @@ class BoardTop(wiring.Component):
     def processor_latency(self):
         """Cycles from the array's input to the accumulators (the filtered array's least: a
         record with no undecided test, to its delivery and the accumulator's register)."""
-        if self._cell == "filtered":
+        if self._cell.filtered:
             return FilteredArray.latency + 3
         return self._array_timing.latency
 
@@ -149,7 +143,7 @@ class BoardTop(wiring.Component):
         """Results that may be in flight or queued at once (markers plus the result FIFO). One
         more than a result every cycle for drain_latency + 2 cycles needs, so a host that reads
         at once never stalls the board."""
-        if self._cell == "filtered":     # markers wait in the array: as many as its credits
+        if self._cell.filtered:          # markers wait in the array: as many as its credits
             return max(self.drain_latency, self._depth) + 3
         return self.drain_latency + 3
 
@@ -165,9 +159,9 @@ class BoardTop(wiring.Component):
         marker_layout = data.StructLayout({
             "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
         })
-        filtered = self._cell == "filtered"
+        filtered = self._cell.filtered
         if filtered:
-            m.submodules.array = array = FilteredArray(p.bits, R, S, fmt=self._filter_format, depth=self._depth,
+            m.submodules.array = array = FilteredArray(p.bits, R, S, fmt=self._cell.format, depth=self._depth,
                                                        mark_shape=marker_layout)
         else:
             m.submodules.array = array = ProcessorArray(p.bits, R, S)

@@ -20,6 +20,7 @@ from amaranth.hdl import Module, Signal
 from amaranth.lib import stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from ..cell import Cell
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..protocol import POINTS_PER_LOAD, Op, ResultKind
@@ -36,14 +37,13 @@ class BoardCore(wiring.Component):
     ``o_bytes``  Out stream of bytes: results in the wire format.
 
     ``board`` is the wrapped :class:`BoardTop` (its ``params``, ``protocol``, ``timing`` and
-    latencies are this core's).
+    latencies are this core's); ``cell``, ``patch_init``, ``table_init`` are passed to it.
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=(), cell="exact", filter_format=None):
+    def __init__(self, params, *, patch_init=(), table_init=(), cell=Cell()):
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
-        self.board = BoardTop(params, patch_init=patch_init, table_init=table_init, cell=cell,
-                              filter_format=filter_format)
+        self.board = BoardTop(params, patch_init=patch_init, table_init=table_init, cell=cell)
         super().__init__({
             "i_bytes": In(stream.Signature(8)),
             "o_bytes": Out(stream.Signature(8)),

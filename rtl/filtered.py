@@ -20,7 +20,7 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 
-from ..filtered import default_format
+from ..cell import Cell
 from .array import broadcast_signature
 from .platform import product_platform
 from ..params import Widths, check_bits
@@ -322,8 +322,8 @@ class _FilteredCells:
 
     def _configure(self, bits, fmt, depth):
         self._bits = check_bits(bits)
-        # default: d_k exact (B + 1 bits), w_k at 18 bits: one MULT18X18D per product
-        self._fmt = fmt if fmt is not None else default_format(bits)
+        # default: the filtered cell's (d_k exact, w_k at 18 bits); the lean array passes its own
+        self._fmt = fmt if fmt is not None else Cell("filtered").format_at(bits)
         self._depth = _check_depth(depth)
 
     @property

@@ -25,7 +25,7 @@ from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
-from ..filtered import lean_format
+from ..cell import Cell
 from ..params import Widths
 from ..records import patch_layout, point_layout, vector_layout
 from .filtered import (ArrayResolve, FilteredArray, _exponent, _Filter, _truncate, filter_terms_layout, sum_bits,
@@ -33,7 +33,7 @@ from .filtered import (ArrayResolve, FilteredArray, _exponent, _Filter, _truncat
 from .platform import product_platform
 from .processor import _AXES, _VERTICES, Processor, ReceiverUnit, ShooterUnit, _combine, _delay, _dot_sums, _product
 
-__all__ = ["LeanReceiver", "LeanExact", "LeanResolve", "LeanArray", "lean_format", "tag_layout",
+__all__ = ["LeanReceiver", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
            "DEFAULT_ADDRESS_BITS"]
 
 #: patch memory address width of a stand-alone array (the board's is its memory's)
@@ -198,7 +198,7 @@ class LeanArray(FilteredArray):
 
     The end-point memory has :attr:`depth` entries: every record writes its S + R points at the
     next slot (mod depth) as it enters; with at most depth items inside, a record's entry stays
-    until it is delivered. Default filter :func:`lean_format`; default depth
+    until it is delivered. Default filter the lean cell's (:meth:`Cell.format_at <blockray.cell.Cell.format_at>`); default depth
     :meth:`default_depth` (the filtered array's, plus the exact unit's 9 cycles and 4: a record
     with undecided tests every few records costs no cycle)."""
 
@@ -209,7 +209,7 @@ class LeanArray(FilteredArray):
             raise ParameterError(f"address_bits must be an integer from 1 to 24, not {address_bits!r}",
                                  parameter="address_bits")
         self._address_bits = address_bits
-        super().__init__(bits, rows, cols, fmt=lean_format(bits, fmt),
+        super().__init__(bits, rows, cols, fmt=Cell("lean", fmt).format_at(bits),
                          depth=depth if depth is not None else self.default_depth(), mark_shape=mark_shape)
         self._MustUse__silence = False
 

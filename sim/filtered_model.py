@@ -3,7 +3,7 @@
 board's R x S array with its shared exact unit (:class:`blockray.rtl.filtered.ArrayResolve`
 behind the board's credits, :func:`board_clock`, compiled; used by
 :class:`blockray.sim.model.BoardModel` and :class:`~blockray.sim.model.ModelBoard` with
-``cell="filtered"``).
+a filtering :class:`~blockray.cell.Cell`).
 
 The answers come from :mod:`blockray.filtered` (the filter, bit for bit) and
 :func:`blockray.exact.blocked_block` (the exact unit); the timing from a cycle-by-cycle mirror of
@@ -24,8 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ..cell import Cell
 from ..exact import blocked_block
-from ..filtered import default_format, filtered_tests
+from ..filtered import filtered_tests
 
 __all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY",
            "board_clock", "STEP_PLAIN", "STEP_BUBBLE", "STEP_RECORD", "STEP_MARKER", "default_array_depth",
@@ -77,7 +78,7 @@ class FilteredIntersectorModel:
 
     def __init__(self, bits, fmt=None, depth=None):
         self.bits = bits
-        self.fmt = fmt if fmt is not None else default_format(bits)
+        self.fmt = fmt if fmt is not None else Cell("filtered").format_at(bits)
         self.depth = depth if depth is not None else DATAPATH_LATENCY + EXACT_LATENCY + 4
 
     def answers(self, P, Q, V, n):

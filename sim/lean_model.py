@@ -22,12 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..cell import Cell
 from ..exact import blocked_block
-from ..filtered import filtered_block, lean_format
+from ..filtered import filtered_block
 from .filtered_model import DATAPATH_LATENCY, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
 __all__ = ["LEAN_EXACT_LATENCY", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel", "record_answers",
-           "default_lean_depth", "lean_format"]
+           "default_lean_depth"]
 
 #: the lean exact unit's latency: tag in, the patch memory and end-point memory read (1), the
 #: shooter and receiver units (4), the exact Processor (4)
@@ -94,7 +95,7 @@ class LeanArrayModel:
 
     def __init__(self, bits, rows, cols, fmt=None, depth=None):
         self.bits, self.rows, self.cols = bits, rows, cols
-        self.fmt = lean_format(bits, fmt)
+        self.fmt = Cell("lean", fmt).format_at(bits)
         self.depth = depth if depth is not None else default_lean_depth(0)
 
     def run(self, steps, vertices, normals):

@@ -30,30 +30,29 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..board import BlockBatch, BlockBits, CountingBoard
+from ..cell import Cell, check_cell
 from ..errors import ParameterError
+from ..filtered import filtered_block
 from ..fixedpoint import DEFAULT_MAX_ERROR
 from ..memory import BoardMemories, QuantisationWarning, check_partition, ranges
 from ..params import BoardParams
 from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKind
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
-from ..filtered import check_cell, default_format, filtered_block, lean_format
 from . import kernel
 from .filtered_model import (EXACT_LATENCY, STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock,
                              default_array_depth)
 from .lean_model import LEAN_EXACT_LATENCY, default_lean_depth
 
-#: the shared exact unit's latency of each cell with a hand-off (filtered: a Processor; lean: LeanExact)
-_EXACT_LATENCY = {"filtered": EXACT_LATENCY, "lean": LEAN_EXACT_LATENCY}
 
-
-def _default_format(cell, bits):
-    return lean_format(bits) if cell == "lean" else default_format(bits)
+def _exact_latency(cell):
+    """The shared exact unit's latency of a filtering cell (filtered: a Processor; lean: LeanExact)."""
+    return LEAN_EXACT_LATENCY if cell.lean else EXACT_LATENCY
 
 
 def _array_depth(cell):
     """The board's array credits of the filtered or lean cell."""
-    return default_lean_depth() if cell == "lean" else default_array_depth()
+    return default_lean_depth() if cell.lean else default_array_depth()
 
 __all__ = ["ExecResult", "BoardModel", "ModelBoard", "QuantisationWarning", "result_word"]
 
@@ -89,18 +88,17 @@ class BoardModel:
     """One board: patch memory, voxel table, an R x S processor array, driven by commands.
 
     Memory contents are the unpacked patch records (``vertices``, ``normals``), so what the model
-    tests is what the packed memory image holds.
+    tests is what the packed memory image holds. ``cell``: the array's
+    :class:`~blockray.cell.Cell` (its format chosen at ``params.bits``); a filtering one has
+    ``depth`` credits (default: its array's).
     """
 
-    def __init__(self, params, timing=None, *, cell="exact", filter_format=None, depth=None):
+    def __init__(self, params, timing=None, *, cell=Cell(), depth=None):
         self.params = params
-        self.cell = check_cell(cell)
-        if cell != "exact":             # filtered or lean: the same hand-off, its exact unit's latency
-            self.filter_format = filter_format or _default_format(cell, params.bits)
+        self.cell = check_cell(cell).at(params.bits)
+        if cell.filtered:               # filtered or lean: the same hand-off, its exact unit's latency
             self.depth = depth or _array_depth(cell)
-            self.timing = timing or BoardTiming.for_cell(cell)
-        else:
-            self.timing = timing or BoardTiming.for_cell()
+        self.timing = timing or BoardTiming.for_cell(cell)
         self.layout = patch_layout(params.bits)
         self.protocol = BoardProtocol(params)
         self.vertices = np.zeros((params.patch_depth, 3, 3), dtype=np.int64)
@@ -134,7 +132,7 @@ class BoardModel:
         p, t = self.params, self.timing
         R, S = p.rows, p.cols
         res = ExecResult()
-        filtered = self.cell != "exact"
+        filtered = self.cell.filtered
         kinds, undecided, ends = [], [], []          # the filtered board's steps; each command's last
         for cmd in commands:
             op = cmd.op
@@ -215,7 +213,7 @@ class BoardModel:
         command's start and in each READ_COUNTERS snapshot (its own wait included: it precedes
         the snapshot)."""
         lost, res.marks = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
-                                      self.depth, _EXACT_LATENCY[self.cell])
+                                      self.depth, _exact_latency(self.cell))
         before = np.concatenate([[0], np.cumsum(lost)])
         snapshots = iter(res.counters)
         begin = 0
@@ -234,7 +232,7 @@ class BoardModel:
             return np.zeros(count, dtype=np.int64)
         idx = np.arange(start, start + count)
         decided, _ = filtered_block(self.shooters[cols], self.receivers[rows], self.vertices[idx],
-                                    self.normals[idx], self.filter_format)
+                                    self.normals[idx], self.cell.format)
         return (~decided).sum(axis=(0, 1))
 
     def _evaluate(self):
@@ -263,15 +261,16 @@ class ModelBoard(CountingBoard):
     (:func:`blockray.fixedpoint.choose_bits`); an int forces it (``--bits``). Once the scene is
     quantised, ``params.bits`` is the B used. ``partition``: how the
     patch records are spread over the P boards (:data:`PARTITIONS`, ``--partition``).
+    ``cell``: the boards' :class:`~blockray.cell.Cell`; once the scene is quantised, ``cell``
+    holds it with its format chosen for that B.
     """
 
     name = "model"
 
     def __init__(self, params=None, *, timing=None, max_error=DEFAULT_MAX_ERROR, partition="deal",
-                 cell="exact", filter_format=None, depth=None):
+                 cell=Cell(), depth=None):
         self._take(params or BoardParams(bits=None))
-        self.cell = check_cell(cell)
-        self._filter_format = filter_format
+        self.cell = self._asked_cell = check_cell(cell)
         self.depth = depth or _array_depth(self.cell)
         self.partition = check_partition(partition)
         self.max_error = max_error
@@ -286,8 +285,7 @@ class ModelBoard(CountingBoard):
 
     def prepare(self, scene, samples):
         q = self._quantise(scene, samples)
-        if self.cell != "exact":
-            self.filter_format = self._filter_format or _default_format(self.cell, q.bits)
+        self.cell = self._asked_cell.at(q.bits)
         self.memories = None
 
     def load(self, grid):
@@ -322,7 +320,7 @@ class ModelBoard(CountingBoard):
             batch.row_off, end_of_row, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, batch.ray_off)
         cycles = self.timing.blocks_cycles(Rb, Sb, streamed)
-        if self.cell != "exact":
+        if self.cell.filtered:
             self._add_filtered_batch(batch, cycles)
         else:
             # cycles and counters depend on the records streamed only, never on the tests' results
@@ -337,7 +335,7 @@ class ModelBoard(CountingBoard):
         """The filtered board's cycles of a batch: each board's command stream on its clock
         (:func:`~blockray.sim.filtered_model.board_clock`: cycles lost waiting for the array's
         credits, when its last result leaves the array), from every record's undecided tests."""
-        q, f = self.quantised, self.filter_format
+        q, f = self.quantised, self.cell.format
         loads = -(-(batch.rows + batch.cols) // POINTS_PER_LOAD)
         step_off = np.vstack([np.zeros((1, cycles.shape[1]), np.int64), np.cumsum(cycles, axis=0)])
         ends, end_of_row = _row_ends(q, batch)
@@ -347,7 +345,7 @@ class ModelBoard(CountingBoard):
             self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off, f.w_input_bits or 0)
         total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
         for b, steps in enumerate(step_off[-1]):
-            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth, _EXACT_LATENCY[self.cell])
+            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth, _exact_latency(self.cell))
             total[b] += lost.sum()
             finish[b] = marks[-1] + 1 if len(marks) else 0
         self._add_batch(total, finish=finish)
@@ -358,7 +356,6 @@ class ModelBoard(CountingBoard):
         """A :class:`BoardModel` whose memories hold board ``board``'s partition (bulk-loaded)."""
         m = self.memories[board]
         q = self.quantised
-        bm = BoardModel(self.params, self.timing, cell=self.cell, filter_format=getattr(self, "filter_format", None),
-                        depth=self.depth)
+        bm = BoardModel(self.params, self.timing, cell=self.cell, depth=self.depth)
         bm.load_memory(q.vertices[m["patch"]], q.normals[m["patch"]], m["start"], m["count"])
         return bm

@@ -38,6 +38,7 @@ from pathlib import Path
 
 from .. import hdl
 
+from ..cell import Cell
 from ..errors import BlockrayError
 from .cocotb_support import cached_build, start_cocotb, stop_cocotb, verilator_env
 
@@ -188,19 +189,19 @@ def _runner_class():
 
 
 def build_harness(params, boards, *, depth=DEFAULT_DEPTH, trace=False, build_args=BUILD_ARGS, cache=None,
-                  cell="exact", filter_format=None):
+                  cell=Cell()):
     """Generate the board's Verilog for ``params`` and the harness for ``boards`` boards, and build
     them with Verilator (cached by content under ``cache_dir()/verilator``, like
-    :func:`~blockray.sim.cocotb_support.build_verilator`). ``cell``, ``filter_format``: the
-    board's cell (:class:`~blockray.rtl.board.BoardTop`). Returns a :class:`HarnessBuild`."""
+    :func:`~blockray.sim.cocotb_support.build_verilator`). ``cell``: the board's
+    :class:`~blockray.cell.Cell` (:class:`~blockray.rtl.board.BoardTop`). Returns a :class:`HarnessBuild`."""
     from ..rtl.core import BoardCore
 
     verilator_env()
-    board_text = hdl.convert(BoardCore(params, cell=cell, filter_format=filter_format), name=BOARD_MODULE,
+    board_text = hdl.convert(BoardCore(params, cell=cell), name=BOARD_MODULE,
                                  emit_src=False)
     harness_text = harness_source(boards=boards, depth=depth)
     name = f"{HARNESS_TOP}_{params.rows}x{params.cols}_b{params.bits}_p{boards}" + (
-        "" if cell == "exact" else f"_{cell}")
+        f"_{cell.kind}" if cell.filtered else "")
     files = {f"{BOARD_MODULE}.v": board_text, f"{HARNESS_TOP}.sv": harness_text, f"{HARNESS_TOP}.vlt": CONTROL_FILE}
 
     def build(staging, sources):

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 from ..atomic import write_file
-from ..errors import ParameterError
+from ..errors import ParameterError, option
 from ..link import DEFAULT_BAUD
 from ..params import BoardParams
 from ..paths import check_output_file
@@ -96,7 +96,7 @@ def bram_estimate(params, *, core="board"):
 
 
 def divisor_for(freq_mhz, baud):
-    """The UART divisor for ``baud`` at ``freq_mhz``; ParameterError naming --baud if it is off
+    """The UART divisor for ``baud`` at ``freq_mhz``; ParameterError naming ``baud`` if it is off
     by more than MAX_BAUD_ERROR or below the UART's minimum."""
     from ..rtl.uart import MIN_DIVISOR
     if not isinstance(baud, int) or baud < 1:
@@ -108,9 +108,9 @@ def divisor_for(freq_mhz, baud):
                              parameter="baud")
     error = abs(freq_mhz * 1e6 / divisor - baud) / baud
     if error > MAX_BAUD_ERROR:
-        raise ParameterError(f"{baud}: a {freq_mhz:g} MHz clock divides to {freq_mhz * 1e6 / divisor:.0f} "
-                             f"baud ({error:.1%} off; at most {MAX_BAUD_ERROR:.0%}); choose --freq a multiple "
-                             f"of the baud rate", parameter="baud")
+        raise ParameterError(f"{option('baud')}: {baud}: a {freq_mhz:g} MHz clock divides to "
+                             f"{freq_mhz * 1e6 / divisor:.0f} baud ({error:.1%} off; at most {MAX_BAUD_ERROR:.0%}); "
+                             f"choose {option('freq')} a multiple of the baud rate", parameter="baud")
     return divisor
 
 
@@ -131,9 +131,9 @@ def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_M
     brams = bram_estimate(params, core=core)
     dsps = dsp_estimate(params.bits, params.rows, params.cols) if core == "board" else 0
     if dsps > dev["dsps"]:
-        raise ParameterError(f"{params.rows} (with --cols {params.cols}): a {params.rows} x {params.cols} array at "
-                             f"--bits {params.bits} needs {dsps} MULT18X18D, the {dev['part']} has {dev['dsps']}",
-                             parameter="rows")
+        raise ParameterError(f"{option('rows')}: {params.rows} (with {option('cols')} {params.cols}): a {params.rows} "
+                             f"x {params.cols} array at {option('bits')} {params.bits} needs {dsps} MULT18X18D, the "
+                             f"{dev['part']} has {dev['dsps']}", parameter="rows")
     total = sum(brams.values())
     if total > dev["brams"]:
         worst = "patch_depth" if brams.get("patch_memory", 0) >= brams.get("voxel_table", 0) else "voxel_depth"
@@ -220,8 +220,8 @@ def _core(core, params):
     try:
         from ..rtl.core import BoardCore
     except ImportError:
-        raise ParameterError("board: this tree has no board core with byte streams "
-                             "(blockray.rtl.core.BoardCore); build --core echo", parameter="core") from None
+        raise ParameterError(f"{option('core')}: board: this tree has no board core with byte streams "
+                             f"(blockray.rtl.core.BoardCore); build {option('core')} echo", parameter="core") from None
     return BoardCore(params)
 
 

@@ -53,7 +53,7 @@ from ..errors import ParameterError
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
 from .tools import tool_command
-from ..filtered import check_cell
+from ..cell import Cell, check_cell
 from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
 from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
@@ -106,13 +106,14 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     return cells + receiver + shooter
 
 
-def check_speed(speed, device, option="--speed"):
-    """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``."""
+def check_speed(speed, device, parameter="speed"):
+    """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``;
+    an error names ``parameter``."""
     if speed is None:
         return DEVICES[device]["speed"]
     if isinstance(speed, bool) or speed not in SPEEDS:
-        raise ParameterError(f"{option} must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
-                             f"grade), not {speed!r}")
+        raise ParameterError(f"{parameter} must be one of {', '.join(map(str, SPEEDS))} (the ECP5 speed "
+                             f"grade), not {speed!r}", parameter=parameter)
     return int(speed)
 
 
@@ -226,8 +227,8 @@ def _critical_path(report, clock):
 
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
-                 threads=2, workdir=None, place=True, router=ROUTER, fabric_units=(), cell="exact",
-                 filter_format=None, also_speeds=()):
+                 threads=2, workdir=None, place=True, router=ROUTER, fabric_units=(), cell=Cell(),
+                 also_speeds=()):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
@@ -236,8 +237,8 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     units whose products are LUT multipliers instead of DSPs (:class:`ECP5Target`). ``speed``:
     the part's speed grade for nextpnr (6, 7 or 8; None = the part's default, :data:`DEVICES`);
     the report's ``speed`` and ``part`` (e.g. ``LFE5U-85F-6``) say which grade was used.
-    ``cell``: ``exact`` or ``filtered`` (:data:`~blockray.synth.verilog.CELLS`), the latter with
-    ``filter_format`` (a :class:`~blockray.filtered.FilterFormat`; None: d exact, w 18 bits).
+    ``cell``: the processor :class:`~blockray.cell.Cell` (the report's ``cell`` and
+    ``filter_format``: its kind and the format asked for, None: the kind's default).
     ``also_speeds``: other grades at which to time the same placement and routing
     (:func:`time_routed`): the report's ``same_routing`` lists it timed again at its own grade
     first, then at each of those, each with ``scaled_mhz`` (:func:`_scaled`). Compare within that
@@ -246,24 +247,25 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     and routes for that grade's delays, and may do better.
     """
     if router not in ("router1", "router2"):
-        raise ParameterError(f"--router must be router1 or router2, not {router!r}")
+        raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
     if unit not in UNITS:
         raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
     ecp5 = target_platform(target, fabric_units)        # None for generic
     if device not in DEVICES:
-        raise ParameterError(f"--device must be one of {', '.join(DEVICES)}, not {device!r}")
+        raise ParameterError(f"device must be one of {', '.join(DEVICES)}, not {device!r}", parameter="device")
     speed = check_speed(speed, device)
-    others = {check_speed(g, device, "--also-speed") for g in also_speeds} - {speed}
+    others = {check_speed(g, device, "also_speed") for g in also_speeds} - {speed}
     retime = [speed] + sorted(others) if also_speeds else []       # the routed grade first
     if not (isinstance(freq, (int, float)) and freq > 0):
-        raise ParameterError(f"--freq must be a positive number of MHz, not {freq!r}")
+        raise ParameterError(f"freq must be a positive number of MHz, not {freq!r}", parameter="freq")
     params = BoardParams() if params is None else params
-    check_cell(cell, filter_format)                      # a bad cell/format pair fails here, before any tool
-    report = {"unit": unit, "cell": cell, "filter_format": None if filter_format is None else str(filter_format), "params": _params_dict(unit, params), "target": target,
+    check_cell(cell)                                     # not a Cell: fails here, before any tool
+    report = {"unit": unit, "cell": cell.kind, "filter_format": None if cell.format is None else str(cell.format),
+              "params": _params_dict(unit, params), "target": target,
               "tools": _versions(), "machine": _machine()}
 
     if target == "generic":
-        stats = synth_stats(build_unit(unit, params, cell, filter_format), name=f"blockray_{unit}", target="generic")
+        stats = synth_stats(build_unit(unit, params, cell), name=f"blockray_{unit}", target="generic")
         report.update({
             "resources": {"cells": stats.cells, "ffs": stats.ffs, "multipliers": stats.multipliers},
             "mul_widths": [list(w) for w in stats.mul_widths],
@@ -280,7 +282,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     pnr = {"device": device, "speed": speed, "freq": freq, "seed": seed, "threads": threads, "router": router,
            "write": ROUTED if retime else None}
     with _workdir(workdir) as tmp:
-        _ecp5(report, unit, params, dev, tmp, place, ecp5, (cell, filter_format), pnr)
+        _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr)
         if retime and report["fmax_mhz"] is not None:
             report["same_routing"] = _scaled([time_routed(tmp, device=device, speed=g, freq=freq) for g in retime],
                                              report["fmax_mhz"])
@@ -347,7 +349,7 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
     """Yosys and, if it fits and ``place``, nextpnr with the options ``pnr`` (:func:`nextpnr_args`)."""
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
-    component = build_unit(unit, params, *cell)
+    component = build_unit(unit, params, cell)
     lut_multipliers = bool(ecp5.fabric_units)
     unit_cells, t_unit, mapper = _yosys_ecp5(hdl.convert(component, name=name, emit_src=False,
                                                              platform=ecp5),
@@ -376,7 +378,7 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
 
     # 2. the harnessed unit, for place and route (the harness's cost is the difference)
     top = f"{name}_top"
-    harness = LfsrHarness(build_unit(unit, params, *cell))
+    harness = LfsrHarness(build_unit(unit, params, cell))
     total_cells, t_top, report["lut_mapper"]["harnessed"] = _yosys_ecp5(
         hdl.convert(harness, name=top, emit_src=False, platform=ecp5), top, tmp, top, netlist=True,
         lut_multipliers=lut_multipliers)

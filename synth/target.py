@@ -73,7 +73,7 @@ def target_platform(target, fabric_units=()):
     """The ``platform`` object for ``target`` (``"generic"`` -> None, ``"ecp5"`` ->
     ``ECP5Target(fabric_units)``; fabric units need the ECP5 target)."""
     if target not in TARGETS:
-        raise ParameterError(f"--target must be one of {', '.join(TARGETS)}, not {target!r}", parameter="target")
+        raise ParameterError(f"target must be one of {', '.join(TARGETS)}, not {target!r}", parameter="target")
     if target != "ecp5":
         if fabric_units:
             raise ParameterError("fabric units (LUT multipliers) need the ecp5 target", parameter="fabric_units")

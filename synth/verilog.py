@@ -11,10 +11,11 @@ Units (``UNITS``):
 ``board``      :class:`~blockray.rtl.board.BoardTop`: command/result streams, patch memory and
                voxel table, the R x S array. Uses every parameter but ``boards``.
 
-``cell`` (``CELLS``, ``--cell``): ``exact`` (default) builds the above; ``filtered`` builds the
-filtered cell of :mod:`blockray.rtl.filtered` (``processor``: :class:`FilteredIntersector`,
-``cell``: :class:`FilteredProcessor`, ``array``: :class:`FilteredArray` with its shared exact
-unit, ``board``: ``BoardTop(cell="filtered")``; default format d_k exact and w_k at 18 bits);
+``cell`` (a :class:`~blockray.cell.Cell`, ``--cell``): ``exact`` (default) builds the above;
+``filtered`` builds the filtered cell of :mod:`blockray.rtl.filtered` (``processor``:
+:class:`FilteredIntersector`, ``cell``: :class:`FilteredProcessor`, ``array``:
+:class:`FilteredArray` with its shared exact unit, ``board``: ``BoardTop(cell=Cell("filtered"))``;
+default format d_k exact and w_k at 18 bits);
 ``lean`` the lean cell of :mod:`blockray.rtl.lean` (``array``: :class:`LeanArray` with its
 shared exact unit and end-point memory, its patch memory's read port a top-level port;
 ``processor``: the 1 x 1 LeanArray; ``cell``: the filtered cell at the lean format, 9 x 9 bits).
@@ -31,11 +32,11 @@ from .. import hdl
 
 from ..atomic import write_file
 from ..errors import ParameterError
-from ..filtered import CELLS, check_cell, default_format
+from ..cell import Cell, check_cell
 from ..params import BoardParams
 from .target import target_platform
 
-__all__ = ["UNITS", "CELLS", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog",
+__all__ = ["UNITS", "MAX_MEMORY_BITS", "board_memory_bits", "build_unit", "unit_verilog",
            "write_verilog"]
 
 UNITS = ("processor", "cell", "array", "board")
@@ -77,15 +78,16 @@ LEAN_UNITS = ("processor", "cell", "array")
 
 def _lean_unit(unit, params, fmt):
     from ..rtl.filtered import FilteredProcessor
-    from ..rtl.lean import LeanArray, lean_format
+    from ..rtl.lean import LeanArray
     if unit == "cell":
-        return FilteredProcessor(lean_format(params.bits, fmt))
+        return FilteredProcessor(fmt)
     rows, cols = (1, 1) if unit == "processor" else (params.rows, params.cols)
     return LeanArray(params.bits, rows, cols, fmt=fmt, address_bits=max(1, (params.patch_depth - 1).bit_length()))
 
 
-def _filtered_unit(unit, params, fmt):
+def _filtered_unit(unit, params, cell):
     from ..rtl.filtered import FilteredArray, FilteredIntersector, FilteredProcessor
+    fmt = cell.format
     if unit == "processor":
         return FilteredIntersector(params.bits, fmt)
     if unit == "array":
@@ -93,26 +95,25 @@ def _filtered_unit(unit, params, fmt):
     if unit == "board":
         from ..rtl.board import BoardTop
         _check_memory(params)
-        return BoardTop(params, cell="filtered", filter_format=fmt)
-    return FilteredProcessor(fmt if fmt is not None else default_format(params.bits))
+        return BoardTop(params, cell=cell)
+    return FilteredProcessor(fmt)
 
 
-def build_unit(unit, params=None, cell="exact", filter_format=None):
+def build_unit(unit, params=None, cell=Cell()):
     """A fresh component of ``unit`` configured by ``params`` (default :class:`BoardParams`),
-    with the ``exact`` or the ``filtered`` cell (``filter_format``: a
-    :class:`~blockray.filtered.FilterFormat`, default d exact and w at 18 bits)."""
+    with ``cell`` (a :class:`~blockray.cell.Cell`; its format chosen at ``params.bits``)."""
     _check_unit(unit)
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
-    cell = check_cell(cell, filter_format)
-    if cell == "lean" and unit not in LEAN_UNITS:
+    if check_cell(cell).lean and unit not in LEAN_UNITS:
         raise ParameterError(f"the lean cell is built for units {', '.join(LEAN_UNITS)}, not {unit!r}",
                              parameter="cell")
-    if cell == "filtered":
-        return _filtered_unit(unit, params, filter_format)
-    if cell == "lean":
-        return _lean_unit(unit, params, filter_format)
+    cell = cell.at(params.bits)
+    if cell.lean:
+        return _lean_unit(unit, params, cell.format)
+    if cell.filtered:
+        return _filtered_unit(unit, params, cell)
     if unit == "processor":
         from ..rtl.processor import Intersector
         return Intersector(params.bits)
@@ -127,20 +128,17 @@ def build_unit(unit, params=None, cell="exact", filter_format=None):
     return BoardTop(params)
 
 
-def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",
-                 filter_format=None):
+def unit_verilog(unit, params=None, *, name=None, target="generic", fabric_units=(), cell=Cell()):
     """Readable Verilog (no source attributes) of ``unit`` with ``cell`` for ``target``
     (``generic`` or ``ecp5``, with ``fabric_units``); the top module is ``name`` (default
     ``blockray_<unit>``)."""
     platform = target_platform(target, fabric_units)
-    component = build_unit(unit, params, cell, filter_format)
+    component = build_unit(unit, params, cell)
     return hdl.convert(component, name=name or f"blockray_{unit}", emit_src=False, platform=platform)
 
 
-def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell="exact",
-                  filter_format=None):
+def write_verilog(path, unit, params=None, *, name=None, target="generic", fabric_units=(), cell=Cell()):
     """Write :func:`unit_verilog` to ``path``; returns the text."""
-    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell,
-                        filter_format=filter_format)
+    text = unit_verilog(unit, params, name=name, target=target, fabric_units=fabric_units, cell=cell)
     write_file(path, "--out", lambda f: f.write(text))
     return text

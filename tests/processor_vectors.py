@@ -9,7 +9,8 @@ coarse-grid coincidences); ``random_tests`` mixes uniform and crossing-heavy ran
 
 import numpy as np
 
-from blockray.exact import blocked_block, patch_normals
+from blockray.exact import blocked_block, blocked_reference, patch_normals
+from blockray.filtered import filtered_tests
 from blockray.records import pack_array, patch_columns, point_columns
 from blockray.rtl.processor import TAG_BITS, query_layout
 
@@ -156,3 +157,15 @@ def near_degenerate(bits, count, rng):
         points = points * scale + rng.uniform(0.3, 0.7) * L
         points = np.clip(np.rint(points), 0, L).astype(np.int64)
         yield points[12:14], points[14:16], points[:12].reshape(4, 3, 3)
+
+
+def check_filter_decisions(tests, fmt):
+    """The filter (:func:`blockray.filtered.filtered_tests`) at ``fmt`` on :class:`Tests`: its
+    decided tests agree with the expected bits (blocked_block) and, on a sample, with
+    blocked_reference (Python integers); returns the undecided count."""
+    decided, blocked = filtered_tests(tests.P, tests.Q, tests.V, tests.n, fmt)
+    wrong = decided & (blocked != tests.blocked)
+    assert not wrong.any(), f"{fmt}: {int(wrong.sum())} wrong decisions"
+    for i in np.flatnonzero(decided)[::97]:                                   # the independent evaluation
+        assert blocked[i] == blocked_reference(tests.P[i], tests.Q[i], *tests.V[i])
+    return int((~decided).sum())

@@ -12,11 +12,11 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from blockray.errors import ParameterError
-from blockray.exact import block_terms, blocked_reference, edge_terms, patch_normals, vertex_terms
+from blockray.exact import block_terms, edge_terms, patch_normals, vertex_terms
 from blockray.filtered import (FilterFormat, cell_certificates, filtered_block, filtered_tests,
                                receiver_filter_terms, shooter_filter_terms, truncate)
 
-from processor_vectors import hard_cases, random_tests
+from processor_vectors import check_filter_decisions, hard_cases, random_tests
 
 FORMATS = [FilterFormat.square(b) for b in (4, 9, 12, 14)] + [FilterFormat(17, 18)]
 
@@ -44,22 +44,11 @@ def _certified_signs_are_true(P, Q, V, fmt):
     return c
 
 
-def _check_tests(tests, fmt):
-    """Decided tests agree with the expected bits (blocked_block) and with blocked_reference on a
-    sample; returns the undecided count."""
-    decided, blocked = filtered_tests(tests.P, tests.Q, tests.V, tests.n, fmt)
-    wrong = decided & (blocked != tests.blocked)
-    assert not wrong.any(), f"{fmt}: {int(wrong.sum())} wrong decisions"
-    for i in np.flatnonzero(decided)[::97]:                                   # the independent evaluation
-        assert blocked[i] == blocked_reference(tests.P[i], tests.Q[i], *tests.V[i])
-    return int((~decided).sum())
-
-
 @pytest.mark.parametrize("bits", [6, 12, 16, 20])
 @pytest.mark.parametrize("fmt", FORMATS, ids=str)
 def test_hard_cases_never_decided_wrong(bits, fmt):
     tests = hard_cases(bits)
-    undecided = _check_tests(tests, fmt)
+    undecided = check_filter_decisions(tests, fmt)
     print(f"B = {bits}, {fmt}: {undecided} of {len(tests)} hard tests undecided")
     # the hard cases are there to reach the exact path: shared edges and vertices give s_k = 0,
     # which no truncating filter can certify (B = 6 with 17/18-bit mantissas truncates nothing)
@@ -73,7 +62,7 @@ def test_random_tests_never_decided_wrong(bits, fmt):
     seed = 73 + bits
     print(f"seed {seed}")
     tests = random_tests(bits, 4000, np.random.default_rng(seed))
-    undecided = _check_tests(tests, fmt)
+    undecided = check_filter_decisions(tests, fmt)
     print(f"B = {bits}, {fmt}: {undecided} of {len(tests)} random tests undecided")
 
 

@@ -1,5 +1,5 @@
-"""The board with the filtered cell (``BoardTop(cell="filtered")``) in the Amaranth simulator
-against the bit-exact model (``BoardModel(cell="filtered")``), zero tolerance.
+"""The board with the filtered cell (``BoardTop(cell=Cell("filtered"))``) in the Amaranth simulator
+against the bit-exact model (``BoardModel(cell=Cell("filtered"))``), zero tolerance.
 
 The filtered board's cycles depend on the data: the undecided tests of a record wait for the
 array's one exact unit, records leave the array in order, and when the array's credits run out
@@ -17,8 +17,9 @@ import pytest
 from amaranth.hdl import ClockDomain, Fragment, Module
 from amaranth.sim import Simulator
 
+from blockray.cell import Cell
 from blockray.errors import ParameterError
-from blockray.filtered import FilterFormat, default_format
+from blockray.filtered import FilterFormat
 from blockray.params import BoardParams
 from blockray.rtl.board import BoardTop
 from blockray.rtl.filtered import FilteredArray
@@ -32,7 +33,7 @@ from board_scenes import make_batch
 
 
 def run_filtered(params, commands, *, fmt, depth, seed):
-    dut = BoardTop(params, cell="filtered", filter_format=fmt, depth=depth)
+    dut = BoardTop(params, cell=Cell("filtered", fmt), depth=depth)
     top = Module()
     top.domains.sync = ClockDomain()
     top.submodules.board = dut
@@ -59,8 +60,8 @@ def run_filtered(params, commands, *, fmt, depth, seed):
 def test_filtered_board_equals_model(seed, rows, cols, fmt, depth):
     print(f"seed={seed}")
     params, cmds = make_batch(seed, rows=rows, cols=cols, bits=8)
-    fmt = fmt or default_format(8)
-    model = functools.partial(BoardModel, cell="filtered", filter_format=fmt, depth=depth)
+    fmt = fmt or FilterFormat(9, 18)                # d_k exact at B = 8, w_k at 18 bits
+    model = functools.partial(BoardModel, cell=Cell("filtered", fmt), depth=depth)
     log = run_filtered(params, cmds, fmt=fmt, depth=depth, seed=seed)
     expect = check_run(params, cmds, log, model=lambda p, t: model(p, t))[0]
     # the blocked words are the exact board's, whatever the filter left undecided
@@ -76,22 +77,24 @@ def test_filtered_board_equals_model(seed, rows, cols, fmt, depth):
 
 def test_filtered_board_latencies_and_parameters():
     params = BoardParams(rows=2, cols=2, bits=8, patch_depth=4, voxel_depth=2)
-    board = BoardTop(params, cell="filtered")
+    board = BoardTop(params, cell=Cell("filtered"))
     Fragment.get(board, None)
-    assert board.timing == BoardTiming.for_cell("filtered")
+    assert board.cell == Cell("filtered", FilterFormat(9, 18))      # the default format at B = 8
+    assert board.timing == BoardTiming.for_cell(Cell("filtered"))
     assert board.array_depth == default_array_depth() == FilteredArray.default_depth(board.memory_latency)
     assert board.result_queue_depth >= board.array_depth + 3
-    with pytest.raises(ParameterError, match="cell"):
-        BoardTop(params, cell="fast")
-    with pytest.raises(ParameterError, match="cell"):
-        BoardModel(params, cell="fast")
+    with pytest.raises(ParameterError, match="cell must be one of exact, filtered, lean, not 'fast'"):
+        Cell("fast")
+    for build in (BoardTop, BoardModel):            # a kind's name alone is not a cell
+        with pytest.raises(ParameterError, match="cell must be a Cell"):
+            build(params, cell="filtered")
 
 
 @pytest.mark.parametrize("fmt", [FilterFormat(3, 3), FilterFormat(6, 8)])
 def test_model_board_equals_command_streams(fmt):
-    """ModelBoard(cell="filtered") gathers a batch at once (compiled: the undecided tests of every
-    record, each board's clock); it equals each board's command stream run through
-    BoardModel(cell="filtered"): bits, cycles per board and the batch's finish; its bits equal
+    """ModelBoard with the filtered cell gathers a batch at once (compiled: the undecided tests of
+    every record, each board's clock); it equals each board's command stream run through
+    BoardModel with that cell: bits, cycles per board and the batch's finish; its bits equal
     the exact cell's."""
     from blockray.samples import SampleScheme
     from board_scenes import BoxGrid, random_blocks, scattered_scene as random_scene
@@ -99,14 +102,14 @@ def test_model_board_equals_command_streams(fmt):
     samples = SampleScheme(8)
     scene = random_scene(5)
     boards = {}
-    for cell in ("exact", "filtered"):
-        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3, bits=None), partition="deal", cell=cell, filter_format=fmt)
+    for cell in (Cell(), Cell("filtered", fmt)):
+        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3, bits=None), partition="deal", cell=cell)
         board.prepare(scene, samples)
         grid = BoxGrid(scene.patch_vertices, 3, margin=board.margin)
         board.load(grid)
         rng = np.random.default_rng(6)
         blocks = random_blocks(rng, scene, samples, board.params, 12, len(grid.voxel_patches))
-        boards[cell] = (board, board.run(blocks))
+        boards[cell.kind] = (board, board.run(blocks))
     board, bits = boards["filtered"]
     np.testing.assert_array_equal(bits.flat, boards["exact"][1].flat)
     c = board.counters()

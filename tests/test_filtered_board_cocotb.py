@@ -1,6 +1,6 @@
 """The board with the filtered cell as generated Verilog under Verilator + cocotb
 (tests/cocotb_board.py, ``BoardTop`` fed command records): blocked words and counters, cycles
-included, equal ``BoardModel(cell="filtered")`` with zero tolerance on bigger batches than the
+included, equal ``BoardModel(cell=Cell("filtered"))`` with zero tolerance on bigger batches than the
 Amaranth simulator's (tests/test_filtered_board.py): a random scene and the Cornell box through
 the host's memories and block commands, each board of the partition in turn, with a 3 x 3-bit
 filter (many undecided tests in one broadcast: the shared exact unit's queue fills and the
@@ -13,6 +13,7 @@ import functools
 import numpy as np
 import pytest
 
+from blockray.cell import Cell
 from blockray.filtered import FilterFormat
 from blockray.protocol import BoardProtocol
 from blockray.sim.model import BoardModel
@@ -28,7 +29,7 @@ def build_filtered(params, fmt, name):
     from blockray.rtl.board import BoardTop
     from blockray.sim.cocotb_support import build_verilator
 
-    return build_verilator(BoardTop(params, cell="filtered", filter_format=fmt), name=name, build_args=BUILD_ARGS)
+    return build_verilator(BoardTop(params, cell=Cell("filtered", fmt)), name=name, build_args=BUILD_ARGS)
 
 
 # the 3 x 3 format sends the most tests to the shared exact unit; the default format's 70 s run is slow
@@ -47,7 +48,7 @@ def test_filtered_board_verilator_equals_model(fmt):
     runs += [dict(r, link="records") for r in cornell_runs(model, blocks[:40], seed=seed + 1, idle=0.0,
                                                            backpressure=0.0)]
     logs = run_batch(build, params, runs, "filtered")
-    filtered = functools.partial(BoardModel, cell="filtered", filter_format=fmt)
+    filtered = functools.partial(BoardModel, cell=Cell("filtered", fmt))
     proto = BoardProtocol(params)
     ored = [np.zeros((len(bl.receiver_patch), len(bl.shooter_patch)), dtype=bool) for bl in blocks[:40]]
     for k, (run, out) in enumerate(zip(runs, logs)):

@@ -12,8 +12,9 @@ import json
 import numpy as np
 import pytest
 
-from blockray.host_driver.cli import main
+from blockray.cell import Cell
 from blockray.filtered import FilterFormat
+from blockray.host_driver.cli import main
 from blockray.host_driver.render.render import render
 
 from scenes import RTL_BITS as BITS, RTL_PARAMS as PARAMS
@@ -35,7 +36,7 @@ def exact(scene):
 
 @pytest.mark.parametrize("fmt", [None, FilterFormat(3, 3)])
 def test_model_filtered_equals_exact(scene, exact, fmt):
-    got = _render(scene, "model", cell="filtered", filter_format=fmt)
+    got = _render(scene, "model", cell=Cell("filtered", fmt))
     assert np.array_equal(got.radiosity, exact.radiosity)
     for key in ("tests_issued", "tests_useful", "blocks", "rays"):
         assert got.report[key] == exact.report[key], key
@@ -48,11 +49,11 @@ def test_model_filtered_equals_exact(scene, exact, fmt):
 
 
 def test_model_link_filtered_counts_the_model_boards_cycles(scene):
-    """The host driver over the byte link, answered by BoardModel(cell="filtered"): the same
-    bits and per-board cycles as ModelBoard(cell="filtered") (both: a full command stream)."""
-    fmt = FilterFormat(3, 3)
-    model = _render(scene, "model", cell="filtered", filter_format=fmt)
-    link = _render(scene, "model-link", cell="filtered", filter_format=fmt)
+    """The host driver over the byte link, answered by BoardModel with the filtered cell: the same
+    bits and per-board cycles as ModelBoard with it (both: a full command stream)."""
+    cell = Cell("filtered", FilterFormat(3, 3))
+    model = _render(scene, "model", cell=cell)
+    link = _render(scene, "model-link", cell=cell)
     assert np.array_equal(link.radiosity, model.radiosity)
     for key in ("board_cycles_per_board", "tests_issued_per_board", "load_cycles_per_board"):
         assert link.report[key] == model.report[key], key
@@ -72,7 +73,7 @@ def test_verilator_filtered_equals_exact(scene, exact):
     """The filtered board's Verilog under Verilator (host driver, byte link): the exact cell's
     radiosity bit for bit, the filter narrow enough (3 x 3 bits) that the shared exact unit and
     the credits are exercised."""
-    got = _render(scene, "verilator", cell="filtered", filter_format=FilterFormat(3, 3))
+    got = _render(scene, "verilator", cell=Cell("filtered", FilterFormat(3, 3)))
     assert np.array_equal(got.radiosity, exact.radiosity)
     assert got.report["tests_issued"] == exact.report["tests_issued"]
     print(f"board_cycles per board: verilator filtered {got.report['board_cycles_per_board']}, "

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from blockray import extras
-from blockray.host_driver.cli import main
+from blockray.host_driver.cli import _option, main
 from blockray.errors import ParameterError, SceneError
 from blockray.host_driver.scene import builtin
 from blockray.host_driver.scene.objload import (LoadLimits, TOKEN_CHARS, load_obj, subdivide, subdivision_lower_bound)
@@ -314,7 +314,8 @@ def test_material_library_outside_the_folder_is_refused_and_not_revealed(tmp_pat
         with pytest.raises(SceneError) as info:
             load_obj(path)
         message = str(info.value)
-        assert "SECRET" not in message and "--allow-mtl-outside" in message
+        assert "SECRET" not in message and "allow_mtl_outside" in message      # LoadLimits' field
+        assert "--allow-mtl-outside" in info.value.spelled(_option)             # the CLI's option
         messages.append(message.replace("real", "X").replace("none", "X"))
     assert messages[0] == messages[1]                 # the same words whether it exists or not
     # allowed: it is read (and its bad value named, quoted as one token)

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from amaranth.sim import Simulator
 
+from blockray.cell import Cell
 from blockray.errors import ParameterError
 from blockray.exact import blocked_block, blocked_reference, patch_normals
-from blockray.filtered import FilterFormat, lean_format, rounded_receiver_filter_terms
+from blockray.filtered import FilterFormat, rounded_receiver_filter_terms
 from blockray.host_driver.render.render import render
 from blockray.params import BoardParams
 from blockray.records import pack_array, patch_columns, patch_layout, point_columns, point_layout
@@ -274,12 +275,12 @@ def test_model_board_lean_equals_exact(rtl_room):
         return render(rtl_room, backend=board, params=PARAMS, bits=BITS, samples=4, max_shots=2, voxels=3, **cell)
 
     exact = run("model")
-    lean = run("model", cell="lean", filter_format=FilterFormat(3, 3, 5))
+    lean = run("model", cell=Cell("lean", FilterFormat(3, 3, 5)))
     assert np.array_equal(lean.radiosity, exact.radiosity)
     for key in ("tests_issued", "tests_useful", "blocks", "rays"):
         assert lean.report[key] == exact.report[key], key
     assert (np.array(lean.report["board_cycles_per_board"]) > np.array(exact.report["board_cycles_per_board"])).all()
-    link = run("model-link", cell="lean", filter_format=FilterFormat(3, 3, 5))
+    link = run("model-link", cell=Cell("lean", FilterFormat(3, 3, 5)))
     assert np.array_equal(link.radiosity, lean.radiosity)
     for key in ("board_cycles_per_board", "tests_issued_per_board"):
         assert link.report[key] == lean.report[key], key
@@ -288,7 +289,7 @@ def test_model_board_lean_equals_exact(rtl_room):
 
 def test_the_lean_board_is_refused_with_one_line():
     with pytest.raises(ParameterError, match="lean cell has no board"):
-        BoardTop(BoardParams(bits=8, rows=2, cols=2), cell="lean")
+        BoardTop(BoardParams(bits=8, rows=2, cols=2), cell=Cell("lean"))
 
 
 @pytest.mark.slow           # a Verilator build of minutes

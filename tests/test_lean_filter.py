@@ -15,11 +15,10 @@ from hypothesis import given, settings, strategies as st
 
 from blockray.errors import ParameterError
 from blockray.exact import block_terms, blocked_block, blocked_reference, edge_terms, patch_normals
-from blockray.filtered import (LEAN_INPUT_BITS, FilterFormat, cell_certificates, check_cell, filter_decision,
-                               filtered_block, lean_format, rounded_receiver_filter_terms, shooter_filter_terms)
+from blockray.filtered import (LEAN_INPUT_BITS, FilterFormat, cell_certificates, filter_decision, filtered_block,
+                               rounded_receiver_filter_terms, shooter_filter_terms)
 
-from processor_vectors import hard_cases, near_degenerate, random_tests
-from test_filtered import _check_tests
+from processor_vectors import check_filter_decisions, hard_cases, near_degenerate, random_tests
 
 FORMATS = [FilterFormat(9, 9, LEAN_INPUT_BITS), FilterFormat(9, 9, 9), FilterFormat(4, 5, 3), FilterFormat(12, 12, 16)]
 
@@ -92,7 +91,7 @@ def test_processor_vectors_never_decided_wrong(bits, fmt):
     seed = 91 + bits
     print(f"seed {seed}")
     tests = hard_cases(bits) + random_tests(bits, 2000, np.random.default_rng(seed))
-    print(f"B = {bits}, {fmt}: {_check_tests(tests, fmt)} of {len(tests)} undecided")
+    print(f"B = {bits}, {fmt}: {check_filter_decisions(tests, fmt)} of {len(tests)} undecided")
 
 
 def test_the_wider_bound_is_needed():
@@ -114,9 +113,7 @@ def test_the_wider_bound_is_needed():
     assert wrong > 0
 
 
-def test_lean_format():
-    assert lean_format(16) == FilterFormat(9, 9) and lean_format(6) == FilterFormat(7, 9)
-    assert lean_format(16, FilterFormat(3, 4, 5)) == FilterFormat(3, 4, 5)
+def test_format_names():
     assert str(FilterFormat(9, 9, 12)) == "d9w9i12" and str(FilterFormat(9, 9)) == "d9w9"
 
 
@@ -124,13 +121,6 @@ def test_bad_input_width_names_the_parameter():
     with pytest.raises(ParameterError, match="w_input_bits") as e:
         FilterFormat(9, 9, 19)
     assert e.value.parameter == "w_input_bits"
-
-
-def test_only_the_lean_cell_takes_rounded_inputs():
-    assert check_cell("lean", FilterFormat(9, 9, 12)) == "lean"
-    with pytest.raises(ParameterError, match="only the lean cell") as e:
-        check_cell("filtered", FilterFormat(9, 9, 12))
-    assert e.value.parameter == "filter_bits"
 
 
 def test_the_exact_w_decision_refuses_a_lean_format():

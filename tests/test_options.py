@@ -6,8 +6,9 @@ import dataclasses
 
 import pytest
 
-from blockray.host_driver.cli import _option, build_parser, main
+from blockray.cell import Cell
 from blockray.errors import ParameterError
+from blockray.host_driver.cli import _option, build_parser, main
 from blockray.filtered import FilterFormat
 from blockray.host_driver.render.options import BoardOptions, RenderOptions
 from blockray.params import BoardParams
@@ -18,7 +19,7 @@ def test_flat_names_go_to_their_groups():
                          solver="jacobi", tolerance=1e-5, max_iterations=7, sets=2, threads=3)
     assert o.board.backend == "golden"
     assert o.board.params == BoardParams(rows=4, cols=8, boards=2, bits=None)
-    assert o.board.partition == "deal" and o.board.cell == "exact"
+    assert o.board.partition == "deal" and o.board.cell == Cell("exact")
     assert (o.ray.samples.count, o.ray.voxels, o.ray.traversal, o.ray.packing) == (4, 5, "ray", "voxel")
     assert (o.solve.solver, o.solve.tolerance, o.solve.max_iterations, o.solve.max_shots) == ("jacobi", 1e-5, 7, None)
     assert (o.run.sets, o.run.threads, o.run.distributed) == (2, 3, True)
@@ -46,13 +47,14 @@ def test_frozen_and_no_unknown_names():
     (dict(backend="golden", bits=10), "bits"),
     (dict(backend="golden", partition="patch"), "partition"),
     (dict(backend="model", vcd="w.vcd"), "vcd"),
-    (dict(backend="golden", cell="filtered"), "cell"),
-    (dict(filter_format=FilterFormat(8, 8)), "filter_bits"),
+    (dict(backend="golden", cell=Cell("filtered")), "cell"),
+    (dict(cell="filtered"), "cell"),                           # a kind's name alone is not a Cell
     (dict(backend="no-such-board"), "board"),
     (dict(rows=0), "rows"),
     (dict(sets=2), "sets"),                                    # progressive cannot run on sets
     (dict(sets=2, solver="jacobi", closure="symmetric"), "closure"),
-    (dict(sets=2, solver="jacobi", cell="filtered"), "cell"),
+    (dict(sets=2, solver="jacobi", cell=Cell("filtered")), "cell"),
+    (dict(sets=2, solver="jacobi", cell=Cell("lean")), "cell"),
     (dict(scheduler="tcp://127.0.0.1:1", workers=2), "workers"),
     (dict(baud=0), "baud"),
 ])
@@ -71,8 +73,8 @@ def test_from_args_is_of_with_the_options_names():
     got = RenderOptions.from_args(args)
     assert got.board.faults.rate == 0.01 and got.board.faults.seed == 5
     want = RenderOptions.of(backend="model-link", rows=4, cols=2, bits=12, partition="patch", samples=4, voxels=6,
-                            packing="fill", solver="gauss-seidel", tolerance=1e-4, cell="filtered",
-                            filter_format=FilterFormat(13, 18), faults=got.board.faults)
+                            packing="fill", solver="gauss-seidel", tolerance=1e-4,
+                            cell=Cell("filtered", FilterFormat(13, 18)), faults=got.board.faults)
     assert got == want
 
 

@@ -258,7 +258,8 @@ def test_filtered_array_terms_wait_in_block_ram():
     from blockray.params import BoardParams
     from blockray.synth.nextpnr import synth_report
     from blockray.rtl.processor import receiver_terms_layout, shooter_terms_layout
-    report = synth_report("array", BoardParams(rows=1, cols=2, bits=6), place=False, cell="filtered")
+    from blockray.cell import Cell
+    report = synth_report("array", BoardParams(rows=1, cols=2, bits=6), place=False, cell=Cell("filtered"))
     print(report["resources"])
     delayed = 2 * shooter_terms_layout(6).size + receiver_terms_layout(6).size
     assert report["resources"]["brams"] >= delayed // 36

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 from typing import Callable
 
 from ...errors import ParameterError, option
-from ...filtered import CELLS as _CELLS, check_cell
+from ...cell import CELLS as _CELLS, Cell, check_cell
 from ...link import DEFAULT_BAUD
 from ...memory import check_partition
 
@@ -58,27 +58,27 @@ def backend(name):
                              parameter="board") from None
 
 
-def make_board(name, params=None, *, partition="deal", cell="exact", filter_format=None, vcd=None,
-               host=None, faults=None, port=(), baud=DEFAULT_BAUD):
+def make_board(name, params=None, *, partition="deal", cell=Cell(), vcd=None, host=None, faults=None, port=(),
+               baud=DEFAULT_BAUD):
     """Build back-end ``name`` for ``params`` (default :class:`~blockray.params.BoardParams` with
     B chosen per scene); the keywords are the fields of
     :class:`~blockray.host_driver.render.options.BoardOptions` (see :func:`build_board`)."""
     from ...params import BoardParams
     board = SimpleNamespace(backend=name, params=params or BoardParams(bits=None), partition=partition, cell=cell,
-                            filter_format=filter_format, vcd=vcd, host=host, faults=faults, port=port, baud=baud)
+                            vcd=vcd, host=host, faults=faults, port=port, baud=baud)
     check_board(board)
     return build_board(board)
 
 
 def check_board(options):
     """ParameterError if back-end ``options.backend`` cannot be built as ``options`` (a
-    :class:`~blockray.host_driver.render.options.BoardOptions`) asks: a cell, filter format, partition,
+    :class:`~blockray.host_driver.render.options.BoardOptions`) asks: a cell, partition,
     waveform, host timing or fault injection it does not have."""
-    entry, name, cell = backend(options.backend), options.backend, options.cell
+    entry, name, kind = backend(options.backend), options.backend, check_cell(options.cell).kind
     check_partition(options.partition)
-    if check_cell(cell, options.filter_format) not in entry.cells:
-        able = " or ".join(n for n, b in BACKENDS.items() if cell in b.cells)
-        raise ParameterError(f"{option('cell')} {cell} needs a board built with that cell ({option('backend')} {able}), "
+    if kind not in entry.cells:
+        able = " or ".join(n for n, b in BACKENDS.items() if kind in b.cells)
+        raise ParameterError(f"{option('cell')} {kind} needs a board built with that cell ({option('backend')} {able}), "
                              f"not {name!r}",
                              parameter="cell")
     if not entry.quantises and options.partition != "deal":
@@ -106,17 +106,16 @@ def build_board(options, outputs=None):
     given an ``outputs`` (:class:`blockray.atomic.Outputs`) written to temporaries that are
     renamed over the files with that batch (close the board before the batch ends);
     ``host``: the host's timing on a simulated board's link: ``(idle, backpressure, seed)``, two
-    :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor cell,
-    ``"exact"`` or ``"filtered"`` (``filter_format``: its :class:`~blockray.filtered.FilterFormat`,
-    default :func:`~blockray.filtered.default_format`); the back-ends that build the board's
-    model or RTL take both. ``faults``: a :class:`~blockray.host_driver.board.framed.LinkFaults` to
+    :class:`blockray.sim.drive.HostTiming` and a seed. ``cell``: the boards' processor
+    :class:`~blockray.cell.Cell`; the back-ends that build the board's model or RTL take a
+    filtering one. ``faults``: a :class:`~blockray.host_driver.board.framed.LinkFaults` to
     inject on every board's link. ``port``, ``baud``: a real board's serial links."""
     entry, o = backend(options.backend), options
     extra = {}
     if o.faults is not None:
         extra["faults"] = o.faults
-    if o.cell != "exact" or o.filter_format is not None:
-        extra.update(cell=o.cell, filter_format=o.filter_format)
+    if o.cell.filtered:
+        extra["cell"] = o.cell
     if entry.serial:
         extra.update(port=o.port, baud=o.baud)
     vcd = o.vcd
@@ -137,16 +136,16 @@ def _golden(params, *, partition, vcd, host):
     return GoldenBoard()
 
 
-def _model(params, *, partition, vcd, host, cell="exact", filter_format=None):
+def _model(params, *, partition, vcd, host, cell=Cell()):
     from ...sim.model import ModelBoard
-    return ModelBoard(params, partition=partition, cell=cell, filter_format=filter_format)
+    return ModelBoard(params, partition=partition, cell=cell)
 
 
 def _driven(name, open_transport):
-    def factory(params, *, partition, vcd, host, **cell):
+    def factory(params, *, partition, vcd, host, **extra):
         from .driver import BoardDriver
-        return BoardDriver(params, partition=partition, name=name, cell=cell.get("cell", "exact"),
-                           transport=lambda p, b: open_transport(p, b, vcd=_wave(vcd, b), host=host, **cell))
+        return BoardDriver(params, partition=partition, name=name, cell=extra.get("cell", Cell()),
+                           transport=lambda p, b: open_transport(p, b, vcd=_wave(vcd, b), host=host, **extra))
     return factory
 
 

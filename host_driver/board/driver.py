@@ -20,6 +20,7 @@ From these the driver forms exactly the model's report (:class:`~blockray.board.
 import numpy as np
 
 from ...board import CountingBoard
+from ...cell import Cell, check_cell
 from ...errors import CapacityError, ParameterError, option
 from ...fixedpoint import DEFAULT_MAX_ERROR
 from ...memory import BoardMemories, check_partition
@@ -60,14 +61,15 @@ class BoardDriver(CountingBoard):
     boards are built for ``params`` as given (real hardware). Either way a scene that does not fit
     ``params``' memories raises :class:`CapacityError` before any transport opens (followed by
     ``hint``, what to change, if given). ``params.bits`` (None by default: chosen for the scene),
-    ``max_error``, ``partition``: as :class:`~blockray.sim.model.ModelBoard`.
+    ``max_error``, ``partition``: as :class:`~blockray.sim.model.ModelBoard`; ``cell``: the
+    boards' :class:`~blockray.cell.Cell` (their timing; the transports build the boards with it).
     """
 
     def __init__(self, params=None, *, transport, name="driver", fit=True,
-                 max_error=DEFAULT_MAX_ERROR, partition="deal", cell="exact", hint=None):
+                 max_error=DEFAULT_MAX_ERROR, partition="deal", cell=Cell(), hint=None):
         self._take(params or BoardParams(bits=None))
         self.hint = hint
-        self.cell = cell
+        self.cell = check_cell(cell)
         self.name = name
         self.max_error, self.fit = max_error, fit
         self.partition = check_partition(partition)

@@ -12,6 +12,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, TimeoutError as FutureTimeout
 
+from ...cell import Cell
 from .simulated import _Buffered
 from .transport import TransportError
 
@@ -21,20 +22,20 @@ _builds = {}
 _builds_lock = threading.Lock()
 
 
-def native_build(params, *, cell="exact", filter_format=None, trace=False):
+def native_build(params, *, cell=Cell(), trace=False):
     """The native harness of :class:`~blockray.rtl.core.BoardCore` for ``params`` (built once per
     process and design, cached on disk by content and found there by parameters and RTL source
     without a Verilog conversion: :func:`blockray.sim.native.build_native`)."""
     from ...rtl.core import BoardCore
     from ...sim.native import build_native, compiler_version
 
-    key = (params, cell, filter_format, bool(trace))
+    key = (params, cell, bool(trace))
     with _builds_lock:
         if key not in _builds:
             compiler_version()              # before the conversion: a missing compiler says so at once
-            name = f"native_{params.rows}x{params.cols}_b{params.bits}" + ("" if cell == "exact" else f"_{cell}")
-            _builds[key] = build_native(lambda: BoardCore(params, cell=cell, filter_format=filter_format), name=name,
-                                        trace=trace, source=repr((params, cell, filter_format)))
+            name = f"native_{params.rows}x{params.cols}_b{params.bits}" + (f"_{cell.kind}" if cell.filtered else "")
+            _builds[key] = build_native(lambda: BoardCore(params, cell=cell), name=name, trace=trace,
+                                        source=repr((params, cell)))
         return _builds[key]
 
 
@@ -47,15 +48,14 @@ class NativeTransport(_Buffered):
     moving, once every command byte was taken, before :meth:`recv` gives up (default: longer than
     any command takes, as the Amaranth transport)."""
 
-    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell="exact", filter_format=None,
-                 patience=None):
+    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell=Cell(), patience=None):
         from ...sim.drive import HostTiming
         from ...sim.native import NativeBoard
 
         super().__init__(vcd=vcd)
         self.params = params
         t0 = time.perf_counter()
-        self.build = native_build(params, cell=cell, filter_format=filter_format, trace=vcd is not None)
+        self.build = native_build(params, cell=cell, trace=vcd is not None)
         self.build_seconds = time.perf_counter() - t0
         # the Verilated model is not thread-safe: every call on the board runs on this one thread
         self._thread = ThreadPoolExecutor(1, thread_name_prefix="blockray-native")

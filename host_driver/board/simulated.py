@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from ...cell import Cell
 from ...errors import ParameterError
 from .transport import Transport, TransportError
 
@@ -46,8 +47,7 @@ class AmaranthTransport(_Buffered):
     command and result byte streams; ``seed`` seeds them. ``vcd``: write a waveform.
     ``max_cycles``: clock cycles without progress after which :meth:`recv` gives up."""
 
-    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, max_cycles=None, cell="exact",
-                 filter_format=None):
+    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, max_cycles=None, cell=Cell()):
         from amaranth.hdl import ClockDomain, Module
         from amaranth.sim import Simulator
         from ...rtl.core import BoardCore
@@ -55,7 +55,7 @@ class AmaranthTransport(_Buffered):
 
         super().__init__(vcd=vcd)
         self.params = params
-        self.core = core = BoardCore(params, cell=cell, filter_format=filter_format)
+        self.core = core = BoardCore(params, cell=cell)
         m = Module()
         m.domains.sync = self._cd = ClockDomain()
         m.submodules.core = core
@@ -134,8 +134,7 @@ class VerilatorTransport(_Buffered):
     pauses between them: stalls, not board cycles). ``vcd``: build with ``--trace`` and write a
     waveform (short runs only)."""
 
-    def __init__(self, params, *, vcd=None, depth=None, startup_timeout=600, build_args=None, cell="exact",
-                 filter_format=None):
+    def __init__(self, params, *, vcd=None, depth=None, startup_timeout=600, build_args=None, cell=Cell()):
         from ...sim.rtl_harness import BUILD_ARGS, DEFAULT_DEPTH, HarnessProcess, build_harness
 
         super().__init__(vcd=vcd)
@@ -143,7 +142,7 @@ class VerilatorTransport(_Buffered):
         self.depth = depth or DEFAULT_DEPTH
         t0 = time.perf_counter()
         self.build = build_harness(params, 1, depth=self.depth, trace=vcd is not None,
-                                   build_args=build_args or BUILD_ARGS, cell=cell, filter_format=filter_format)
+                                   build_args=build_args or BUILD_ARGS, cell=cell)
         self.build_seconds = time.perf_counter() - t0
         self.workdir = Path(tempfile.mkdtemp(prefix="blockray_rtl_"))
         t0 = time.perf_counter()
@@ -220,7 +219,7 @@ class ModelTransport(_Buffered):
     Counter snapshots are cumulative since the last reset, as the board's; ``stalls`` is 0 (the
     model has no host timing)."""
 
-    def __init__(self, params, *, vcd=None, cell="exact", filter_format=None):
+    def __init__(self, params, *, vcd=None, cell=Cell()):
         import functools
 
         from ...protocol import BoardProtocol
@@ -231,7 +230,7 @@ class ModelTransport(_Buffered):
         super().__init__()
         self.params = params
         self.protocol = BoardProtocol(params)
-        self._model = functools.partial(BoardModel, cell=cell, filter_format=filter_format)
+        self._model = functools.partial(BoardModel, cell=cell)
         self._out = bytearray()
         self.reset()
 

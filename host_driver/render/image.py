@@ -24,7 +24,7 @@ from blockray.errors import ParameterError, option
 
 from ..scene.scene import Camera
 
-__all__ = ["default_camera", "project", "vertex_radiosity", "render_image", "save_png", "check_image_size",
+__all__ = ["default_camera", "vertex_radiosity", "render_image", "save_png", "check_image_size",
            "MAX_PIXELS", "BYTES_PER_PIXEL"]
 
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -77,14 +77,6 @@ def _basis(camera):
 
 def _focal_pixels(camera, height):
     return (height / 2) / math.tan(math.radians(camera.fov) / 2)
-
-
-def project(points, camera, width, height):
-    """Image coordinates (x, y in pixels, continuous) and depth of (..., 3) points."""
-    position, basis = _basis(camera)
-    c = (np.asarray(points, dtype=np.float64) - position) @ basis.T
-    f = _focal_pixels(camera, height)
-    return width / 2 + f * c[..., 0] / c[..., 2], height / 2 - f * c[..., 1] / c[..., 2], c[..., 2]
 
 
 def vertex_radiosity(scene, radiosity, crease=30.0):

@@ -18,12 +18,13 @@ it quantises the scene; from there on the quantised scene and the board's params
 import math
 from dataclasses import dataclass, field, fields
 
+from ...cell import Cell
 from ...errors import ParameterError, option
 from ...params import BoardParams
 from ...samples import SampleScheme
 from ...link import DEFAULT_BAUD
 
-__all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "filter_format",
+__all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "cell_option",
            "host_timing"]
 
 SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
@@ -44,15 +45,14 @@ def _integer(value):
 class BoardOptions:
     """The board: ``backend`` (a name of the registry, ``--board``), the machine's ``params``
     (R, S, P and B, None by default: chosen per scene; the memories of a board built per scene
-    are fitted to it), ``partition``, the processor ``cell`` and its ``filter_format``,
+    are fitted to it), ``partition``, the processor ``cell`` (a :class:`~blockray.cell.Cell`),
     a waveform ``vcd``, the simulated host's ``host`` timing ``(idle, backpressure, seed)``,
     link ``faults`` (:class:`~blockray.host_driver.board.framed.LinkFaults`), and for a real board its
     serial ``port`` (one per board) and ``baud``."""
     backend: str = "model"
     params: BoardParams = field(default_factory=lambda: BoardParams(bits=None))
     partition: str = "deal"
-    cell: str = "exact"
-    filter_format: object = None
+    cell: Cell = Cell()
     vcd: object = None
     host: tuple = None
     faults: object = None
@@ -191,16 +191,17 @@ class SetOptions:
         return self.sets != 1 or self.scheduler is not None or self.workers is not None
 
 
-def filter_format(text):
-    """``--filter-bits D[:W]`` as a :class:`~blockray.filtered.FilterFormat` (None when not given)."""
-    if text is None:
-        return None
+def cell_option(kind, filter_bits=None):
+    """The :class:`~blockray.cell.Cell` of ``--cell KIND`` and ``--filter-bits D[:W]`` (None: the
+    kind's default format)."""
+    if filter_bits is None:
+        return Cell(kind)
     from ...filtered import FilterFormat
-    parts = text.split(":")
+    parts = filter_bits.split(":")
     if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
-        raise ParameterError(f"filter_bits must be D or D:W (integers), not {text!r}", parameter="filter_bits")
+        raise ParameterError(f"filter_bits must be D or D:W (integers), not {filter_bits!r}", parameter="filter_bits")
     bits = [int(p) for p in parts]
-    return FilterFormat(bits[0], bits[-1])
+    return Cell(kind, FilterFormat(bits[0], bits[-1]))
 
 
 def host_timing(args):
@@ -258,8 +259,8 @@ class RenderOptions:
         if b.faults is not None:
             raise ParameterError(f"{option('link_faults')} injects faults on one set's links; it cannot be used with "
                                  f"{_DISTRIBUTED}", parameter="link_faults")
-        if b.cell != "exact":
-            raise ParameterError(f"{option('cell')} filtered runs one set (not with {_DISTRIBUTED})",
+        if b.cell.filtered:
+            raise ParameterError(f"{option('cell')} {b.cell.kind} runs one set (not with {_DISTRIBUTED})",
                                  parameter="cell")
 
     @classmethod
@@ -283,11 +284,11 @@ class RenderOptions:
     @classmethod
     def from_args(cls, args):
         """From the ``blockray render`` command line (the parsed ``args``: the flat names, and
-        ``board``, ``filter_bits``, ``link_*`` as the options give them)."""
+        ``board``, ``cell``, ``filter_bits``, ``link_*`` as the options give them)."""
         flat = {f.name: getattr(args, f.name) for group in _GROUPS.values() for f in fields(group)
                 if hasattr(args, f.name)}
         flat.update(backend=args.board, rows=args.rows, cols=args.cols, boards=args.boards, bits=args.bits,
-                    filter_format=filter_format(args.filter_bits), host=host_timing(args),
+                    cell=cell_option(args.cell, args.filter_bits), host=host_timing(args),
                     faults=None if args.link_faults is None else _faults(args))
         return cls.of(**flat)
 

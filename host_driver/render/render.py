@@ -98,7 +98,7 @@ def _resume(scene, board, options, params, checkpoint):
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
         "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
         "end_lattice": ray.end_lattice,
-        "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
+        "partition": b.partition, "sets": options.run.sets, "cell": b.cell.kind, "filter_format": repr(b.cell.format),
         "rows": params.rows, "cols": params.cols, "boards": params.boards, **hierarchical})
 
 

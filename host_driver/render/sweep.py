@@ -29,9 +29,9 @@ from itertools import product
 import numpy as np
 
 from ...atomic import Outputs
+from ...cell import CELLS
 from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
-from ...filtered import CELLS
 from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
 from .options import SOLVERS

@@ -153,7 +153,7 @@ def _read_text(path, limits, error_path=None, error_line=None, what="file"):
         raise SceneError(f"{what} is not a file name", **where) from None
     if len(data) > limits.max_file_bytes:
         raise SceneError(f"{what} is larger than {limits.max_file_bytes / 2**20:.3g} MiB "
-                         f"(raise the limit with --max-file-mb)", **where)
+                         f"(raise the limit with {option('max_file_bytes')})", **where)
     return data.decode("utf-8-sig", errors="surrogateescape")
 
 
@@ -396,7 +396,7 @@ class _ObjReader:
                                  line=lineno)
             if not _may_read(folder, mtl, limits):
                 raise SceneError(f"material library {_token(mtl)} is outside the scene's folder "
-                                 f"(allow it with --allow-mtl-outside)", path=path, line=lineno)
+                                 f"(allow it with {option('allow_mtl_outside')})", path=path, line=lineno)
             real = os.path.realpath(folder / mtl)
             if real not in self.libraries:          # a library named again is not read twice
                 self.libraries.add(real)
