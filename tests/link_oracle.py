@@ -74,11 +74,10 @@ class Planted:
     def __init__(self, seq, times=2):
         self.seq, self.left = seq, times
         self.counts = {"flipped": 0, "dropped": 0, "duplicated": 0}
-        self._tail = bytearray()
         self.restart()
 
     def restart(self):
-        self.given, self.gave = bytearray(), bytearray()
+        self.given, self.gave, self._tail = bytearray(), bytearray(), bytearray()
 
     def __call__(self, data):
         self._tail += data
