@@ -65,7 +65,7 @@ def test_a_resent_frame_hit_again_recovers_without_a_time_out():
     host's RESEND while its gap is open); the gateware's sender ends its resend rounds with a
     POLL, which the host answers so. Both resent frames hit again are recovered with no time-out
     of the host (in simulated time: the link is in lockstep)."""
-    data = bytes(random.Random(4).randrange(256) for _ in range(600))
+    data = bytes(random.Random(4).randrange(256) for _ in range(300))
     with UartSimTransport(EchoCore(repeat=2), faults=_Planted(), name="blockray_uart_echo") as link:
         link.send(data)
         got = link.recv(2 * len(data))
