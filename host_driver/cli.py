@@ -160,6 +160,7 @@ def _check_render(args):
 def _render_parser(sub):
     from .traverse.endpoints import ENDS
     from ..samples import END_LATTICES
+    from .render.options import SOLVERS
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -189,7 +190,7 @@ def _render_parser(sub):
     p.add_argument("--end-lattice", type=int, default=1, choices=END_LATTICES, metavar="N",
                    help="--end-points kernel/draw: end points on a lattice N times finer, so they reach N times "
                         "nearer the receivers' edges (contact shadows); costs log2(N) coordinate bits")
-    p.add_argument("--solver", default="progressive", choices=["progressive", "jacobi", "gauss-seidel", "hierarchical"],
+    p.add_argument("--solver", default="progressive", choices=list(SOLVERS),
                    help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "
                         "leaf element)")
     p.add_argument("--epsilon", type=_positive_float, default=1e-3,
@@ -203,12 +204,14 @@ def _render_parser(sub):
     p.add_argument("--closure", default="off", choices=["off", "symmetric", "enforce"],
                    help="closed scenes only: build every column first, then make the visible form factors "
                         "reciprocal (symmetric) and also sum to 1 (enforce, symmetric scaling); the report's "
-                        "'closure' key gives the errors and the energy balance before and after")
+                        "'closure' key gives the errors and the energy balance before and after; "
+                        "--solver hierarchical: enforce makes every leaf gather and shoot a factor sum of 1")
     p.add_argument("--sets", type=_positive_int, default=1, metavar="K",
                    help="host + board sets working in parallel (the paper's section 6): each owns a region of "
                         "the patches, casts the rays ending on them with its own boards, and the sets exchange "
-                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel); each set runs on "
-                        "a worker of a Dask cluster")
+                        "radiosities between gathering sweeps (--solver jacobi or gauss-seidel; hierarchical: the "
+                        "sets cast the links ending on their input triangles); each set runs on a worker of a Dask "
+                        "cluster")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the sets on the Dask cluster of this scheduler (e.g. tcp://host:8786, started with "
                         "`dask scheduler` and `dask worker`); default: a local cluster on 127.0.0.1, started and "
@@ -229,7 +232,7 @@ def _render_parser(sub):
     out.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     out.add_argument("--checkpoint", metavar="DIR",
                      help="save the solve to DIR/checkpoint.npz as it runs (atomically, at most every 30 s: "
-                          "after a shot, or after a sweep); docs/robustness.md")
+                          "after a shot, a sweep, or a hierarchical refinement round); docs/robustness.md")
     out.add_argument("--resume", metavar="DIR",
                      help="continue the render whose checkpoint is in DIR (same scene and options, else "
                           "refused) and keep saving there; the outputs equal an uninterrupted render's")
@@ -276,7 +279,12 @@ def _cmd_render(args):
                                                    checkpoint=_checkpoint(args)))
         if args.image:
             from .render.image import render_image, save_png
-            img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
+            if args.solver == "hierarchical":           # crack-free across the leaves' T-vertices
+                from .render.conforming import image_mesh
+                mesh, B, colours = image_mesh(result.solve)
+                img = render_image(mesh, B, width=args.size, height=args.size, colours=colours)
+            else:
+                img = render_image(result.scene, result.radiosity, width=args.size, height=args.size)
             save_png(args.image, img, outputs)
         if args.patches and args.solver == "hierarchical":
             from .render.hierarchical import write_leaves_csv

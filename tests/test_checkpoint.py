@@ -146,3 +146,35 @@ def test_solver_state_resumes_bit_for_bit(solver):
         assert len(states) == steps - stop            # it went on from the state, not from the start
         np.testing.assert_array_equal(again.B, whole.B)
         assert (again.shots, again.iterations, again.history) == (whole.shots, whole.iterations, whole.history)
+
+
+def test_hierarchical_killed_and_resumed_equals_uninterrupted(tmp_path, capsys):
+    """--solver hierarchical, killed (SIGKILL) at a seeded random round's checkpoint and resumed:
+    the same leaves' CSV and image, bit for bit, as the render never stopped, from the round the
+    checkpoint had reached, casting only the later rounds' rays."""
+    seed = 4
+    argv = ["render", "cornell", "--max-edge", "1e9", "--samples", "2", "--size", "32", "--quiet",
+            "--solver", "hierarchical", "--epsilon", "3e-3"]
+    assert main(argv + _outputs(tmp_path, "whole") + ["--report", str(tmp_path / "whole.json")]) == 0
+    whole = json.loads((tmp_path / "whole.json").read_text())
+    rounds = whole["refinement_rounds"]                     # checkpoints written: one per round's solve
+    rng = random.Random(seed)
+    kill, where = rng.randint(2, rounds + 1), rng.choice(["before", "write"])
+    print(f"seed={seed} kill at checkpoint {kill} of {rounds + 1} ({where})")
+    folder = tmp_path / "ck"
+    done = subprocess.run([sys.executable, "-c", _KILLED, str(kill), where, *argv, "--checkpoint", str(folder),
+                           *_outputs(tmp_path, "killed")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    assert main(argv + ["--resume", str(folder), "--report", str(tmp_path / "r.json")] + _outputs(tmp_path, "resumed")) == 0
+    for ext in ("csv", "png"):
+        assert (tmp_path / f"resumed.{ext}").read_bytes() == (tmp_path / f"whole.{ext}").read_bytes(), ext
+    report = json.loads((tmp_path / "r.json").read_text())
+    # checkpoint k holds round k - 1's solve (round 0: the input triangles); the k-th never completed
+    assert report["resumed_from"]["rounds"] == kill - 2, report["resumed_from"]
+    assert (report["refinement_rounds"], report["links"], report["leaves"], report["iterations"]) == \
+        (whole["refinement_rounds"], whole["links"], whole["leaves"], whole["iterations"])
+    assert report["rays"] < whole["rays"]
+    other = [a if a != "3e-3" else "1e-2" for a in argv]
+    capsys.readouterr()
+    assert main(other + ["--resume", str(folder)]) == 2                # another epsilon: refused, exit 2
+    assert "made with epsilon 0.003, this render has 0.01" in capsys.readouterr().err

@@ -31,6 +31,7 @@ def run(capsys, *argv):
     (["bits=12,x"], "'x' is not an integer"),
     (["bits=2,14"], "must be from"),
     (["samples=0"], "must be positive"),
+    (["epsilon=0"], "must be positive"),
     (["solver=newton"], "not one of progressive"),
     (["board=ulx3s"], "not one of"),
     (["bits=12", "bits=14"], "given twice"),
@@ -147,3 +148,30 @@ def test_a_failing_point_is_reported_and_the_sweep_exits_2(capsys, tmp_path, roo
         rows = list(csv.DictReader(f))
     assert rows[0]["status"].startswith("failed") and rows[0]["error_rms"] == ""
     assert rows[1]["status"] == "ok"
+
+
+def test_a_hierarchical_point_is_measured_on_its_leaves(capsys, tmp_path, room):
+    """A hierarchical point's CSV has its own leaves; the reference patch i's value must be the leaf
+    that holds its centroid. Here the reference mesh is the input triangles, and the leaf holding an
+    input triangle's centroid is the one at the end of the middle children, with that same centroid."""
+    out = tmp_path / "sw"
+    code, err = run(capsys, "sweep", room, "--vary", "solver=hierarchical", "--vary", "epsilon=1e-3",
+                    "--fix", "max-edge=1.0", "--fix", "voxels=3", "--reference", "golden", "--out", str(out),
+                    "--quiet")
+    assert code == 0, err
+    with open(out / "sweep.csv", newline="") as f:
+        row, = list(csv.DictReader(f))
+    ref_area, ref = read(out / "reference" / "patches.csv")
+    with open(out / "points" / "solver-hierarchical_epsilon-0.001" / "patches.csv", newline="") as f:
+        leaves = list(csv.DictReader(f))
+    assert int(row["patches"]) == len(leaves) > len(ref_area)          # it refined
+    with open(out / "reference" / "patches.csv", newline="") as f:
+        centre = np.array([[float(r[k]) for k in ("cx", "cy", "cz")] for r in csv.DictReader(f)])
+    b = np.empty_like(ref)
+    for i in range(len(ref)):
+        mine = [r for r in leaves if int(r["patch"]) == i]
+        d = [np.abs(np.array([float(r[k]) for k in ("cx", "cy", "cz")]) - centre[i]).max() for r in mine]
+        assert min(d) < 1e-9
+        b[i] = [float(mine[int(np.argmin(d))][k]) for k in ("B_r", "B_g", "B_b")]
+    rms = np.sqrt((ref_area[:, None] * (b - ref) ** 2).sum(0) / (ref_area[:, None] * ref ** 2).sum(0))
+    assert float(row["error_rms"]) == pytest.approx(rms.max(), rel=1e-12)

@@ -8,6 +8,10 @@ atomically (:mod:`blockray.atomic`) at most every :data:`INTERVAL` seconds while
   whose columns of visible factors the render had cached (their identity; a column is
   recomputed, bit for bit, when a resumed render needs it again);
 - Jacobi and Gauss-Seidel: after a sweep, the iterate to sweep next and the residual history.
+- hierarchical: after each refinement round's solve, the elements (their input triangle, node,
+  level, parent and first child), the links (ends, unoccluded factor, visible fraction, partial
+  flag), every element's B, the rounds and sweeps done and that solve's residual history and
+  balance; a resumed render refines from there and casts only the rays of later rounds.
   The form factors are not saved: a resumed gathering render casts its rays again (on one set or
   on the cluster's sets) and then continues from the saved sweep.
 
@@ -38,6 +42,8 @@ FILE = "checkpoint.npz"
 INTERVAL = 30.0
 FORMAT = 1
 _STATE = ("B", "U", "energy", "history", "row_sums", "columns")
+#: a hierarchical render's arrays (host_driver/render/hierarchical.py, ``solve_state``)
+HIERARCHICAL = ("patch", "node", "level", "parent", "child", "recv", "src", "F", "vis", "partial", "B", "history")
 
 
 def scene_hash(scene):
@@ -103,6 +109,10 @@ class Checkpoint:
             if theirs.get(key) != ours.get(key):
                 raise ParameterError(f"{shown}: the checkpoint was made with {key} {theirs.get(key)!r}, this "
                                      f"render has {ours.get(key)!r}", parameter="resume")
+        if str(saved["solver"]) == "hierarchical":
+            return {"solver": "hierarchical", "shots": 0, "iterations": int(saved["iterations"]),
+                    "rounds": int(saved["rounds"]), "residual": float(saved["residual"]),
+                    "balance": json.loads(str(saved["balance"])), "arrays": {k: saved[k] for k in HIERARCHICAL}}
         state = {k: saved[k] for k in _STATE}
         state.update(solver=str(saved["solver"]), shots=int(saved["shots"]), iterations=int(saved["iterations"]))
         return state
@@ -112,9 +122,14 @@ class Checkpoint:
         seconds have passed since the last write (or ``force``)."""
         if self.save_to is None or (not force and time.monotonic() - self._last < self.interval):
             return
-        columns = np.array(sorted(self.columns()) if self.columns is not None else [], dtype=np.int64)
-        arrays = {k: np.asarray(state[k]) for k in _STATE if k != "columns"}
-        arrays.update(columns=columns, solver=np.array(state["solver"]), shots=np.array(state["shots"]),
+        if state["solver"] == "hierarchical":
+            arrays = dict(state["arrays"], rounds=np.array(state["rounds"]), residual=np.array(state["residual"]),
+                          balance=np.array(json.dumps(state["balance"])))
+        else:
+            columns = np.array(sorted(self.columns()) if self.columns is not None else [], dtype=np.int64)
+            arrays = {k: np.asarray(state[k]) for k in _STATE if k != "columns"}
+            arrays["columns"] = columns
+        arrays.update(solver=np.array(state["solver"]), shots=np.array(state["shots"]),
                       iterations=np.array(state["iterations"]), meta=np.array(json.dumps(self.meta)))
         try:
             os.makedirs(self.save_to, exist_ok=True)

@@ -30,10 +30,20 @@ refines. The other links of a receiver that is split move to its children (:func
 so links end on leaves and a leaf's factors partition its sources.
 
 **Solve.** Jacobi over the links with push-pull (HSA's gathering): every element gathers
-``G_p = sum_links F v B_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
+``G_p = sum_links u_r F v S_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
 ancestors)``; pulling up, an element's radiosity is the mean of its four children's (equal
-areas). The residual is :mod:`~blockray.host_driver.radiosity.solver`'s, on the leaves: ``sum A |B' - B|
-/ sum A E``, RGB summed.
+areas), and ``S_s`` the mean of ``w B`` over its leaves. The residual is
+:mod:`~blockray.host_driver.radiosity.solver`'s, on the leaves: ``sum A |B' - B| / sum A E``, RGB summed.
+
+**Balance.** A link from a source coarser than its receiver spreads the source's mean radiosity
+with the source's mean factor, so leaf l's light leaves through its ancestors' links with the
+factor sum ``c_l = sum F_sr v`` (``F_sr = A_r F_rs / A_s``, s the ancestor), not the sum ``g_l``
+it gathers, and absorbed minus emitted power is ``sum_l A_l B_l (c_l - 1)`` (closed scene).
+:func:`transport_scales` finds receiver scales ``u`` and source scales ``w`` (Sinkhorn) with which
+every leaf still gathers ``g_l`` and now shoots ``g_l``: a source of uniform radiosity delivers
+what it did, and a closed scene whose leaves see a factor sum of 1 balances to the solve's
+tolerance. ``--closure enforce`` takes 1 for every leaf's two sums instead (closed scenes, the
+visibility estimate's own error included; refused beyond closure.MAX_CORRECTION).
 
 **Outputs.** The leaves as a :class:`~blockray.host_driver.scene.scene.Scene` (the image, energy
 balance and tests take it as any scene), and a CSV row per leaf with its input triangle and level.
@@ -45,7 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...errors import CapacityError, SolveError, option
+from ...errors import CapacityError, ParameterError, SolveError, option
 from ...exact_float import plane_signs
 from ..radiosity import formfactor
 from ...board import BlockBatch, BlockBits, ranges
@@ -57,6 +67,14 @@ from ..traverse.cost import default_voxels
 
 __all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_leaves_csv", "max_level_for",
            "CERTAIN_WEIGHT", "LEAF_COLUMNS"]
+
+#: The scales' tolerance (largest ``|shot / target - 1|``) relative to the solve's: the power the
+#: scaling leaves unbalanced stays well below what the solve's residual leaves.
+SCALE_TOLERANCE = 1e-2
+
+#: The scaling stops when its residual has not halved in this many passes (a leaf whose gathered
+#: and shot sums cannot both be met: in open scenes the scaling only tends to its limit).
+STALL = 10
 
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
@@ -175,6 +193,9 @@ class LinkCaster:
         self.h, self.board, self.grid, self.rows, self.cols, self.phases = h, board, grid, rows, cols, phases
         self.rays = self.blocks = 0
 
+    def counters(self):
+        return self.board.counters()
+
     def cast(self, links):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -251,6 +272,82 @@ class LinkCaster:
         return batch, row_link, col_k
 
 
+class SetCaster:
+    """:class:`LinkCaster` on ``options.run.sets`` host + board sets of a Dask cluster (``cluster``
+    = ``(client, threads)``): the links split by their receiver's input triangle, the input
+    triangles cut into runs of equal count in Z-order of their centroids' voxels (scaleout.assign_sets),
+    each set casting its share on its own board (:func:`cast_on_set`). A ray's blocked bit does not
+    depend on the block it travels in, so the fractions equal one set's bit for bit."""
+
+    def __init__(self, cluster, h, board, grid, options, phases):
+        from ..cluster.cluster import SetJob, _hold
+        from ..cluster.scaleout import assign_sets
+        from ..traverse.visibility import _morton
+        b, ray = options.board, options.ray
+        (self.client, threads), self.h, self.phases = cluster, h, phases
+        params = getattr(board, "params", None) or b.params
+        quantised = getattr(board, "quantised", None)
+        self.job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
+                          partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
+                          stats_fraction=ray.stats_fraction, threads=threads)
+        self.owner = assign_sets(_morton(grid.cell_of(h.scene.centroids)), options.run.sets)
+        self.scene_f, self.grid_f = _hold(self.client, h.scene), _hold(self.client, grid)
+        self.rays = self.blocks = 0
+        self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
+
+    def cast(self, links):
+        from ..cluster.cluster import _results
+        h, sets = self.h, len(self.per_set)
+        part = self.owner[h.patch[links.recv]]
+        mine = [np.flatnonzero(part == k) for k in range(sets)]
+        with self.phases.timed("cluster"):
+            futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
+                                          h.patch, h.node, links.recv[m], links.src[m], pure=False) for m in mine]
+            answers = _results(self.client, futures)
+        links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
+        for m, (vis, partial, rays, blocks, counters), total in zip(mine, answers, self.per_set):
+            links.vis[m], links.partial[m] = vis, partial
+            total["rays"] += rays
+            total["blocks"] += blocks
+            for key, value in counters.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool):
+                    total["counters"][key] = total["counters"].get(key, 0) + value
+        self.rays, self.blocks = sum(t["rays"] for t in self.per_set), sum(t["blocks"] for t in self.per_set)
+
+    def counters(self):
+        from ..cluster.scaleout import combine_counters
+        out = combine_counters(self.owner, self.per_set, self.job.params.processors * self.job.params.boards)
+        out.pop("utilization", None)
+        return out
+
+
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
+    """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
+    element points to ``max_level``, loaded with the grid): ``(vis, partial, rays, blocks,
+    counters)``."""
+    from ..board.backends import make_board
+    from ...threads import available, set_threads
+    if job.threads is not None:
+        set_threads(min(job.threads, available()))
+    board = make_board(job.board, job.params, partition=job.partition)
+    try:
+        points = ElementPoints(job.samples, max_level)
+        board.prepare(scene, points)
+        board.load(grid)
+        h = Hierarchy(scene, points)
+        h.patch, h.node = patch, node
+        caster = LinkCaster(h, board, grid, rows=job.params.rows, cols=job.params.cols, phases=Phases())
+        links = Links(recv, src, np.zeros(len(recv)))
+        if len(links):
+            caster.cast(links)
+        else:
+            links.vis, links.partial = np.zeros(0), np.zeros(0, dtype=bool)
+        return links.vis, links.partial, caster.rays, caster.blocks, board.counters()
+    finally:
+        if hasattr(board, "close"):
+            board.close()
+
+
 def refine(h, links, B, threshold, min_area, max_level):
     """Split the links whose oracle exceeds ``threshold`` (module docstring), splitting elements as
     needed: ``(recv, src, kept)``, the new links' ends (factors not computed, not cast) and the
@@ -289,26 +386,109 @@ def push_to_leaves(h, links):
         links = Links.join(links.take(~down), pushed)
 
 
-def solve_links(h, links, B, *, tolerance, max_iterations):
-    """Jacobi sweeps with push-pull from ``B`` (every element's radiosity, (M, 3)): ``(B, sweeps,
-    residual, history)``, B the iterate whose residual is reported (as solver.jacobi_sweeps)."""
-    scene = h.scene
-    E, rho, A = scene.emission[h.patch], scene.reflectance[h.patch], h.areas
-    leaves = h.leaves()
+def level_steps(h):
+    """``(down, up)``: the elements of levels 1.. (top first), for pushing to children, and the
+    inner elements of levels ..0 (deepest first), for pulling from them."""
     depth = int(h.level.max(initial=0))
     down = [np.flatnonzero(h.level == lv) for lv in range(1, depth + 1)]
     up = [np.flatnonzero((h.level == lv) & (h.child >= 0)) for lv in range(depth - 1, -1, -1)]
-    w = links.F * links.vis
+    return down, up
+
+
+def pull_means(h, x, up):
+    """``x`` (leaves set) with every inner element the mean of its four equal children (in place)."""
+    for idx in up:
+        x[idx] = sum(x[h.child[idx] + c] for c in range(4)) / 4
+    return x
+
+
+def push_sums(h, x, down):
+    """``x`` with every element's value plus its ancestors' (in place)."""
+    for idx in down:
+        x[idx] += x[h.parent[idx]]
+    return x
+
+
+def shooter_sums(h, links, u, down):
+    """Per element: ``sum F_sr v u_r`` over the links whose source is it or an ancestor, the share
+    of a leaf's light its ancestors' links deliver (``F_sr = A_r F_rs / A_s``)."""
+    A = h.areas
+    return push_sums(h, np.bincount(links.src, u[links.recv] * A[links.recv] * links.F * links.vis / A[links.src],
+                                    minlength=len(h)), down)
+
+
+def transport_scales(h, links, *, closed=False, tolerance=1e-14, max_iterations=200):
+    """Receiver scales ``u`` and source scales ``w`` (per element; used on the leaves) with which
+    every leaf gathers and shoots the same factor sum (module docstring, "Balance"): its own
+    gathered sum ``g = sum F v``; ``closed``: 1 (0 where a leaf that gathers sees nothing).
+    Leaves of zero reflectance gather nothing, so only ``closed`` sets what they shoot.
+    Alternating Sinkhorn scaling; returns ``(u, w, info)``."""
+    down, up = level_steps(h)
+    leaves, n = h.leaves(), len(h)
+    Fv = links.F * links.vis
+    g = np.bincount(links.recv, Fv, minlength=n)[leaves]
+    gathers = (h.scene.reflectance[h.patch[leaves]] > 0).any(axis=1)
+    target = np.where(gathers, g > 0, 1.0) if closed else g
+    u, w = np.ones(n), np.ones(n)
+    gathered = target if closed else g
+    raw = shooter_sums(h, links, u, down)[leaves]
+    fitted = (raw > 0) & (gathers | closed)
+    rows = lambda: np.bincount(links.recv, Fv * pull_means(h, w.copy(), up)[links.src], minlength=n)[leaves]
+    history = []
+    for it in range(1, max_iterations + 1):
+        R = rows()
+        u[leaves] = np.divide(gathered, R, out=np.ones_like(R), where=R > 0)
+        shot = w[leaves] * shooter_sums(h, links, u, down)[leaves]
+        ratio = np.divide(target, shot, out=np.ones_like(shot), where=fitted & (shot > 0))
+        w[leaves] *= ratio
+        history.append(float(np.abs(ratio - 1).max(initial=0.0)))
+        if history[-1] <= tolerance or (it > STALL and history[-1] > 0.5 * history[-1 - STALL]):
+            break                           # converged, or a leaf's sums cannot both be met (open scenes)
+    residual = history[-1]
+    R = rows()                              # rows exact for the final w: a uniform source delivers g
+    u[leaves] = np.divide(gathered, R, out=np.ones_like(R), where=R > 0)
+    live = gathers & (g > 0) & (raw > 0)
+    info = {"iterations": it, "residual": residual, "tolerance": tolerance, "raw_shooter_sum": _range(raw[live] / g[live] - 1),
+            "receiver_scale": _range(u[leaves]), "source_scale": _range(w[leaves]), "closed": bool(closed)}
+    if closed:
+        seen = gathers & (g > 0)
+        info["closure_change"] = float(np.abs(g[seen] - 1).max(initial=0.0))
+    return u, w, info
+
+
+def check_closed(info):
+    """Raise ParameterError (naming ``--closure``) where :func:`transport_scales` closed the
+    scene's leaves by more than closure.MAX_CORRECTION, or could not."""
+    from ..radiosity.closure import MAX_CORRECTION
+    if info["closure_change"] > MAX_CORRECTION or info["residual"] > info["tolerance"]:
+        raise ParameterError(f"{option('closure')} enforce: a leaf gathers a factor sum {info['closure_change']:.3g} from 1 "
+                             f"(at most {MAX_CORRECTION:g}; scaling residual {info['residual']:.3g}); the scene is not "
+                             f"closed, or its visibility too coarse to enforce", parameter="closure")
+
+
+def _range(x):
+    return [float(x.min(initial=np.inf)), float(x.max(initial=-np.inf))] if len(x) else [0.0, 0.0]
+
+
+def solve_links(h, links, B, scales, *, tolerance, max_iterations):
+    """Jacobi sweeps with push-pull from ``B`` (every element's radiosity, (M, 3)) over the links
+    scaled by ``scales = (u, w)`` (:func:`transport_scales`): ``(B, sweeps, residual, history)``,
+    B the iterate whose residual is reported (as solver.jacobi_sweeps)."""
+    scene = h.scene
+    E, rho, A = scene.emission[h.patch], scene.reflectance[h.patch], h.areas
+    leaves = h.leaves()
+    down, up = level_steps(h)
+    u, w = scales
+    weight = links.F * links.vis * u[links.recv]
     emitted = float((A[leaves, None] * E[leaves]).sum())
     history = []
     for sweep in range(max_iterations + 1):
-        G = np.stack([np.bincount(links.recv, w * B[links.src, c], minlength=len(h)) for c in range(3)], axis=1)
-        for idx in down:                          # push: a leaf gathers through its ancestors' links too
-            G[idx] += G[h.parent[idx]]
+        shot = pull_means(h, w[:, None] * B, up)   # each leaf's light as its ancestors' links shoot it
+        G = np.stack([np.bincount(links.recv, weight * shot[links.src, c], minlength=len(h)) for c in range(3)], axis=1)
+        push_sums(h, G, down)                      # a leaf gathers through its ancestors' links too
         new = np.empty_like(B)
         new[leaves] = E[leaves] + rho[leaves] * G[leaves]
-        for idx in up:                            # pull: the area mean of the four equal children
-            new[idx] = sum(new[h.child[idx] + c] for c in range(4)) / 4
+        pull_means(h, new, up)                     # an element's radiosity: the mean of its leaves'
         change = float((A[leaves, None] * np.abs(new[leaves] - B[leaves])).sum())
         res = change / emitted if emitted else (0.0 if change == 0 else float("inf"))
         history.append(res)
@@ -331,16 +511,14 @@ class HierarchicalResult:
     residual: float
     iterations: int
     history: list = field(default_factory=list)
+    balance: dict = field(default_factory=dict)
     report: dict = field(default_factory=dict)
 
 
-def render_hierarchical(scene, board, options, *, phases=None):
-    """``--solver hierarchical`` on a built ``board`` (see the module docstring)."""
-    solve, ray = options.solve, options.ray
-    params = getattr(board, "params", None) or options.board.params
-    phases = phases or Phases()
-    t0, c0 = time.perf_counter(), time.process_time()
-    min_area = 0.0 if solve.min_area is None else solve.min_area
+def prepare_board(scene, board, ray, solve, phases):
+    """Give ``board`` the scene with the element points as its samples and the voxel grid:
+    ``(points, grid, voxels)``. A ``min_area`` whose levels the board's bits cannot hold is a
+    CapacityError naming it."""
     points = ElementPoints(ray.samples, max_level_for(scene, solve.min_area))
     with phases.timed("prepare"):
         try:
@@ -355,21 +533,71 @@ def render_hierarchical(scene, board, options, *, phases=None):
         grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
     with phases.timed("load"):
         board.load(grid)
+    return points, grid, voxels
+
+
+def solve_state(h, links, B, rounds, sweeps, solved):
+    """What the rounds need to continue after a solve (a checkpoint): the elements, the links,
+    every element's B, the rounds and sweeps done, and that solve's residual history and balance."""
+    res, history, balance = solved
+    arrays = dict(patch=h.patch, node=h.node, level=h.level, parent=h.parent, child=h.child, recv=links.recv,
+                  src=links.src, F=links.F, vis=links.vis, partial=links.partial, B=B,
+                  history=np.array(history, dtype=np.float64))
+    return {"solver": "hierarchical", "shots": 0, "iterations": int(sweeps), "rounds": int(rounds),
+            "residual": float(res), "balance": balance, "arrays": arrays}
+
+
+def _restore(state, scene, points):
+    """:func:`solve_state`'s ``state`` back as ``(h, links, B, rounds, sweeps, solved)``."""
+    a = state["arrays"]
     h = Hierarchy(scene, points)
-    caster = LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
-    with phases.timed("formfactor"):
-        links = initial_links(scene)
-    caster.cast(links)
-    B = np.array(scene.emission, dtype=np.float64)
-    threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
-    rounds = sweeps = 0
-    while True:
-        with phases.timed("solve"):
-            B, done, res, history = solve_links(h, links, B, tolerance=solve.tolerance,
-                                                max_iterations=solve.max_iterations)
-        sweeps += done
+    h.patch, h.node, h.level, h.parent, h.child = (np.array(a[k]) for k in ("patch", "node", "level", "parent", "child"))
+    links = Links(*(np.array(a[k]) for k in ("recv", "src", "F", "vis", "partial")))
+    solved = (float(state["residual"]), list(a["history"]), dict(state["balance"]))
+    return h, links, np.array(a["B"]), int(state["rounds"]), int(state["iterations"]), solved
+
+
+def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, resume=None, cluster=None):
+    """``--solver hierarchical`` on a built ``board`` (see the module docstring). ``checkpoint``:
+    called with :func:`solve_state` after every round's solve; ``resume``: such a state to
+    continue from (the same CSV, bit for bit, as a render never stopped). ``cluster``: a Dask
+    ``(client, threads)`` whose ``options.run.sets`` sets cast the links (:class:`SetCaster`)."""
+    solve, ray = options.solve, options.ray
+    params = getattr(board, "params", None) or options.board.params
+    phases = phases or Phases()
+    t0, c0 = time.perf_counter(), time.process_time()
+    min_area = 0.0 if solve.min_area is None else solve.min_area
+    points, grid, voxels = prepare_board(scene, board, ray, solve, phases)
+    if cluster is None:
+        make_caster = lambda h: LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+    else:
+        make_caster = lambda h: SetCaster(cluster, h, board, grid, options, phases)
+    if resume is None:
+        h = Hierarchy(scene, points)
+        caster = make_caster(h)
         with phases.timed("formfactor"):
-                recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
+            links = initial_links(scene)
+        caster.cast(links)
+        B, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), 0, 0, None
+    else:
+        h, links, B, rounds, sweeps, solved = _restore(resume, scene, points)
+        caster = make_caster(h)
+    threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
+    while True:
+        if solved is None:
+            with phases.timed("solve"):
+                u, w, balance = transport_scales(h, links, closed=solve.closure == "enforce",
+                                                 tolerance=SCALE_TOLERANCE * solve.tolerance)
+                B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
+                                                    max_iterations=solve.max_iterations)
+            sweeps += done
+            solved = (res, history, balance)
+            if checkpoint is not None:
+                checkpoint(solve_state(h, links, B, rounds, sweeps, solved))
+        res, history, balance = solved
+        solved = None
+        with phases.timed("formfactor"):
+            recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
         if not len(recv):
             break
         rounds += 1
@@ -380,9 +608,11 @@ def render_hierarchical(scene, board, options, *, phases=None):
             kept = push_to_leaves(h, kept)
         caster.cast(new)
         links = Links.join(kept, new)
+    if solve.closure == "enforce":
+        check_closed(balance)
     leaves = h.leaves()
     out = leaf_scene(h, leaves)
-    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history)
+    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history, balance)
     result.report = _report(result, board, options, caster, rounds, voxels, phases, t0, c0)
     return result
 
@@ -392,7 +622,7 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
     from ..radiosity.closure import absorbed_balance
     h, solve, scene = result.hierarchy, options.solve, result.hierarchy.scene
     leaves = h.leaves()
-    counters = board.counters()
+    counters = caster.counters()
     with np.errstate(divide="ignore", invalid="ignore"):
         balance = absorbed_balance(result.leaves, result.radiosity)
     report = {
@@ -406,6 +636,7 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
         "residual": float(result.residual), "rays": int(caster.rays), "blocks": int(caster.blocks),
         "tests": int(counters.get("tests", 0)),
         "absorbed_balance": [float(b) if np.isfinite(b) else None for b in balance],
+        "transport_balance": result.balance,
     }
     for name, times in (("seconds", phases.seconds), ("cpu_seconds", phases.cpu)):
         report[name] = dict(times)

@@ -135,11 +135,13 @@ def _clip_near(cam_vertices, colours, near):
 
 
 def render_image(scene, radiosity, *, width=512, height=512, camera=None,
-                 white_percentile=99.0, exposure=None):
+                 white_percentile=99.0, exposure=None, colours=None):
     """Render ``radiosity`` ((N, 3) per patch) on ``scene`` as an (H, W, 3) uint8 sRGB-ish image.
 
     ``camera`` defaults to ``scene.camera``, else :func:`default_camera`. ``exposure`` (a linear
-    factor) overrides the automatic exposure (see the module docstring).
+    factor) overrides the automatic exposure (see the module docstring). ``colours`` (N, 3, 3),
+    the patches' corner values, replaces :func:`vertex_radiosity` (hierarchical leaves:
+    host_driver/render/conforming.py).
     """
     for value, flag in ((width, "width"), (height, "height")):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -155,7 +157,7 @@ def render_image(scene, radiosity, *, width=512, height=512, camera=None,
     near = 1e-6 * max(float(np.linalg.norm(hi - lo)), float(np.linalg.norm(position - (lo + hi) / 2)))
 
     cam = (scene.patch_vertices - position) @ basis.T                        # (N, 3, 3)
-    colours = vertex_radiosity(scene, radiosity)
+    colours = vertex_radiosity(scene, radiosity) if colours is None else np.asarray(colours, dtype=np.float64)
     inv_depth = np.zeros((height, width))                                   # 1/z; 0 = nothing
     image = np.zeros((height, width, 3))
     patch_at = np.full((height, width), -1, dtype=np.int64)

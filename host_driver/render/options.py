@@ -158,9 +158,9 @@ class SolveOptions:
                 continue
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ParameterError(f"{name} must be a positive number, not {value!r}", parameter=name)
-        if self.solver == "hierarchical" and self.closure != "off":
-            raise ParameterError(f"{option('closure')} corrects a full matrix of patch factors; the hierarchical solver has "
-                                 "links, not a matrix", parameter="closure")
+        if self.solver == "hierarchical" and self.closure == "symmetric":
+            raise ParameterError(f"{option('closure')} symmetric averages the two directions of a pair of patches; the "
+                                 "hierarchical solver's links have no reverse twins (use off or enforce)", parameter="closure")
 
 
 @dataclass(frozen=True)
@@ -243,10 +243,10 @@ class RenderOptions:
                                  parameter="end_points")
         if not self.run.distributed:
             return
-        if s.closure != "off":
+        if s.closure != "off" and s.solver != "hierarchical":
             raise ParameterError(f"{option('closure')} needs the whole form-factor matrix on one host; it cannot be used "
                                  f"with {_DISTRIBUTED}", parameter="closure")
-        if s.solver in ("progressive", "hierarchical"):
+        if s.solver == "progressive":
             raise ParameterError(f"{option('sets')}: host + board sets solve by gathering over a matrix; use "
                                  f"{option('solver')} jacobi or gauss-seidel, not {s.solver}", parameter="sets")
         if b.vcd is not None:

@@ -86,7 +86,9 @@ def _resume(scene, board, options, params, checkpoint):
     if checkpoint is None:
         return None
     b, ray, solve = options.board, options.ray, options.solve
-    if solve.closure != "off":
+    hierarchical = {"epsilon": solve.epsilon, "min_area": solve.min_area, "closure": solve.closure} \
+        if solve.solver == "hierarchical" else {}
+    if solve.closure != "off" and not hierarchical:
         raise ParameterError(f"{option('checkpoint')} / {option('resume')}: a {option('closure')} render solves twice "
                              "from the whole matrix; "
                              "it is not checkpointed", parameter="closure")
@@ -97,7 +99,7 @@ def _resume(scene, board, options, params, checkpoint):
         "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
         "end_lattice": ray.end_lattice,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell, "filter_format": repr(b.filter_format),
-        "rows": params.rows, "cols": params.cols, "boards": params.boards})
+        "rows": params.rows, "cols": params.cols, "boards": params.boards, **hierarchical})
 
 
 def _render(scene, board, options, *, progress, echo, checkpoint):
@@ -201,10 +203,20 @@ def _hierarchical(scene, board, options, checkpoint):
     """``--solver hierarchical`` (host_driver/render/hierarchical.py): the result's scene is the leaf
     elements', ``hierarchy`` the elements and links."""
     from .hierarchical import render_hierarchical
-    if checkpoint is not None:
-        raise ParameterError(f"{option('checkpoint')} / {option('resume')}: the hierarchical solver is not checkpointed",
-                             parameter="checkpoint")
-    h = render_hierarchical(scene, board, options)
+    params = getattr(board, "params", None) or options.board.params
+    resume = _resume(scene, board, options, params, checkpoint)
+    saving = None if checkpoint is None else checkpoint.save
+    if options.run.distributed:
+        from ..cluster.cluster import cluster_client
+        check_sets(options.run.sets, scene.patches)
+        sets = options.run
+        with cluster_client(sets.scheduler, workers=sets.workers, sets=sets.sets) as cluster:
+            h = render_hierarchical(scene, board, options, checkpoint=saving, resume=resume, cluster=cluster)
+        h.report["sets"] = int(sets.sets)
+    else:
+        h = render_hierarchical(scene, board, options, checkpoint=saving, resume=resume)
+    if resume is not None:
+        h.report["resumed_from"] = {"shots": 0, "sweeps": int(resume["iterations"]), "rounds": int(resume["rounds"])}
     result = RenderResult(scene=h.leaves, radiosity=h.radiosity, solve=h, report=h.report)
     result.hierarchy = h
     return result

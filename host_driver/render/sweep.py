@@ -31,11 +31,13 @@ import numpy as np
 from ...atomic import Outputs
 from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
+from ...filtered import CELLS
 from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
+from .options import SOLVERS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
-           "error_against", "map_to_mesh", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
+           "error_against", "map_to_mesh", "leaf_triangles", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
 
 
 @dataclass(frozen=True)
@@ -67,9 +69,11 @@ SETTINGS = {
     "voxels": Setting("--voxels", int, check=_positive),
     "tolerance": Setting("--tolerance", float, check=_positive),
     "max-edge": Setting("--max-edge", float, check=_positive),
-    "solver": Setting("--solver", str, ("progressive", "jacobi", "gauss-seidel")),
+    "solver": Setting("--solver", str, SOLVERS),
+    "epsilon": Setting("--epsilon", float, check=_positive),      # hierarchical refinement threshold
+    "min-area": Setting("--min-area", float, check=_positive),    # hierarchical smallest element
     "board": Setting("--board", str, None),                # choices from the registry, when asked
-    "cell": Setting("--cell", str, ("exact", "filtered")),
+    "cell": Setting("--cell", str, CELLS),
     "traversal": Setting("--traversal", str, ("block", "ray")),
     "packing": Setting("--packing", str, ("voxel", "fill")),
     "end-points": Setting("--end-points", str, ENDS),
@@ -308,15 +312,53 @@ class _Meshes:
         ref = self.ref
         if len(groups) == len(ref.groups) and np.array_equal(centroids, ref.centroids):
             return value
+        leaves = read_leaves(csv_path)
         key = (settings.get("max-edge"), settings.get("contact", "on"))
+        if leaves is not None:          # hierarchical: each point has its own leaves, so no cache
+            patch, level = leaves
+            tri = leaf_triangles(self._mesh(key).patch_vertices[patch], level, centroids)
+            return value[map_to_mesh(ref.centroids, ref.groups, tri, groups)]
         if key not in self.maps:
-            from ..scene.builtin import load_scene
-            mesh = load_scene(self.scene, max_edge=key[0], contact=key[1] == "on")
+            mesh = self._mesh(key)
             if mesh.patches != len(groups):
                 raise ParameterError(f"{csv_path}: {len(groups)} patches, but the scene loads as {mesh.patches}")
             names = np.array(mesh.group_names)[mesh.group] if mesh.group_names else mesh.group.astype(str)
             self.maps[key] = map_to_mesh(ref.centroids, ref.groups, mesh.patch_vertices, names)
         return value[self.maps[key]]
+
+    def _mesh(self, key):
+        from ..scene.builtin import load_scene
+        return load_scene(self.scene, max_edge=key[0], contact=key[1] == "on")
+
+
+def read_leaves(path):
+    """A hierarchical ``--patches`` CSV's (input triangle, level) per leaf, or None for a patch CSV."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or "level" not in rows[0]:
+        return None
+    return np.array([int(r["patch"]) for r in rows]), np.array([int(r["level"]) for r in rows])
+
+
+def leaf_triangles(inputs, level, centroids, chunk=4096):
+    """Each leaf's triangle (N, 3, 3): of the elements of its ``level`` below its input triangle
+    ``inputs`` (N, 3, 3), the one whose centroid is the leaf's (the nearest, in barycentric terms)."""
+    from ..radiosity.elements import level_corners
+    a, e1, e2 = inputs[:, 0], inputs[:, 1] - inputs[:, 0], inputs[:, 2] - inputs[:, 0]
+    q = centroids - a
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    det = g11 * g22 - g12 ** 2
+    v = ((q * e1).sum(1) * g22 - (q * e2).sum(1) * g12) / det
+    w = ((q * e2).sum(1) * g11 - (q * e1).sum(1) * g12) / det
+    bary = np.stack([1 - v - w, v, w], axis=1)
+    out = np.empty(inputs.shape)
+    for lv in np.unique(level):
+        corners = level_corners(int(lv))                                   # (E, 3, 3) barycentric
+        centre = corners.mean(axis=1)
+        for m in np.array_split(np.flatnonzero(level == lv), max(1, (level == lv).sum() // chunk)):
+            pick = ((bary[m, None, :] - centre[None]) ** 2).sum(axis=2).argmin(axis=1)
+            out[m] = np.einsum("nvk,nkd->nvd", corners[pick], inputs[m])
+    return out
 
 
 def embree_seconds_per_ray(scene, rays=200_000, seed=1):
@@ -346,7 +388,7 @@ def _row(settings, rep, err, fmax, embree):
             "rays": rep["rays"], "tests": rep["tests"], "board_cycles": cycles,
             "board_s": None if cycles is None else cycles / (fmax * 1e6),
             "embree_s": None if embree is None else rep["rays"] * embree,
-            "patches": rep["patches"], "bits": rep.get("bits")}
+            "patches": rep.get("leaves", rep["patches"]), "bits": rep.get("bits")}
 
 
 def run_sweep(scene, grid, *, reference="golden", fixed=None, out="sweep", fmax=50.0, progress=False,
