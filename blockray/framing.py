@@ -7,8 +7,10 @@ A frame before stuffing (docs/board-protocol.md, "Link integrity")::
     flags (1) | seq (1) | ack (1) | len (1) | payload (len bytes) | CRC-32 (4, little-endian)
 
 ``flags`` bit 0 (:data:`RESEND`): "resend everything from ``ack`` on" (a NAK, or the host's poll
-after a time-out; a side asked to resend answers at least with an acknowledgement, so a poll
-always gets an answer). ``flags`` bit 1 (:data:`STATUS`): a link-status frame, never data: with
+after a time-out). ``flags`` bit 2 (:data:`POLL`), on a frame without payload: "I have sent every
+frame before ``seq``; ask again for any you lack"; a sender ends every resend round with one, so a
+side asked to resend always answers, and a receiver whose resent frame was hit again asks again
+at once. ``flags`` bit 1 (:data:`STATUS`): a link-status frame, never data: with
 ``len == 0`` it asks the other side for its counters, with a payload it carries them
 (:data:`STATUS_FIELDS`, 2 bytes each, little-endian, mod 65536). ``seq``: the frame's number (mod 256) if it carries a payload; a frame with
 ``len == 0`` is a pure acknowledgement and takes no number. ``ack``: the next frame number the
@@ -19,8 +21,10 @@ and ends with a zero byte, so a receiver resynchronises at the next zero after a
 Both directions are the same protocol (:class:`Endpoint`). A receiver accepts a frame only with
 a good CRC, a matching length and the next sequence number, so no frame is accepted twice or out
 of order and a corrupted frame is never delivered; on a gap or a bad frame it sends one NAK until
-the gap is filled. A sender keeps at most ``window`` unacknowledged frames and, on a NAK (or, the
-host only, on a time-out), sends them all again. The board never times out: it only answers.
+the gap is filled, and again at a POLL that finds the gap still open or at a RESEND while it is
+open (the frame that carried the NAK may be the one lost). A sender keeps at
+most ``window`` unacknowledged frames and, on a NAK (or, the host only, on a time-out), sends them
+all again, then a POLL. The board never times out: it only answers.
 """
 
 import zlib
@@ -29,12 +33,13 @@ from dataclasses import dataclass
 
 from cobs import cobs
 
-__all__ = ["RESEND", "STATUS", "STATUS_FIELDS", "HEADER_BYTES", "CRC_BYTES", "MAX_PAYLOAD", "DELIMITER", "crc32", "encode_frame",
+__all__ = ["RESEND", "STATUS", "POLL", "STATUS_FIELDS", "HEADER_BYTES", "CRC_BYTES", "MAX_PAYLOAD", "DELIMITER", "crc32", "encode_frame",
            "parse_frame", "Frame", "FrameError", "FrameSplitter", "Endpoint", "wire_frame_bytes", "LinkConfig",
            "HOST_LINK", "BOARD_LINK"]
 
 RESEND = 0x01
 STATUS = 0x02
+POLL = 0x04
 #: a status frame's payload: these counts of the side that sends it, 2 bytes each
 STATUS_FIELDS = ("frames_resent", "errors", "frames_accepted")
 HEADER_BYTES = 4
@@ -213,12 +218,25 @@ class Endpoint:
                 self._fault(e.kind, str(e))
                 self._nak()
                 continue
+            naked = self._nak_sent
             self._take_ack(frame)
             if frame.flags & STATUS:
                 self._take_status(frame)
             elif frame.payload:
                 out += self._take_data(frame)
+            if self._asks_again(frame, naked):
+                self._nak_sent = False
+                self._nak()
         return bytes(out)
+
+    def _asks_again(self, frame, naked):
+        """Whether a good frame shows that the NAK already sent for the open gap did not help: a
+        POLL numbered past the gap (the resend round is over and missed it again), or a RESEND
+        while the gap stays open (the frame that carried our NAK may be the one lost). No new
+        error: the loss was counted as it happened."""
+        poll_gap = (frame.flags & POLL and not frame.payload and not frame.flags & STATUS
+                    and 0 < _ahead(frame.seq, self.expect) < _SEQ // 2)
+        return bool(poll_gap or (frame.flags & RESEND and naked and self._nak_sent))
 
     def _take_ack(self, frame):
         acked = _ahead(frame.ack, self.base)
@@ -276,13 +294,14 @@ class Endpoint:
         self.counts["timeouts"] += 1
 
     def output(self):
-        """Wire bytes to send now: resent frames, new frames within the window, else (if owed)
-        one acknowledgement."""
+        """Wire bytes to send now: resent frames and a POLL after them, new frames within the
+        window, else (if owed) one acknowledgement."""
         out = bytearray()
         if self._resend:
             for k, payload in enumerate(self._unacked):
                 out += self._frame((self.base + k) % _SEQ, payload)
                 self.counts["frames_resent"] += 1
+            out += self._frame(self.next, b"", POLL)
             self._resend = False
         cfg = self.config
         while self._queue and len(self._unacked) < cfg.window:

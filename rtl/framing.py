@@ -17,7 +17,8 @@ the next sequence number. Then its payload is read out of the memory to ``payloa
 decisions are :class:`~blockray.framing.Endpoint.receive`'s, in the same order (tests compare
 them byte for byte): a good frame reports its ``ack`` and RESEND flag on ``peer``; an accepted or
 duplicate one raises ``ack_due``; a gap or a bad frame raises ``nak`` once until the next frame
-is accepted.
+is accepted, and again at a POLL numbered past ``expect`` (the sender's resend round is over
+and a frame is still missing) or a RESEND while the gap is open (the NAK may have been lost).
 
 While a payload leaves, ``wire.ready`` is low: the receive FIFO in front absorbs the UART (the
 host's window, 8 frames of 256 wire bytes, is the FIFO's 2048 bytes).
@@ -31,7 +32,7 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
-from ..framing import CRC_BYTES, FrameSplitter, HEADER_BYTES, RESEND, STATUS, STATUS_FIELDS
+from ..framing import CRC_BYTES, FrameSplitter, HEADER_BYTES, POLL, RESEND, STATUS, STATUS_FIELDS
 
 __all__ = ["LinkStatus", "FrameReceiver", "FrameSender", "FramedBridge", "COMMAND_DEPTH", "FRAME_MEMORY"]
 
@@ -189,6 +190,12 @@ class FrameReceiver(wiring.Component):
                 raise_nak()
             with m.Else():                                      # one accepted before
                 m.d.comb += self.status.ack_due.eq(1)
+            # the NAK sent did not help: a POLL past the gap (the resend round missed it again) or a
+            # RESEND while it stays open (our NAK may have gone with the frame lost): NAK again
+            poll_gap = flags[2] & ~flags[1] & (length == 0) & (gap != 0) & (gap < 128)
+            with m.If(poll_gap | (flags[0] & nak_sent & ~self.accept)):
+                m.d.comb += self.status.nak.eq(1)
+                m.d.sync += nak_sent.eq(1)
 
 
 class FrameSender(wiring.Component):
@@ -202,7 +209,7 @@ class FrameSender(wiring.Component):
     from a :class:`FrameReceiver`), ``resent`` (frames sent again), ``report`` (the counters a
     status frame carries, :data:`~blockray.framing.STATUS_FIELDS` from bit 0 up, 16 bits each).
     A frame leaves when the transmitter is free, in :meth:`Endpoint.output`'s order: the
-    unacknowledged frames again after a RESEND, else the open frame if it holds a byte, else a
+    unacknowledged frames again after a RESEND and a POLL after them, else the open frame if it holds a byte, else a
     status frame if one was asked for, else a pure acknowledgement (or NAK) if one is due. A
     RESEND asks for an acknowledgement too, so the host's poll is always answered."""
 
@@ -289,7 +296,7 @@ class FrameSender(wiring.Component):
             with m.State("Choose"):
                 off = Signal(8)
                 m.d.comb += off.eq(cursor - base)
-                start, report_start = Signal(), Signal()
+                start, report_start, poll_start = Signal(), Signal(), Signal()
                 with m.If(resend):
                     m.d.sync += [cursor.eq(base), resending.eq(1), resend.eq(0)]
                 with m.Elif(resending & (off >= 128)):          # acknowledged meanwhile
@@ -298,8 +305,9 @@ class FrameSender(wiring.Component):
                     m.d.sync += [seq.eq(cursor), cursor.eq(cursor + 1), length.eq(lens[cursor % W]),
                                  self.resent.eq(self.resent + 1)]
                     m.d.comb += start.eq(1)
-                with m.Elif(resending):
-                    m.d.sync += resending.eq(0)
+                with m.Elif(resending):                         # the round ends with a POLL
+                    m.d.sync += [resending.eq(0), seq.eq(nxt), length.eq(0)]
+                    m.d.comb += [start.eq(1), poll_start.eq(1)]
                 with m.Elif((open_len != 0) & (in_flight < W)):
                     m.d.sync += [seq.eq(nxt), nxt.eq(nxt + 1), length.eq(open_len + (self.results.valid &
                                                                                         self.results.ready))]
@@ -311,7 +319,8 @@ class FrameSender(wiring.Component):
                     m.d.sync += [seq.eq(nxt), length.eq(0)]
                     m.d.comb += start.eq(1)
                 with m.If(start):
-                    m.d.sync += [flags.eq(Mux(ask_resend, RESEND, 0) | Mux(report_start, STATUS, 0)),
+                    m.d.sync += [flags.eq(Mux(ask_resend, RESEND, 0) | Mux(report_start, STATUS, 0)
+                                          | Mux(poll_start, POLL, 0)),
                                  is_status.eq(report_start), ack.eq(self.status.expect), ask_resend.eq(0),
                                  ack_owed.eq(0),
                                  idx.eq(0), wp.eq(1), code_pos.eq(0)]

@@ -62,3 +62,35 @@ def check_direction(injector, *, errors, resent, where):
     assert errors == bad, where
     assert resent >= hit, where
     return bad, hit
+
+
+class Planted:
+    """A planted fault pattern in place of a rate (a :class:`FaultInjector`'s interface: called on
+    the bytes of one direction; ``counts``, ``given``, ``gave``, ``restart``): the data frame
+    numbered ``seq`` has one bit of its last byte flipped the first ``times`` times it passes, so
+    with ``times`` 2 its resend is hit again. Nothing else is touched; a chunk is passed on when its
+    delimiter has come (the wire only delays it)."""
+
+    def __init__(self, seq, times=2):
+        self.seq, self.left = seq, times
+        self.counts = {"flipped": 0, "dropped": 0, "duplicated": 0}
+        self.restart()
+
+    def restart(self):
+        self.given, self.gave, self._tail = bytearray(), bytearray(), bytearray()
+
+    def __call__(self, data):
+        self._tail += data
+        *whole, tail = bytes(self._tail).split(b"\x00")
+        self._tail = bytearray(tail)
+        out = bytearray()
+        for chunk in whole:
+            self.given += chunk + b"\x00"
+            body = unstuff(chunk) if chunk else None
+            if body and len(body) >= 4 and body[3] and not body[0] & 0x02 and body[1] == self.seq and self.left:
+                self.left -= 1
+                self.counts["flipped"] += 1
+                chunk = chunk[:-1] + bytes([chunk[-1] ^ (1 if chunk[-1] != 1 else 2)])
+            out += chunk + b"\x00"
+        self.gave += out
+        return bytes(out)

@@ -10,7 +10,7 @@ import zlib
 import pytest
 
 from blockray.host_driver.cli import main
-from blockray.framing import (MAX_PAYLOAD, RESEND, Endpoint, Frame, FrameError, FrameSplitter, LinkConfig, crc32,
+from blockray.framing import (MAX_PAYLOAD, POLL, RESEND, Endpoint, Frame, FrameError, FrameSplitter, LinkConfig, crc32,
                               encode_frame, parse_frame, wire_frame_bytes)
 from blockray.host_driver.board.framed import FaultInjector, FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.board.driver import BoardDriver
@@ -145,9 +145,10 @@ def test_ack_and_resend_edge_cases():
     assert a.base == 2 and len(a._unacked) == 1
     more = a.output()                                                   # frame 3 enters the window
     assert more.count(b"\x00") == 1
-    a.receive(encode_frame(Frame(RESEND, 0, 2, b"")))                   # NAK: resend 2 and 3
+    a.receive(encode_frame(Frame(RESEND, 0, 2, b"")))                   # NAK: resend 2 and 3, then a POLL
     again = a.output()
-    assert again.count(b"\x00") == 2 and a.counts["frames_resent"] == 2
+    assert again.count(b"\x00") == 3 and a.counts["frames_resent"] == 2
+    assert parse_frame(again.split(b"\x00")[2]) == Frame(POLL, 4, 0, b"")
     assert b.receive(wire + again) == b"aabbccdd"
 
 
@@ -283,3 +284,32 @@ def test_a_corrupted_result_tag_on_an_unframed_link_is_one_error(room):
     board = BoardDriver(RTL_PARAMS, transport=lambda p, b: _Flipper(p))
     with pytest.raises(TransportError, match=r"board 0 \(the link\): a corrupted result: result tag 3"):
         render(scene, board=board, params=RTL_PARAMS, bits=10, samples=4, max_shots=1, voxels=3)
+
+
+@pytest.mark.parametrize("to_board,from_board", [(1, None), (None, 0), (1, 0)],
+                         ids=["to_board", "from_board", "both_ways"])
+def test_a_resent_frame_hit_again_is_asked_for_again_without_a_time_out(to_board, from_board):
+    """Planted faults (tests/link_oracle.py ``Planted``), no rate: the host's data frame ``to_board``
+    and the board's data frame ``from_board`` are hit on their first send and again on their
+    resend. The POLL after a resend round finds the frame still missing (and, both ways, the
+    RESEND of a side whose NAK went with a lost frame), so the receiver asks again: at least two
+    NAKs where a frame was hit, and the host never times out (a receiver that NAKs once per gap
+    leaves it to the host's time-out). Each side's errors are the corrupted chunks."""
+    import link_oracle
+    outgoing, incoming = (link_oracle.Planted(seq) if seq is not None else link_oracle.Planted(-1)
+                          for seq in (to_board, from_board))
+    pipe = FaultyPipe(_Mirror(), outgoing, incoming)
+    link = FramedTransport(pipe, where="test", answer_timeout=5.0)
+    link.reset()
+    data = bytes(random.Random(3).randrange(256) for _ in range(2000))
+    link.send(data)
+    assert link.recv(len(data)) == bytes(b ^ 0xFF for b in data)
+    board, host = pipe.pipe.endpoint, link.endpoint
+    print("board", board.counts, "host", host.counts)
+    for seq, injector, receiver, sender in ((to_board, outgoing, board, host), (from_board, incoming, host, board)):
+        hit = seq is not None
+        assert injector.counts["flipped"] == 2 * hit
+        link_oracle.check_direction(injector, errors=receiver.faults(), resent=sender.counts["frames_resent"],
+                                    where="to the board" if receiver is board else "from the board")
+        assert (receiver.counts["naks_sent"] >= 2) == hit
+    assert host.counts["timeouts"] == 0

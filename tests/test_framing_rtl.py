@@ -36,7 +36,8 @@ def _stream(seed, rate):
             wire += bytes(rng.randrange(256) for _ in range(rng.randrange(1, 30)))
         if rng.random() < 0.05:
             wire += bytes(rng.randrange(1, 256) for _ in range(300)) + b"\x00"      # overlong
-        wire += encode_frame(Frame(rng.randrange(4), rng.randrange(256), rng.randrange(256)))  # an ack or status request
+        # an ack, a POLL or a status request
+        wire += encode_frame(Frame(rng.randrange(8), rng.randrange(256), rng.randrange(256)))
         if rng.random() < 0.2:          # a status frame numbered as the next data frame: never data
             wire += encode_frame(Frame(STATUS | rng.randrange(2), host.next, rng.randrange(256), bytes(6)))
         host.receive(encode_frame(Frame(0, 0, host.next)))        # acknowledge all: go on

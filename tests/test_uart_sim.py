@@ -50,3 +50,33 @@ def test_echo_through_the_simulated_uart():
                                         where="from the board")]
     assert all(bad > 0 for bad, _ in hits)       # the seed puts faults both ways after the reset
     assert board["frames_accepted"] >= -(-len(data) // 254)
+
+
+class _Planted:
+    """``faults`` for the transport: the host's data frame 1 and the board's data frame 0 hit on
+    their first send and on their resend (tests/link_oracle.py ``Planted``)."""
+
+    def injector(self, board, direction):
+        return link_oracle.Planted(seq=1 - direction)
+
+
+def test_a_resent_frame_hit_again_recovers_without_a_time_out():
+    """The gateware's receiver NAKs again at the host's POLL that ends a resend round (and at the
+    host's RESEND while its gap is open); the gateware's sender ends its resend rounds with a
+    POLL, which the host answers so. Both resent frames hit again are recovered with no time-out
+    of the host (in simulated time: the link is in lockstep)."""
+    data = bytes(random.Random(4).randrange(256) for _ in range(300))
+    with UartSimTransport(EchoCore(repeat=2), faults=_Planted(), name="blockray_uart_echo") as link:
+        link.send(data)
+        got = link.recv(2 * len(data))
+        stats = link.stats()
+        cycles = link.pipe.pipe.cycles
+    print(stats, "simulated cycles", cycles)
+    assert got == echo(data, 2)
+    board, host, pipe = stats["board"], stats["host"], link.pipe
+    assert pipe.outgoing.counts["flipped"] == pipe.incoming.counts["flipped"] == 2
+    link_oracle.check_direction(pipe.outgoing, errors=board["errors"], resent=host["frames_resent"],
+                                where="to the board")
+    link_oracle.check_direction(pipe.incoming, errors=host["errors"], resent=board["frames_resent"],
+                                where="from the board")
+    assert host["naks_sent"] >= 2 and host["timeouts"] == 0

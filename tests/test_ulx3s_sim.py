@@ -124,5 +124,5 @@ def test_render_at_low_fault_rates_is_byte_identical(room, tmp_path, rate, seed)
 
 @pytest.mark.slow
 def test_render_at_a_hopeless_fault_rate_ends_with_exit_2(room, tmp_path, capsys):
-    """12 time-outs of 2 simulated ms without progress before the link is given up."""
+    """12 time-outs of 0.5 simulated ms without progress before the link is given up."""
     clirun.hopeless_render(capsys, room, tmp_path, RENDER, "the simulated board 0")
