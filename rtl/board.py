@@ -40,6 +40,8 @@ pipeline, the markers and the result FIFO, the masks, accumulators and counters.
 reset but the protocol treats them as lost: after a reset the host reloads and replays.
 """
 
+from types import SimpleNamespace
+
 from amaranth.hdl import Cat, Const, Module, Mux, Signal
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.fifo import SyncFIFO, SyncFIFOBuffered
@@ -152,24 +154,39 @@ class BoardTop(wiring.Component):
         return BoardTiming(processor_latency=self.processor_latency, memory_latency=self.memory_latency)
 
     def elaborate(self, platform):
-        m = Module()
-        p, proto = self._params, self._protocol
+        # one method per stage, in the order the board's signals are made (the Verilog keeps it);
+        # the stages share their signals through ``w``
+        m, w = Module(), SimpleNamespace(filtered=self._cell.filtered)
+        self._units(m, w)
+        self._fetch(m, w)
+        self._result_queue(m, w)
+        self._execute(m, w)
+        self._point_registers(m, w)
+        self._feed_array(m, w)
+        self._counters(m, w)
+        self._markers_and_results(m, w)
+        return m
+
+    def _units(self, m, w):
+        p = self._params
         R, S = p.rows, p.cols
         m.submodules.memctrl = mc = MemoryController(p, patch_init=self._patch_init, table_init=self._table_init)
         marker_layout = data.StructLayout({
             "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
         })
-        filtered = self._cell.filtered
-        if filtered:
+        if w.filtered:
             m.submodules.array = array = FilteredArray(p.bits, R, S, fmt=self._cell.format, depth=self._depth,
                                                        mark_shape=marker_layout)
         else:
             m.submodules.array = array = ProcessorArray(p.bits, R, S)
             assert array.latency == self.processor_latency
         assert mc.latency == self.memory_latency
+        w.mc, w.array, w.marker_layout = mc, array, marker_layout
 
-        # -- fetch: the head of the command stream goes to the free execute slot ---------------
-        cur = Signal(proto.command_layout)
+    def _fetch(self, m, w):
+        """The head of the command stream goes to the free execute slot."""
+        mc = w.mc
+        cur = Signal(self._protocol.command_layout)
         cur_valid = Signal()
         cur_done = Signal()                              # cur does its last step this cycle
         cur_step = Signal()                              # cur makes progress this cycle
@@ -186,18 +203,21 @@ class BoardTop(wiring.Component):
             m.d.sync += [cur.eq(head), cur_valid.eq(1)]
         with m.Elif(cur_done):
             m.d.sync += cur_valid.eq(0)
+        w.cur, w.cur_valid, w.cur_done, w.cur_step = cur, cur_valid, cur_done, cur_step
 
-        # -- results: END_BLOCK and READ_COUNTERS take one cycle each; their result follows the
-        # block's last record through the pipeline as a marker (drain_latency registers), so the
-        # next block streams while this one drains. Credits bound the results in flight plus
-        # those queued, so a host that does not read results stalls the board, never loses one.
+    def _result_queue(self, m, w):
+        """END_BLOCK and READ_COUNTERS take one cycle each; their result follows the block's last
+        record through the pipeline as a marker (drain_latency registers), so the next block
+        streams while this one drains. Credits bound the results in flight plus those queued, so a
+        host that does not read results stalls the board, never loses one."""
+        proto = self._protocol
         queue_depth = self.result_queue_depth
         m.submodules.results = results = SyncFIFOBuffered(width=proto.result_layout.size, depth=queue_depth)
         m.submodules.snapshots = snapshots = SyncFIFO(width=proto.counters_layout.size,
-                                                      depth=queue_depth if filtered else self.drain_latency + 1)
+                                                      depth=queue_depth if w.filtered else self.drain_latency + 1)
         outstanding = Signal(range(queue_depth + 1))
         credit = outstanding < queue_depth
-        marker = Signal(marker_layout)
+        marker = Signal(w.marker_layout)
         leave = self.results.valid & self.results.ready
         m.d.sync += outstanding.eq(outstanding + marker.valid - leave)
         m.d.comb += [
@@ -205,9 +225,12 @@ class BoardTop(wiring.Component):
             self.results.payload.eq(results.r_data),
             results.r_en.eq(self.results.ready),
         ]
+        w.results, w.snapshots, w.credit, w.marker = results, snapshots, credit, marker
 
-        # -- execute the command register: every command takes one cycle; END_BLOCK and
-        # READ_COUNTERS wait (stall) for a result credit
+    def _execute(self, m, w):
+        """Every command in the command register takes one cycle; END_BLOCK and READ_COUNTERS
+        wait (stall) for a result credit."""
+        mc, cur, cur_valid = w.mc, w.cur, w.cur_valid
         op = cur.op
         needs_result = (op == Op.END_BLOCK) | (op == Op.READ_COUNTERS) | (op == Op.IDENTIFY)
         # the filtered array's credits: records and markers issued and not yet delivered (it
@@ -215,14 +238,14 @@ class BoardTop(wiring.Component):
         # issue slot and the markers wait: cycles lost, counted as board cycles
         array_credit = Signal(init=1)
         lost = Signal()
-        if filtered:
+        if w.filtered:
             inside = Signal(range(self._depth + 1))
             m.d.comb += [array_credit.eq(inside < self._depth), mc.enable.eq(array_credit),
                          lost.eq(~array_credit & (~mc.free | (cur_valid & needs_result)))]
-            m.d.sync += inside.eq(inside + (mc.issue | (cur_step & needs_result)) - array.delivered)
+            m.d.sync += inside.eq(inside + (mc.issue | (w.cur_step & needs_result)) - w.array.delivered)
         m.d.comb += [
-            cur_step.eq(cur_valid & (~needs_result | (credit & array_credit))),
-            cur_done.eq(cur_step),
+            w.cur_step.eq(cur_valid & (~needs_result | (w.credit & array_credit))),
+            w.cur_done.eq(w.cur_step),
         ]
 
         m.d.comb += [
@@ -231,15 +254,19 @@ class BoardTop(wiring.Component):
             mc.table_write.valid.eq(cur_valid & (op == Op.WRITE_VOXEL)),
             mc.table_write.payload.eq(cur.arg.write_voxel),
         ]
+        w.op, w.needs_result, w.lost = op, needs_result, lost
 
-        # masks of the rows / columns loaded since BEGIN_BLOCK (effective at once: they count
-        # useful tests at issue and mask the result word)
+    def _point_registers(self, m, w):
+        """The masks of the rows / columns loaded since BEGIN_BLOCK, and the point registers."""
+        p, proto, cur, cur_valid, op = self._params, self._protocol, w.cur, w.cur_valid, w.op
+        R, S = p.rows, p.cols
+        # masks: effective at once (they count useful tests at issue and mask the result word)
         row_valid = Signal(R)
         col_valid = Signal(S)
         fresh = Signal(init=1)               # no record issued since BEGIN_BLOCK (or reset)
         with m.If(cur_valid & (op == Op.BEGIN_BLOCK)):
             m.d.sync += [row_valid.eq(0), col_valid.eq(0), fresh.eq(1)]
-        with m.If(mc.issue):
+        with m.If(w.mc.issue):
             m.d.sync += fresh.eq(0)
 
         # point registers, written memory_latency cycles after the LOAD: records issued before
@@ -281,55 +308,62 @@ class BoardTop(wiring.Component):
             for s in range(S):
                 with m.If(late[k].shooter & (late[k].index == s)):
                     m.d.sync += shooters[s].eq(late[k].point)
+        w.row_valid, w.col_valid, w.fresh, w.receivers, w.shooters = row_valid, col_valid, fresh, receivers, shooters
 
-        # -- the array ---------------------------------------------------------------------------
-        first = _delay(m, mc.issue & fresh, self.memory_latency, "first")
+    def _feed_array(self, m, w):
+        mc, array = w.mc, w.array
+        first = _delay(m, mc.issue & w.fresh, self.memory_latency, "first")
         m.d.comb += [
             array.patch.eq(mc.records.payload),
             array.valid.eq(mc.records.valid),
             array.first.eq(first),
-            array.receivers.eq(receivers),
-            array.shooters.eq(shooters),
+            array.receivers.eq(w.receivers),
+            array.shooters.eq(w.shooters),
         ]
-        if filtered:        # the masks and markers as seen by the records issued with them
+        if w.filtered:      # the masks and markers as seen by the records issued with them
             m.d.comb += [
-                array.row_mask.eq(_delay(m, row_valid, self.memory_latency, "row_mask")),
-                array.col_mask.eq(_delay(m, col_valid, self.memory_latency, "col_mask")),
-                array.mark.eq(_delay(m, marker.valid, self.memory_latency, "mark")),
-                array.mark_data.eq(_delay(m, marker, self.memory_latency, "mark_data")),
+                array.row_mask.eq(_delay(m, w.row_valid, self.memory_latency, "row_mask")),
+                array.col_mask.eq(_delay(m, w.col_valid, self.memory_latency, "col_mask")),
+                array.mark.eq(_delay(m, w.marker.valid, self.memory_latency, "mark")),
+                array.mark_data.eq(_delay(m, w.marker, self.memory_latency, "mark_data")),
             ]
 
-        # -- counters ----------------------------------------------------------------------------
-        counters = Signal(proto.counters_layout)
-        work = cur_step | mc.step | lost
-        useful = _popcount(row_valid) * _popcount(col_valid)
+    def _counters(self, m, w):
+        p = self._params
+        counters = Signal(self._protocol.counters_layout)
+        work = w.cur_step | w.mc.step | w.lost
+        useful = _popcount(w.row_valid) * _popcount(w.col_valid)
         m.d.sync += [
             counters.cycles.eq(counters.cycles + work),
             counters.stalls.eq(counters.stalls + ~work),
         ]
-        with m.If(mc.issue):
+        with m.If(w.mc.issue):
             m.d.sync += [
                 counters.busy.eq(counters.busy + 1),
-                counters.tests_issued.eq(counters.tests_issued + R * S),
+                counters.tests_issued.eq(counters.tests_issued + p.rows * p.cols),
                 counters.tests_useful.eq(counters.tests_useful + useful),
             ]
+        w.counters = counters
 
-        # markers enter in the command's own cycle and leave drain_latency cycles later, when the
-        # block's last record has reached the accumulators and the next block's first record has
-        # not (it issues after END_BLOCK); the counter snapshot is taken on entry
+    def _markers_and_results(self, m, w):
+        """Markers enter in the command's own cycle and leave drain_latency cycles later, when
+        the block's last record has reached the accumulators and the next block's first record
+        has not (it issues after END_BLOCK); the counter snapshot is taken on entry."""
+        proto, op, marker, snapshots = self._protocol, w.op, w.marker, w.snapshots
+        R, S = self._params.rows, self._params.cols
         m.d.comb += [
-            marker.valid.eq(cur_step & needs_result),
+            marker.valid.eq(w.cur_step & w.needs_result),
             marker.counters.eq(op == Op.READ_COUNTERS),
             marker.identify.eq(op == Op.IDENTIFY),
-            marker.fresh.eq(fresh),
-            marker.rows.eq(row_valid),
-            marker.cols.eq(col_valid),
+            marker.fresh.eq(w.fresh),
+            marker.rows.eq(w.row_valid),
+            marker.cols.eq(w.col_valid),
             snapshots.w_en.eq(marker.valid & marker.counters),
-            snapshots.w_data.eq(counters),
+            snapshots.w_data.eq(w.counters),
         ]
-        if filtered:        # markers leave the array in order, after every record before them
-            done = Signal(marker_layout)
-            m.d.comb += [done.eq(array.mark_data_out), done.valid.eq(array.mark_out)]
+        if w.filtered:      # markers leave the array in order, after every record before them
+            done = Signal(w.marker_layout)
+            m.d.comb += [done.eq(w.array.mark_data_out), done.valid.eq(w.array.mark_out)]
         else:
             done = _delay(m, marker, self.drain_latency, "marker")
         mask = Cat(done.rows[r] & done.cols[s] for r in range(R) for s in range(S))
@@ -347,11 +381,10 @@ class BoardTop(wiring.Component):
         with m.Else():
             m.d.comb += [
                 result.kind.eq(ResultKind.BLOCKED),
-                result.data.blocked.eq(Mux(done.fresh, 0, array.hit & mask)),
+                result.data.blocked.eq(Mux(done.fresh, 0, w.array.hit & mask)),
             ]
         m.d.comb += [
             snapshots.r_en.eq(done.valid & done.counters),
-            results.w_en.eq(done.valid),
-            results.w_data.eq(result),
+            w.results.w_en.eq(done.valid),
+            w.results.w_data.eq(result),
         ]
-        return m
