@@ -59,6 +59,7 @@ def test_handoff_properties(tmp_path):
     _bmc_and_cover(tmp_path, HandoffHarness(), BMC_DEPTH, timeout=600)
 
 
+@pytest.mark.slow      # minutes; the default suite keeps its covers and must-fail mutants
 def test_handoff_proven_unbounded(tmp_path):
     """Every reachable state (k-induction), not only BMC_DEPTH cycles: in order, none lost or
     duplicated, the right answer for every test, the stream rule, no FIFO written when it
@@ -85,6 +86,7 @@ def test_array_handoff_properties(tmp_path):
     _bmc_and_cover(tmp_path, ArrayHandoffHarness(), ARRAY_BMC_DEPTH, timeout=1200)
 
 
+@pytest.mark.slow      # minutes; the default suite keeps its covers and must-fail mutants
 def test_array_handoff_proven_unbounded(tmp_path):
     """Every reachable state of ArrayResolve (k-induction): in order, none lost or duplicated,
     the right answer for every test of every record, no FIFO written when it cannot take it, no

@@ -125,6 +125,7 @@ def formal():
     return prove
 
 
+@pytest.mark.slow      # minutes; the default suite keeps its covers and must-fail mutants
 def test_receiver_accepts_exactly_the_good_next_frames(formal, tmp_path):
     """About 3 minutes on the shared 2-core machine."""
     result = formal(ReceiverSpec(), name="receiver", mode="bmc", depth=DEPTH, workdir=tmp_path, script=SCRIPT)
