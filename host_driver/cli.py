@@ -337,9 +337,10 @@ def _add_cell_option(p, render=False):
                    help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
                         "tests to an exact unit shared by the array" +
                         ("; --board model, model-link, amaranth, verilator)" if render else ")"))
-    p.add_argument("--filter-bits", default=None, metavar="D[:W]",
-                   help="with --cell filtered: mantissa bits of P - V_k and of w_k (2 to 18; default "
-                        "B+1:18, i.e. d exact); one number sets both")
+    p.add_argument("--filter-bits", default=None, metavar="D[:W[:I]]",
+                   help="with --cell filtered or lean: mantissa bits of P - V_k and of w_k (2 to 18; default "
+                        "B+1:18 filtered, 9:9 lean); one number sets both; lean only: I, w_k formed from "
+                        "its inputs rounded to I bits")
 
 
 def _cell(args):

@@ -50,9 +50,32 @@ def test_a_kind_name_is_not_a_cell():
 @pytest.mark.parametrize("argv,expect", [
     (["--cell", "fast"], "--cell must be one of exact, filtered, lean, not 'fast'"),
     (["--filter-bits", "9"], "--filter-bits sets the filter's format; it needs cell filtered or lean, not 'exact'"),
-    (["--cell", "filtered", "--filter-bits", "9:x"], "--filter-bits must be D or D:W (integers), not '9:x'"),
+    (["--cell", "filtered", "--filter-bits", "9:x"], "--filter-bits must be D, D:W or D:W:I (integers), not '9:x'"),
+    (["--cell", "lean", "--filter-bits", "9:9:9:9"], "--filter-bits must be D, D:W or D:W:I (integers), not '9:9:9:9'"),
+    (["--cell", "filtered", "--filter-bits", "9:9:12"], "--filter-bits: filter d9w9i12 rounds w_k from its inputs, which only the lean cell does"),
 ])
 def test_the_cli_names_the_option(tmp_path, capsys, argv, expect):
     assert main(["verilog", "cell", "--out", str(tmp_path / "cell.v")] + argv) == 2
     err = capsys.readouterr().err
     assert err == f"blockray: error: {expect}\n"
+
+
+def test_filter_bits_takes_the_lean_cells_input_width():
+    from blockray.host_driver.render.options import cell_option
+    assert cell_option("lean", "9:12:10") == Cell("lean", FilterFormat(9, 12, 10))
+    assert cell_option("lean", "9:12") == Cell("lean", FilterFormat(9, 12))
+    assert cell_option("filtered", "11") == Cell("filtered", FilterFormat(11, 11))
+
+
+def test_a_lean_cell_with_rounded_inputs_renders_the_exact_cells_radiosity(tmp_path, capsys):
+    """The filter is certified, so however w_k is formed the answers, and so the CSV, are the exact
+    cell's; only the undecided tests, sent to the exact unit, cost cycles."""
+    from scenes import room_obj
+    scene = str(room_obj(tmp_path))
+    csv = {}
+    for name, cell in [("exact", ["--cell", "exact"]), ("rounded", ["--cell", "lean", "--filter-bits", "8:8:10"])]:
+        out = tmp_path / f"{name}.csv"
+        assert main(["render", scene, "--max-edge", "1.0", "--voxels", "3", "--board", "model", "--quiet",
+                     "--patches", str(out)] + cell) == 0, capsys.readouterr().err
+        csv[name] = out.read_bytes()
+    assert csv["rounded"] == csv["exact"]

@@ -192,16 +192,17 @@ class SetOptions:
 
 
 def cell_option(kind, filter_bits=None):
-    """The :class:`~blockray.cell.Cell` of ``--cell KIND`` and ``--filter-bits D[:W]`` (None: the
-    kind's default format)."""
+    """The :class:`~blockray.cell.Cell` of ``--cell KIND`` and ``--filter-bits D[:W[:I]]`` (None: the
+    kind's default format; I, lean only: w_k formed from inputs rounded to I bits)."""
     if filter_bits is None:
         return Cell(kind)
     from ...filtered import FilterFormat
     parts = filter_bits.split(":")
-    if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
-        raise ParameterError(f"filter_bits must be D or D:W (integers), not {filter_bits!r}", parameter="filter_bits")
+    if len(parts) > 3 or not all(p.strip().isdigit() for p in parts):
+        raise ParameterError(f"filter_bits must be D, D:W or D:W:I (integers), not {filter_bits!r}",
+                             parameter="filter_bits")
     bits = [int(p) for p in parts]
-    return Cell(kind, FilterFormat(bits[0], bits[-1]))
+    return Cell(kind, FilterFormat(bits[0], bits[min(1, len(bits) - 1)], bits[2] if len(bits) == 3 else None))
 
 
 def host_timing(args):
