@@ -153,17 +153,21 @@ def render_args(scene, settings):
 # ---------------------------------------------------------------------------- error on a mesh
 
 def read_patches(path):
-    """A ``--patches`` CSV -> (groups (N,) str, areas (N,), centroids (N, 3), radiosity (N, 3))."""
+    """A ``--patches`` CSV -> (groups (N,) str, areas (N,), centroids (N, 3), radiosity (N, 3),
+    leaves): ``leaves`` is each row's (input triangle, level) for a hierarchical CSV, else None."""
     try:
         with open(path, newline="") as f:
             rows = list(csv.DictReader(f))
         groups = np.array([r["group"] for r in rows])
         num = np.array([[float(r[k]) for k in ("area", "cx", "cy", "cz", "B_r", "B_g", "B_b")] for r in rows])
+        leaves = None
+        if rows and "level" in rows[0]:
+            leaves = np.array([int(r["patch"]) for r in rows]), np.array([int(r["level"]) for r in rows])
     except (OSError, KeyError, ValueError, csv.Error) as e:
         raise ParameterError(f"{option('reference')} {printable(path, 200)}: not a blockray {option('patches')} CSV ({e})") from None
     if len(rows) == 0 or not np.isfinite(num).all():
         raise ParameterError(f"{option('reference')} {printable(path, 200)}: no patches, or a number that is not finite")
-    return groups, num[:, 0], num[:, 1:4], num[:, 4:7]
+    return groups, num[:, 0], num[:, 1:4], num[:, 4:7], leaves
 
 
 def map_to_mesh(centroids, groups, tri, tri_groups, candidates=16):
@@ -237,7 +241,7 @@ class Reference:
     command: str = ""
 
     def load(self):
-        self.groups, self.areas, self.centroids, self.radiosity = read_patches(self.csv)
+        self.groups, self.areas, self.centroids, self.radiosity, _ = read_patches(self.csv)
         return self
 
 
@@ -308,11 +312,10 @@ class _Meshes:
         self.scene, self.ref, self.maps = scene, ref, {}
 
     def on_reference(self, settings, csv_path):
-        groups, _, centroids, value = read_patches(csv_path)
+        groups, _, centroids, value, leaves = read_patches(csv_path)
         ref = self.ref
         if len(groups) == len(ref.groups) and np.array_equal(centroids, ref.centroids):
             return value
-        leaves = read_leaves(csv_path)
         key = (settings.get("max-edge"), settings.get("contact", "on"))
         if leaves is not None:          # hierarchical: each point has its own leaves, so no cache
             patch, level = leaves
@@ -329,15 +332,6 @@ class _Meshes:
     def _mesh(self, key):
         from ..scene.builtin import load_scene
         return load_scene(self.scene, max_edge=key[0], contact=key[1] == "on")
-
-
-def read_leaves(path):
-    """A hierarchical ``--patches`` CSV's (input triangle, level) per leaf, or None for a patch CSV."""
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows or "level" not in rows[0]:
-        return None
-    return np.array([int(r["patch"]) for r in rows]), np.array([int(r["level"]) for r in rows])
 
 
 def leaf_triangles(inputs, level, centroids, chunk=4096):
