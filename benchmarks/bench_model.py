@@ -215,7 +215,7 @@ def part_float(scene_name, seed, rays=20000, bits_range=range(10, 21)):
     g = np.array([gold.blocked_samples([a], [b], [c], allp)[0, 0]
                   for a, b, c in zip(i, k, j)])
     print(f"float: scene {scene_name} ({N} patches), {len(i)} random rays (exchanging pairs) against all patches, "
-          f"golden blocked {g.mean():.2%}; choose_bits -> {choose_bits(scene, samples)}")
+          f"golden blocked {g.mean():.2%}; choose_bits -> {choose_bits(scene, samples)[0]}")
     print("   B  max displacement / diagonal  disagreements  rate")
     rows = []
     for bits in bits_range:

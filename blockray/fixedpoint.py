@@ -22,7 +22,8 @@ triangle. :attr:`QuantisedScene.displacement` is the measured maximum.
 **Choosing B** (:func:`choose_bits`, "model only what a scene needs"): the fewest bits such that
 (1) no triangle of nonzero float area degenerates (integer normal 0: it would silently stop
 blocking anything) and (2) the measured displacement is at most ``max_error`` times the bounding-box
-diagonal (default ``1e-4``). See docs/fixed-point.md for why the bound is relative to the diagonal.
+diagonal (default ``6e-5``; ``1e-4`` for end points finer than the sample lattice when ``6e-5`` leaves
+them no B). See docs/fixed-point.md for why the bound is relative to the diagonal and why these values.
 """
 
 from dataclasses import dataclass, field
@@ -34,10 +35,15 @@ from .exact import patch_normals
 from .params import MIN_BITS, MAX_BITS, Widths, check_bits
 
 __all__ = ["QuantisedScene", "quantise", "choose_bits", "resolve_bits", "DEFAULT_MAX_ERROR",
-           "MAX_DEGENERATE_FRACTION"]
+           "FINE_POINTS_MAX_ERROR", "MAX_DEGENERATE_FRACTION"]
 
-#: default bound of choose_bits: max vertex displacement / bounding-box diagonal
-DEFAULT_MAX_ERROR = 1e-4
+#: default bound of choose_bits: max vertex displacement / bounding-box diagonal. At 6e-5 the built-in
+#: scenes' model-vs-golden radiosity is within 1e-4 in every channel (docs/fixed-point.md)
+DEFAULT_MAX_ERROR = 6e-5
+#: the bound when end points finer than the sample lattice (``--end-lattice``, hierarchical element
+#: levels: one bit each) leave ``max_error`` no B up to MAX_BITS: the finer points then take bits
+#: from the vertex lattice, down to the vertex lattice the built-ins had before those points
+FINE_POINTS_MAX_ERROR = 1e-4
 #: a forced --bits is refused when more than this fraction of the nonzero-area patches degenerate
 MAX_DEGENERATE_FRACTION = 0.01
 
@@ -59,6 +65,7 @@ class QuantisedScene:
     end_displacement  max distance (scene units) a sample point or centroid moved
     collapsed         list of int arrays: groups of distinct float vertices sharing one int point
     degenerate        int array: patches of nonzero float area whose int normal is 0
+    bound             the displacement bound B was chosen for (relative to the diagonal; None: forced B)
     """
 
     bits: int
@@ -76,6 +83,7 @@ class QuantisedScene:
     collapsed: list = field(default_factory=list)
     degenerate: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     nonzero_area: int = 0
+    bound: float = None
 
     @property
     def widths(self):
@@ -122,6 +130,7 @@ class QuantisedScene:
             "max_displacement": self.displacement,
             "max_end_displacement": self.end_displacement,
             "relative_error": self.relative_error,
+            "max_error_bound": self.bound,
             "collapsed_vertex_groups": len(self.collapsed),
             "collapsed_vertices": int(sum(len(g) for g in self.collapsed)),
             "degenerate_patches": int(len(self.degenerate)),
@@ -193,26 +202,33 @@ def quantise(scene, samples, bits):
                           degenerate=degenerate, nonzero_area=int(nz.sum()))
 
 
-def choose_bits(scene, samples, *, max_error=DEFAULT_MAX_ERROR):
+def choose_bits(scene, samples, *, max_error=DEFAULT_MAX_ERROR, fine_points_error=FINE_POINTS_MAX_ERROR):
     """The fewest bits that keep every nonzero-area patch non-degenerate and the max vertex
-    displacement within ``max_error`` x the bounding-box diagonal.
+    displacement within ``max_error`` x the bounding-box diagonal. When ``samples`` has end points
+    finer than its sample lattice (denominator above 3p) and no B meets ``max_error``, the bound is
+    ``fine_points_error`` instead. Returns ``(bits, bound)``.
 
     Raises :class:`CapacityError` when even ``MAX_BITS`` bits do not.
     """
-    if not (np.isfinite(max_error) and max_error > 0):
-        raise ParameterError(f"max_error must be a positive number, not {max_error!r}")
-    D = samples.denominator
-    first = max(MIN_BITS, D.bit_length())
-    q = None
+    for e in (max_error, fine_points_error):
+        if not (np.isfinite(e) and e > 0):
+            raise ParameterError(f"max_error must be a positive number, not {e!r}")
+    finer = int(samples.denominator) // (3 * int(samples.prime))
+    bounds = [max_error] + ([fine_points_error] if finer > 1 and fine_points_error > max_error else [])
+    first = max(MIN_BITS, int(samples.denominator).bit_length())
+    fallback = None
     for bits in range(first, MAX_BITS + 1):
         q = quantise(scene, samples, bits)
-        if len(q.degenerate) == 0 and q.displacement <= max_error * q.diagonal:
-            return bits
+        met = [b for b in bounds if len(q.degenerate) == 0 and q.displacement <= b * q.diagonal]
+        if max_error in met:
+            return bits, max_error
+        fallback = fallback or (met and (bits, met[0]))
+    if fallback:
+        return fallback
     why = (f"{len(q.degenerate)} patches degenerate" if len(q.degenerate)
-           else f"max vertex displacement {q.displacement:.3g} > {max_error:g} x diagonal {q.diagonal:.3g}")
-    lattice = getattr(samples, "end_lattice", 1)
-    if lattice > 1:
-        why += f" (the end-point lattice {lattice} takes {lattice.bit_length() - 1} of the bits)"
+           else f"max vertex displacement {q.displacement:.3g} > {bounds[-1]:g} x diagonal {q.diagonal:.3g}")
+    if finer > 1:
+        why += f" (the end points {finer} times finer than the sample lattice take {finer.bit_length() - 1} of the bits)"
     raise CapacityError(f"scene {scene.name!r} cannot be represented with at most {MAX_BITS} "
                         f"coordinate bits: at {MAX_BITS} bits {why}")
 
@@ -225,7 +241,10 @@ def resolve_bits(scene, samples, bits=None, *, max_error=DEFAULT_MAX_ERROR):
     nonzero-area patch does. Fewer degenerate patches are only reported (``q.degenerate``).
     """
     if bits is None:
-        return quantise(scene, samples, choose_bits(scene, samples, max_error=max_error))
+        bits, bound = choose_bits(scene, samples, max_error=max_error)
+        q = quantise(scene, samples, bits)
+        q.bound = bound
+        return q
     q = quantise(scene, samples, bits)
     bad = len(q.degenerate)
     if bad and (bad > MAX_DEGENERATE_FRACTION * q.nonzero_area or bad == q.nonzero_area):

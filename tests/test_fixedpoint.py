@@ -90,13 +90,14 @@ def test_choose_bits_is_the_fewest_that_meet_the_bound():
     s = SampleScheme(8)
     for seed in range(3):
         sc = random_scene(seed)
-        b = choose_bits(sc, s)
+        b, bound = choose_bits(sc, s)
+        assert bound == DEFAULT_MAX_ERROR
         q = quantise(sc, s, b)
         assert len(q.degenerate) == 0 and q.relative_error <= DEFAULT_MAX_ERROR
         qb = quantise(sc, s, b - 1)
         assert len(qb.degenerate) > 0 or qb.relative_error > DEFAULT_MAX_ERROR
         # a looser bound never needs more bits
-        assert choose_bits(sc, s, max_error=1e-2) <= b
+        assert choose_bits(sc, s, max_error=1e-2)[0] <= b
 
 
 def test_choose_bits_models_only_what_the_scene_needs():
@@ -104,13 +105,37 @@ def test_choose_bits_models_only_what_the_scene_needs():
     cube = make_scene([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)],
                       [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5]])
     s = SampleScheme(8)
-    assert choose_bits(cube, s) == max(4, s.denominator.bit_length())
+    assert choose_bits(cube, s) == (max(4, s.denominator.bit_length()), DEFAULT_MAX_ERROR)
     # a tiny triangle beside a huge one needs more bits than the huge one alone
     big = [[0, 0, 0], [1000, 0, 0], [0, 1000, 0]]
     tiny = [[500, 500, 1], [500.05, 500, 1], [500, 500.05, 1]]
     alone = make_scene(big + [[1000, 1000, 1000]], [[0, 1, 2]])
     both = make_scene(big + [[1000, 1000, 1000]] + tiny, [[0, 1, 2], [4, 5, 6]])
-    assert choose_bits(both, s) > choose_bits(alone, s)
+    assert choose_bits(both, s)[0] > choose_bits(alone, s)[0]
+
+
+def test_finer_end_points_fall_back_to_the_looser_bound_only_when_the_default_leaves_no_bits():
+    """End points 8 times finer take 3 bits. On a scene that meets the default bound at 18 bits,
+    that is 21 > 20: B is then the fewest meeting FINE_POINTS_MAX_ERROR. The uniform scheme never
+    falls back, and a scene meeting the default bound with the finer points keeps it."""
+    from blockray.fixedpoint import FINE_POINTS_MAX_ERROR
+    rng = np.random.default_rng(5)
+    print("seed=5")
+    v = np.concatenate([rng.random((30, 3)) * [3.7, 2.9, 2.3], [[0, 0, 0], [3.7, 2.9, 2.3]]])
+    sc = make_scene(v, rng.permutation(30)[:30].reshape(-1, 3))
+    base, fine = SampleScheme(8), SampleScheme(8, 8)
+    b, bound = choose_bits(sc, base)
+    assert bound == DEFAULT_MAX_ERROR and b + 3 > 20, b       # the finer points cannot meet the default
+    bf, boundf = choose_bits(sc, fine)
+    assert boundf == FINE_POINTS_MAX_ERROR
+    q, below = quantise(sc, fine, bf), quantise(sc, fine, bf - 1)
+    assert q.relative_error <= FINE_POINTS_MAX_ERROR < below.relative_error
+    assert q.relative_error > DEFAULT_MAX_ERROR               # it really is the looser bound
+    with pytest.raises(CapacityError, match="8 times finer than the sample lattice take 3 of the bits"):
+        choose_bits(sc, fine, fine_points_error=DEFAULT_MAX_ERROR)
+    assert resolve_bits(sc, fine).report()["max_error_bound"] == FINE_POINTS_MAX_ERROR
+    cube = make_scene([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], [[0, 1, 3], [0, 3, 2]])
+    assert choose_bits(cube, fine)[1] == DEFAULT_MAX_ERROR
 
 
 def test_choose_bits_capacity_error():
@@ -148,7 +173,7 @@ def test_forced_bits_refused_when_scene_degenerates_badly():
     q = resolve_bits(sc, SampleScheme(8), 20)
     assert q.bits == 20 and len(q.degenerate) == 0
     # the chosen B is accepted as well
-    assert resolve_bits(sc, SampleScheme(8)).bits == choose_bits(sc, SampleScheme(8))
+    assert resolve_bits(sc, SampleScheme(8)).bits == choose_bits(sc, SampleScheme(8))[0]
 
 
 def test_timing_contract():

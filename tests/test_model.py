@@ -212,7 +212,7 @@ def test_margin_covers_quantisation():
 def test_bits_chosen_when_not_forced():
     scene, board, grid = setup_board(seed=9, bits=None)
     from blockray.fixedpoint import choose_bits
-    assert board.params.bits == choose_bits(scene, SampleScheme(8))
+    assert board.params.bits == choose_bits(scene, SampleScheme(8))[0]
     assert board.counters()["bits"] == board.params.bits
 
 
