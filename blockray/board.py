@@ -206,7 +206,7 @@ class CountingBoard(Board):
             warnings.warn(
                 f"scene {scene.name!r} at B = {q.bits} bits: {sum(len(g) for g in q.collapsed)} vertices "
                 f"collapse onto {len(q.collapsed)} grid points and {len(q.degenerate)} patches degenerate "
-                f"to zero area (they never block); use more --bits to keep them", QuantisationWarning)
+                f"to zero area (they never block); use more {option('bits')} to keep them", QuantisationWarning)
         self.quantised, self.samples, self.margin = q, samples, q.margin
         self.params = self.params.with_(bits=q.bits)
         self.timing = getattr(self, "_timing", None) or BoardTiming.for_cell(self.cell)

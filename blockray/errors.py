@@ -28,11 +28,10 @@ def spell(text, name):
     return "".join(name(part) if k % 2 else part for k, part in enumerate(parts))
 
 
-class BlockrayError(Exception):
-    """Base class of every error caused by bad input or impossible parameters. The message (the
-    first argument, kept as given so it survives pickling to and from a cluster's workers) may
-    name parameters with :func:`option`; ``str()`` shows their names, :meth:`spelled` any other
-    spelling."""
+class Spelled:
+    """An exception or warning whose message (the first argument, kept as given so it survives
+    pickling to and from a cluster's workers) may name parameters with :func:`option`; ``str()``
+    shows their names, :meth:`spelled` any other spelling."""
 
     def __str__(self):
         return spell(super().__str__(), str)
@@ -40,6 +39,10 @@ class BlockrayError(Exception):
     def spelled(self, name):
         """The message with each parameter written as ``name(parameter)``."""
         return spell(super().__str__(), name)
+
+
+class BlockrayError(Spelled, Exception):
+    """Base class of every error caused by bad input or impossible parameters."""
 
 
 class SceneError(BlockrayError):

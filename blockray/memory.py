@@ -18,7 +18,7 @@ registration is on exactly one board, so the OR of the boards' words is the same
 
 import numpy as np
 
-from .errors import CapacityError, ParameterError, option
+from .errors import CapacityError, ParameterError, Spelled, option
 from .protocol import POINTS_PER_LOAD, BeginBlock, EndBlock, LoadPoints, Voxel, WritePatch, WriteVoxel
 from .records import pack_array, patch_columns, patch_layout
 
@@ -28,7 +28,7 @@ __all__ = ["QuantisationWarning", "ranges", "registration", "partition_records",
 PARTITIONS = ("deal", "patch")
 
 
-class QuantisationWarning(UserWarning):
+class QuantisationWarning(Spelled, UserWarning):
     """The chosen bits merge vertices or flatten patches of the scene."""
 
 

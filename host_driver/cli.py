@@ -12,7 +12,7 @@ import sys
 import warnings
 
 from ..atomic import Terminated, sigterm_raises
-from ..errors import BlockrayError
+from ..errors import BlockrayError, Spelled
 
 __all__ = ["main"]
 
@@ -564,7 +564,8 @@ def main(argv=None):
     logging.basicConfig(format="blockray: %(levelname)s: %(message)s", level=logging.WARNING)
 
     def _warn(message, category, filename, lineno, file=None, line=None):
-        print(f"blockray: warning: {message}", file=sys.stderr)
+        shown = message.spelled(_option) if isinstance(message, Spelled) else message
+        print(f"blockray: warning: {shown}", file=sys.stderr)
     warnings.showwarning = _warn
     try:
         with sigterm_raises():

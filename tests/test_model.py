@@ -275,7 +275,7 @@ def test_read_counters_snapshot_covers_the_commands_before_it():
     assert res.words == [1 << (0 * 3 + 2)]            # row 0, column 2 blocked by the z = 5 triangles
 
 
-def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
+def test_degenerate_patches_at_forced_bits_are_reported(tmp_path, capsys):
     # A sliver far thinner than the grid step at B = 10 flattens; the user is told, not left guessing.
     from blockray.host_driver.scene.objload import load_obj
     from blockray.samples import SampleScheme
@@ -286,6 +286,14 @@ def test_degenerate_patches_at_forced_bits_are_reported(tmp_path):
     scene = load_obj(tmp_path / "s.obj", max_edge=10.0)     # ~400 patches: the sliver is under 1%
     assert scene.patches > 100
     board = ModelBoard(BoardParams(bits=10))
-    with pytest.warns(QuantisationWarning, match=r"1 patches degenerate"):
+    with pytest.warns(QuantisationWarning, match=r"1 patches degenerate") as caught:
         board.prepare(scene, SampleScheme(4))
     assert len(board.quantised.degenerate) == 1
+    # the library names the parameter, the command line its option, as errors do
+    assert str(caught[0].message).endswith("use more bits to keep them")
+    from blockray.host_driver.cli import main
+    code = main(["render", str(tmp_path / "s.obj"), "--max-edge", "10", "--bits", "10", "--samples", "4",
+                 "--max-shots", "1", "--quiet"])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 0 and any(e.startswith("blockray: warning: ") and e.endswith("use more --bits to keep them")
+                             for e in err), err

@@ -24,7 +24,7 @@ from importlib import metadata
 from pathlib import Path
 
 from ... import hdl
-from ...errors import BlockrayError
+from ...errors import BlockrayError, option
 from ..cocotb_support import _version, cache_dir, cached_build, verilator_env
 from ..drive import HostTiming
 
@@ -91,7 +91,7 @@ def compiler_version():
     for tool in (cxx, "make"):
         if shutil.which(tool) is None:
             raise NativeBuildError(f"the native Verilator harness needs {tool!r} on PATH (a C++ compiler and make); "
-                                   f"install them (e.g. apt-get install g++ make) or use --board model")
+                                   f"install them (e.g. apt-get install g++ make) or use {option('board')} model")
     try:
         return subprocess.run([cxx, "--version"], capture_output=True, text=True, check=True).stdout.splitlines()[0]
     except (OSError, subprocess.CalledProcessError, IndexError) as e:
