@@ -6,10 +6,12 @@ and the reference's ``--patches`` CSVs with plain numpy, not with the sweep's co
 import csv
 import json
 import os
+import shlex
 
 import numpy as np
 import pytest
 
+from blockray.host_driver.cli import build_parser
 from blockray.host_driver.render.sweep import map_to_mesh, pareto_front, parse_vary, points
 from clirun import cli
 from scenes import room_obj
@@ -128,6 +130,11 @@ def test_sweep_writes_points_tables_and_plot_and_resumes(capsys, tmp_path, room)
     assert (out / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     meta = json.loads((out / "sweep.json").read_text())
     assert meta["reference"]["recipe"]["board"] == "golden" and len(meta["points"]) == 4
+    # the command printed on the plot and kept in the JSON sweeps the same grid again
+    again = build_parser().parse_args(shlex.split(meta["command"])[1:] + ["--out", str(out)])
+    given = build_parser().parse_args(args)
+    assert again.scene == given.scene and again.reference == given.reference
+    assert parse_vary(again.vary) == parse_vary(given.vary) and parse_vary(again.fix, "--fix") == parse_vary(given.fix, "--fix")
 
     stamp = {p: os.stat(out / "points" / p / "report.json").st_mtime_ns for p in os.listdir(out / "points")}
     code, err = run(capsys, *args)

@@ -20,6 +20,7 @@ import json
 import math
 import os
 import re
+import shlex
 import subprocess
 import sys
 import time
@@ -415,16 +416,25 @@ def run_sweep(scene, grid, *, reference="golden", fixed=None, out="sweep", fmax=
                          "command": command})
         except ParameterError as e:
             rows.append({**settings, "status": f"failed: {e}", "command": command})
+    command = sweep_command(scene, grid, fixed, reference, fmax)
     with Outputs() as outputs:
-        _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows)
+        _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows, command)
         plotted = plot_front(outputs, rows, grid, os.path.join(out, "pareto.png"),
-                             f"{os.path.basename(scene)}: RMS error against CPU time")
+                             f"{os.path.basename(scene)}: RMS error against CPU time", command)
     if not plotted:
         echo("no plot: matplotlib is not installed (pip install 'blockray[plot]'); the tables are written")
     return rows
 
 
-def _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows):
+def sweep_command(scene, grid, fixed, reference, fmax):
+    """The ``blockray sweep`` command line of these settings (printed on the plot, kept in the JSON)."""
+    vary = [f"--vary {n}={','.join(f'{v:g}' if isinstance(v, float) else str(v) for v in vs)}" for n, vs in grid.items()]
+    fix = [f"--fix {n}={v:g}" if isinstance(v, float) else f"--fix {n}={v}" for n, v in fixed.items()]
+    fm = [] if fmax == 50.0 else [f"--fmax {fmax:g}"]
+    return " ".join(["blockray", "sweep", shlex.quote(scene), *vary, *fix, "--reference", shlex.quote(reference), *fm])
+
+
+def _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows, command):
     names = list(grid)
 
     def table(f):
@@ -432,7 +442,7 @@ def _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows):
         w.writeheader()
         w.writerows({k: ("" if v is None else v) for k, v in r.items()} for r in rows)
 
-    meta = {"scene": scene, "vary": grid, "fixed": fixed, "reference": {"csv": ref.csv, "recipe": ref.recipe,
+    meta = {"command": command, "scene": scene, "vary": grid, "fixed": fixed, "reference": {"csv": ref.csv, "recipe": ref.recipe,
             "command": ref.command}, "fmax_mhz": fmax, "embree_cpu_s_per_ray": embree,
             "error": "per channel: area-weighted RMS relative to the reference's, and max |b - r| relative to its "
                      "area-weighted RMS radiosity, on the reference's mesh; error_rms/error_max: worst channel",
@@ -441,13 +451,15 @@ def _write(outputs, out, scene, grid, fixed, ref, fmax, embree, rows):
     outputs.add(os.path.join(out, "sweep.json"), "--out", lambda f: json.dump(meta, f, indent=2))
 
 
-def plot_front(outputs, rows, grid, path, title):
+def plot_front(outputs, rows, grid, path, title, command):
     """Error against CPU seconds, log-log, each point labelled by its setting and the front drawn,
-    staged in ``outputs``. Returns False when matplotlib is not installed."""
+    the ``command`` that made it below, staged in ``outputs``. Returns False when matplotlib is not
+    installed."""
     try:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        from matplotlib import ticker
     except ImportError:
         return False
     ok = [r for r in rows if r.get("status") == "ok" and r["error_rms"] > 0]
@@ -461,9 +473,14 @@ def plot_front(outputs, rows, grid, path, title):
             label="Pareto front")
     ax.set(xscale="log", yscale="log", xlabel="CPU seconds of the render",
            ylabel="RMS error against the reference (worst channel)", title=title)
+    plain = ticker.FuncFormatter(lambda v, _: f"{v:g}")   # 20, 50, 100 s, not 2 x 10^1
+    ax.xaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(plain)
+    ax.xaxis.set_minor_formatter(ticker.NullFormatter())
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    fig.tight_layout()
+    fig.text(0.01, 0.005, command, fontsize=6, family="monospace", va="bottom")
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
     try:
         outputs.add(path, "--out", lambda f: fig.savefig(f, format="png", dpi=120), binary=True)
     finally:
