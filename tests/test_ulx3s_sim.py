@@ -117,9 +117,13 @@ def test_room_at_1e_3_faults_both_ways(tmp_path, max_edge, samples, voxels, seed
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rate,seed", [(1e-5, 24), (1e-4, 4)])
+@pytest.mark.parametrize("rate,seed", [(1e-5, 5), (1e-4, 4)])
 def test_render_at_low_fault_rates_is_byte_identical(room, tmp_path, rate, seed):
-    _faulty_render(room, tmp_path, rate, seed)
+    """Seeds at which the small room's ~10 kB of link traffic does meet a fault, even at 1e-5
+    (seed 5: one flipped byte to the board), so the test is one of faults corrected."""
+    integrity = _faulty_render(room, tmp_path, rate, seed)
+    assert integrity["injected_flipped"] + integrity["injected_dropped"] + integrity["injected_duplicated"] > 0
+    assert integrity["frames_resent"] + integrity["board_frames_resent"] > 0 and integrity["errors"] > 0
 
 
 @pytest.mark.slow

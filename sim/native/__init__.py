@@ -30,7 +30,7 @@ from ..drive import HostTiming
 
 HERE = Path(__file__).resolve().parent
 
-__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
+__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "UartPorts", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
            "rtl_source_hash", "NativeBoard", "seed_words"]
 
 #: Verilator's arguments (measured: docs/rtl-render.md)
@@ -63,6 +63,8 @@ class Ports:
     o_valid: str = "o_bytes__valid"
     o_ready: str = "o_bytes__ready"
     o_payload: str = "o_bytes__payload"
+    #: the C++ loop these ports fit (in sim/native)
+    harness = "harness.cpp"
 
     def header(self, trace):
         names = {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
@@ -72,6 +74,21 @@ class Ports:
         # Verilator's C++ names: the second underscore of a double one is escaped
         lines += [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]
         return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class UartPorts:
+    """A top at its serial pins (Verilog names), for ``uart_harness.cpp``."""
+    clk: str = "clk"
+    rst: str = "rst"
+    rx: str = "rx"
+    tx: str = "tx"
+    harness = "uart_harness.cpp"
+
+    def header(self, trace):
+        names = {"CLK": self.clk, "RST": self.rst, "RX": self.rx, "TX": self.tx}
+        lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}"]
+        return "\n".join(lines + [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]) + "\n"
 
 
 @dataclass(frozen=True)
@@ -122,8 +139,9 @@ def rtl_source_hash():
 
 def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUILD_ARGS, cxxflags=CXXFLAGS,
                  jobs=2, cache=None, source=None):
-    """Build ``component``'s Verilog (module ``board``) with the native harness into a shared
-    library, reusing an earlier build of the same content. ``name`` names the cache directory.
+    """Build ``component``'s Verilog (module ``board``) with the native harness of ``ports``
+    (:class:`Ports`: harness.cpp; :class:`UartPorts`: uart_harness.cpp) into a shared library,
+    reusing an earlier build of the same content. ``name`` names the cache directory.
     ``component`` may be a function that makes it; with ``source`` (a string naming the design's
     parameters: :func:`rtl_source_hash` is added to it) an earlier build of the same source is
     found without converting the design to Verilog (the conversion takes longer than loading a
@@ -144,7 +162,7 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
     if callable(component):
         component = component()
     files = {f"{TOP}.v": hdl.convert(component, name=TOP, emit_src=False),
-             "harness.cpp": (HERE / "harness.cpp").read_text(),
+             "harness.cpp": (HERE / ports.harness).read_text(),
              "native_config.h": ports.header(trace)}
 
     def build(staging, sources):
@@ -194,7 +212,7 @@ def _index_path(cache, name, source, ports, trace, args, cxxflags, compiler):
     compiler and Verilator (all that :func:`~blockray.sim.cocotb_support.cached_build`'s key
     hashes besides the Verilog, which is a function of the rest)."""
     key = hashlib.sha256("\n".join([
-        source, rtl_source_hash(), (HERE / "harness.cpp").read_text(), ports.header(trace), repr(args),
+        source, rtl_source_hash(), (HERE / ports.harness).read_text(), ports.header(trace), repr(args),
         _makeflags(cxxflags), compiler, repr(_version("verilator")),
     ]).encode()).hexdigest()[:16]
     root = (Path(cache) if cache is not None else cache_dir() / "verilator") / "native_index"
