@@ -54,8 +54,10 @@ _STATUS_BYTES = 2 * len(STATUS_FIELDS)
 class FrameReceiver(wiring.Component):
     """See the module docstring. Ports: ``wire`` (In, stuffed bytes), ``payload`` (Out, accepted
     bytes), ``space`` (In: bytes ``payload``'s consumer can take at once; a frame with more is not
-    accepted, the host resends it: so a payload never waits and the frames behind it, the
-    host's acknowledgements among them, are never held up), ``status`` (Out, :data:`LinkStatus`:
+    accepted, so a payload never waits and the frames behind it, the host's acknowledgements
+    among them, are never held up. A refusal is flow control, not a fault: no error, no NAK for
+    it or the gap behind it, and one NAK when ``space`` has room for it again, so the host
+    resends once the core has drained, not into a full FIFO), ``status`` (Out, :data:`LinkStatus`:
     ``expect``, the next sequence number accepted, and the strobes), ``accept``
     (a frame accepted), ``error`` (a bad frame, or a gap not caused by a frame refused for
     space: :meth:`Endpoint.faults`); ``frames`` / ``errors``: counts."""
@@ -104,6 +106,7 @@ class FrameReceiver(wiring.Component):
         flags, seq, ack, length = header              # flags bit 0: RESEND
         nak_sent = Signal()
         refused = Signal()                              # a frame was refused for space: its gap is no fault
+        refused_length, resumed = Signal(8), Signal()   # its length; the NAK for it sent (room again)
         addr, left = Signal(range(body_max + 1)), Signal(8)
 
         put, put_data = Signal(), Signal(8)
@@ -131,6 +134,11 @@ class FrameReceiver(wiring.Component):
         with m.If(self.accept):
             m.d.sync += self.frames.eq(self.frames + 1)
 
+        # room again for the frame refused: ask for it now (before the FSM: a refusal there wins)
+        with m.If(refused & ~resumed & (self.space >= refused_length) & ~self.accept):
+            m.d.comb += self.status.nak.eq(1)
+            m.d.sync += [resumed.eq(1), nak_sent.eq(1)]
+
         with m.FSM(init="Collect"):
             with m.State("Collect"):
                 m.d.comb += self.wire.ready.eq(1)
@@ -148,8 +156,8 @@ class FrameReceiver(wiring.Component):
                         m.d.comb += [put.eq(1), put_data.eq(byte)]
                         m.d.sync += code_left.eq(code_left - 1)
             with m.State("Check"):
-                self._check(m, raw <= raw_max, count, code_left, check, flags, seq, length, nak_sent, refused,
-                            addr, left, raise_nak)
+                self._check(m, raw <= raw_max, count, code_left, check, flags, seq, length, nak_sent,
+                            (refused, refused_length, resumed), addr, left, raise_nak)
                 restart()
             with m.State("Emit"):
                 m.d.comb += self.payload.valid.eq(1)
@@ -159,8 +167,10 @@ class FrameReceiver(wiring.Component):
                         m.next = "Collect"
         return m
 
-    def _check(self, m, fits, count, code_left, check, flags, seq, length, nak_sent, refused, addr, left, raise_nak):
-        """The frame is complete: accept it, acknowledge a duplicate, or ask for a resend."""
+    def _check(self, m, fits, count, code_left, check, flags, seq, length, nak_sent, refusal, addr, left, raise_nak):
+        """The frame is complete: accept it, acknowledge a duplicate, refuse it for want of room, or
+        ask for a resend. ``refusal``: (refused, its length, resumed)."""
+        refused, refused_length, resumed = refusal
         good = Signal()
         m.d.comb += good.eq(fits & (code_left == 0) & (count >= HEADER_BYTES + CRC_BYTES)
                             & check.match_detected & (length == count - HEADER_BYTES - CRC_BYTES))
@@ -178,22 +188,24 @@ class FrameReceiver(wiring.Component):
                 pass                                            # a pure acknowledgement
             with m.Elif((gap == 0) & (length > self.space)):
                 # no room behind: not accepted, so never blocking the acknowledgements behind it
-                m.d.sync += refused.eq(1)
+                m.d.sync += [refused.eq(1), refused_length.eq(length), resumed.eq(0)]
             with m.Elif(gap == 0):
                 m.d.comb += [self.accept.eq(1), self.status.ack_due.eq(1)]
                 m.d.sync += [self.status.expect.eq(self.status.expect + 1), nak_sent.eq(0), refused.eq(0),
                              addr.eq(HEADER_BYTES), left.eq(length)]
                 m.next = "Emit"
-            with m.Elif(gap < 128):                             # frames were lost (or refused: no error)
-                with m.If(~nak_sent & ~refused):
-                    m.d.comb += self.error.eq(1)
-                raise_nak()
+            with m.Elif(gap < 128):                             # frames were lost (or refused: wait for room)
+                with m.If(~refused):
+                    with m.If(~nak_sent):
+                        m.d.comb += self.error.eq(1)
+                    raise_nak()
             with m.Else():                                      # one accepted before
                 m.d.comb += self.status.ack_due.eq(1)
             # the NAK sent did not help: a POLL past the gap (the resend round missed it again) or a
-            # RESEND while it stays open (our NAK may have gone with the frame lost): NAK again
+            # RESEND while it stays open (our NAK may have gone with the frame lost): NAK again. Not
+            # while a frame waits for room: a resend now would find the FIFO full again
             poll_gap = flags[2] & ~flags[1] & (length == 0) & (gap != 0) & (gap < 128)
-            with m.If(poll_gap | (flags[0] & nak_sent & ~self.accept)):
+            with m.If((poll_gap | (flags[0] & nak_sent & ~self.accept)) & ~refused):
                 m.d.comb += self.status.nak.eq(1)
                 m.d.sync += nak_sent.eq(1)
 
@@ -369,7 +381,8 @@ class FramedBridge(wiring.Component):
     :class:`FrameSender` -> ``tx_bytes``. No credits: the host's window (8 frames of 256 wire
     bytes) fits the FIFO, so a UART byte never finds it full (``overrun`` shows if one did).
     Accepted payloads wait for the core in a 512-byte command FIFO; a frame that does not fit it
-    is not accepted (resent later), so the receiver never stalls on a busy core. A status frame
+    is not accepted, and asked for again once it fits, so the receiver never stalls on a busy
+    core and the host never resends into a full FIFO. A status frame
     reports the sender's frames resent and the receiver's errors and frames accepted."""
 
     rx_bytes: In(stream.Signature(8))

@@ -14,7 +14,7 @@ from amaranth.lib.fifo import SyncFIFOBuffered
 from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
 
-from blockray.framing import STATUS, Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
+from blockray.framing import POLL, RESEND, STATUS, Endpoint, FrameError, FrameSplitter, LinkConfig, encode_frame, Frame, parse_frame
 from blockray.host_driver.board.framed import FaultInjector
 from blockray.rtl.framing import FramedBridge, FrameReceiver
 
@@ -105,12 +105,12 @@ def test_frame_receiver_equals_the_model(rate, rng_seed):
 
 
 def _frames_through_receiver(frames, space):
-    """(naks, errors, frames accepted) of a FrameReceiver given ``frames`` (Frame) with the
-    consumer's room ``space(k)`` while frame ``k`` is checked."""
+    """(NAKs while each frame came and was checked, errors, frames accepted) of a FrameReceiver
+    given ``frames`` (Frame) with the consumer's room ``space(k)`` while frame ``k`` is checked."""
     dut = FrameReceiver()
     sim = Simulator(dut)
     sim.add_clock(1e-8)
-    got = {"naks": 0}
+    got = {"naks": [0] * len(frames)}
 
     async def bench(ctx):
         ctx.set(dut.payload.ready, 1)
@@ -123,12 +123,12 @@ def _frames_through_receiver(frames, space):
                 while not ctx.get(dut.wire.ready):
                     await ctx.tick()
                     await ctx.delay(1e-9)
-                got["naks"] += ctx.get(dut.status.nak)
+                got["naks"][k] += ctx.get(dut.status.nak)
                 await ctx.tick()
             ctx.set(dut.wire.valid, 0)
             for _ in range(300):            # the check and the payload out
                 await ctx.delay(1e-9)
-                got["naks"] += ctx.get(dut.status.nak)
+                got["naks"][k] += ctx.get(dut.status.nak)
                 await ctx.tick()
         got["errors"], got["frames"] = ctx.get(dut.errors), ctx.get(dut.frames)
 
@@ -137,15 +137,36 @@ def _frames_through_receiver(frames, space):
     return got["naks"], got["errors"], got["frames"]
 
 
+def _data_frames():
+    return [Frame(0, seq, 0, bytes([seq + 1]) * 20) for seq in (0, 1)]
+
+
 @pytest.mark.parametrize("refused,errors", [(True, 0), (False, 1)])
 def test_a_frame_refused_for_space_is_no_error(refused, errors):
     """Frame 0 refused for want of room (or, for contrast, lost on the wire): frame 1 after it is
-    a gap and asks for a resend either way, but only a lost frame counts as an error (the
-    report's ``board_errors`` count link faults); frames 0 and 1 resent are accepted."""
-    f = [Frame(0, seq, 0, bytes([seq + 1]) * 20) for seq in (0, 1)]
+    a gap either way, but only a lost frame counts as an error (the report's ``board_errors``
+    count link faults); frames 0 and 1 resent are accepted."""
+    f = _data_frames()
     sent = [f[0], f[1], f[0], f[1]] if refused else [f[1], f[0], f[1]]
     naks, got_errors, accepted = _frames_through_receiver(sent, lambda k: 0 if refused and k == 0 else 255)
-    assert (naks, got_errors, accepted) == (1, errors, 2)
+    assert (sum(naks), got_errors, accepted) == (1, errors, 2)
+
+
+@pytest.mark.parametrize("room", [19, 20, 255])
+def test_a_refusal_waits_for_room_and_then_asks_once(room):
+    """A refused frame is flow control: no NAK for it, for the gap behind it, for the POLL that
+    ends the round or for a RESEND (a resend into a full FIFO is refused again, and each would
+    queue another window on the wire), and exactly one NAK when the room reaches the refused
+    frame's length (20 bytes), not before. A lost frame NAKs at once and again at the POLL."""
+    f = _data_frames()
+    poll, resend = Frame(POLL, 2, 0, b""), Frame(RESEND, 2, 0, b"")
+    sent = [f[0], f[1], poll, resend, Frame(0, 0, 0, b""), f[0], f[1]]
+    space = [0, 0, 0, 0, room, 255, 255]
+    naks, errors, accepted = _frames_through_receiver(sent, lambda k: space[k])
+    asked = [0, 0, 0, 0, 1, 0, 0] if room >= 20 else [0, 0, 0, 0, 0, 1, 0]
+    assert (naks, errors, accepted) == (asked, 0, 2)
+    lost, _, _ = _frames_through_receiver([f[1], poll, f[0], f[1]], lambda k: 255)
+    assert lost == [1, 1, 0, 0]
 
 
 class _Loopback(wiring.Component):
