@@ -25,7 +25,7 @@ the 4x4 orient3d determinant, for testing.
 
 import numpy as np
 
-__all__ = ["orient3d", "blocked_reference", "patch_normals", "blocked_block", "block_terms", "vertex_terms",
+__all__ = ["orient3d", "blocked_reference", "patch_normals", "blocked_block", "blocked_tests", "block_terms", "vertex_terms",
            "edge_terms", "plane_sides", "plane_crossing"]
 
 
@@ -106,3 +106,18 @@ def blocked_block(shooters, receivers, vertices, normals):
     # written out: a reduction over an axis of length 3 costs more than the comparisons
     inside = ((s0 >= 0) & (s1 >= 0) & (s2 >= 0)) | ((s0 <= 0) & (s1 <= 0) & (s2 <= 0))
     return crossing & inside
+
+
+def blocked_tests(P, Q, V, normals, *, chunk=1 << 16):
+    """Blocked bits of T single tests: P (T, 3), Q (T, 3), V (T, 3, 3), normals (T, 3) -> (T,)
+    bool; the same terms as :func:`blocked_block`, test by test (in chunks: nine int64 per
+    vector term)."""
+    out = np.empty(len(P), dtype=bool)
+    for a in range(0, len(P), chunk):
+        p, q, v, n = (np.asarray(x[a:a + chunk], dtype=np.int64) for x in (P, Q, V, normals))
+        dP, dQ, w = vertex_terms(p, q, v)
+        pP, pQ = plane_sides(dP, dQ, n)
+        s0, s1, s2 = np.einsum("tkc,tkc->tk", dP, w).T
+        inside = ((s0 >= 0) & (s1 >= 0) & (s2 >= 0)) | ((s0 <= 0) & (s1 <= 0) & (s2 <= 0))
+        out[a:a + chunk] = (np.sign(pP) * np.sign(pQ) < 0) & inside
+    return out

@@ -15,7 +15,7 @@ from amaranth.lib import data
 
 from .params import Widths
 
-__all__ = ["point_layout", "patch_layout", "leaves", "pack", "unpack", "pack_array", "unpack_array"]
+__all__ = ["point_layout", "patch_layout", "leaves", "pack", "unpack", "pack_array", "pack_bytes", "unpack_array"]
 
 
 def point_layout(bits):
@@ -119,6 +119,22 @@ def pack_array(layout, columns):
         for i, v in enumerate(col.tolist()):
             words[i] |= (v & mask) << offset
     return words or []
+
+
+def pack_bytes(layout, columns, *, chunk=1 << 15):
+    """:func:`pack_array` as bytes, in bulk: a (n, ceil(size / 8)) uint8 array, each record's
+    bytes least significant first (fields of at most 64 bits; for millions of records)."""
+    size = data.Layout.cast(layout).size
+    fields = list(leaves(layout))
+    n = len(columns[fields[0][0]])
+    out = np.empty((n, -(-size // 8)), dtype=np.uint8)
+    for a in range(0, n, chunk):
+        bits = np.zeros((min(chunk, n - a), 8 * out.shape[1]), dtype=np.uint8)
+        for path, offset, shape in fields:
+            col = np.asarray(columns[path][a:a + chunk], dtype=np.int64).astype(np.uint64)  # two's complement
+            bits[:, offset:offset + shape.width] = (col[:, None] >> np.arange(shape.width, dtype=np.uint64)) & 1
+        out[a:a + chunk] = np.packbits(bits, axis=1, bitorder="little")
+    return out
 
 
 def unpack_array(layout, words):

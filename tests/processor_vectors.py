@@ -9,9 +9,9 @@ coarse-grid coincidences); ``random_tests`` mixes uniform and crossing-heavy ran
 
 import numpy as np
 
-from blockray.exact import blocked_block, blocked_reference, patch_normals
+from blockray.exact import blocked_block, blocked_reference, blocked_tests, patch_normals
 from blockray.filtered import filtered_tests
-from blockray.records import pack_array, patch_columns, point_columns
+from blockray.records import pack_array, pack_bytes, patch_columns, point_columns
 from blockray.rtl.processor import TAG_BITS, query_layout
 
 
@@ -36,12 +36,19 @@ class Tests:
 
     def words(self, bits):
         """Packed :func:`~blockray.rtl.processor.query_layout` payloads; tag = index mod 2**16."""
+        return pack_array(query_layout(bits), self._columns())
+
+    def payload_bytes(self, bits):
+        """:meth:`words` as bytes, (T, ceil(width / 8)) uint8, least significant first."""
+        return pack_bytes(query_layout(bits), self._columns())
+
+    def _columns(self):
         columns = {}
         for prefix, pts in (("shooter", self.P), ("receiver", self.Q)):
             columns.update({(prefix, *k): v for k, v in point_columns(pts).items()})
         columns.update({("patch", *k): v for k, v in patch_columns(self.V, self.n).items()})
         columns[("tag",)] = np.arange(len(self)) % (1 << TAG_BITS)
-        return pack_array(query_layout(bits), columns)
+        return columns
 
 
 def block(shooters, receivers, vertices):
@@ -127,6 +134,25 @@ def random_tests(bits, count, rng, shooters=4, receivers=4, patches=8):
         blocks.append(block(P, Q, V))
     tests = _concat(blocks)
     return tests[rng.permutation(len(tests))[:count]]
+
+
+def random_flat(bits, count, rng):
+    """``count`` independent random tests, drawn in bulk: half uniform in the cube of 2**B (about
+    9 % blocked), half 'slab' tests (shooter below, receiver above, the patch between, axes
+    permuted; about 14 % blocked); expected bits by :func:`~blockray.exact.blocked_tests`."""
+    L = (1 << bits) - 1
+    P, Q = rng.integers(0, L + 1, (count, 3)), rng.integers(0, L + 1, (count, 3))
+    V = rng.integers(0, L + 1, (count, 3, 3))
+    slab = np.flatnonzero(np.arange(count) % 2 == 1)
+    lo, hi = L // 3, 2 * L // 3
+    P[slab, 2] = rng.integers(0, lo + 1, len(slab))
+    Q[slab, 2] = rng.integers(hi, L + 1, len(slab))
+    V[slab, :, 2] = rng.integers(lo, hi + 1, (len(slab), 3))
+    axes = np.argsort(rng.random((len(slab), 3)), axis=1)          # a permutation per test
+    P[slab], Q[slab] = np.take_along_axis(P[slab], axes, 1), np.take_along_axis(Q[slab], axes, 1)
+    V[slab] = np.take_along_axis(V[slab], axes[:, None, :], 2)
+    n = patch_normals(V)
+    return Tests(P, Q, V, n, blocked_tests(P, Q, V, n))
 
 
 def _rotation(rng):

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from blockray.errors import ParameterError
-from blockray.exact import blocked_block, blocked_reference, orient3d, patch_normals, block_terms
+from blockray.exact import blocked_block, blocked_reference, blocked_tests, orient3d, patch_normals, block_terms
 from blockray.params import BoardParams, Widths
-from blockray.records import patch_layout, pack, unpack, pack_array, unpack_array, patch_columns
+from blockray.records import patch_layout, pack, unpack, pack_array, pack_bytes, unpack_array, patch_columns
 from blockray.samples import SampleScheme
 
 
@@ -30,6 +30,33 @@ def test_pack_matches_amaranth_const(bits):
         assert words == [bits_int]
         cols = unpack_array(layout, words)
         assert cols[("normal", "x")][0] == n[0]
+
+
+@pytest.mark.parametrize("bits", [4, 12, 20])
+def test_pack_bytes_are_the_amaranth_const_bits(bits):
+    """Bulk packing, signed normals included, against ``layout.const`` record by record."""
+    seed = 2000 + bits
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    layout, w = patch_layout(bits), Widths(bits)
+    v = rng.integers(0, 1 << bits, (40, 3, 3))
+    n = rng.integers(-(1 << (w.cross - 1)), 1 << (w.cross - 1), (40, 3))
+    got = pack_bytes(layout, patch_columns(v, n), chunk=16)
+    for k in range(40):
+        value = {f"v{j}": dict(zip("xyz", map(int, v[k, j]))) for j in range(3)}
+        value["normal"] = dict(zip("xyz", map(int, n[k])))
+        assert bytes(got[k]) == layout.const(value).as_bits().to_bytes(got.shape[1], "little")
+
+
+def test_blocked_tests_is_the_reference_test_by_test():
+    seed = 31
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    P, Q = rng.integers(0, 64, (3000, 3)), rng.integers(0, 64, (3000, 3))
+    V = rng.integers(0, 64, (3000, 3, 3))
+    got = blocked_tests(P, Q, V, patch_normals(V), chunk=700)
+    want = [blocked_reference(P[i], Q[i], *V[i]) for i in range(3000)]
+    assert got.tolist() == want and 0 < got.sum() < 3000
 
 
 def test_pack_rejects_out_of_range():

@@ -30,7 +30,7 @@ from ..drive import HostTiming
 
 HERE = Path(__file__).resolve().parent
 
-__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "UartPorts", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
+__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "UartPorts", "VectorPorts", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
            "rtl_source_hash", "NativeBoard", "seed_words"]
 
 #: Verilator's arguments (measured: docs/rtl-render.md)
@@ -89,6 +89,35 @@ class UartPorts:
         names = {"CLK": self.clk, "RST": self.rst, "RX": self.rx, "TX": self.tx}
         lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}"]
         return "\n".join(lines + [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]) + "\n"
+
+
+@dataclass(frozen=True)
+class VectorPorts:
+    """A stream component's ports (Verilog names) and its payloads' sizes in bytes, for
+    ``vector_harness.cpp``."""
+    i_bytes: int
+    o_bytes: int
+    clk: str = "clk"
+    rst: str = "rst"
+    i_valid: str = "i__valid"
+    i_ready: str = "i__ready"
+    i_payload: str = "i__payload"
+    o_valid: str = "o__valid"
+    o_ready: str = "o__ready"
+    o_payload: str = "o__payload"
+    harness = "vector_harness.cpp"
+
+    def header(self, trace):
+        names = {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
+                 "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
+                 "O_PAYLOAD": self.o_payload}
+        lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}",
+                 f"#define BR_I_BYTES {self.i_bytes}", f"#define BR_O_BYTES {self.o_bytes}"]
+        return "\n".join(lines + [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]) + "\n"
+
+
+#: the header every harness includes (the host's random timing)
+SHARED = "stalls.h"
 
 
 @dataclass(frozen=True)
@@ -163,6 +192,7 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
         component = component()
     files = {f"{TOP}.v": hdl.convert(component, name=TOP, emit_src=False),
              "harness.cpp": (HERE / ports.harness).read_text(),
+             SHARED: (HERE / SHARED).read_text(),
              "native_config.h": ports.header(trace)}
 
     def build(staging, sources):
@@ -212,7 +242,8 @@ def _index_path(cache, name, source, ports, trace, args, cxxflags, compiler):
     compiler and Verilator (all that :func:`~blockray.sim.cocotb_support.cached_build`'s key
     hashes besides the Verilog, which is a function of the rest)."""
     key = hashlib.sha256("\n".join([
-        source, rtl_source_hash(), (HERE / ports.harness).read_text(), ports.header(trace), repr(args),
+        source, rtl_source_hash(), (HERE / ports.harness).read_text(), (HERE / SHARED).read_text(),
+        ports.header(trace), repr(args),
         _makeflags(cxxflags), compiler, repr(_version("verilator")),
     ]).encode()).hexdigest()[:16]
     root = (Path(cache) if cache is not None else cache_dir() / "verilator") / "native_index"
