@@ -30,7 +30,7 @@ from ..drive import HostTiming
 
 HERE = Path(__file__).resolve().parent
 
-__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "UartPorts", "VectorPorts", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
+__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "UartPorts", "VectorPorts", "load_library", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
            "rtl_source_hash", "NativeBoard", "seed_words"]
 
 #: Verilator's arguments (measured: docs/rtl-render.md)
@@ -52,6 +52,14 @@ class NativeRunError(BlockrayError):
     """The board in the native harness stopped answering."""
 
 
+def _config(trace, names):
+    """native_config.h: the top's class and header, tracing, and the ports' C++ names."""
+    lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}"]
+    # Verilator's C++ names: the second underscore of a double one is escaped
+    lines += [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]
+    return "\n".join(lines) + "\n"
+
+
 @dataclass(frozen=True)
 class Ports:
     """The top module's clock, reset and byte-stream ports (Verilog names)."""
@@ -67,13 +75,9 @@ class Ports:
     harness = "harness.cpp"
 
     def header(self, trace):
-        names = {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
-                 "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
-                 "O_PAYLOAD": self.o_payload}
-        lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}"]
-        # Verilator's C++ names: the second underscore of a double one is escaped
-        lines += [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]
-        return "\n".join(lines) + "\n"
+        return _config(trace, {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
+                                "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
+                                "O_PAYLOAD": self.o_payload})
 
 
 @dataclass(frozen=True)
@@ -86,34 +90,25 @@ class UartPorts:
     harness = "uart_harness.cpp"
 
     def header(self, trace):
-        names = {"CLK": self.clk, "RST": self.rst, "RX": self.rx, "TX": self.tx}
-        lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}"]
-        return "\n".join(lines + [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]) + "\n"
+        return _config(trace, {"CLK": self.clk, "RST": self.rst, "RX": self.rx, "TX": self.tx})
 
 
 @dataclass(frozen=True)
-class VectorPorts:
-    """A stream component's ports (Verilog names) and its payloads' sizes in bytes, for
-    ``vector_harness.cpp``."""
-    i_bytes: int
-    o_bytes: int
-    clk: str = "clk"
-    rst: str = "rst"
+class VectorPorts(Ports):
+    """A stream component's ports ``i`` and ``o`` (Verilog names) and its payloads' sizes in
+    bytes, for ``vector_harness.cpp``."""
     i_valid: str = "i__valid"
     i_ready: str = "i__ready"
     i_payload: str = "i__payload"
     o_valid: str = "o__valid"
     o_ready: str = "o__ready"
     o_payload: str = "o__payload"
+    i_bytes: int = 1
+    o_bytes: int = 1
     harness = "vector_harness.cpp"
 
     def header(self, trace):
-        names = {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
-                 "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
-                 "O_PAYLOAD": self.o_payload}
-        lines = [f"#define BR_TOP V{TOP}", f'#define BR_HEADER "V{TOP}.h"', f"#define BR_TRACE {int(trace)}",
-                 f"#define BR_I_BYTES {self.i_bytes}", f"#define BR_O_BYTES {self.o_bytes}"]
-        return "\n".join(lines + [f"#define BR_{k} {v.replace('__', '___05F')}" for k, v in names.items()]) + "\n"
+        return super().header(trace) + f"#define BR_I_BYTES {self.i_bytes}\n#define BR_O_BYTES {self.o_bytes}\n"
 
 
 #: the header every harness includes (the host's random timing)
@@ -264,25 +259,31 @@ _libraries = {}
 _lock = threading.Lock()
 
 
-def _library(path):
+def load_library(path, bind):
+    """The shared library at ``path``, loaded once per process; ``bind(lib)`` declares its
+    functions' argument and result types when it is first loaded."""
     with _lock:
         if path not in _libraries:
             lib = ctypes.CDLL(str(path))
-            u32p, u8p, size = ctypes.POINTER(ctypes.c_uint32), ctypes.POINTER(ctypes.c_uint8), ctypes.c_size_t
-            d, u32 = ctypes.c_double, ctypes.c_uint32
-            lib.br_open.argtypes = [u32p, size, d, d, u32, u32, d, d, u32, u32, ctypes.c_char_p]
-            lib.br_open.restype = ctypes.c_void_p
-            lib.br_close.argtypes = [ctypes.c_void_p]
-            lib.br_close.restype = None
-            lib.br_reset.argtypes = [ctypes.c_void_p]
-            lib.br_reset.restype = None
-            lib.br_cycles.argtypes = [ctypes.c_void_p]
-            lib.br_cycles.restype = ctypes.c_uint64
-            lib.br_run.argtypes = [ctypes.c_void_p, ctypes.c_char_p, size, u8p, size, size, ctypes.c_uint64,
-                                   ctypes.POINTER(size)]
-            lib.br_run.restype = ctypes.c_int
+            bind(lib)
             _libraries[path] = lib
         return _libraries[path]
+
+
+def _bind(lib):
+    u32p, u8p, size = ctypes.POINTER(ctypes.c_uint32), ctypes.POINTER(ctypes.c_uint8), ctypes.c_size_t
+    d, u32 = ctypes.c_double, ctypes.c_uint32
+    lib.br_open.argtypes = [u32p, size, d, d, u32, u32, d, d, u32, u32, ctypes.c_char_p]
+    lib.br_open.restype = ctypes.c_void_p
+    lib.br_close.argtypes = [ctypes.c_void_p]
+    lib.br_close.restype = None
+    lib.br_reset.argtypes = [ctypes.c_void_p]
+    lib.br_reset.restype = None
+    lib.br_cycles.argtypes = [ctypes.c_void_p]
+    lib.br_cycles.restype = ctypes.c_uint64
+    lib.br_run.argtypes = [ctypes.c_void_p, ctypes.c_char_p, size, u8p, size, size, ctypes.c_uint64,
+                           ctypes.POINTER(size)]
+    lib.br_run.restype = ctypes.c_int
 
 
 def seed_words(seed):
@@ -305,7 +306,7 @@ class NativeBoard:
     def __init__(self, build, *, idle=HostTiming(), backpressure=HostTiming(), seed=0, vcd=None, patience=1 << 16):
         if vcd is not None and not build.trace:
             raise ValueError("a waveform needs a build with trace=True")
-        self._lib = _library(build.library)
+        self._lib = load_library(build.library, _bind)
         key = seed_words(seed)
         self.patience = patience
         self._h = self._lib.br_open((ctypes.c_uint32 * len(key))(*key), len(key),

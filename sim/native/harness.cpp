@@ -28,11 +28,9 @@
 
 namespace {
 
-struct Harness {
+struct Harness : HostTiming {
     VerilatedContext context;
     BR_TOP *top;
-    Twister rng;
-    Stalls idle, pressure;
     std::vector<uint8_t> queue;             // command bytes not yet offered, from head
     size_t head = 0;
     int offer = -1;                         // the byte on the command stream, or none
@@ -98,9 +96,7 @@ void *br_open(const uint32_t *key, size_t key_words,
               double idle_rate, double idle_burst, uint32_t idle_lo, uint32_t idle_hi,
               double bp_rate, double bp_burst, uint32_t bp_lo, uint32_t bp_hi, const char *vcd) {
     Harness *h = new Harness();
-    h->rng.init_by_array(key, key_words);
-    h->idle = Stalls{idle_rate, idle_burst, idle_lo, idle_hi, 0, &h->rng};
-    h->pressure = Stalls{bp_rate, bp_burst, bp_lo, bp_hi, 0, &h->rng};
+    h->seed(key, key_words, idle_rate, idle_burst, idle_lo, idle_hi, bp_rate, bp_burst, bp_lo, bp_hi);
 #if BR_TRACE
     if (vcd) {
         h->context.traceEverOn(true);

@@ -88,4 +88,18 @@ struct Stalls {
     }
 };
 
+// The host's timing on both streams from one generator, as StreamHost draws it.
+struct HostTiming {
+    Twister rng;
+    Stalls idle, pressure;
+
+    void seed(const uint32_t *key, size_t key_words,
+              double idle_rate, double idle_burst, uint32_t idle_lo, uint32_t idle_hi,
+              double bp_rate, double bp_burst, uint32_t bp_lo, uint32_t bp_hi) {
+        rng.init_by_array(key, key_words);
+        idle = Stalls{idle_rate, idle_burst, idle_lo, idle_hi, 0, &rng};
+        pressure = Stalls{bp_rate, bp_burst, bp_lo, bp_hi, 0, &rng};
+    }
+};
+
 }  // namespace

@@ -2,28 +2,20 @@
 the bridge of sim/uart_cocotb.py, cycle for cycle, called through ctypes with whole buffers."""
 
 import ctypes
-import threading
+
+from . import load_library
 
 __all__ = ["NativeUart"]
 
-_libraries = {}
-_lock = threading.Lock()
-
-
-def _library(path):
-    with _lock:
-        if path not in _libraries:
-            lib = ctypes.CDLL(str(path))
-            size, u64, u8p = ctypes.c_size_t, ctypes.c_uint64, ctypes.POINTER(ctypes.c_uint8)
-            lib.bu_open.argtypes, lib.bu_open.restype = [ctypes.c_uint32], ctypes.c_void_p
-            lib.bu_close.argtypes, lib.bu_close.restype = [ctypes.c_void_p], None
-            lib.bu_write.argtypes, lib.bu_write.restype = [ctypes.c_void_p, ctypes.c_char_p, size], None
-            lib.bu_break.argtypes, lib.bu_break.restype = [ctypes.c_void_p, ctypes.c_int], None
-            lib.bu_run.argtypes = [ctypes.c_void_p, u64, u8p, size, ctypes.POINTER(size), ctypes.POINTER(u64),
-                                   ctypes.POINTER(size)]
-            lib.bu_run.restype = None
-            _libraries[path] = lib
-        return _libraries[path]
+def _bind(lib):
+    size, u64, u8p = ctypes.c_size_t, ctypes.c_uint64, ctypes.POINTER(ctypes.c_uint8)
+    lib.bu_open.argtypes, lib.bu_open.restype = [ctypes.c_uint32], ctypes.c_void_p
+    lib.bu_close.argtypes, lib.bu_close.restype = [ctypes.c_void_p], None
+    lib.bu_write.argtypes, lib.bu_write.restype = [ctypes.c_void_p, ctypes.c_char_p, size], None
+    lib.bu_break.argtypes, lib.bu_break.restype = [ctypes.c_void_p, ctypes.c_int], None
+    lib.bu_run.argtypes = [ctypes.c_void_p, u64, u8p, size, ctypes.POINTER(size), ctypes.POINTER(u64),
+                           ctypes.POINTER(size)]
+    lib.bu_run.restype = None
 
 
 class NativeUart:
@@ -34,7 +26,7 @@ class NativeUart:
     CHUNK = 1 << 16
 
     def __init__(self, build, divisor):
-        self._lib = _library(build.library)
+        self._lib = load_library(build.library, _bind)
         self._h = self._lib.bu_open(int(divisor))
 
     def write(self, data):

@@ -40,11 +40,9 @@ template <std::size_t W> void get(const VlWide<W> &port, uint8_t *p) {
     std::memcpy(p, words, BR_O_BYTES);
 }
 
-struct Vectors {
+struct Vectors : HostTiming {
     VerilatedContext context;
     BR_TOP *top;
-    Twister rng;
-    Stalls idle, pressure;
     uint64_t cycles = 0;
 
     Vectors() : top(new BR_TOP(&context, "board")) {}
@@ -64,22 +62,17 @@ struct Vectors {
 
 extern "C" {
 
-// A component with host timing as harness.cpp's br_open (without a waveform), after one cycle
-// of reset.
+// A component with host timing as harness.cpp's br_open (without a waveform).
 void *bv_open(const uint32_t *key, size_t key_words,
               double idle_rate, double idle_burst, uint32_t idle_lo, uint32_t idle_hi,
               double bp_rate, double bp_burst, uint32_t bp_lo, uint32_t bp_hi) {
     Vectors *h = new Vectors();
-    h->rng.init_by_array(key, key_words);
-    h->idle = Stalls{idle_rate, idle_burst, idle_lo, idle_hi, 0, &h->rng};
-    h->pressure = Stalls{bp_rate, bp_burst, bp_lo, bp_hi, 0, &h->rng};
+    h->seed(key, key_words, idle_rate, idle_burst, idle_lo, idle_hi, bp_rate, bp_burst, bp_lo, bp_hi);
+    h->top->BR_RST = 0;                     // registers start at their Verilog initial values
     h->top->BR_I_VALID = 0;
     h->top->BR_O_READY = 0;
-    h->top->BR_RST = 1;
     h->top->BR_CLK = 0;
     h->top->eval();
-    h->edge();
-    h->top->BR_RST = 0;
     return h;
 }
 

@@ -9,7 +9,7 @@ import ctypes
 import numpy as np
 
 from ..drive import HostTiming
-from . import NativeRunError, VectorPorts, build_native, seed_words
+from . import NativeRunError, VectorPorts, build_native, load_library, seed_words
 
 __all__ = ["NativeVectors", "payload_bytes"]
 
@@ -20,8 +20,7 @@ def payload_bytes(payload):
     return -(-width // 8)
 
 
-def _library(path):
-    lib = ctypes.CDLL(str(path))
+def _bind(lib):
     d, u32, size = ctypes.c_double, ctypes.c_uint32, ctypes.c_size_t
     u8p = ctypes.POINTER(ctypes.c_uint8)
     lib.bv_open.argtypes = [ctypes.POINTER(u32), size, d, d, u32, u32, d, d, u32, u32]
@@ -32,7 +31,6 @@ def _library(path):
     lib.bv_cycles.restype = ctypes.c_uint64
     lib.bv_run.argtypes = [ctypes.c_void_p, ctypes.c_char_p, size, u8p, ctypes.c_uint64, ctypes.POINTER(size)]
     lib.bv_run.restype = ctypes.c_int
-    return lib
 
 
 class NativeVectors:
@@ -45,10 +43,10 @@ class NativeVectors:
                  patience=1 << 16):
         top = make()
         self.n_in, self.n_out = payload_bytes(top.i.payload), payload_bytes(top.o.payload)
-        self.build = build_native(top, name=name, source=source, ports=VectorPorts(self.n_in, self.n_out))
+        self.build = build_native(top, name=name, source=source, ports=VectorPorts(i_bytes=self.n_in, o_bytes=self.n_out))
         top._MustUse__silence = True        # made for its widths: a cached build does not convert it
         self.patience = patience
-        self._lib = _library(self.build.library)
+        self._lib = load_library(self.build.library, _bind)
         key = seed_words(seed)
         self._h = self._lib.bv_open((ctypes.c_uint32 * len(key))(*key), len(key),
                                     idle.rate, idle.burst, *idle.burst_length,
