@@ -37,7 +37,7 @@ def _session(native, seed):
     return bytes(got), stats, cycles, data
 
 
-@pytest.mark.parametrize("seed", [3, 8])
+@pytest.mark.parametrize("seed", [3, pytest.param(8, marks=pytest.mark.slow)])
 def test_native_bridge_runs_the_cocotb_bridges_cycles(seed):
     print("seed", seed)
     native, cocotb = _session(True, seed), _session(False, seed)
