@@ -85,5 +85,10 @@ class ResourceError(BlockrayError):
     tool and the resource."""
 
 
+class ToolError(BlockrayError):
+    """An external tool (Yosys, nextpnr, ecppll, ecppack) failed; the message names the tool, its
+    exit status, its last error line and its log."""
+
+
 class CapacityError(BlockrayError):
     """A scene does not fit the chosen widths or memories."""

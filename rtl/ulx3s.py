@@ -72,9 +72,11 @@ class ULX3STop(Elaboratable):
         m.submodules.reset_sync = ResetSynchronizer(~locked, domain="sync")
 
         m.submodules.link = link = self.link
-        uart = platform.request("uart", 0)
-        m.d.comb += [link.rx.eq(uart.rx.i), uart.tx.o.eq(link.tx)]
-        leds = [platform.request("led", n) for n in range(4)]
-        m.d.comb += [leds[0].o.eq(locked), leds[1].o.eq(link.link_reset), leds[2].o.eq(~uart.rx.i),
-                     leds[3].o.eq(link.overrun)]
+        uart = platform.request("uart", 0, dir={"rx": "-", "tx": "-", "rts": "-", "dtr": "-"})
+        m.submodules.uart_rx = rx = io.Buffer("i", uart.rx)
+        m.submodules.uart_tx = tx = io.Buffer("o", uart.tx)
+        m.d.comb += [link.rx.eq(rx.i), tx.o.eq(link.tx)]
+        for n, shown in enumerate((locked, link.link_reset, ~rx.i, link.overrun)):
+            m.submodules[f"led{n}"] = led = io.Buffer("o", platform.request("led", n, dir="-"))
+            m.d.comb += led.o.eq(shown)
         return m

@@ -34,13 +34,14 @@ import time
 from pathlib import Path
 
 from ..atomic import write_file
-from ..errors import ParameterError, option
+from ..errors import ParameterError, ToolError, option
 from ..link import DEFAULT_BAUD
 from ..params import BoardParams
 from ..paths import check_output_file
 from ..records import patch_layout
-from .nextpnr import (DEVICES, PACKAGE, ROUTER, _cells_resources, _machine, _run, _tail, _workdir,
-                      _versions, dsp_estimate, nextpnr_command, run_nextpnr)
+from .nextpnr import (_ABC_FALLBACK, DEVICES, PACKAGE, ROUTER, _cells_resources, _machine, _run, _workdir,
+                      _versions, dsp_estimate, nextpnr_command, run_nextpnr, tool_error)
+from .tools import last_error
 from .yosys import yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
@@ -174,7 +175,7 @@ def pll_config(freq_mhz, workdir):
            "-f", path.name]
     result = subprocess.run(cmd, capture_output=True, text=True, cwd=workdir)   # WASM: sees the cwd only
     if result.returncode != 0 or not path.exists():
-        raise RuntimeError(f"ecppll failed ({result.returncode}): {result.stdout[-500:]}{result.stderr[-500:]}")
+        raise ToolError(f"ecppll failed (status {result.returncode}): {last_error(result.stdout + result.stderr)}")
     text = path.read_text()
 
     def param(name):
@@ -271,10 +272,16 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
     }
 
     start = time.perf_counter()
+    report["lut_mapper"] = "abc9"
     rc = _run(yosys_command() + ["-q", "-l", f"{name}.rpt", f"{name}.ys"], tmp, tmp / "yosys.out")
+    if rc != 0:                 # Yosys 0.70's ABC9 assert on some netlists: map LUTs with abc instead
+        script = tmp / f"{name}.ys"
+        script.write_text(re.sub(rf"synth_ecp5\s+-top {name}\b", _ABC_FALLBACK.format(top=name), script.read_text()))
+        report["lut_mapper"] = "abc"
+        rc = _run(yosys_command() + ["-q", "-l", f"{name}.rpt", f"{name}.ys"], tmp, tmp / "yosys.out")
     seconds["yosys"] = round(time.perf_counter() - start, 1)
     if rc != 0:
-        raise RuntimeError(f"yosys failed ({rc}):\n{_tail(tmp / 'yosys.out')}{_tail(tmp / f'{name}.rpt')}")
+        raise tool_error("yosys", rc, tmp, f"{name}.rpt", "yosys.out")
     stat = json.loads((tmp / f"{name}.stat.json").read_text())
     cells = dict(stat["design"]["num_cells_by_type"]) if "design" in stat else {}
     cells.pop("$scopeinfo", None)
@@ -310,7 +317,7 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
                "--bit", f"{name}.bit"], tmp, tmp / "ecppack.out")
     seconds["ecppack"] = round(time.perf_counter() - start, 1)
     if rc != 0:
-        raise RuntimeError(f"ecppack failed ({rc}):\n{_tail(tmp / 'ecppack.out')}")
+        raise tool_error("ecppack", rc, tmp, "ecppack.out")
     write_file(out, "--out", lambda f: f.write((tmp / f"{name}.bit").read_bytes()), binary=True)
     report["bitstream"] = {"path": str(out), "bytes": out.stat().st_size}
     return report

@@ -49,10 +49,10 @@ import tempfile
 from .. import hdl
 
 from ..atomic import write_file
-from ..errors import ParameterError
+from ..errors import ParameterError, ToolError
 from ..params import BoardParams
 from .target import FABRIC_UNITS, target_platform
-from .tools import tool_command
+from .tools import last_error, tool_command
 from ..cell import Cell, check_cell
 from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
@@ -197,6 +197,15 @@ def _run(cmd, workdir, log):
     return result.returncode
 
 
+def tool_error(tool, rc, workdir, log, *more):
+    """:class:`~blockray.errors.ToolError` for ``tool`` that exited with ``rc`` in ``workdir``:
+    one line with the last error line of ``log`` (or of the ``more`` files), naming the log."""
+    last = last_error("\n".join(_tail(Path(workdir) / path, 20_000) for path in (log, *more)))
+    kept = not Path(workdir).name.startswith(_TEMPORARY)
+    where = Path(workdir) / log if kept else f"{log} (pass --workdir DIR to keep it)"
+    return ToolError(f"{tool} failed (status {rc}): {last}; log: {where}")
+
+
 def _tail(path, n=2000):
     try:
         return Path(path).read_text(errors="replace")[-n:]
@@ -299,11 +308,14 @@ def _scaled(timed, fmax):
     return timed
 
 
+_TEMPORARY = "blockray-synth-"
+
+
 @contextlib.contextmanager
 def _workdir(workdir):
     """``workdir`` as a Path, created if need be; a temporary directory when None."""
     if workdir is None:
-        with tempfile.TemporaryDirectory(prefix="blockray-synth-") as tmp:
+        with tempfile.TemporaryDirectory(prefix=_TEMPORARY) as tmp:
             yield Path(tmp)
         return
     workdir = Path(workdir)
@@ -337,8 +349,7 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
             break
     seconds = round(time.perf_counter() - start, 1)
     if rc != 0:
-        raise RuntimeError(f"yosys failed ({rc}) on {tag}:\n{_tail(tmp / f'{tag}.yosys.out')}"
-                           f"{_tail(tmp / f'{tag}.yosys.log')}")
+        raise tool_error("yosys", rc, tmp, f"{tag}.yosys.log", f"{tag}.yosys.out")
     stat = json.loads((tmp / f"{tag}.stat.json").read_text())
     cells = dict(stat["design"]["num_cells_by_type"]) if "design" in stat else {}
     cells.pop("$scopeinfo", None)

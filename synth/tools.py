@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..extras import MissingExtra, require
 
-__all__ = ["tool_command"]
+__all__ = ["tool_command", "last_error"]
 
 
 def tool_command(package, program, what):
@@ -21,3 +21,10 @@ def tool_command(package, program, what):
     require("synth", what, only=(package,))                     # names pip install 'blockray[synth]'
     raise MissingExtra(f"no {package} program beside the installed package; reinstall it with "
                        "pip install --force-reinstall 'blockray[synth]'")
+
+
+def last_error(text):
+    """The line of a tool's output that says what went wrong: its last ``ERROR`` line, else its
+    last line (at most 300 characters)."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return ([line for line in lines if line.startswith("ERROR")] or lines or ["no output"])[-1][:300]

@@ -23,7 +23,8 @@ from pathlib import Path
 
 from .. import hdl
 
-from .tools import tool_command
+from ..errors import ToolError
+from .tools import last_error, tool_command
 
 __all__ = ["SynthStats", "yosys_command", "synth_stats", "LUT_MULTIPLIERS", "booth_verilog"]
 
@@ -67,7 +68,7 @@ def _run(script, workdir):
     result = subprocess.run(yosys_command() + ["-q", "-p", script], cwd=workdir,
                             capture_output=True, text=True)
     if result.returncode != 0:
-        raise RuntimeError(f"yosys failed ({result.returncode}):\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+        raise ToolError(f"yosys failed (status {result.returncode}): {last_error(result.stdout + result.stderr)}")
 
 
 def booth_verilog(text, top):

@@ -2,6 +2,7 @@
 option); a small configuration builds a real ULX3S-85F bitstream (mark ``synth``)."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -103,6 +104,28 @@ def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
     assert seen["router"] == "router1" and seen["freq"] == bitstream.DEFAULT_FREQ_MHZ
     assert main(["bitstream", "--rows", "2", "--cols", "2", "--router", "router2", "--out", str(tmp_path / "y.bit")]) == 0
     assert (seen["params"].rows, seen["params"].cols, seen["router"]) == (2, 2, "router2")
+
+
+@pytest.mark.synth
+def test_a_failing_yosys_is_one_line_exit_2_after_the_abc_fallback(monkeypatch, tmp_path, capsys):
+    """Yosys 0.70's ABC9 assert (on some netlists) is worked around with classic abc; when that
+    fails too: one line naming the tool, its status, its last ERROR line and the log kept in
+    ``--workdir``; exit 2, no .bit. (ecppll runs for real; Yosys is the stand-in below.)"""
+    scripts = []
+
+    def failing(cmd, workdir, log):
+        scripts.append(Path(workdir, cmd[-1]).read_text())         # the .ys as each run saw it
+        Path(workdir, "blockray_ulx3s.rpt").write_text("2.46.19.7. ABC_OPS_REINTEGRATE\n"
+                                                      "ERROR: Assert `GetSize' failed in rtlil.cc:3091.\n")
+        return 1
+    monkeypatch.setattr(bitstream, "_run", failing)
+    work, out = tmp_path / "w", tmp_path / "x.bit"
+    assert main(["bitstream", "--core", "echo", "--out", str(out), "--workdir", str(work)]) == 2
+    assert len(scripts) == 2 and "abc -lut 4" not in scripts[0] and "abc -lut 4" in scripts[1]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"blockray: error: yosys failed (status 1): ERROR: Assert `GetSize' failed in rtlil.cc:3091.; "
+                   f"log: {work / 'blockray_ulx3s.rpt'}"], err
+    assert not out.exists()
 
 
 @pytest.mark.synth
