@@ -290,6 +290,28 @@ def test_far_pairs_against_the_contour_oracle():
     assert used[2:6].sum() > 0 and used[[1, 6, 7, 8]].sum() > 0
 
 
+@pytest.mark.parametrize("share", [1e-4, 1e-2])
+def test_an_absolute_tolerance_is_met_with_cheaper_rules(share):
+    """``tolerance`` (the hierarchical links' budget): every far pair's ``A_j F_ji`` within
+    ``max(FAR_TARGET * value, tolerance)`` of the mpmath contour integral (the centroid rule alone
+    is off by more than 1e-4 on the nearest of them), and the looser it is, the more pairs take a
+    rule of fewer points than they do without it."""
+    seed = 35
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    pairs = [far_pair(rng, D, size=0.3) for D in (3, 8, 20, 60) for _ in range(6)]
+    Ti, Tj = np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+    exact = np.array([contour_oracle(b, a, dps=30) for a, b in pairs])
+    tolerance = share * exact             # per pair, as the links' budgets are
+    plain, loose = np.zeros(len(METHODS), dtype=np.int64), np.zeros(len(METHODS), dtype=np.int64)
+    pair_factors(Ti, Tj, stats=plain)
+    got = pair_factors(Ti, Tj, tolerance=tolerance, stats=loose)
+    print(dict(zip(METHODS, plain.tolist())), dict(zip(METHODS, loose.tolist())))
+    assert (np.abs(got - exact) <= np.maximum(1e-6 * exact, tolerance) + 1e-15).all()
+    points = np.array([0, 0, 1, 7, 25, 64, 0, 0, 144, 0])      # per pair of each far rule
+    assert (loose * points).sum() < (plain * points).sum()
+
+
 def test_exchange_mask_rules():
     # floor (2 coplanar triangles, normal +z), a ceiling facing down, a ceiling facing up (away),
     # a black patch facing down, a wall whose tangent plane has the floor patch behind it

@@ -116,6 +116,24 @@ def test_parallel_squares_leaves_converge(d):
     assert errors[1] < 2e-4 and errors[0] > 10 * errors[1]
 
 
+def test_link_factors_within_their_tolerance_change_the_leaves_by_less(monkeypatch):
+    """The links' factors held to ``factor_tolerance`` (cheaper far-pair rules) against every
+    factor to the pair kernel's 1e-6 (``FACTOR_SHARE`` 0): the leaves move, but by less than the
+    share of the oracle's threshold each link may misplace, relative to the emitted power."""
+    from blockray.host_driver.render import hierarchical
+    scene = box_with_block()
+    share = hierarchical.FACTOR_SHARE
+    loose = render(scene, solver="hierarchical", epsilon=1e-3, tolerance=1e-11)
+    monkeypatch.setattr(hierarchical, "FACTOR_SHARE", 0.0)
+    exact = render(scene, solver="hierarchical", epsilon=1e-3, tolerance=1e-11)
+    assert loose.report["factor_tolerance"] > 0 == exact.report["factor_tolerance"]
+    assert loose.report["leaves"] == exact.report["leaves"]
+    A = loose.scene.areas[:, None]
+    change = (A * np.abs(loose.radiosity - exact.radiosity)).sum() / (A * exact.radiosity).sum()
+    print(f"leaves {loose.report['leaves']}, area-weighted change {change:.2e}")
+    assert 0 < change < share * 1e-3
+
+
 def test_perpendicular_squares():
     scene = two_squares(rectangle(np.zeros(3), Z, X, 1, 1))       # the y = 0 plane, facing +y
     result = render(scene, backend="golden", solver="hierarchical", epsilon=1e-3, tolerance=1e-10)

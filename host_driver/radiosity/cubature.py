@@ -112,10 +112,10 @@ def _centroid(T):
 
 
 @njit(cache=True)
-def _far(Tt, Tr, target, stats, P):
+def _far(Tt, Tr, target, tolerance, stats, P):
     """``A_r F_rt`` by a cubature over the receiver Tr of the point factor to Tt, with the first
-    rule whose derived bound (module doc) is within ``target`` of the value; -1.0 if none is.
-    Neither triangle may need clipping."""
+    rule whose derived bound (module doc) is within ``target`` of the value or within the absolute
+    ``tolerance`` (on ``A_r F_rt``); -1.0 if none is. Neither triangle may need clipping."""
     ntx, nty, ntz, At2 = _normal(Tt)
     nrx, nry, nrz, Ar2 = _normal(Tr)
     ctx, cty, ctz = _centroid(Tt)
@@ -130,15 +130,16 @@ def _far(Tt, Tr, target, stats, P):
     f1, mag = _lambert_terms(crx, cry, crz, nrx, nry, nrz, Tt, P)
     if not f1 > 0 or CANCELLATION * mag > target * f1:
         return -1.0             # edge-on: the point factor itself loses the target to rounding
-    if _far_bound(At, D, rho_r, 1) <= target * f1:
+    floor = tolerance / Ar      # the absolute tolerance, on the mean point factor f
+    if _far_bound(At, D, rho_r, 1) <= max(target * f1, floor):
         stats[2] += 1
         return Ar * f1
     # a rule is computed only where the bound, against the centroid's estimate of the value, looks
     # met; it is accepted only where the bound holds against its own value
     for degree, rule, weights, method in _FAR_RULES:
-        if _far_bound(At, D, rho_r, degree) <= 0.9 * target * f1:
+        if _far_bound(At, D, rho_r, degree) <= max(0.9 * target * f1, floor):
             f = _cubature(Tt, Tr, nrx, nry, nrz, rule, weights, P)
-            if f > 0 and _far_bound(At, D, rho_r, degree) <= target * f:
+            if f > 0 and _far_bound(At, D, rho_r, degree) <= max(target * f, floor):
                 stats[method] += 1
                 return Ar * f
     return -1.0

@@ -42,10 +42,11 @@ def _before(A, B):
 
 
 @njit(cache=True)
-def _pair(Ti, Tj, target, stats, P, Q):
-    """A_j F_ji (= A_i F_ij) for shooter Ti, receiver Tj; stats[method] += 1. P, Q: (4, 3) work
-    arrays. The pair is first put in a canonical order, so that (Ti, Tj) and (Tj, Ti) give the
-    same bits: reciprocity holds exactly and a pair's value can be reused for the reverse pair."""
+def _pair(Ti, Tj, target, tolerance, stats, P, Q):
+    """A_j F_ji (= A_i F_ij) for shooter Ti, receiver Tj, within ``target`` of itself or, where
+    larger, ``tolerance`` (absolute; 0: none); stats[method] += 1. P, Q: (4, 3) work arrays. The
+    pair is first put in a canonical order, so that (Ti, Tj) and (Tj, Ti) give the same bits:
+    reciprocity holds exactly and a pair's value can be reused for the reverse pair."""
     if _before(Tj, Ti):
         Ti, Tj = Tj, Ti
     nix, niy, niz, Ai2 = _normal(Ti)
@@ -59,9 +60,9 @@ def _pair(Ti, Tj, target, stats, P, Q):
         cix, ciy, ciz = _centroid(Ti)
         cjx, cjy, cjz = _centroid(Tj)
         if _radius(Tj, cjx, cjy, cjz) <= _radius(Ti, cix, ciy, ciz):
-            value = _far(Ti, Tj, target, stats, P)
+            value = _far(Ti, Tj, target, tolerance, stats, P)
         else:
-            value = _far(Tj, Ti, target, stats, P)
+            value = _far(Tj, Ti, target, tolerance, stats, P)
         if value >= 0.0:
             return value
     nP = _clip(Tj, Ti[0, 0], Ti[0, 1], Ti[0, 2], nix, niy, niz, P)     # receiver part in front of the shooter
@@ -71,7 +72,7 @@ def _pair(Ti, Tj, target, stats, P, Q):
         return 0.0
     # each edge pair held to a tenth of the pair's target (EDGE_TARGET for the reference, target 0)
     value, size, err, quadrature = _contour(P, nP, Q, nQ, 0.1 * target if target > 0.0 else EDGE_TARGET)
-    if CANCELLATION * size + err > max(target, EDGE_TARGET) * value:
+    if CANCELLATION * size + err > max(max(target, EDGE_TARGET) * value, tolerance):
         # the closed form may have lost the target to cancellation (grazing far pairs, slivers):
         # a product cubature with the cosine-free bound instead, else two high-order rules
         if target > 0.0:
@@ -93,20 +94,23 @@ def _pair(Ti, Tj, target, stats, P, Q):
 
 
 @njit(cache=True, parallel=True)
-def _pairs(shooters, receivers, target, methods):
+def _pairs(shooters, receivers, target, tolerance, methods):
     """Every pair on the thread pool: pairs are independent, each with its own work arrays and
     its own row of ``methods`` (M, len(METHODS)), so the result does not depend on the threads."""
     out = np.empty(len(shooters))
     for m in prange(len(shooters)):
         P = np.empty((4, 3))
         Q = np.empty((4, 3))
-        out[m] = _pair(shooters[m], receivers[m], target, methods[m], P, Q)
+        out[m] = _pair(shooters[m], receivers[m], target, tolerance[m], methods[m], P, Q)
     return out
 
 
-def pair_factors(shooters, receivers, *, target=FAR_TARGET, stats=None):
+def pair_factors(shooters, receivers, *, target=FAR_TARGET, tolerance=0.0, stats=None):
     """``A_j F_ji`` for shooter triangles i (M,3,3) and receiver triangles j (M,3,3) -> (M,).
 
+    Each within ``target`` of itself (relative) or, where that is larger, within ``tolerance``
+    (absolute, on ``A_j F_ji``; a scalar or (M,); 0: the relative target alone): a cheaper
+    cubature is taken wherever its derived bound meets either (docs/formfactors.md, "Far pairs").
     Symmetric in (i, j) bit for bit (the kernel puts each pair in a canonical order). ``stats``, an int64
     array of len(METHODS), counts the pairs per method. Geometry only: which side faces which
     is :func:`exchange_mask`'s business; a pair where one lies wholly behind the other's plane
@@ -115,8 +119,9 @@ def pair_factors(shooters, receivers, *, target=FAR_TARGET, stats=None):
     S = np.ascontiguousarray(np.asarray(shooters, dtype=np.float64).reshape(-1, 3, 3))
     R = np.ascontiguousarray(np.asarray(receivers, dtype=np.float64).reshape(-1, 3, 3))
     S, R = np.broadcast_arrays(S, R)
+    tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (len(S),)))
     methods = np.zeros((len(S), len(METHODS)), dtype=np.int64)
-    out = _pairs(np.ascontiguousarray(S), np.ascontiguousarray(R), float(target), methods)
+    out = _pairs(np.ascontiguousarray(S), np.ascontiguousarray(R), float(target), tol, methods)
     if stats is not None:
         stats += methods.sum(axis=0)
     return out
@@ -164,8 +169,8 @@ class PairCache:
     shooter i computed. Dense N x N float64 (NaN: not yet computed), so only for scenes of up to
     ``max_patches`` patches (73 MB at the room's 3032); larger scenes compute every column."""
 
-    def __init__(self, scene, *, target=FAR_TARGET, max_patches=5000):
-        self.target = target
+    def __init__(self, scene, *, target=FAR_TARGET, tolerance=0.0, max_patches=5000):
+        self.target, self.tolerance = target, tolerance
         N = scene.patches
         self.values = np.full((N, N), np.nan) if N <= max_patches else None
         self.computed = 0           # pairs computed (the rest were reused)
@@ -175,11 +180,12 @@ class PairCache:
         V = scene.patch_vertices
         if self.values is None:
             self.computed += len(j)
-            return pair_factors(V[i][None], V[j], target=self.target, stats=stats)
+            return pair_factors(V[i][None], V[j], target=self.target, tolerance=self.tolerance, stats=stats)
         row = self.values[i, j]
         todo = np.isnan(row)
         if todo.any():
-            row[todo] = pair_factors(V[i][None], V[j[todo]], target=self.target, stats=stats)
+            row[todo] = pair_factors(V[i][None], V[j[todo]], target=self.target, tolerance=self.tolerance,
+                                     stats=stats)
             self.computed += int(todo.sum())
             self.values[i, j] = row
             self.values[j, i] = row

@@ -27,7 +27,9 @@ E_j``; links whose visibility is certain (every counted ray clear, or every one 
 links to the children of its larger element, while that element's children are at least
 ``min_area``. Rounds: solve, refine with that solution, cast the new links, until no link
 refines. The other links of a receiver that is split move to its children (:func:`push_to_leaves`),
-so links end on leaves and a leaf's factors partition its sources.
+so links end on leaves and a leaf's factors partition its sources. The factors of new and moved
+links are held to :func:`factor_tolerance` (absolute) where that is looser than the pair kernel's
+1e-6 relative: far pairs then take a cheaper cubature whose derived bound meets it.
 
 **Solve.** Jacobi over the links with push-pull (HSA's gathering): every element gathers
 ``G_p = sum_links u_r F v S_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
@@ -78,6 +80,10 @@ STALL = 10
 
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
+
+#: Share of the refinement threshold a link's unoccluded factor may misplace: the absolute
+#: tolerance of its ``A_r F_rs`` (:func:`factor_tolerance`).
+FACTOR_SHARE = 0.1
 
 LEAF_COLUMNS = ["leaf", "patch", "level", "group", "area", "cx", "cy", "cz", "B_r", "B_g", "B_b"]
 
@@ -164,9 +170,10 @@ class Links:
                      cat([a.partial, b.partial]))
 
 
-def initial_links(scene):
-    """Every (j <- i) pair of input triangles that can exchange light, with its exact factor."""
-    cache = formfactor.PairCache(scene)
+def initial_links(scene, tolerance=0.0):
+    """Every (j <- i) pair of input triangles that can exchange light, with its factor (each
+    ``A_j F_ji`` within the pair kernel's relative target or the absolute ``tolerance``)."""
+    cache = formfactor.PairCache(scene, tolerance=tolerance)
     recv, src, F = [], [], []
     for i in range(scene.patches):
         f = formfactor.unoccluded_factors(scene, i, cache=cache)
@@ -176,11 +183,29 @@ def initial_links(scene):
     return Links(cat(recv).astype(np.int64), cat(src).astype(np.int64), cat(F).astype(np.float64))
 
 
-def element_factors(h, recv, src):
-    """Unoccluded ``F_rs`` of element pairs (the pair kernel, as the uniform render's)."""
+def link_threshold(scene, epsilon):
+    """The oracle's threshold: ``epsilon`` times the scene's emitted power ``sum_j A_j max_rgb E_j``."""
+    return epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
+
+
+def factor_tolerance(scene, threshold):
+    """The absolute tolerance on a link's ``A_r F_rs``: a link moves ``B_s A_r F_rs`` of power,
+    and no radiosity exceeds ``E_max / (1 - rho_max)`` (the Neumann series, factor sums at most
+    1), so a factor within this moves at most ``FACTOR_SHARE`` times the power the oracle lets
+    a link carry unrefined. 0 (every factor to the pair kernel's relative target) where
+    ``rho_max`` is 1 or nothing emits."""
+    emax, rho = float(scene.emission.max(initial=0.0)), float(scene.reflectance.max(initial=0.0))
+    if emax <= 0.0 or rho >= 1.0:
+        return 0.0
+    return FACTOR_SHARE * threshold * (1.0 - rho) / emax
+
+
+def element_factors(h, recv, src, tolerance=0.0):
+    """Unoccluded ``F_rs`` of element pairs (the pair kernel, as the uniform render's), each
+    ``A_r F_rs`` within the kernel's relative target or the absolute ``tolerance``."""
     if not len(recv):
         return np.zeros(0)
-    return formfactor.pair_factors(h.vertices(src), h.vertices(recv)) / h.areas[recv]
+    return formfactor.pair_factors(h.vertices(src), h.vertices(recv), tolerance=tolerance) / h.areas[recv]
 
 
 class LinkCaster:
@@ -368,9 +393,9 @@ def refine(h, links, B, threshold, min_area, max_level):
     return recv, src, links.take(~chosen)
 
 
-def push_to_leaves(h, links):
+def push_to_leaves(h, links, tolerance=0.0):
     """``links`` with every link whose receiver has children replaced by links to the children:
-    each its own exact unoccluded factor, the visible fraction the board gave the parent link.
+    each its own unoccluded factor, the visible fraction the board gave the parent link.
     So every receiver is a leaf and a leaf's factors partition its sources: the unoccluded
     factors of a leaf in a closed scene sum to 1 (not so with the ancestors' averages, which a
     leaf gathering through its ancestors' links would mix)."""
@@ -381,7 +406,7 @@ def push_to_leaves(h, links):
         moved = links.take(down)
         recv = (h.child[moved.recv][:, None] + np.arange(4)).ravel()
         src = np.repeat(moved.src, 4)
-        F = element_factors(h, recv, src)
+        F = element_factors(h, recv, src, tolerance)
         pushed = Links(recv, src, F, np.repeat(moved.vis, 4), np.repeat(moved.partial, 4)).take(F > 0)
         links = Links.join(links.take(~down), pushed)
 
@@ -572,17 +597,18 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
         make_caster = lambda h: LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
     else:
         make_caster = lambda h: SetCaster(cluster, h, board, grid, options, phases)
+    threshold = link_threshold(scene, solve.epsilon)
+    tolerance = factor_tolerance(scene, threshold)
     if resume is None:
         h = Hierarchy(scene, points)
         caster = make_caster(h)
         with phases.timed("formfactor"):
-            links = initial_links(scene)
+            links = initial_links(scene, tolerance)
         caster.cast(links)
         B, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), 0, 0, None
     else:
         h, links, B, rounds, sweeps, solved = _restore(resume, scene, points)
         caster = make_caster(h)
-    threshold = solve.epsilon * float((scene.areas * scene.emission.max(axis=1)).sum())
     while True:
         if solved is None:
             with phases.timed("solve"):
@@ -603,9 +629,9 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
         rounds += 1
         B = np.concatenate([B, B[h.parent[len(B):]]])
         with phases.timed("formfactor"):
-            F = element_factors(h, recv, src)
+            F = element_factors(h, recv, src, tolerance)
             new = Links(recv[F > 0], src[F > 0], F[F > 0])
-            kept = push_to_leaves(h, kept)
+            kept = push_to_leaves(h, kept, tolerance)
         caster.cast(new)
         links = Links.join(kept, new)
     if solve.closure == "enforce":
@@ -637,6 +663,7 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
         "tests": int(counters.get("tests", 0)),
         "absorbed_balance": [float(b) if np.isfinite(b) else None for b in balance],
         "transport_balance": result.balance,
+        "factor_tolerance": factor_tolerance(scene, link_threshold(scene, solve.epsilon)),
     }
     for name, times in (("seconds", phases.seconds), ("cpu_seconds", phases.cpu)):
         report[name] = dict(times)
