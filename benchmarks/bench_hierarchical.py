@@ -63,6 +63,7 @@ def reference_solution(name, edge, cache, samples):
     t0 = time.process_time()
     result = render(scene, backend="golden", solver="jacobi", samples=samples, tolerance=1e-6)
     seconds = time.process_time() - t0
+    os.makedirs(cache, exist_ok=True)
     np.savez(path, B=result.radiosity, seconds=seconds)
     return {"scene": scene, "B": result.radiosity, "seconds": seconds}
 
