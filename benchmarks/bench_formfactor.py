@@ -307,7 +307,30 @@ ESTIMATORS = {
     "KxK-sum": "K x K rays to j's K sample points, j's weighted by the kernel summed over i, i's by their point factor",
     "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
     "pair-draw": "one end point per pair drawn at random from j's kernel density summed over i (seeded)",
+    "pair-draw-k": "pair-draw with each ray weighted by the point-to-point kernel at its end point",
+    "both-draw-k": "both-draw with each ray weighted by the point-to-point kernel at its end point",
+    "both-draw": "i's K points drawn at random, one per stratum of equal area (shared by i's pairs), each weighted by "
+                 "its point factor to j; one end point per pair drawn from j's kernel density summed over them",
 }
+
+
+def _end_kernel(x, n_i, y, T, n_j, D):
+    """(J, K) point-to-point kernel from the shooter points x (K, 3) to each pair's end point
+    (barycentric y (J, 3) over D on triangle T[m])."""
+    Y = np.einsum("jc,jcd->jd", y / D, T)
+    return _kernel(x[None], n_i, Y[:, None], n_j[:, None])
+
+
+def _stratified(rng, T, K):
+    """K random points of triangle T (3, 3), one uniform in each of K strata of equal area: the
+    4^L sub-triangles (4^L >= K, element order) taken in K consecutive runs of equal length."""
+    L = int(np.ceil(np.log(K) / np.log(4) - 1e-9))
+    sub = _sub_triangles(T[None], L)[0]                  # (4^L, 3, 3)
+    per = len(sub) // K
+    c = np.arange(K) * per + rng.integers(0, per, K)
+    t = sub[c]
+    r1, r2 = np.sqrt(rng.random(K))[:, None], rng.random(K)[:, None]
+    return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
 
 
 def _study_scene(name):
@@ -411,6 +434,21 @@ def estimators(args):
                 y = _on_lattice(V[J], y, int(e.split("/")[1]) if "/" in e else fine)
                 for m in range(len(J)):
                     bits[m] = clear(i, W, J[m], y[m][None])[0]
+                if e == "pair-draw-k":
+                    weights = _end_kernel(X[i], nrm[i], y, V[J], nrm[J], y.sum(1)[0])
+            elif e.startswith("both-draw"):
+                x = _stratified(rng, V[i], K)
+                P_w = _on_lattice(np.repeat(V[i][None], K, axis=0), x, fine)
+                x = np.einsum("kc,cd->kd", P_w / fine, V[i])
+                g = _kernel(x[None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                y = _on_lattice(V[J], _draw(rng, V[J], g, levels), fine)
+                pf = np.stack([point_factor.point_to_triangles(x[k], nrm[i], V[J]) for k in range(K)], axis=1)
+                ahead = ((x[None] - V[J][:, :1]) * nrm[J][:, None]).sum(-1) > 0          # (J, K)
+                weights = np.where(ahead, pf, 0.0)
+                for m in range(len(J)):
+                    bits[m] = clear(i, P_w, J[m], y[m][None])[0]
+                if e == "both-draw-k":
+                    weights = _end_kernel(x, nrm[i], y, V[J], nrm[J], fine)
             elif e == "cell-centroids":     # 4 end points: each quarter of j's kernel centroid and mass
                 g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
                 cell = np.arange(SP.shape[1]) // 4 ** (levels - 1)   # _sub_centroids' order: the first cut outermost
