@@ -1,6 +1,6 @@
 """The benchmarks measure what the tests check, on the tests' own scenes, oracles and cocotb
 harness (tests/scenes.py, tests/oracles.py, tests/board_cocotb_runs.py): importing this module puts
-tests/ on the path, for the benchmarks only. No test imports a benchmark."""
+tests/ on the path, for the benchmarks only. One slow test runs a benchmark (tests/test_hard_cases.py)."""
 
 import sys
 from pathlib import Path

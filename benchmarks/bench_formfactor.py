@@ -560,7 +560,7 @@ def by_method(S, R):
     """CPU us per pair of the default pair kernel, the pairs grouped by the method that decided
     each (one kernel call per group, on the calling threads)."""
     methods = np.zeros((len(S), len(ff.METHODS)), dtype=np.int64)
-    ff._pairs(S, R, ff.FAR_TARGET, methods)
+    ff._pairs(S, R, ff.FAR_TARGET, np.zeros(len(S)), methods)
     decided = methods.argmax(axis=1)
     out = {}
     for k, name in enumerate(ff.METHODS):
@@ -568,7 +568,7 @@ def by_method(S, R):
         if len(pick):
             Si, Ri = np.ascontiguousarray(S[pick]), np.ascontiguousarray(R[pick])
             c0 = time.process_time()
-            ff._pairs(Si, Ri, ff.FAR_TARGET, np.zeros((len(pick), len(ff.METHODS)), dtype=np.int64))
+            ff._pairs(Si, Ri, ff.FAR_TARGET, np.zeros(len(pick)), np.zeros((len(pick), len(ff.METHODS)), dtype=np.int64))
             out[name] = {"pairs": len(pick), "cpu_us_per_pair": round((time.process_time() - c0) / len(pick) * 1e6, 2)}
     return out
 

@@ -7,11 +7,15 @@ Far pairs use a cubature of the exact point-to-triangle factor (:mod:`.point_fac
 two triangles instead (by reciprocity ``A_j F_ji = A_i F_ij``, either may be integrated),
 wherever a derived bound shows it within ``FAR_TARGET`` (relative): the point factor is analytic
 in the receiver point; its Taylor remainder of degree p over a ball of radius rho is at most
-``M q^(p+1) / (1 - q)`` (Cauchy, along each line through the centroid, q = rho / R) where M
-bounds the kernel on the complex ball of radius R = D / 4 around the receiver's centroid (D =
-distance to the shooter): ``M <= 8.17 / D^2`` per unit shooter area. A rule exact to degree p
-with positive weights errs by at most twice that, so
-``|error of F_ji| <= (2/pi) A_i 8.17 / D^2 q^(p+1) / (1 - q)``. The rules: centroid (degree 1),
+``M q^(p+1) / (1 - q)`` (Cauchy, along each line through the centroid c, q = rho / R) where M
+bounds it on the complex ball of radius R = k D around c (D <= the distance from c to the
+shooter). There, with s = |y - c| >= D for a shooter point y, each cosine's numerator is at most
+s + k D and |(x - y).(x - y)| >= s^2 - 2 s k D - k^2 D^2, so the kernel is at most
+``M(k) / (pi D^2)``, ``M(k) = (1 + k)^2 / (1 - 2k - k^2)^2`` (largest at s = D; 8.16 at k = 1/4),
+per unit shooter area. A rule exact to degree p with positive weights errs by at most twice the
+remainder, so ``|error of F_ji| <= (2/pi) A_i M(k) / D^2 q^(p+1) / (1 - q)``, q = rho / (k D),
+the best over k in ``_FAR_K`` (k < sqrt(2) - 1; a larger ball pays for high degrees).
+The rules: centroid (degree 1),
 Radon's 7 points (degree 5), 5 x 5 and 8 x 8 collapsed Gauss (degrees 8 and 14): the first
 whose bound, against the centroid's estimate of the value, looks met is computed, and it is
 accepted only where the bound holds against its own value.
@@ -67,13 +71,28 @@ _RULE144, _RULE144_W = _collapsed_gauss(12)     # degree 22: grazing pairs, chea
 _FAR_RULES = ((5, _RULE7, _RULE7_W, 3), (8, _RULE25, _RULE25_W, 4), (14, _RULE64, _RULE64_W, 5))
 
 
+#: the radii k D of the complex balls the far bound tries (module doc; it needs 1 - 2k - k^2 > 0)
+_FAR_K = (0.25, 0.3, 1.0 / 3.0, 0.38)
+
+
+@njit(cache=True)
+def _far_bound_at(area_i, D, rho, degree, k):
+    """The bound of :func:`_far_bound` on the complex ball of radius k D; inf where rho reaches it."""
+    q = rho / (k * D)
+    if q >= 1.0:
+        return np.inf
+    M = (1 + k) ** 2 / (1 - 2 * k - k * k) ** 2
+    return (2 / math.pi) * area_i * M / (D * D) * q ** (degree + 1) / (1 - q)
+
+
 @njit(cache=True)
 def _far_bound(area_i, D, rho, degree):
-    """Derived bound on |error of F_ji| of a positive rule exact to ``degree`` (module doc)."""
-    q = 4.0 * rho / D
-    if q >= 0.5:
-        return np.inf
-    return (2 / math.pi) * area_i * 8.17 / (D * D) * q ** (degree + 1) / (1 - q)
+    """Derived bound on |error of F_ji| of a positive rule exact to ``degree`` (module doc): the
+    best over the ball radii k D of ``_FAR_K``."""
+    best = np.inf
+    for k in _FAR_K:
+        best = min(best, _far_bound_at(area_i, D, rho, degree, k))
+    return best
 
 
 @njit(cache=True)
@@ -124,7 +143,7 @@ def _far(Tt, Tr, target, tolerance, stats, P):
     rho_r = _radius(Tr, crx, cry, crz)
     D = math.sqrt((crx - ctx) ** 2 + (cry - cty) ** 2 + (crz - ctz) ** 2) - rho_t   # <= dist(cr, Tt)
     if D <= 8 * rho_r:
-        return -1.0
+        return -1.0             # nearer, the closed form keeps its digits and costs less than 64 points
     At = 0.5 * At2
     Ar = 0.5 * Ar2
     f1, mag = _lambert_terms(crx, cry, crz, nrx, nry, nrz, Tt, P)
