@@ -283,6 +283,35 @@ def _draw(rng, T, g, levels):
     return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
 
 
+def _draw_rows(rng, T, g, levels, counts):
+    """For each triangle T[m], counts[m] random points from the density g[m] of :func:`_draw`,
+    stratified: point d from the stratum [d, d + 1) / counts[m] of its cumulative distribution
+    (as `--end-draws` does). A list of (counts[m], 3) arrays."""
+    sub = _sub_triangles(T, levels)
+    M, C = g.shape
+    p = np.where(g.sum(1, keepdims=True) > 0, g, 1.0)
+    cdf = (p / p.sum(1, keepdims=True)).cumsum(1)
+    out = []
+    for m in range(M):
+        c = counts[m]
+        u = (np.arange(c) + rng.random(c)) / c
+        cell = (cdf[m][None] < u[:, None]).sum(1).clip(0, C - 1)
+        t = sub[m, cell]
+        r1, r2 = np.sqrt(rng.random(c))[:, None], rng.random(c)[:, None]
+        out.append((1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2])
+    return out
+
+
+def _row_counts(e, light):
+    """Rows per pair of estimator ``rows-M`` (M each) or ``alloc-M`` (M on average, each pair's
+    share of the shooter's rows in proportion to the light it receives, ``light``, at least 1 and
+    at most 64)."""
+    mean = int(e.split("-")[1])
+    if e.startswith("rows-") or light.sum() <= 0:
+        return np.full(len(light), mean)
+    return np.clip(np.rint(mean * len(light) * light / light.sum()), 1, 64).astype(np.int64)
+
+
 def _on_lattice(T, y, D):
     """Integer barycentric weights (M, 3), summing to D, of a point of the 1/D lattice of
     triangle T[m] near y[m] (y on the triangle), every weight at least 1: an exact rational point
@@ -308,6 +337,9 @@ ESTIMATORS = {
     "KxK-area": "K x K rays to j's K sample points, those in front of i's plane weighted equally (area), i's by their point factor",
     "pair-draw": "one end point per pair drawn at random from j's kernel density summed over i (seeded)",
     "pair-draw-k": "pair-draw with each ray weighted by the point-to-point kernel at its end point",
+    "rows-M": "M rows per pair, row d drawn from stratum d of M of j's kernel density summed over i (--end-draws M)",
+    "alloc-M": "rows-M with M rows per pair on average, shared among i's pairs in proportion to the light each "
+               "receives (A_j F_ji; at least 1, at most 64)",
     "both-draw-k": "both-draw with each ray weighted by the point-to-point kernel at its end point",
     "both-draw": "i's K points drawn at random, one per stratum of equal area (shared by i's pairs), each weighted by "
                  "its point factor to j; one end point per pair drawn from j's kernel density summed over them",
@@ -392,6 +424,7 @@ def estimators(args):
         F[:, i] = ff.unoccluded_factors(scene, i)
     print(f"{scene.name}: {N} patches, K = {K}; exact factors done", flush=True)
     out = {e: np.zeros((N, N)) for e in args.which}
+    rays = dict.fromkeys(args.which, 0)
     for i in range(N):
         J = np.flatnonzero(F[:, i] > 0)
         if not len(J):
@@ -436,6 +469,16 @@ def estimators(args):
                     bits[m] = clear(i, W, J[m], y[m][None])[0]
                 if e == "pair-draw-k":
                     weights = _end_kernel(X[i], nrm[i], y, V[J], nrm[J], y.sum(1)[0])
+            elif e.startswith(("rows-", "alloc-")):
+                g = _kernel(SPi[i][None, :, None], nrm[i], SP[J][:, None], nrm[J][:, None, None]).sum(axis=1)
+                counts = _row_counts(e, A[J] * F[J, i])
+                rays[e] += int(counts.sum()) * K
+                v = np.zeros(len(J))
+                for m, y in enumerate(_draw_rows(rng, V[J], g, levels, counts)):
+                    b = clear(i, W, J[m], _on_lattice(np.repeat(V[J[m]][None], len(y), axis=0), y, fine))  # (rows, K)
+                    v[m] = (w[m] * b).sum() / (len(y) * w[m].sum()) if w[m].sum() > 0 else b.mean()
+                out[e][J, i] = F[J, i] * v
+                continue
             elif e.startswith("both-draw"):
                 x = _stratified(rng, V[i], K)
                 P_w = _on_lattice(np.repeat(V[i][None], K, axis=0), x, fine)
@@ -485,7 +528,7 @@ def estimators(args):
         B = jacobi(scene, out[e], tolerance=1e-9, max_iterations=5000).B
         bal = absorbed_balance(scene, B)
         print(f"| {e} | {', '.join(f'{100 * b:+.3f}%' for b in bal)} | {np.average(sums, weights=A):+.2e} "
-              f"({sums.min():+.2e}, {sums.max():+.2e}) |", flush=True)
+              f"({sums.min():+.2e}, {sums.max():+.2e}) |" + (f" {rays[e]} rays |" if rays[e] else ""), flush=True)
 
 
 def row_sums(args):
@@ -748,8 +791,8 @@ def main(argv=None):
     es.add_argument("--scene", default="block", help="block (a cube in a box, 60 patches), slab (a slab on a box's "
                     "floor, cut along its contact lines) or a closed_scenes prefix")
     es.add_argument("--samples", type=int, default=8)
-    es.add_argument("--which", nargs="+", default=list(ESTIMATORS),
-                    help=f"of {', '.join(ESTIMATORS)}; pair-centroid/N: on j's 1/N barycentric lattice")
+    es.add_argument("--which", nargs="+", default=[e for e in ESTIMATORS if not e.endswith("-M")] + ["rows-4", "alloc-4"],
+                    help=f"of {', '.join(ESTIMATORS)} (M a number); pair-centroid/N: on j's 1/N barycentric lattice")
     es.add_argument("--seed", type=int, default=1, help="pair-draw's random end points")
     es.add_argument("--shooter-levels", type=int, default=3,
                     help="pair-centroid: the kernel summed over 4^L points of the shooter (and 64 of j)")
