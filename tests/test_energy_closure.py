@@ -8,7 +8,7 @@ code under test.
 import numpy as np
 import pytest
 
-from scenes import box_with_block, closed_box, make_scene
+from scenes import box_with_block, closed_box, make_scene, rectangle
 from blockray.errors import ParameterError
 from blockray.host_driver.radiosity import closure
 from blockray.host_driver.radiosity.formfactor import form_factor_matrix
@@ -142,3 +142,42 @@ def test_cli_refuses_enforcement_on_an_open_scene(tmp_path, capsys):
     path = write(tmp_path, BOX, BOX_MTL, name="box")                     # a box without its front and top
     code, err = cli(capsys, ["render", path, "--board", "golden", "--quiet", "--closure", "enforce"])
     assert_one_line_error(code, err, "--closure enforce", "not closed")
+
+
+def _grouped(scene, groups, names):
+    scene.group, scene.group_names = np.asarray(groups, dtype=np.int64), list(names)
+    return scene
+
+
+@pytest.mark.parametrize("solver", ["jacobi", "progressive"])
+def test_balance_by_group_adds_up_to_the_absorbed_balance(solver):
+    """The report's ``balance_by_group`` (each group's shooters' ``A_i B_i (s_i - 1)`` over the
+    emitted power) on the occluded box, its walls and its floating cube as two groups: the groups
+    add up to absorbed / emitted - 1 computed in the test from B, rho and E. The imbalance is the
+    walls': the convex cube sees nothing but the box around it, unoccluded, so its shooters' sums
+    are 1 to the factors' 1e-6, while the walls' rays are what the cube hides."""
+    scene = box_with_block()
+    scene = _grouped(scene, [0] * 48 + [1] * 12, ["walls", "cube"])
+    res = render(scene, backend="golden", solver=solver, tolerance=1e-11)
+    by = res.report["balance_by_group"]
+    total = np.sum([by["walls"], by["cube"]], axis=0)
+    print(f"{solver}: by group {by}; absorbed balance {_balance(scene, res.radiosity)}")
+    assert sorted(by) == ["cube", "walls"]
+    assert np.allclose(total, _balance(scene, res.radiosity), rtol=0, atol=1e-9)
+    assert np.abs(by["cube"]).max() < 1e-6 < 1e-4 < np.abs(by["walls"]).max()
+
+
+def test_balance_by_group_splits_an_open_pair_by_symmetry():
+    """Two equal parallel squares facing each other, both emitting, open at the sides: the light
+    that escapes leaves both alike, so the two groups' shares are equal (the mirror symmetry, not
+    the code, says so), negative, and add up to the absorbed balance."""
+    bottom = rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 2, 2)            # normal +z
+    top = rectangle([0, 0, 0.5], [0, 1, 0], [1, 0, 0], 2, 2)             # normal -z
+    scene = make_scene(np.concatenate([bottom, top]), reflectance=[0.5, 0.4, 0.3], emission=1.0)
+    scene = _grouped(scene, [0] * len(bottom) + [1] * len(top), ["bottom", "top"])
+    res = render(scene, backend="golden", solver="jacobi", tolerance=1e-12)
+    by = res.report["balance_by_group"]
+    print(f"by group {by}")
+    assert np.allclose(by["bottom"], by["top"], rtol=1e-9, atol=0)
+    assert (np.array(by["bottom"]) < 0).all()
+    assert np.allclose(np.add(by["bottom"], by["top"]), _balance(scene, res.radiosity), rtol=0, atol=1e-10)

@@ -87,6 +87,7 @@ class RowSums:
     patch: int = -1
     gain: float = 0.0
     gain_patch: int = -1
+    shot: np.ndarray = field(default=None, repr=False, compare=False)  # (N,) every s_i checked, NaN if not
     _weights: tuple = field(default=None, repr=False, compare=False)   # (A, rho A) of the scene, at the first check
 
     def check(self, scene, i, F):
@@ -98,6 +99,9 @@ class RowSums:
         s, g, ok = _column_sums(np.asarray(F, dtype=np.float64), i, A, rhoA)
         if not ok:
             check_factors(i, F)
+        if self.shot is None:
+            self.shot = np.full(len(A), np.nan)
+        self.shot[i] = s
         if s > self.largest or self.patch < 0:
             self.largest, self.patch = s, int(i)
         if g > self.gain or self.gain_patch < 0:
@@ -112,7 +116,7 @@ class RowSums:
         (N, 3), summed over the receivers of host + board sets (host_driver/cluster/cluster.py)."""
         A = np.asarray(scene.areas, dtype=np.float64)
         s, g = power / A, gain.max(axis=1) / A
-        sums = cls(refuse_gain=refuse_gain)
+        sums = cls(refuse_gain=refuse_gain, shot=np.array(s, dtype=np.float64))
         if len(A):
             sums.largest, sums.patch = float(s.max()), int(np.argmax(s))
             sums.gain, sums.gain_patch = float(g.max()), int(np.argmax(g))
@@ -127,6 +131,21 @@ class RowSums:
         hint = " (form factors wrong?)" if self.largest > 1 else ""
         return (f"the largest visible row sum is patch {self.patch}'s, {self.largest:.6g}{hint}; the largest "
                 f"gain patch {self.gain_patch}'s, {self.gain:.6g}")
+
+    def balance_by_group(self, scene, B):
+        """Where the light that does not balance comes from: per OBJ group g and channel,
+        ``sum_{i in g} A_i B_i (s_i - 1)`` over the emitted power ``sum A E``. At a converged B of a
+        scene where every patch reflects, the groups add up to absorbed / emitted - 1 (absorbed
+        minus emitted power is ``sum_i A_i B_i (s_i - 1)``). ``{name: [r, g, b]}``; None if a
+        shooter's s_i is not known (a resumed solve) or nothing emits."""
+        emitted = (scene.emission * scene.areas[:, None]).sum(axis=0)
+        if self.shot is None or len(self.shot) != scene.patches or np.isnan(self.shot).any() or not (emitted > 0).all():
+            return None
+        term = scene.areas[:, None] * B * (self.shot - 1)[:, None] / emitted
+        by = np.zeros((max(len(scene.group_names), 1), 3))
+        np.add.at(by, scene.group, term)
+        names = scene.group_names or ["scene"]
+        return {names[g]: by[g].tolist() for g in np.unique(scene.group)}
 
     def summary(self):
         """The report's ``visible_row_sum``: ``{"max", "patch", "gain_max", "gain_patch"}`` (None
@@ -539,7 +558,8 @@ def solve_state(result, *, B=None, energy=None):
     return {"solver": result.solver, "B": np.array(result.B if B is None else B), "U": np.array(result.U),
             "energy": np.zeros(0) if energy is None else np.array(energy), "shots": result.shots,
             "iterations": result.iterations, "history": np.array(result.history, dtype=np.float64),
-            "row_sums": np.array([sums.largest, sums.patch, sums.gain, sums.gain_patch] if sums is not None
+            "row_sums": np.array([sums.largest, sums.patch, sums.gain, sums.gain_patch]
+                                 + ([] if sums.shot is None else list(sums.shot)) if sums is not None
                                  else [], dtype=np.float64)}
 
 
@@ -554,7 +574,9 @@ def _resume(result, state, energy=None):
     result.shots, result.iterations = int(state["shots"]), int(state["iterations"])
     result.history = [float(x) for x in state["history"]]
     if result.row_sums is not None and len(state["row_sums"]):
-        largest, patch, gain, gain_patch = state["row_sums"]
+        largest, patch, gain, gain_patch = state["row_sums"][:4]
         sums = result.row_sums
         sums.largest, sums.patch, sums.gain, sums.gain_patch = float(largest), int(patch), float(gain), int(gain_patch)
+        if len(state["row_sums"]) > 4:
+            sums.shot = np.array(state["row_sums"][4:], dtype=np.float64)
     return np.array(result.B)

@@ -327,6 +327,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "residual": float(result.residual),
         "visible_row_sum": result.row_sums.summary() if result.row_sums is not None else None,
         "absorbed_balance": _absorbed_balance(scene, result.B),
+        "balance_by_group": result.row_sums.balance_by_group(scene, result.B) if result.row_sums is not None else None,
         "seconds": seconds,
         "cpu_seconds": cpu_seconds,
         "host_seconds_per_ray": sum(seconds.get(p, 0.0) for p in ("commands", "traverse", "board")) / max(1, rays),
