@@ -270,17 +270,25 @@ def _sub_triangles(T, levels):
     return np.einsum("cvk,nkd->ncvd", level_corners(levels), T)
 
 
+def _cdf(g):
+    """(M, C) cumulative distribution of each row's density g[m] (uniform where g[m] vanishes)."""
+    p = np.where(g.sum(1, keepdims=True) > 0, g, 1.0)
+    return (p / p.sum(1, keepdims=True)).cumsum(1)
+
+
+def _uniform_in(rng, t):
+    """One uniform random point in each triangle t[m] (M, 3, 3)."""
+    r1, r2 = np.sqrt(rng.random(len(t)))[:, None], rng.random(len(t))[:, None]
+    return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
+
+
 def _draw(rng, T, g, levels):
     """One random point per triangle T[m], drawn from the piecewise-constant density g[m] over its
     4^levels sub-triangles (uniform inside the chosen one); uniform where g[m] vanishes."""
     sub = _sub_triangles(T, levels)
     M, C = g.shape
-    p = np.where(g.sum(1, keepdims=True) > 0, g, 1.0)
-    p = p / p.sum(1, keepdims=True)
-    c = (p.cumsum(1) < rng.random((M, 1))).sum(1).clip(0, C - 1)
-    t = sub[np.arange(M), c]
-    r1, r2 = np.sqrt(rng.random(M))[:, None], rng.random(M)[:, None]
-    return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
+    c = (_cdf(g) < rng.random((M, 1))).sum(1).clip(0, C - 1)
+    return _uniform_in(rng, sub[np.arange(M), c])
 
 
 def _draw_rows(rng, T, g, levels, counts):
@@ -288,17 +296,13 @@ def _draw_rows(rng, T, g, levels, counts):
     stratified: point d from the stratum [d, d + 1) / counts[m] of its cumulative distribution
     (as `--end-draws` does). A list of (counts[m], 3) arrays."""
     sub = _sub_triangles(T, levels)
-    M, C = g.shape
-    p = np.where(g.sum(1, keepdims=True) > 0, g, 1.0)
-    cdf = (p / p.sum(1, keepdims=True)).cumsum(1)
+    C = g.shape[1]
+    cdf = _cdf(g)
     out = []
-    for m in range(M):
-        c = counts[m]
+    for m, c in enumerate(counts):
         u = (np.arange(c) + rng.random(c)) / c
         cell = (cdf[m][None] < u[:, None]).sum(1).clip(0, C - 1)
-        t = sub[m, cell]
-        r1, r2 = np.sqrt(rng.random(c))[:, None], rng.random(c)[:, None]
-        out.append((1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2])
+        out.append(_uniform_in(rng, sub[m, cell]))
     return out
 
 
@@ -359,10 +363,7 @@ def _stratified(rng, T, K):
     L = int(np.ceil(np.log(K) / np.log(4) - 1e-9))
     sub = _sub_triangles(T[None], L)[0]                  # (4^L, 3, 3)
     per = len(sub) // K
-    c = np.arange(K) * per + rng.integers(0, per, K)
-    t = sub[c]
-    r1, r2 = np.sqrt(rng.random(K))[:, None], rng.random(K)[:, None]
-    return (1 - r1) * t[:, 0] + r1 * (1 - r2) * t[:, 1] + r1 * r2 * t[:, 2]
+    return _uniform_in(rng, sub[np.arange(K) * per + rng.integers(0, per, K)])
 
 
 def _study_scene(name):
