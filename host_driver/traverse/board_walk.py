@@ -30,7 +30,7 @@ from numba import njit
 from ...errors import ParameterError
 from .voxel import VoxelGrid
 
-__all__ = ["LatticeGrid", "lattice_shift"]
+__all__ = ["LatticeGrid", "lattice_shift", "walk_block"]
 
 
 def lattice_shift(extent, voxels, bits):
@@ -106,6 +106,16 @@ class LatticeGrid:
         E = np.ascontiguousarray(ends, dtype=np.int64).reshape(-1, 3)
         return _walk_blocks(S, np.asarray(start_off, dtype=np.int64), E, np.asarray(end_off, dtype=np.int64),
                             self.origin, self.shift, self.v, self.count, bool(nonempty_only))
+
+
+def walk_block(starts, ends, origin, shift, v, count, *, nonempty_only=True):
+    """One block's voxels (int64, in walk order) on the grid (``origin``, ``shift``, ``v``) whose
+    voxel table holds ``count`` records per voxel (v^3 entries): what the board's sequencer
+    streams for rows ``ends`` (R_b, 3) and columns ``starts`` (S_b, 3)."""
+    S = np.ascontiguousarray(starts, dtype=np.int64).reshape(-1, 3)
+    E = np.ascontiguousarray(ends, dtype=np.int64).reshape(-1, 3)
+    return _walk_blocks(S, np.array([0, len(S)]), E, np.array([0, len(E)]), np.asarray(origin, dtype=np.int64),
+                        int(shift), int(v), np.ascontiguousarray(count, dtype=np.int64), nonempty_only)[0]
 
 
 @njit(cache=True)

@@ -13,7 +13,7 @@ from ...board import BlockBatch, BlockBits, ranges
 
 __all__ = ["Phases", "Visibility", "visible_fraction", "TRAVERSALS", "PACKINGS"]
 
-TRAVERSALS = ("block", "ray")
+TRAVERSALS = ("block", "ray", "board")
 PACKINGS = ("voxel", "fill")
 
 
@@ -63,7 +63,9 @@ class Visibility:
     Receivers are grouped by the voxel that holds their end point (the paper's block): each group
     of at most R receivers and each chunk of at most S shooter samples is one block ray.
     ``traversal="ray"`` sends one block per ray with its 3D-DDA voxels instead (the per-ray
-    reference, for measuring what block traversal saves).
+    reference, for measuring what block traversal saves). ``traversal="board"`` packs and walks
+    the blocks as a board making its own rays does: the board's integer points
+    (``board.quantised``) on a :class:`~.board_walk.LatticeGrid` ``grid`` (board_walk.py).
     """
 
     def __init__(self, scene, board, grid, samples, *, rows, cols, traversal="block", packing="voxel",
@@ -78,6 +80,9 @@ class Visibility:
         self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
         self.weight_points = ray_weights.weight_points(scene, samples)    # the same, as the ray weights take them
         self.centroids = scene.centroids
+        self.quantised = board.quantised if traversal == "board" else None
+        if self.quantised is not None:          # the board's integer points, grouped on its lattice grid
+            self.sample_points, self.centroids = self.quantised.shooters, self.quantised.receivers
         self.end_voxel = grid.voxel_of(self.centroids)
         self.end_morton = _morton(grid.cell_of(self.centroids))
         if packing not in PACKINGS:
@@ -93,6 +98,8 @@ class Visibility:
         ``end_weights`` (barycentric, summing to the sample denominator)."""
         if end_weights is None:
             return self.centroids[receivers]
+        if self.quantised is not None:
+            return self.quantised.end_points(receivers, end_weights)
         V = self.scene.patch_vertices[receivers]
         return np.einsum("rk,rkd->rd", end_weights / self.samples.denominator, V)
 

@@ -1,0 +1,165 @@
+"""Rays made on the board, at the model level: the commands of blockray/board_rays.py (their wire
+format both ways) and the block sequencer's model (sim/sequencer.py).
+
+On cornell (the CLI's B and K = 8, the 1 x 2 and 2 x 2 boards) the host packs shooter columns
+as ``--traversal board`` does (Visibility on the lattice grid, the integer block walk). Sent as
+COLUMN and RECEIVERS through the wire format, the sequencer must make exactly the internal
+records the host sends for those blocks today (``BoardMemories.block_commands``: the same
+points, the same voxels in the same order) and the board model the same blocked bits as
+``ModelBoard.run`` of the batch. The clear fractions must equal those of ``--traversal block``
+(float rays on the float grid) exactly: both walks are conservative, so every ray is tested
+against every patch that can block it in either mode.
+"""
+
+import random
+
+import numpy as np
+import pytest
+
+from blockray.board_rays import (Column, LoadGrid, LoadSamples, RayProtocol, Receivers, column_commands,
+                                 describe, record_addresses)
+from blockray.errors import CapacityError, ParameterError
+from blockray.params import BoardParams
+from blockray.protocol import EndBlock, Identify, LoadPoints, ReadCounters, Voxel
+from blockray.samples import SampleScheme
+from blockray.sim import sequencer
+from blockray.sim.model import ModelBoard
+
+SHOOTERS = 3
+
+
+def _params(rows, cols, bits=16):
+    return BoardParams(rows=rows, cols=cols, boards=1, bits=bits, patch_depth=2048, voxel_depth=512)
+
+
+def test_commands_round_trip_the_wire_format(rng_seed):
+    rng = random.Random(rng_seed)
+    D = 21
+    proto = RayProtocol(_params(2, 2), D)
+
+    def triple():
+        a = rng.randint(0, D)
+        b = rng.randint(0, D - a)
+        return (a, b, D - a - b)
+    for _ in range(50):
+        weighted = rng.random() < 0.5
+        cmds = [LoadSamples(tuple(triple() for _ in range(rng.randint(1, 64)))),
+                LoadGrid(tuple(rng.randrange(1 << 16) for _ in range(3)), rng.randint(0, 16), rng.randint(1, 8)),
+                Column(rng.randrange(2048)), ReadCounters(),
+                Receivers(tuple((rng.randrange(2048), rng.random() < 0.5, triple() if weighted else None)
+                                for _ in range(rng.randint(1, 4)))),
+                LoadPoints(((True, 1, (5, 6, 7)),)), Voxel(rng.randrange(512)), EndBlock(), Identify()]
+        wire = proto.encode_all(cmds)
+        assert proto.decode_commands(wire) == cmds
+        assert len(wire) == sum(len(proto.encode(c)) for c in cmds)
+
+
+def test_describe_gives_the_bytes_of_the_design():
+    text = describe(_params(1, 2, 16), 21)
+    assert "| COLUMN | 12 | the shooter's record address (11 bits) | 3 |" in text        # 1 + 11 bits
+    assert "| RECEIVERS | 13 |" in text and "| 3 to 7 (weighted 5 to 15) |" in text     # 1 + 4 x 12 bits
+
+
+@pytest.mark.parametrize("command", [
+    LoadSamples(((7, 7, 8),)),                                  # sums to 22
+    LoadSamples(()),
+    LoadGrid((0, 0, 0), 17, 4),                                 # shift above B
+    LoadGrid((0, 0, 0), 4, 9),                                  # 729 voxels > voxel_depth
+    Column(2048),
+    Receivers(()),
+    Receivers(((1, True, None), (2, True, (7, 7, 7)))),         # mixed weighted and not
+])
+def test_bad_operands_are_one_error(command):
+    with pytest.raises((ParameterError, CapacityError)):
+        RayProtocol(_params(2, 2), 21).encode(command)
+
+
+class _Recorder:
+    """A board that keeps the batches the host sends it (Visibility reads ``quantised``)."""
+
+    def __init__(self, board):
+        self.board, self.quantised, self.batches = board, board.quantised, []
+
+    def run(self, batch):
+        self.batches.append(batch)
+        return self.board.run(batch)
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    from blockray.host_driver.scene.builtin import load_scene
+    return load_scene("cornell")
+
+
+def _render_columns(scene, rows, cols, traversal, shooters, voxels=5):
+    """(the board, the recording board, clear fractions) of ``shooters``' columns to every patch."""
+    from blockray.host_driver.traverse.board_walk import LatticeGrid
+    from blockray.host_driver.traverse.visibility import Visibility
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    samples = SampleScheme(8)
+    board = ModelBoard(BoardParams(rows=rows, cols=cols, boards=1, bits=None))
+    board.prepare(scene, samples)
+    grid = (LatticeGrid.for_scene(board.quantised, voxels) if traversal == "board"
+            else VoxelGrid(scene.patch_vertices, voxels, margin=board.margin))
+    board.load(grid)
+    rec = _Recorder(board)
+    vis = Visibility(scene, rec, grid, samples, rows=rows, cols=cols, traversal=traversal)
+    frac = [vis.clear_fraction(i, np.delete(np.arange(scene.patches), i)) for i in shooters]
+    return board, grid, rec, np.concatenate(frac)
+
+
+@pytest.mark.parametrize("rows,cols", [(1, 2), (2, 2)])
+def test_sequencer_makes_the_hosts_blocks_and_bits(cornell, rows, cols, rng_seed):
+    shooters = random.Random(rng_seed).sample(range(cornell.patches), SHOOTERS)
+    board, grid, rec, frac = _render_columns(cornell, rows, cols, "board", shooters)
+    q, params, memory = board.quantised, board.params, board.memory
+    proto = RayProtocol(params, q.D)
+    address = record_addresses(memory.memories[0]["patch"], cornell.patches)
+    model = board.board_model(0)
+    setup = [LoadSamples(tuple(map(tuple, SampleScheme(8).weights.tolist()))), LoadGrid((0, 0, 0), grid.shift, grid.v)]
+    for batch in rec.batches:
+        wire = proto.encode_all(setup + column_commands(batch, address, 8, cols))
+        result, records = sequencer.execute(model, proto.decode_commands(wire), q.D)
+        assert records == [c for block in batch for c in memory.block_commands(block)]
+        bits = board.run(batch)
+        assert result.words == [sum(1 << k for k, x in enumerate(bits[b].ravel()) if x) for b in range(len(batch))]
+    assert 0 < frac.mean() < 1                                  # blocked and clear rays both occur
+    _, _, _, float_frac = _render_columns(cornell, rows, cols, "block", shooters)
+    assert np.array_equal(frac, float_frac)
+
+
+@pytest.mark.parametrize("voxels", [5, 16])
+def test_every_blocking_patch_is_in_a_voxel_of_its_block(cornell, voxels, rng_seed):
+    """Conservative on cornell: for every ray of the blocks of a few columns, each patch that
+    blocks it (the exact predicate against every patch of the scene) is registered in a voxel the
+    block streams; and the clear fractions equal those of the float traversal."""
+    from blockray.exact import blocked_block
+    shooters = random.Random(rng_seed).sample(range(cornell.patches), 2)
+    board, grid, rec, frac = _render_columns(cornell, 2, 2, "board", shooters, voxels)
+    q = board.quantised
+    held = [set(grid.patches[grid.start[i]:grid.start[i] + grid.count[i]].tolist()) for i in range(grid.voxels)]
+    hits = 0
+    for batch in rec.batches:
+        for block in batch:
+            blocked = blocked_block(q.shooters[block.shooter_patch, block.shooter_sample],
+                                    q.end_points(block.receiver_patch), q.vertices, q.normals)
+            streamed = set().union(*(held[i] for i in block.voxels))
+            hits += int(blocked.sum())
+            assert set(np.flatnonzero(blocked.any(axis=(0, 1))).tolist()) <= streamed
+    assert hits > 100
+    _, _, _, float_frac = _render_columns(cornell, 2, 2, "block", shooters, voxels)
+    assert np.array_equal(frac, float_frac)
+
+
+def test_sequencer_refuses_ill_formed_streams():
+    from blockray.sim.model import BoardModel
+    params = _params(1, 2)
+    model = BoardModel(params)
+    seq = sequencer.BlockSequencer(params, 21)
+    with pytest.raises(ParameterError):
+        seq.feed(Column(0), model)                                  # before LOAD_SAMPLES
+    seq.feed(LoadSamples(((7, 7, 7),)), model)
+    seq.feed(LoadGrid((0, 0, 0), 14, 4), model)
+    seq.feed(Column(0), model)
+    with pytest.raises(ParameterError):
+        seq.feed(Receivers(((0, False, None), (1, True, None))), model)     # a run of 2 rows on R = 1
