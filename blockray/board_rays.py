@@ -11,6 +11,10 @@ The board's block sequencer (the model: :mod:`blockray.sim.sequencer`) makes fro
 internal records the host sends today (BEGIN_BLOCK, LOAD_POINTS, VOXEL, END_BLOCK): a run times
 each chunk of S of the K samples is one block, as ``Visibility._pair_blocks`` packs them.
 
+The weights are :data:`WEIGHT_BITS` wide whatever the scheme (its D is their sum, at most
+:data:`MAX_DENOMINATOR`), so a board is built for B and its memories only, as today, and learns D
+from ``LOAD_SAMPLES``.
+
 Wire format: a header byte (bits 3:0 the opcode, 10 to 13, after :class:`~blockray.protocol.Op`'s;
 RECEIVERS: bits 5:4 = slots - 1, bit 6 = weighted), then the operands' bits, least significant
 first, padded to whole bytes. LOAD_SAMPLES's operands start with K - 1 (6 bits), so its length
@@ -30,11 +34,10 @@ from amaranth.lib import data
 from amaranth.utils import bits_for
 
 from .errors import CapacityError, ParameterError
-from .points import PointArithmetic
 from .protocol import BoardProtocol, Op
 from .records import pack, point_layout, unpack
 
-__all__ = ["RayOp", "RECEIVERS_PER_COMMAND", "MAX_SAMPLES", "MAX_GRID", "LoadSamples", "LoadGrid", "Column",
+__all__ = ["RayOp", "RECEIVERS_PER_COMMAND", "MAX_SAMPLES", "MAX_GRID", "MAX_DENOMINATOR", "WEIGHT_BITS", "LoadSamples", "LoadGrid", "Column",
            "Receivers", "RAY_COMMANDS", "RayProtocol", "record_addresses", "column_commands", "describe"]
 
 
@@ -52,6 +55,10 @@ RECEIVERS_PER_COMMAND = 4
 MAX_SAMPLES = 64
 #: voxels per axis of the lattice grid (as the host's VoxelGrid)
 MAX_GRID = 256
+#: the largest sample denominator D = 3 p e: p = 11 for K <= 64, the end lattice e <= 16 (``SampleScheme``)
+MAX_DENOMINATOR = 3 * 11 * 16
+#: bits of a weight (0 .. D)
+WEIGHT_BITS = MAX_DENOMINATOR.bit_length()
 
 
 @dataclass(frozen=True)
@@ -99,15 +106,13 @@ def _nbytes(bits):
 
 
 class RayProtocol:
-    """Layouts and wire format of the commands above for one board configuration ``params`` and
-    the sample denominator D (``denominator``); the board's other commands through
-    :class:`~blockray.protocol.BoardProtocol` (``board``)."""
+    """Layouts and wire format of the commands above for one board configuration ``params``; the
+    board's other commands through :class:`~blockray.protocol.BoardProtocol` (``board``)."""
 
-    def __init__(self, params, denominator):
+    def __init__(self, params):
         self.board = BoardProtocol(params)
-        self.arithmetic = PointArithmetic(params.bits, denominator)
-        self.params, self.denominator = params, denominator
-        weight = data.ArrayLayout(unsigned(self.arithmetic.weight_bits), 3)
+        self.params = params
+        weight = data.ArrayLayout(unsigned(WEIGHT_BITS), 3)
         address = unsigned(self.board.address_width)
         self.count_width = bits_for(MAX_SAMPLES - 1)
         self.weight_layout = weight
@@ -120,11 +125,11 @@ class RayProtocol:
 
     # -- encoding --------------------------------------------------------------------------------
 
-    def _check_weights(self, w):
+    def _check_weights(self, w, D=None):
         w = tuple(int(x) for x in w)
-        if len(w) != 3 or min(w) < 0 or sum(w) != self.denominator:
-            raise ParameterError(f"a weight triple must be three integers >= 0 summing to D = {self.denominator}, "
-                                 f"not {w}")
+        if len(w) != 3 or min(w) < 0 or not 1 <= sum(w) <= MAX_DENOMINATOR or sum(w) != (D or sum(w)):
+            raise ParameterError(f"a weight triple must be three integers >= 0 summing to D "
+                                 f"({D or f'1 to {MAX_DENOMINATOR}'}), not {w}")
         return w
 
     def _operands(self, command):
@@ -135,7 +140,8 @@ class RayProtocol:
             if not 1 <= k <= MAX_SAMPLES:
                 raise ParameterError(f"LOAD_SAMPLES carries 1 to {MAX_SAMPLES} weight triples, not {k}")
             layout = data.ArrayLayout(self.weight_layout, k)
-            bits = pack(layout, [list(self._check_weights(w)) for w in command.weights])
+            D = sum(self._check_weights(command.weights[0]))
+            bits = pack(layout, [list(self._check_weights(w, D)) for w in command.weights])
             return int(command.op), (k - 1) | bits << self.count_width, self.count_width + layout.size
         if command.op is RayOp.LOAD_GRID:
             if not 0 <= command.shift <= p.bits or not 1 <= command.v <= MAX_GRID or command.v ** 3 > p.voxel_depth:
@@ -192,7 +198,15 @@ class RayProtocol:
 
     def decode_commands(self, stream):
         """The typed commands of a wire-format byte string holding commands of both modules."""
-        stream, out, i = bytes(stream), [], 0
+        out, ends = self.decode_prefix(stream)
+        if (ends[-1] if ends else 0) < len(stream):
+            raise ParameterError(f"byte {ends[-1] if ends else 0}: a command is cut off by the stream's end")
+        return out
+
+    def decode_prefix(self, stream):
+        """``(commands, ends)``: the complete commands at the start of ``stream`` and the offset
+        after each (a command cut off at the end is left for more bytes)."""
+        stream, out, ends, i = bytes(stream), [], [], 0
         while i < len(stream):
             header = stream[i]
             if header & 0xF not in RAY_COMMANDS:             # one of blockray.protocol's
@@ -200,18 +214,24 @@ class RayProtocol:
                     n = self.board.command_bytes(Op(header & 0xF), (header >> 4 & 3) + 1)
                 except ValueError:
                     raise ParameterError(f"byte {i}: {header:#04x} is not a command header") from None
+                if i + n > len(stream):
+                    break
                 out += self.board.decode_commands(stream[i:i + n])
                 i += n
+                ends.append(i)
                 continue
             op = RayOp(header & 0xF)
             weighted, slots = bool(header >> 6 & 1), (header >> 4 & 3) + 1
-            samples = stream[i + 1] % (1 << self.count_width) + 1 if op is RayOp.LOAD_SAMPLES and i + 1 < len(stream) else 1
+            if op is RayOp.LOAD_SAMPLES and i + 1 == len(stream):
+                break                                       # its length is in its first payload byte
+            samples = stream[i + 1] % (1 << self.count_width) + 1 if op is RayOp.LOAD_SAMPLES else 1
             n = self.command_bytes(op, slots, weighted=weighted, samples=samples)
             if i + n > len(stream):
-                raise ParameterError(f"byte {i}: {op.name} needs {n - 1} payload bytes, the stream ends first")
+                break
             out.append(self._command(op, int.from_bytes(stream[i + 1:i + n], "little"), slots, weighted, samples))
             i += n
-        return out
+            ends.append(i)
+        return out, ends
 
     def _command(self, op, bits, slots, weighted, samples):
         if op is RayOp.LOAD_SAMPLES:
@@ -283,11 +303,11 @@ def _flush(slots):
     return out
 
 
-def describe(params, denominator):
+def describe(params):
     """Markdown: the commands of rays made on the board, their operands and bytes for ``params``
-    and D (docs/board-protocol.md, "Rays made on the board")."""
-    proto = RayProtocol(params, denominator)
-    a, w = proto.board.address_width, proto.arithmetic.weight_bits
+    (docs/board-protocol.md, "Rays made on the board")."""
+    proto = RayProtocol(params)
+    a, w = proto.board.address_width, WEIGHT_BITS
     rows = [("LOAD_SAMPLES", f"K - 1 ({proto.count_width} bits), K weight triples ({w} bits each)",
              f"{proto.command_bytes(RayOp.LOAD_SAMPLES, samples=1)} to {proto.command_bytes(RayOp.LOAD_SAMPLES)}"),
             ("LOAD_GRID", "origin (3 x B bits), shift e (edge 2^e), v (voxels per axis)",
@@ -298,7 +318,7 @@ def describe(params, denominator):
              " to ".join(str(proto.command_bytes(RayOp.RECEIVERS, n)) for n in (1, RECEIVERS_PER_COMMAND))
              + " (weighted " + " to ".join(str(proto.command_bytes(RayOp.RECEIVERS, n, weighted=True))
                                          for n in (1, RECEIVERS_PER_COMMAND)) + ")")]
-    out = [f"Parameters: `{params!r}`, D = {denominator}", "",
+    out = [f"Parameters: `{params!r}`", "",
            "| command | op | operands | bytes on the link |", "|---|---|---|---|"]
     out += [f"| {name} | {RayOp[name].value} | {ops} | {n} |" for name, ops, n in rows]
     return "\n".join(out) + "\n"

@@ -175,8 +175,9 @@ def _render_parser(sub):
                    help="voxels per axis (default: chosen from the paper's cost model)")
     p.add_argument("--samples", type=_positive_int, default=8, metavar="K",
                    help="sample points per shooter patch (rays per patch pair)")
-    p.add_argument("--traversal", default="block", choices=["block", "ray"],
-                   help="block-ray traverse (default) or per-ray 3D-DDA")
+    p.add_argument("--traversal", default="block", choices=["block", "ray", "board"],
+                   help="block-ray traverse (default), per-ray 3D-DDA, or blocks made on the board (integer "
+                        "block walk on the lattice; COLUMN/RECEIVERS commands on a driven board: model-link)")
     p.add_argument("--packing", default="voxel", choices=["voxel", "fill"],
                    help="receivers of a block: those whose end points share a voxel (the paper; default) "
                         "or runs of R receivers in Z-order of their voxels (fills every array row)")

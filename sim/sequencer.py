@@ -19,6 +19,7 @@ from ..board_rays import RayOp, RayProtocol
 from ..errors import ParameterError
 from ..host_driver.traverse.board_walk import walk_block
 from ..memory import load_points_commands
+from ..points import PointArithmetic
 from ..protocol import BeginBlock, EndBlock, Op, Voxel
 from .points import point_of
 
@@ -26,15 +27,27 @@ __all__ = ["BlockSequencer", "execute"]
 
 
 class BlockSequencer:
-    """The sequencer of one board built for ``params`` and the sample denominator D
-    (``denominator``). :meth:`feed` takes one command at a time; its state (weights, grid, the
-    column's points, the open run) persists between calls, as the board's between link frames."""
+    """The sequencer of one board built for ``params``. :meth:`feed` takes one command at a time;
+    its state (weights and their D, grid, the column's points, the open run) persists between
+    calls, as the board's between link frames."""
 
-    def __init__(self, params, denominator):
-        self.protocol = RayProtocol(params, denominator)        # checks B and D
-        self.params, self.arithmetic = params, self.protocol.arithmetic
-        self.weights = self.grid = self.column = None
+    def __init__(self, params):
+        self.protocol = RayProtocol(params)
+        self.params = params
+        self.weights = self.arithmetic = self.grid = self.column = None
         self.rows = []
+
+    def expand(self, commands, memory):
+        """The internal records of ``commands`` in order. A memory write is executed on ``memory``
+        (a :class:`~blockray.sim.model.BoardModel`) at once, so the commands after it read memory
+        as written so far; it stays among the records (executed again in order: a write is
+        idempotent)."""
+        records = []
+        for cmd in commands:
+            if cmd.op in (Op.WRITE_PATCH, Op.WRITE_VOXEL):
+                memory.execute([cmd])
+            records += self.feed(cmd, memory)
+        return records
 
     def feed(self, command, memory):
         """The internal records of ``command``, reading patch memory and the voxel table of
@@ -44,6 +57,7 @@ class BlockSequencer:
             return [command]
         if op is RayOp.LOAD_SAMPLES:
             self.weights = [tuple(int(x) for x in w) for w in command.weights]
+            self.arithmetic = PointArithmetic(self.params.bits, sum(self.weights[0]))   # D: the weights' sum
             self.column = None
         elif op is RayOp.LOAD_GRID:
             self.grid = (tuple(command.origin), command.shift, command.v)
@@ -90,15 +104,9 @@ class BlockSequencer:
         return out
 
 
-def execute(model, commands, denominator):
+def execute(model, commands):
     """Run a stream of both kinds of command on :class:`~blockray.sim.model.BoardModel` ``model``
     through a new sequencer. Returns ``(ExecResult, records)``: the model's result of the internal
     records, and the records."""
-    seq, records = BlockSequencer(model.params, denominator), []
-    for cmd in commands:
-        if cmd.op in (Op.WRITE_PATCH, Op.WRITE_VOXEL):
-            # now, so the sequencer reads memory as written so far; executed again in order below
-            # (a write is idempotent)
-            model.execute([cmd])
-        records += seq.feed(cmd, model)
+    records = BlockSequencer(model.params).expand(commands, model)
     return model.execute(records), records

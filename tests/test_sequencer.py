@@ -35,7 +35,7 @@ def _params(rows, cols, bits=16):
 def test_commands_round_trip_the_wire_format(rng_seed):
     rng = random.Random(rng_seed)
     D = 21
-    proto = RayProtocol(_params(2, 2), D)
+    proto = RayProtocol(_params(2, 2))
 
     def triple():
         a = rng.randint(0, D)
@@ -55,13 +55,14 @@ def test_commands_round_trip_the_wire_format(rng_seed):
 
 
 def test_describe_gives_the_bytes_of_the_design():
-    text = describe(_params(1, 2, 16), 21)
+    text = describe(_params(1, 2, 16))
     assert "| COLUMN | 12 | the shooter's record address (11 bits) | 3 |" in text        # 1 + 11 bits
-    assert "| RECEIVERS | 13 |" in text and "| 3 to 7 (weighted 5 to 15) |" in text     # 1 + 4 x 12 bits
+    assert "| RECEIVERS | 13 |" in text and "| 3 to 7 (weighted 7 to 22) |" in text     # 1 + 4 x 12 bits; weighted 4 x 42
 
 
 @pytest.mark.parametrize("command", [
-    LoadSamples(((7, 7, 8),)),                                  # sums to 22
+    LoadSamples(((7, 7, 8), (7, 7, 7))),                        # sums to 22, then 21
+    LoadSamples(((600, 0, 0),)),                                # D above 528
     LoadSamples(()),
     LoadGrid((0, 0, 0), 17, 4),                                 # shift above B
     LoadGrid((0, 0, 0), 4, 9),                                  # 729 voxels > voxel_depth
@@ -71,7 +72,7 @@ def test_describe_gives_the_bytes_of_the_design():
 ])
 def test_bad_operands_are_one_error(command):
     with pytest.raises((ParameterError, CapacityError)):
-        RayProtocol(_params(2, 2), 21).encode(command)
+        RayProtocol(_params(2, 2)).encode(command)
 
 
 class _Recorder:
@@ -113,13 +114,13 @@ def test_sequencer_makes_the_hosts_blocks_and_bits(cornell, rows, cols, rng_seed
     shooters = random.Random(rng_seed).sample(range(cornell.patches), SHOOTERS)
     board, grid, rec, frac = _render_columns(cornell, rows, cols, "board", shooters)
     q, params, memory = board.quantised, board.params, board.memory
-    proto = RayProtocol(params, q.D)
+    proto = RayProtocol(params)
     address = record_addresses(memory.memories[0]["patch"], cornell.patches)
     model = board.board_model(0)
     setup = [LoadSamples(tuple(map(tuple, SampleScheme(8).weights.tolist()))), LoadGrid((0, 0, 0), grid.shift, grid.v)]
     for batch in rec.batches:
         wire = proto.encode_all(setup + column_commands(batch, address, 8, cols))
-        result, records = sequencer.execute(model, proto.decode_commands(wire), q.D)
+        result, records = sequencer.execute(model, proto.decode_commands(wire))
         assert records == [c for block in batch for c in memory.block_commands(block)]
         bits = board.run(batch)
         assert result.words == [sum(1 << k for k, x in enumerate(bits[b].ravel()) if x) for b in range(len(batch))]
@@ -155,7 +156,7 @@ def test_sequencer_refuses_ill_formed_streams():
     from blockray.sim.model import BoardModel
     params = _params(1, 2)
     model = BoardModel(params)
-    seq = sequencer.BlockSequencer(params, 21)
+    seq = sequencer.BlockSequencer(params)
     with pytest.raises(ParameterError):
         seq.feed(Column(0), model)                                  # before LOAD_SAMPLES
     seq.feed(LoadSamples(((7, 7, 7),)), model)
@@ -163,3 +164,31 @@ def test_sequencer_refuses_ill_formed_streams():
     seq.feed(Column(0), model)
     with pytest.raises(ParameterError):
         seq.feed(Receivers(((0, False, None), (1, True, None))), model)     # a run of 2 rows on R = 1
+
+
+# -- --traversal board through the CLI ------------------------------------------------------------
+
+def _csv(capsys, tmp_path, *args):
+    import clirun
+    out = tmp_path / f"{'-'.join(args)}.csv"
+    code, err = clirun.cli(capsys, ["render", "cornell", "--rows", "2", "--cols", "2", "--boards", "1",
+                                    "--max-shots", "4", "--quiet", "--patches", out, *args])
+    assert code == 0, err
+    return out.read_bytes()
+
+
+def test_board_traversal_renders_equal_the_block_traversal(capsys, tmp_path):
+    """model (the host sends the integer walk's blocks), model-link (it sends COLUMN and
+    RECEIVERS; the sequencer makes the blocks behind the link) and --traversal block: one CSV."""
+    block = _csv(capsys, tmp_path, "--board", "model", "--traversal", "block")
+    assert _csv(capsys, tmp_path, "--board", "model", "--traversal", "board") == block
+    assert _csv(capsys, tmp_path, "--board", "model-link", "--traversal", "board") == block
+
+
+@pytest.mark.parametrize("args,needle", [(["--board", "golden"], "integer grid"),
+                                         (["--board", "model-link", "--boards", "2"], "one board")])
+def test_board_traversal_refuses_boards_that_cannot_make_rays(capsys, tmp_path, args, needle):
+    import clirun
+    code, err = clirun.cli(capsys, ["render", "cornell", "--rows", "2", "--cols", "2", "--boards", "1",
+                                    "--max-shots", "1", "--quiet", "--traversal", "board", *args])
+    clirun.assert_one_line_error(code, err, needle)

@@ -15,11 +15,18 @@ the two snapshots minus one (the earlier ``READ_COUNTERS``'s own cycle, docs/boa
 its tests the difference; ``load_cycles_per_board`` is the first snapshot minus IDENTIFY's cycle.
 From these the driver forms exactly the model's report (:class:`~blockray.board.CountingBoard`).
 ``link`` in the report counts the bytes on the links.
+
+Rays made on the board (``--traversal board``: :meth:`load` given a
+:class:`~blockray.host_driver.traverse.board_walk.LatticeGrid`): the load also sends LOAD_SAMPLES
+and LOAD_GRID, and each batch goes as COLUMN and RECEIVERS commands (:mod:`blockray.board_rays`)
+instead of its blocks' points and voxels; the board makes the same blocks. One board (P = 1),
+whose transport's board takes those commands (``makes_rays``: the model's).
 """
 
 import numpy as np
 
-from ...board import CountingBoard
+from ...board import BlockBatch, CountingBoard
+from ...board_rays import LoadGrid, LoadSamples, RayProtocol, column_commands, record_addresses
 from ...cell import Cell, check_cell
 from ...errors import CapacityError, ParameterError, option
 from ...fixedpoint import DEFAULT_MAX_ERROR
@@ -27,6 +34,7 @@ from ...memory import BoardMemories, check_partition
 from ...params import BoardParams
 from ...protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
+from ..traverse.board_walk import LatticeGrid
 from .framed import integrity_report
 from .transport import TransportError
 
@@ -50,6 +58,16 @@ def _decode(protocol, b, transport, data):
     except ParameterError as e:
         where = getattr(transport, "where", "the link")
         raise TransportError(f"board {b} ({where}): a corrupted result: {e}") from None
+
+
+def _makes_rays(transport):
+    """Whether the board behind ``transport`` (through the link's wrappers) takes the commands of
+    rays made on the board."""
+    while transport is not None:
+        if getattr(transport, "makes_rays", False):
+            return True
+        transport = getattr(transport, "pipe", None) or getattr(transport, "core", None)
+    return False
 
 
 class BoardDriver(CountingBoard):
@@ -88,6 +106,7 @@ class BoardDriver(CountingBoard):
         # with the filtered cell the drain of a batch's last END_BLOCK depends on the data: the
         # report counts its least (the boards' own cycles are exact)
         self._quantise(scene, samples)
+        self._samples = samples
 
     def load(self, grid):
         if self.quantised is None:
@@ -107,7 +126,10 @@ class BoardDriver(CountingBoard):
         self._bytes_sent = self._bytes_received = 0
         self.transports = [self._open(self.board_params, b) for b in range(p.boards)]
         self.identities = self.identify()
-        batches = [self.protocol.encode_all(mem.load_commands(b)) + self._read_counters for b in range(p.boards)]
+        self.rays = self._rays_on_board(grid) if isinstance(grid, LatticeGrid) else None
+        setup = b"" if self.rays is None else self.rays.encode_all(
+            [LoadSamples(tuple(map(tuple, self._samples.weights.tolist()))), LoadGrid(tuple(grid.origin), grid.shift, grid.v)])
+        batches = [self.protocol.encode_all(mem.load_commands(b)) + setup + self._read_counters for b in range(p.boards)]
         snaps = self._exchange(batches, blocks=0)
         self._last = {name: snaps[name] for name in ("cycles", "tests_issued", "tests_useful")}
         self.load_cycles = [int(c) - 1 for c in snaps["cycles"]]          # minus IDENTIFY's own cycle
@@ -120,7 +142,11 @@ class BoardDriver(CountingBoard):
         p = self.params
         for block in blocks:
             self.check_block(block)
-        wire = b"".join(self.protocol.encode_all(self.memory.block_commands(b)) for b in blocks)
+        if self.rays is None:
+            wire = b"".join(self.protocol.encode_all(self.memory.block_commands(b)) for b in blocks)
+        else:
+            wire = self.rays.encode_all(column_commands(BlockBatch.from_blocks(blocks), self._address,
+                                                        self._samples.count, p.cols))
         snaps, words = self._exchange([wire + self._read_counters] * p.boards, blocks=len(blocks))
         diff = {name: snaps[name] - self._last[name] for name in self._last}
         self._last = snaps
@@ -137,6 +163,21 @@ class BoardDriver(CountingBoard):
                 ored[k] |= w
         bits = blocked_bits(ored, p.rows, p.cols)
         return [bits[k, :len(bl.receiver_patch), :len(bl.shooter_patch)].copy() for k, bl in enumerate(blocks)]
+
+    def _rays_on_board(self, grid):
+        """The protocol of rays made on the board, once every board can take it; each patch's
+        record address."""
+        if getattr(self._samples, "drawn", False):
+            raise ParameterError(f"{option('traversal')} board loads one sample scheme for every patch, not "
+                                 f"points drawn per patch")
+        if self.params.boards != 1:
+            raise CapacityError(f"{option('traversal')} board needs one board ({option('boards')} 1): a board "
+                                f"makes rays from the patch records it holds")
+        if not all(_makes_rays(t) for t in self.transports):
+            raise CapacityError(f"{option('traversal')} board needs a board that makes its rays (the model's: "
+                                f"{option('backend')} model-link), not {self.name}")
+        self._address = record_addresses(self.memory.memories[0]["patch"], len(self.quantised.vertices))
+        return RayProtocol(self.board_params)
 
     def counters(self):
         out = super().counters()

@@ -217,11 +217,16 @@ class ModelTransport(_Buffered):
     """The bit-exact model behind the link: decodes the command bytes, runs
     :meth:`BoardModel.execute <blockray.sim.model.BoardModel.execute>`, encodes its results.
     Counter snapshots are cumulative since the last reset, as the board's; ``stalls`` is 0 (the
-    model has no host timing)."""
+    model has no host timing). It makes rays on the board (``makes_rays``): the commands of
+    :mod:`blockray.board_rays` go through the block sequencer's model
+    (:class:`~blockray.sim.sequencer.BlockSequencer`)."""
+
+    makes_rays = True
 
     def __init__(self, params, *, vcd=None, cell=Cell()):
         import functools
 
+        from ...board_rays import RayProtocol
         from ...protocol import BoardProtocol
         from ...sim.model import BoardModel
 
@@ -230,6 +235,7 @@ class ModelTransport(_Buffered):
         super().__init__()
         self.params = params
         self.protocol = BoardProtocol(params)
+        self._commands = RayProtocol(params)           # decodes both kinds of command
         self._model = functools.partial(BoardModel, cell=cell)
         self._out = bytearray()
         self.reset()
@@ -253,13 +259,13 @@ class ModelTransport(_Buffered):
         from ...protocol import BoardResult, Op, ResultKind
 
         self._out += data
-        cmds, ends = self.protocol.decode_prefix(self._out)
+        cmds, ends = self._commands.decode_prefix(self._out)
         del self._out[:ends[-1] if ends else 0]
         self._decoded += cmds
         last = len(self._decoded) if whole else 1 + max(
             (k for k, c in enumerate(self._decoded) if c.op in (Op.READ_COUNTERS, Op.IDENTIFY)), default=-1)
         cmds, self._decoded = self._decoded[:last], self._decoded[last:]
-        res = self.board.execute(cmds)
+        res = self.board.execute(self.sequencer.expand(cmds, self.board))
         out = bytearray()
         for r in res.results:
             if r.kind is ResultKind.COUNTERS:
@@ -271,7 +277,9 @@ class ModelTransport(_Buffered):
         return bytes(out)
 
     def reset(self):
+        from ...sim.sequencer import BlockSequencer
         self.board = self._model(self.params)
+        self.sequencer = BlockSequencer(self.params)
         self._base = {"cycles": 0, "busy": 0, "tests_issued": 0, "tests_useful": 0}
         self._out.clear()
         self._decoded = []          # complete commands not yet executed

@@ -28,6 +28,7 @@ from ..cluster.scaleout import check_sets, combine_counters, exchange_bytes_per_
 from ..traverse.endpoints import EndPoints
 from ..traverse.visibility import TRAVERSALS, Phases, Visibility, _morton, visible_fraction
 from ..traverse.voxel import VoxelGrid
+from ..traverse.board_walk import board_grid
 from ..traverse.cost import TraversalStats, default_voxels
 
 __all__ = ["RenderResult", "RenderOptions", "make_board", "Visibility", "render", "SOLVERS", "TRAVERSALS"]
@@ -126,7 +127,8 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
     voxels_hardware = default_voxels(scene.patches, parallelism=params.processors * params.boards)
     voxels = ray.voxels or default_voxels(scene.patches, parallelism=1)
     with phases.timed("voxelise"):
-        grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
+        grid = (board_grid(board, voxels) if ray.traversal == "board"           # the board makes the rays
+                else VoxelGrid(scene.patch_vertices, voxels, margin=board.margin))
     run = _Run(scene=scene, board=board, options=options, params=params, phases=phases, t_start=t_start,
                voxels=voxels, voxels_hardware=voxels_hardware, checkpoint=checkpoint, resume=resume)
     if options.run.distributed:

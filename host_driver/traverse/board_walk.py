@@ -27,10 +27,10 @@ import math
 import numpy as np
 from numba import njit
 
-from ...errors import ParameterError
+from ...errors import ParameterError, option
 from .voxel import VoxelGrid
 
-__all__ = ["LatticeGrid", "lattice_shift", "walk_block"]
+__all__ = ["LatticeGrid", "lattice_shift", "walk_block", "board_grid"]
 
 
 def lattice_shift(extent, voxels, bits):
@@ -48,7 +48,7 @@ class LatticeGrid:
     integer corner of voxel (0, 0, 0). Every vertex must lie inside [origin, origin + v 2^e].
     Offers what :class:`~blockray.memory.BoardMemories` and the host's block packing read of a grid
     (``v``, ``count``, ``start``, ``patches``, ``voxels``, ``voxel_of``, ``cell_of``,
-    ``traverse_blocks``), with integer points.
+    ``traverse_blocks``, ``rays_counts``), with integer points.
     """
 
     def __init__(self, q, *, shift, v, origin=(0, 0, 0)):
@@ -97,6 +97,12 @@ class LatticeGrid:
         """The voxels the segment p -> q (integer points) touches, in walk order."""
         return self.traverse_blocks([p], [0, 1], [q], [0, 1])[0]
 
+    def rays_counts(self, P, Q):
+        """Per segment P[i] -> Q[i]: the voxels it visits and the records they hold (the traversal
+        statistics' per-ray walk)."""
+        one = np.arange(len(P) + 1)
+        return self.traverse_blocks(P, one, Q, one)[2:]
+
     def traverse_blocks(self, starts, start_off, ends, end_off, *, nonempty_only=False):
         """Block rays b = (starts[start_off[b]:start_off[b+1]], ends[end_off[b]:end_off[b+1]]),
         integer points. Returns ``(voxels, offsets, visited, tests)`` as
@@ -106,6 +112,15 @@ class LatticeGrid:
         E = np.ascontiguousarray(ends, dtype=np.int64).reshape(-1, 3)
         return _walk_blocks(S, np.asarray(start_off, dtype=np.int64), E, np.asarray(end_off, dtype=np.int64),
                             self.origin, self.shift, self.v, self.count, bool(nonempty_only))
+
+
+def board_grid(board, voxels):
+    """``--traversal board``'s grid: :meth:`LatticeGrid.for_scene` of the board's quantised scene."""
+    q = getattr(board, "quantised", None)
+    if q is None:
+        raise ParameterError(f"{option('traversal')} board needs a board that holds the scene on its integer "
+                             f"grid (not {getattr(board, 'name', 'this board')!r})", parameter="traversal")
+    return LatticeGrid.for_scene(q, voxels)
 
 
 def walk_block(starts, ends, origin, shift, v, count, *, nonempty_only=True):

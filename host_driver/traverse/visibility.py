@@ -80,8 +80,11 @@ class Visibility:
         self.sample_points = samples.points(scene.patch_vertices)        # (N, K, 3) float
         self.weight_points = ray_weights.weight_points(scene, samples)    # the same, as the ray weights take them
         self.centroids = scene.centroids
-        self.quantised = board.quantised if traversal == "board" else None
-        if self.quantised is not None:          # the board's integer points, grouped on its lattice grid
+        self.quantised = getattr(board, "quantised", None) if traversal == "board" else None
+        if traversal == "board":                # the board's integer points, grouped on its lattice grid
+            if self.quantised is None:
+                raise ParameterError(f"{option('traversal')} board needs a board that holds the scene on its "
+                                     f"integer grid", parameter="traversal")
             self.sample_points, self.centroids = self.quantised.shooters, self.quantised.receivers
         self.end_voxel = grid.voxel_of(self.centroids)
         self.end_morton = _morton(grid.cell_of(self.centroids))
