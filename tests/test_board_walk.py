@@ -154,8 +154,8 @@ def test_every_hit_patch_is_in_a_visited_voxel(rng_seed):
 def test_for_scene_covers_the_scene_with_a_power_of_two_edge():
     q = SimpleNamespace(bits=16, vertices=np.array([[[0, 0, 0], [65520, 0, 0], [0, 30000, 21]]]))
     grid = LatticeGrid.for_scene(q, 5)
-    assert (grid.shift, grid.v) == (14, 4)              # 65520 / 5 = 13104 units: 2^14 is nearest
-    assert lattice_shift(65520, 5, 16) == 14 and lattice_shift(0, 5, 16) == 0
+    assert (grid.shift, grid.v) == (13, 8)              # 65520 / 5 = 13104 units: 2^13 <= 13104 < 2^14
+    assert lattice_shift(65520, 5, 16) == 13 and lattice_shift(0, 5, 16) == 0 and lattice_shift(8, 1, 2) == 2
 
 
 @pytest.mark.parametrize("kw", [{"shift": 13, "v": 2}, {"shift": 2.0, "v": 2}, {"shift": 2, "v": 0},

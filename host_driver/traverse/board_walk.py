@@ -34,11 +34,12 @@ __all__ = ["LatticeGrid", "lattice_shift", "walk_block", "board_grid"]
 
 
 def lattice_shift(extent, voxels, bits):
-    """The voxel edge exponent e (0 .. B) whose edge 2^e is nearest, in log scale, to ``extent``
-    lattice units over ``voxels`` voxels."""
+    """The voxel edge exponent e (0 .. B): the largest edge 2^e that cuts ``extent`` lattice units
+    into at least ``voxels`` voxels (the nearer, coarser edge halves the array's rate on cornell,
+    benchmarks/bench_board_rays.py)."""
     if extent <= 0:
         return 0
-    return int(min(max(round(math.log2(extent / voxels)), 0), bits))
+    return int(min(max(math.floor(math.log2(extent / voxels)), 0), bits))
 
 
 class LatticeGrid:
@@ -71,8 +72,8 @@ class LatticeGrid:
 
     @classmethod
     def for_scene(cls, q, voxels):
-        """The grid from origin 0 whose edge is the power of two nearest the scene's largest
-        extent over ``voxels``, and just enough voxels to cover the scene."""
+        """The grid from origin 0 whose edge is :func:`lattice_shift`'s power of two for the scene's
+        largest extent over ``voxels``, and just enough voxels to cover the scene."""
         extent = int(q.vertices.max(initial=0))
         shift = lattice_shift(extent, voxels, q.bits)
         while -(-extent // (1 << shift)) > 256:         # the table's limit, as VoxelGrid's
