@@ -308,7 +308,7 @@ def describe(params):
     (docs/board-protocol.md, "Rays made on the board")."""
     proto = RayProtocol(params)
     a, w = proto.board.address_width, WEIGHT_BITS
-    rows = [("LOAD_SAMPLES", f"K - 1 ({proto.count_width} bits), K weight triples ({w} bits each)",
+    rows = [("LOAD_SAMPLES", f"K - 1 ({proto.count_width} bits), K weight triples (3 x {w} bits each)",
              f"{proto.command_bytes(RayOp.LOAD_SAMPLES, samples=1)} to {proto.command_bytes(RayOp.LOAD_SAMPLES)}"),
             ("LOAD_GRID", "origin (3 x B bits), shift e (edge 2^e), v (voxels per axis)",
              str(proto.command_bytes(RayOp.LOAD_GRID))),
@@ -322,3 +322,8 @@ def describe(params):
            "| command | op | operands | bytes on the link |", "|---|---|---|---|"]
     out += [f"| {name} | {RayOp[name].value} | {ops} | {n} |" for name, ops, n in rows]
     return "\n".join(out) + "\n"
+
+
+if __name__ == "__main__":
+    from .params import BoardParams
+    print(describe(BoardParams()), end="")

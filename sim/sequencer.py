@@ -8,16 +8,16 @@ address; each ``RECEIVERS`` slot makes its row's end point (the centroid, or the
 the same way, and a slot flagged ``last`` closes the run: for each chunk of S samples one block,
 ``BEGIN_BLOCK``, ``LOAD_POINTS`` (:func:`~blockray.memory.load_points_commands`), a ``VOXEL`` per
 voxel of the integer block walk over the voxel table's counts
-(:func:`~blockray.host_driver.traverse.board_walk.walk_block`, the host's reference itself),
+(:func:`~blockray.block_walk.walk_block`, the host's reference itself),
 ``END_BLOCK``. Every other command passes through unchanged, in order.
 
 Cycles: the records cost what they cost today (:class:`~blockray.timing.BoardTiming`); the
 sequencer's own cycles (points, walk) are not modelled yet.
 """
 
+from ..block_walk import walk_block
 from ..board_rays import RayOp, RayProtocol
 from ..errors import ParameterError
-from ..host_driver.traverse.board_walk import walk_block
 from ..memory import load_points_commands
 from ..points import PointArithmetic
 from ..protocol import BeginBlock, EndBlock, Op, Voxel

@@ -1,4 +1,4 @@
-"""The integer block traverse (host_driver/traverse/board_walk.py) against an oracle sharing no
+"""The integer block traverse (blockray/block_walk.py through host_driver/traverse/board_walk.py) against an oracle sharing no
 code with it: a closed segment against every closed voxel box by the slab method in exact
 fractions (Python ``Fraction``), its entry time giving the walk's order.
 

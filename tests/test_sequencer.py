@@ -192,3 +192,12 @@ def test_board_traversal_refuses_boards_that_cannot_make_rays(capsys, tmp_path, 
     code, err = clirun.cli(capsys, ["render", "cornell", "--rows", "2", "--cols", "2", "--boards", "1",
                                     "--max-shots", "1", "--quiet", "--traversal", "board", *args])
     clirun.assert_one_line_error(code, err, needle)
+
+
+def test_protocol_doc_matches_the_commands():
+    """docs/board-protocol.md embeds describe()'s table of the commands."""
+    from pathlib import Path
+    text = (Path(__file__).resolve().parent.parent / "docs" / "board-protocol.md").read_text()
+    begin = "<!-- generated: python -m blockray.board_rays -->\n"
+    at = text.index(begin) + len(begin)
+    assert text[at:text.index("<!-- end generated -->", at)] == describe(BoardParams())

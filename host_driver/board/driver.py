@@ -34,7 +34,6 @@ from ...memory import BoardMemories, check_partition
 from ...params import BoardParams
 from ...protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
-from ..traverse.board_walk import LatticeGrid
 from .framed import integrity_report
 from .transport import TransportError
 
@@ -126,7 +125,7 @@ class BoardDriver(CountingBoard):
         self._bytes_sent = self._bytes_received = 0
         self.transports = [self._open(self.board_params, b) for b in range(p.boards)]
         self.identities = self.identify()
-        self.rays = self._rays_on_board(grid) if isinstance(grid, LatticeGrid) else None
+        self.rays = self._rays_on_board(grid) if getattr(grid, "lattice", False) else None
         setup = b"" if self.rays is None else self.rays.encode_all(
             [LoadSamples(tuple(map(tuple, self._samples.weights.tolist()))), LoadGrid(tuple(grid.origin), grid.shift, grid.v)])
         batches = [self.protocol.encode_all(mem.load_commands(b)) + setup + self._read_counters for b in range(p.boards)]
