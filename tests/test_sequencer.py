@@ -201,3 +201,15 @@ def test_protocol_doc_matches_the_commands():
     begin = "<!-- generated: python -m blockray.board_rays -->\n"
     at = text.index(begin) + len(begin)
     assert text[at:text.index("<!-- end generated -->", at)] == describe(BoardParams())
+
+
+def test_board_traversal_needs_the_lattice_grid(cornell):
+    """A float grid would read the board's integer points as scene units: refused."""
+    from blockray.host_driver.traverse.visibility import Visibility
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    samples = SampleScheme(8)
+    board = ModelBoard(BoardParams(rows=2, cols=2, boards=1, bits=None))
+    board.prepare(cornell, samples)
+    grid = VoxelGrid(cornell.patch_vertices, 5, margin=board.margin)
+    with pytest.raises(ParameterError, match="lattice"):
+        Visibility(cornell, board, grid, samples, rows=2, cols=2, traversal="board")

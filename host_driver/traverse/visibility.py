@@ -85,6 +85,9 @@ class Visibility:
             if self.quantised is None:
                 raise ParameterError(f"{option('traversal')} board needs a board that holds the scene on its "
                                      f"integer grid", parameter="traversal")
+            if not getattr(grid, "lattice", False):     # a float grid would take the integers for scene units
+                raise ParameterError(f"{option('traversal')} board needs the voxel grid on the board's lattice "
+                                     f"(board_walk.LatticeGrid), not {type(grid).__name__}", parameter="traversal")
             self.sample_points, self.centroids = self.quantised.shooters, self.quantised.receivers
         self.end_voxel = grid.voxel_of(self.centroids)
         self.end_morton = _morton(grid.cell_of(self.centroids))
