@@ -263,30 +263,37 @@ def column_commands(batch, address, samples, cols):
     ``cols`` of the ``samples`` samples, in order, as ``Visibility._pair_blocks`` packs them.
     ``address``: each patch's record address (:func:`record_addresses`)."""
     chunks = -(-samples // cols)
-    want = np.arange(samples)
-    out, slots, column, b = [], [], None, 0
-    weighted = batch.receiver_weights is not None
-    while b < len(batch):
-        run = slice(batch.row_off[b], batch.row_off[b + 1])
-        end = b + chunks
-        cs = slice(batch.col_off[b], batch.col_off[min(end, len(batch))])
-        shooter = batch.shooter_patch[cs]
-        if (end > len(batch) or not np.array_equal(batch.shooter_sample[cs], want) or (shooter != shooter[0]).any()
-                or (np.diff(batch.col_off[b:end + 1]) != np.diff(np.minimum(np.arange(chunks + 1) * cols, samples))).any()
-                or any(not np.array_equal(batch.receiver_patch[batch.row_off[k]:batch.row_off[k + 1]],
-                                          batch.receiver_patch[run]) for k in range(b, end))):
+    out, slots, column = [], [], None
+    for b in range(0, len(batch), chunks):
+        if not _is_run(batch, b, samples, cols):
             raise ParameterError(f"block {b}: not a run of receivers times every chunk of {cols} of the "
                                  f"{samples} samples (the order the board makes blocks in)")
-        if shooter[0] != column:
+        if batch.shooter_patch[batch.col_off[b]] != column:
             out += _flush(slots)
-            column = int(shooter[0])
+            column = int(batch.shooter_patch[batch.col_off[b]])
             out.append(Column(_address(address, column)))
-        rows = batch.receiver_patch[run]
-        for k, r in enumerate(rows):
-            w = tuple(int(x) for x in batch.receiver_weights[run][k]) if weighted else None
-            slots.append((_address(address, int(r)), k == len(rows) - 1, w))
-        b = end
+        run = range(batch.row_off[b], batch.row_off[b + 1])
+        for r in run:
+            w = None if batch.receiver_weights is None else tuple(int(x) for x in batch.receiver_weights[r])
+            slots.append((_address(address, int(batch.receiver_patch[r])), r == run[-1], w))
     return out + _flush(slots)
+
+
+def _is_run(batch, b, samples, cols):
+    """Blocks b, b + 1, ...: one run of receivers (the same rows, at least one, the same end points
+    and shooter) times each chunk of ``cols`` of the ``samples`` samples, in order."""
+    end = b + -(-samples // cols)
+    if end > len(batch):
+        return False
+    cs = slice(batch.col_off[b], batch.col_off[end])
+    rows = [slice(batch.row_off[k], batch.row_off[k + 1]) for k in range(b, end)]
+
+    def same(a):
+        return a is None or all(np.array_equal(a[r], a[rows[0]]) for r in rows)
+    return (batch.row_off[b + 1] > batch.row_off[b] and np.array_equal(batch.shooter_sample[cs], np.arange(samples))
+            and np.array_equal(np.diff(batch.col_off[b:end + 1]), np.minimum(cols, samples - np.arange(0, samples, cols)))
+            and (batch.shooter_patch[cs] == batch.shooter_patch[batch.col_off[b]]).all()
+            and same(batch.receiver_patch) and same(batch.receiver_weights))
 
 
 def _address(address, patch):

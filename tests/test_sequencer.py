@@ -185,6 +185,13 @@ def test_board_traversal_renders_equal_the_block_traversal(capsys, tmp_path):
     assert _csv(capsys, tmp_path, "--board", "model-link", "--traversal", "board") == block
 
 
+def test_board_traversal_with_end_point_weights(capsys, tmp_path):
+    """--end-points kernel: the rows end at weighted points, so RECEIVERS carries the weights."""
+    kernel = ("--end-points", "kernel", "--max-shots", "2")
+    block = _csv(capsys, tmp_path, "--board", "model", "--traversal", "block", *kernel)
+    assert _csv(capsys, tmp_path, "--board", "model-link", "--traversal", "board", *kernel) == block
+
+
 @pytest.mark.parametrize("args,needle", [(["--board", "golden"], "integer grid"),
                                          (["--board", "model-link", "--boards", "2"], "one board")])
 def test_board_traversal_refuses_boards_that_cannot_make_rays(capsys, tmp_path, args, needle):
@@ -213,3 +220,24 @@ def test_board_traversal_needs_the_lattice_grid(cornell):
     grid = VoxelGrid(cornell.patch_vertices, 5, margin=board.margin)
     with pytest.raises(ParameterError, match="lattice"):
         Visibility(cornell, board, grid, samples, rows=2, cols=2, traversal="board")
+
+
+def test_column_commands_refuse_blocks_the_board_would_not_make():
+    """Blocks out of the board's order (a chunk missing, a run's rows changing) are one error,
+    not commands that make other blocks."""
+    from blockray.board import BlockBatch
+    address = np.arange(4)
+
+    def batch(samples_per_block, rows_per_block):
+        cols = [np.array(s) for s in samples_per_block]
+        rows = [np.array(r) for r in rows_per_block]
+        def off(xs):
+            return np.cumsum([0] + [len(x) for x in xs])
+        return BlockBatch(np.zeros(sum(map(len, cols)), np.int64), np.concatenate(cols), off(cols),
+                          np.concatenate(rows), off(rows), np.zeros(0, np.int64), np.zeros(len(cols) + 1, np.int64))
+    good = batch([[0, 1], [2]], [[1, 2], [1, 2]])
+    assert column_commands(good, address, 3, 2) == [Column(0), Receivers(((1, False, None), (2, True, None)))]
+    for bad in (batch([[0, 1]], [[1]]), batch([[0, 1], [2]], [[1], [2]]), batch([[1, 0], [2]], [[1], [1]]),
+                batch([[0], [1, 2]], [[1], [1]])):
+        with pytest.raises(ParameterError):
+            column_commands(bad, address, 3, 2)
