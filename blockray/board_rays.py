@@ -34,6 +34,7 @@ from amaranth.lib import data
 from amaranth.utils import bits_for
 
 from .errors import CapacityError, ParameterError
+from .params import BoardParams, check_bits
 from .protocol import BoardProtocol, Op
 from .records import pack, point_layout, unpack
 
@@ -110,6 +111,8 @@ class RayProtocol:
     board's other commands through :class:`~blockray.protocol.BoardProtocol` (``board``)."""
 
     def __init__(self, params):
+        if isinstance(params, BoardParams):
+            check_bits(params.bits)             # a board built for a B (None: not chosen yet)
         self.board = BoardProtocol(params)
         self.params = params
         weight = data.ArrayLayout(unsigned(WEIGHT_BITS), 3)

@@ -75,6 +75,11 @@ def test_bad_operands_are_one_error(command):
         RayProtocol(_params(2, 2)).encode(command)
 
 
+def test_a_board_without_b_is_one_error():
+    with pytest.raises(ParameterError):
+        RayProtocol(BoardParams(bits=None))
+
+
 class _Recorder:
     """A board that keeps the batches the host sends it (Visibility reads ``quantised``)."""
 
