@@ -11,6 +11,7 @@
     python benchmarks/bench_formfactor.py ends       # visible row sums with end points on the receiver too
     python benchmarks/bench_formfactor.py estimators # energy balance of an occluded box per visibility estimator
     python benchmarks/bench_formfactor.py rules      # the same through the render, per --end-points rule
+    python benchmarks/bench_formfactor.py shooters room   # the shooters that unbalance a render, against Embree
     python benchmarks/bench_formfactor.py change OLD.csv NEW.csv   # radiosity change per channel
     python benchmarks/bench_formfactor.py boards     # golden board's exact predicate vs the model's kernel
     python benchmarks/bench_formfactor.py closure    # closed scenes: reciprocity / summation errors,
@@ -387,14 +388,54 @@ def rules(args):
         runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
         for rule, seed in runs:
             t = time.perf_counter()
-            ends = {"end_lattice": args.end_lattice if rule != "centroid" else 1,
+            drawn = args.sample_points == "draw"
+            ends = {"end_lattice": args.end_lattice if rule != "centroid" or drawn else 1,
                     "end_draws": args.end_draws if rule == "draw" else 1}
             res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
-                         end_seed=seed, **ends)
+                         end_seed=seed, sample_points=args.sample_points, sample_seed=seed, **ends)
             bal = absorbed_balance(scene, res.radiosity)
-            label = res.report["end_points"]
+            label = res.report["end_points"] + (f"; samples {res.report['sample_points']}" if drawn else "")
             print(f"| {name} | {scene.patches} | {label} | " + ", ".join(f"{100 * x:+.3f}%" for x in bal)
                   + f" | {res.report['rays']} | {time.perf_counter() - t:.0f} |", flush=True)
+
+
+def shooters(args):
+    """The shooters carrying the most imbalance (``A_i B_i (s_i - 1)``) in a render (Jacobi, the
+    given --end-points and --sample-points), and each one's row sum s_i re-estimated with Embree
+    (embreex): the exact factors times the weighted clear fraction of rays from K shooter points
+    to one uniform random point per receiver, with the fixed pattern and with stratified random
+    points (mean over --draws sets). In a closed scene s_i should be 1."""
+    from blockray.host_driver.scene.builtin import load_scene
+    from blockray.host_driver.traverse.peer import embree_occluded
+    from blockray.samples import SampleScheme
+    scene = load_scene(args.scene)
+    opts = dict(end_points=args.end_points, end_lattice=args.end_lattice, sample_points=args.sample_points)
+    res = render(scene, solver="jacobi", tolerance=1e-6, **opts)
+    s_i, B, A = res.solve.row_sums.shot, res.radiosity, scene.areas
+    emitted = (scene.emission * A[:, None]).sum(0)
+    print(f"render {opts}: absorbed / emitted - 1 {np.round(100 * np.array(res.report['absorbed_balance']), 3)} %")
+    rng = np.random.default_rng(args.seed)
+    V, N = scene.patch_vertices, scene.normals / np.linalg.norm(scene.normals, axis=1)[:, None]
+
+    def row_sum(i, X, rec, f):
+        Y = _uniform_in(rng, V[rec])
+        P, Q = np.repeat(X[None], len(rec), 0).reshape(-1, 3), np.repeat(Y, len(X), 0)
+        w = _kernel(P, N[i], Q, N[np.repeat(rec, len(X))]).reshape(len(rec), len(X))
+        hit = embree_occluded(scene, P + 2e-5 * N[i], Q + 2e-5 * N[np.repeat(rec, len(X))], eps=1e-9)[0]
+        clear = (w * ~hit.reshape(w.shape)).sum(1) / np.where(w.sum(1) > 0, w.sum(1), 1)
+        return (f * np.where(w.sum(1) > 0, clear, 1.0)).sum()
+
+    share = A * B[:, 0] * (s_i - 1) / emitted[0]
+    print("| shooter | group | share of the R balance | render s_i - 1 | Embree, fixed points | Embree, stratified random (mean +- s.e.) |")
+    print("|---|---|---|---|---|---|")
+    for i in np.argsort(-np.abs(share))[:args.top]:
+        f_all = ff.unoccluded_factors(scene, i)
+        rec = np.flatnonzero(f_all > 0)
+        f = A[rec] * f_all[rec] / A[i]
+        fixed = row_sum(i, SampleScheme(8).points(V[i][None])[0], rec, f) - 1
+        drawn = [row_sum(i, _stratified(rng, V[i], 8), rec, f) - 1 for _ in range(args.draws)]
+        print(f"| {i} | {scene.group_names[scene.group[i]]} | {100 * share[i]:+.4f}% | {s_i[i] - 1:+.4f} | {fixed:+.4f} "
+              f"| {np.mean(drawn):+.4f} +- {np.std(drawn) / np.sqrt(len(drawn)):.4f} |", flush=True)
 
 
 def estimators(args):
@@ -805,9 +846,19 @@ def main(argv=None):
     ru.add_argument("--tolerance", type=float, default=1e-6)
     ru.add_argument("--end-draws", type=int, default=1, help="draw: rows per pair")
     ru.add_argument("--end-lattice", type=int, default=1, help="kernel, draw: the end-point lattice's refinement")
+    ru.add_argument("--sample-points", default="fixed", choices=["fixed", "draw"],
+                    help="the shooters' samples (draw: seeded like the end points, seed N for run N)")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
+    sh = sub.add_parser("shooters")
+    sh.add_argument("scene", nargs="?", default="room")
+    sh.add_argument("--top", type=int, default=12)
+    sh.add_argument("--draws", type=int, default=6, help="sets of stratified random shooter points")
+    sh.add_argument("--seed", type=int, default=7)
+    sh.add_argument("--end-points", default="draw")
+    sh.add_argument("--end-lattice", type=int, default=8)
+    sh.add_argument("--sample-points", default="fixed", choices=["fixed", "draw"])
     sp = sub.add_parser("speed")
     sp.add_argument("scenes", nargs="*", default=["cornell", "room"])
     sp.add_argument("--step", type=int, default=8, help="every step-th shooter's pairs")
@@ -828,7 +879,7 @@ def main(argv=None):
     print_run_header()
     {"table": table, "energy": energy, "rows": row_sums, "speed": speed, "grazing": grazing, "trigger": trigger,
      "versus": versus, "unresolved": unresolved, "closure": closure, "boards": boards, "change": change, "ends": end_points,
-     "estimators": estimators, "rules": rules}[args.what](args)
+     "estimators": estimators, "rules": rules, "shooters": shooters}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -23,10 +23,20 @@ sum_k w_k V_k / D is an integer point lying exactly on the triangle's plane, so 
 test needs no epsilon. Scaling by D costs log2(D) coordinate bits (4.4 for D = 21).
 
 When K < n * n, K cells are taken at evenly spread indices of the row-by-row cell order.
+
+**Drawn sample points** (``SampleScheme(seed=N)``, ``--sample-points draw``). A fixed pattern keeps
+every sample at least a cell's half-width from the edges. A shadow cast by an object resting on the
+shooter (an up-light on a wall) starts at the contact line, so it covers a strip along the
+shooter's edge that no fixed point lies in, and the shooter's visible factors come out too large
+(docs/formfactors.md). Drawn points are stratified: sample k lies in the stratum [k, k + 1) / K of
+the triangle's area (16 congruent cells in row order), at a lattice point of its cell drawn
+uniformly from a hash of (seed, patch, k), so each patch has its own points and any strip is hit
+in proportion to its area. They use the same allowed 1/D lattice as the end points (the finer
+``end_lattice`` reaches nearer the edges).
 """
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from fractions import Fraction
 import math
 
@@ -34,10 +44,53 @@ import numpy as np
 
 from .errors import ParameterError
 
-__all__ = ["SampleScheme", "END_LATTICES"]
+__all__ = ["SampleScheme", "END_LATTICES", "uniforms", "lattice_cells"]
 
 #: allowed end-point lattice refinements (powers of two: each doubling costs one coordinate bit)
 END_LATTICES = (1, 2, 4, 8, 16)
+_DRAW_CELLS = 4         # drawn samples: strata over the 4 x 4 = 16 congruent cells
+_DRAW_STREAM = 1 << 40  # hash streams of drawn samples, apart from the end points' (2 d, 2 d + 1)
+
+
+def _mix(x):
+    """splitmix64 finaliser on uint64 arrays: a well-spread hash of each value."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def uniforms(seed, i, keys, stream):
+    """Floats in [0, 1) from (seed, i, key, stream), broadcast over ``i`` and ``keys``: the same for
+    a (patch, key) whatever batch, order or process asks (keys: receivers, or sample numbers)."""
+    with np.errstate(over="ignore"):
+        key = _mix(np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.asarray(i, dtype=np.uint64))
+        key = _mix(key ^ (np.asarray(keys, dtype=np.uint64) * np.uint64(0xD1B54A32D192ED03) + np.uint64(stream)))
+    return (key >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+def lattice_cells(D, p, corners):
+    """The allowed weights (L, 3) of the 1/D lattice (strictly inside, no weight a multiple of p),
+    and per cell of ``corners`` (C, 3, 3 barycentric) the indices of those it holds (padded rows,
+    each point in the cell it lies deepest inside) and their count."""
+    a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
+    w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
+    w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
+    inv = np.linalg.inv(np.asarray(corners, dtype=np.float64).transpose(0, 2, 1))   # corners as columns
+    owner = np.argmax(np.einsum("cij,lj->lci", inv, w / D).min(axis=2), axis=1)
+    count = np.bincount(owner, minlength=len(corners))
+    assert count.min() > 0, "every cell holds a lattice point"
+    members = np.zeros((len(corners), count.max()), dtype=np.int64)
+    for c in range(len(corners)):
+        members[c, :count[c]] = np.flatnonzero(owner == c)
+    return w, members, count
+
+
+@lru_cache(maxsize=None)
+def _draw_lattice(D, p):
+    """:func:`lattice_cells` of the drawn samples' cells (row order, samples.py's own)."""
+    n = _DRAW_CELLS
+    corners = [[(n - i, i - j, j) for i, j in cell] for cell in _cells(n)]
+    return lattice_cells(D, p, np.array(corners, dtype=np.float64) / n)
 
 
 def _primes_from(start):
@@ -105,6 +158,8 @@ class SampleScheme:
     #: the end-point lattice's refinement: weights count in 1/(3p end_lattice) steps, so rows can end
     #: that much nearer a receiver's edges (host_driver/endpoints.py); costs log2 of it in coordinate bits
     end_lattice: int = 1
+    #: None: the fixed pattern on every patch; an integer: each patch's points drawn from it
+    seed: int = None
 
     def __post_init__(self):
         if isinstance(self.count, bool) or not isinstance(self.count, int) or not 1 <= self.count <= 64:
@@ -113,6 +168,15 @@ class SampleScheme:
         if isinstance(e, bool) or not isinstance(e, int) or e not in END_LATTICES:
             raise ParameterError(f"end_lattice must be one of {', '.join(map(str, END_LATTICES))}, not {e!r}",
                                  parameter="end_lattice")
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)
+                                      or not 0 <= self.seed < 2 ** 63):
+            raise ParameterError(f"sample_seed must be an integer from 0 to 2**63 - 1, not {self.seed!r}",
+                                 parameter="sample_seed")
+
+    @property
+    def drawn(self):
+        """Each patch has its own drawn points (:meth:`weights_of`)."""
+        return self.seed is not None
 
     @property
     def n(self):
@@ -140,27 +204,53 @@ class SampleScheme:
 
     @cached_property
     def weights(self):
-        """(K, 3) int64 barycentric weights of the shooter sample points."""
+        """(K, 3) int64 barycentric weights of the fixed pattern's sample points (drawn points
+        differ per patch: :meth:`weights_of`)."""
+        if self.drawn:
+            raise ParameterError("drawn sample points differ per patch: use weights_of(patches)",
+                                 parameter="sample_points")
         cells = self._lattice[1]
         if self.count < len(cells):
             cells = [cells[i] for i in np.round(np.arange(self.count) * len(cells) / self.count).astype(int)]
         return _balanced(cells) * self.end_lattice
 
+    def weights_of(self, patches):
+        """(len(patches), K, 3) int64 weights of the sample points of each patch (a read-only
+        broadcast of :attr:`weights` for the fixed pattern)."""
+        patches = np.asarray(patches, dtype=np.int64).reshape(-1)
+        if not self.drawn:
+            return np.broadcast_to(self.weights, (len(patches), self.count, 3))
+        w, members, count = _draw_lattice(self.denominator, self.prime)
+        k = np.arange(self.count)
+        u = (k + uniforms(self.seed, patches[:, None], k, _DRAW_STREAM)) / self.count    # stratum k of K
+        v = uniforms(self.seed, patches[:, None], k, _DRAW_STREAM + 1)
+        cell = np.minimum((u * len(count)).astype(np.int64), len(count) - 1)
+        return w[members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]]
+
     @property
     def centroid_weights(self):
         return np.array([self.prime * self.end_lattice] * 3, dtype=np.int64)
 
-    def points(self, vertices):
-        """Float sample points of triangles (N, 3, 3) -> (N, K, 3)."""
+    def points(self, vertices, patches=None):
+        """Float sample points of triangles (N, 3, 3) -> (N, K, 3); ``patches``: their patch
+        numbers (default 0 .. N - 1), which drawn points depend on."""
         v = np.asarray(vertices, dtype=np.float64)
-        return np.einsum("kj,njc->nkc", self.weights / self.denominator, v)
+        if not self.drawn:
+            return np.einsum("kj,njc->nkc", self.weights / self.denominator, v)
+        return np.einsum("nkj,njc->nkc", self._weights_for(v, patches) / self.denominator, v)
 
-    def points_int(self, vertices):
+    def points_int(self, vertices, patches=None):
         """Exact integer sample points of integer triangles whose coordinates are multiples of D."""
         v = np.asarray(vertices, dtype=np.int64)
-        num = np.einsum("kj,njc->nkc", self.weights, v)
+        if not self.drawn:
+            num = np.einsum("kj,njc->nkc", self.weights, v)
+        else:
+            num = np.einsum("nkj,njc->nkc", self._weights_for(v, patches), v)
         assert (num % self.denominator == 0).all(), "vertex coordinates must be multiples of D"
         return num // self.denominator
+
+    def _weights_for(self, v, patches):
+        return self.weights_of(np.arange(len(v)) if patches is None else patches)
 
     def centroids_int(self, vertices):
         v = np.asarray(vertices, dtype=np.int64)

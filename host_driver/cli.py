@@ -161,7 +161,7 @@ def _check_render(args):
 def _render_parser(sub):
     from .traverse.endpoints import ENDS
     from ..samples import END_LATTICES
-    from .render.options import SOLVERS
+    from .render.options import SAMPLE_POINTS, SOLVERS
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -192,6 +192,11 @@ def _render_parser(sub):
     p.add_argument("--end-lattice", type=int, default=1, choices=END_LATTICES, metavar="N",
                    help="--end-points kernel/draw: end points on a lattice N times finer, so they reach N times "
                         "nearer the receivers' edges (contact shadows); costs log2(N) coordinate bits")
+    p.add_argument("--sample-points", default="fixed", choices=list(SAMPLE_POINTS),
+                   help="where a shooter's K samples lie: one fixed pattern on every patch (default) or drawn per "
+                        "patch, one in each of K equal-area strata (draw: sees shadows of objects resting on the "
+                        "shooter in proportion; --end-lattice lets them nearer the edges); docs/formfactors.md")
+    p.add_argument("--sample-seed", type=int, default=0, metavar="N", help="seed of --sample-points draw")
     p.add_argument("--solver", default="progressive", choices=list(SOLVERS),
                    help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "
                         "leaf element)")

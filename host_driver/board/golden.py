@@ -53,7 +53,7 @@ class GoldenBoard(Board):
         V = np.ascontiguousarray(scene.patch_vertices, dtype=np.float64)
         check_exact_range(V, f"scene {scene.name!r} on the golden board")
         self._V = V
-        self._weights = np.asarray(samples.weights, dtype=np.int64)
+        self._weights = samples.weights_of(np.arange(scene.patches))      # (N, K, 3), per patch if drawn
         lo, hi = scene.bbox
         self.margin = MARGIN * float(max(np.max(hi - lo), np.finfo(float).tiny))
         self._reset()
@@ -78,7 +78,7 @@ class GoldenBoard(Board):
         to the exact centroids of receiver_patch[r] (or the exact points of receiver_weights[r]),
         blocked by any of the patches t."""
         sp = np.asarray(shooter_patch, dtype=np.int64).reshape(-1)
-        P_w = self._weights[np.asarray(shooter_sample, dtype=np.int64).reshape(-1)]
+        P_w = self._weights[sp, np.asarray(shooter_sample, dtype=np.int64).reshape(-1)]
         rp = np.asarray(receiver_patch, dtype=np.int64).reshape(-1)
         Q_w = np.ones(3, dtype=np.int64) if receiver_weights is None else receiver_weights
         return blocked_rays(self._V[sp], P_w, self._V[rp], Q_w,

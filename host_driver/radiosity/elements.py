@@ -118,11 +118,17 @@ class ElementPoints:
 
     # -- the SampleScheme interface the boards and the quantiser use --------------------------------
 
-    def points(self, vertices):
+    drawn = False           # every input triangle has the same table
+
+    def weights_of(self, patches):
+        """(len(patches), count, 3): the table of each input triangle ``patches`` (a broadcast)."""
+        return np.broadcast_to(self.weights, (len(np.asarray(patches).reshape(-1)), self.count, 3))
+
+    def points(self, vertices, patches=None):
         v = np.asarray(vertices, dtype=np.float64)
         return np.einsum("kj,njc->nkc", self.weights / self.denominator, v)
 
-    def points_int(self, vertices):
+    def points_int(self, vertices, patches=None):
         num = np.einsum("kj,njc->nkc", self.weights, np.asarray(vertices, dtype=np.int64))
         assert (num % self.denominator == 0).all(), "vertex coordinates must be multiples of D 2**L"
         return num // self.denominator

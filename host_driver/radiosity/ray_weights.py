@@ -40,7 +40,7 @@ def samples_in_front(scene, samples, i, receivers):
     K = samples.count
     tri = np.repeat(V[receivers], K, axis=0)
     pts = np.broadcast_to(V[i], (len(tri), 3, 3))
-    w = np.tile(samples.weights, (len(receivers), 1))
+    w = np.tile(samples.weights_of([i])[0], (len(receivers), 1))
     return (plane_signs(tri, pts, w) > 0).reshape(len(receivers), K)
 
 
@@ -60,7 +60,7 @@ def weight_points(scene, samples, patches=None):
     whichever patches are asked for together)."""
     V = scene.patch_vertices
     patches = range(scene.patches) if patches is None else patches
-    points = [samples.points(V[j][None])[0] for j in patches]
+    points = [samples.points(V[j][None], [j])[0] for j in patches]
     return np.stack(points) if points else np.zeros((0, samples.count, 3))
 
 
@@ -78,18 +78,27 @@ def pair_sample_weights(scene, samples, shooters, receivers, points=None):
         unique, which = np.unique(shooters, return_inverse=True)
         points, shooters = weight_points(scene, samples, unique), which.reshape(-1).astype(np.int64)
         normals = np.ascontiguousarray(scene.normals[unique], dtype=np.float64)
-        return _sample_weights(scene.patch_vertices, normals, points, samples.weights, shooters,
+        return _sample_weights(scene.patch_vertices, normals, points, _weights_of(samples, unique), shooters,
                                receivers, unique)
+    every = np.arange(scene.patches)
     return _sample_weights(scene.patch_vertices, np.ascontiguousarray(scene.normals, dtype=np.float64), points,
-                           samples.weights, shooters, receivers, np.arange(scene.patches))
+                           _weights_of(samples, every), shooters, receivers, every)
+
+
+def _weights_of(samples, patches):
+    """(len(patches), K, 3) sample weights, one row per entry of ``points``; the fixed pattern's
+    as one row (index 0 for every patch: the kernels index ``weights[s % len(weights)]``)."""
+    return (np.ascontiguousarray(samples.weights_of(patches)) if samples.drawn
+            else np.ascontiguousarray(samples.weights)[None])
 
 
 @njit(cache=True)
 def _weight_row(V, normals, points, weights, s, i, j, out, poly):
     """out[:]: for shooter i (its points and normal at index s), receiver j, the point factor of
     each sample strictly in front of j's plane, else 0."""
-    for k in range(len(weights)):
-        if _plane_sign(V[j], V[i], weights[k]) > 0:
+    w = weights[s % len(weights)]
+    for k in range(w.shape[0]):
+        if _plane_sign(V[j], V[i], w[k]) > 0:
             out[k] = _lambert_normal(points[s], k, normals, s, V[j], poly)
 
 
@@ -106,7 +115,7 @@ def _sample_weights(V, normals, points, weights, shooters, receivers, patch):
     """Row m: the weight row of shooter ``patch[shooters[m]]`` (its points and normal at index
     shooters[m]) and receiver receivers[m]; rows on the thread pool when there are enough rays
     (each row its own, so the same bits on any number of threads)."""
-    out = np.zeros((len(shooters), len(weights)))
+    out = np.zeros((len(shooters), weights.shape[1]))
     run = _weights_par if _threads.parallel(out.size) else _weights_ser
     run(V, normals, points, weights, shooters, receivers, patch, out)
     return out

@@ -24,10 +24,12 @@ from ...params import BoardParams
 from ...samples import SampleScheme
 from ...link import DEFAULT_BAUD
 
-__all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "cell_option",
+__all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "SAMPLE_POINTS",
+           "cell_option",
            "host_timing"]
 
 SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
+SAMPLE_POINTS = ("fixed", "draw")
 
 
 def _one_of(name, value, choices):
@@ -81,8 +83,10 @@ class RayOptions:
     ``samples`` (a count or a :class:`~blockray.samples.SampleScheme`), the ``traversal`` and
     ``packing`` of block rays, where each row ends on its receiver (``end_points``, a rule of
     host_driver/traverse/endpoints.py, with ``end_seed`` and ``end_draws`` rows per pair for ``draw``, on a
-    lattice ``end_lattice`` times finer than the samples'), and the fraction of rays whose
-    traversal is measured."""
+    lattice ``end_lattice`` times finer than the samples'), where the shooter's samples lie
+    (``sample_points``: ``fixed``, one pattern for every patch, or ``draw``, stratified and drawn per
+    patch from ``sample_seed``; blockray/samples.py), and the fraction of rays whose traversal is
+    measured."""
     voxels: int = None
     samples: SampleScheme = 8
     traversal: str = "block"
@@ -91,6 +95,8 @@ class RayOptions:
     end_seed: int = 0
     end_draws: int = 1
     end_lattice: int = 1
+    sample_points: str = "fixed"
+    sample_seed: int = 0
     stats_fraction: float = 0.02
 
     def __post_init__(self):
@@ -98,26 +104,35 @@ class RayOptions:
         if self.voxels is not None and (not _integer(self.voxels) or not 1 <= self.voxels <= 256):
             raise ParameterError(f"voxels must be an integer from 1 to 256, not {self.voxels!r}", parameter="voxels")
         count = self.samples
-        if isinstance(self.samples, SampleScheme):       # a scheme's own lattice, unless it contradicts
+        _one_of("sample_points", self.sample_points, SAMPLE_POINTS)
+        if isinstance(self.samples, SampleScheme):       # a scheme's own lattice and draw, unless they contradict
             count, own = self.samples.count, self.samples.end_lattice
             if own != self.end_lattice and 1 not in (own, self.end_lattice):
                 raise ParameterError(f"end_lattice {self.end_lattice} contradicts the samples' {own}",
                                      parameter="end_lattice")
             object.__setattr__(self, "end_lattice", max(own, self.end_lattice))
-        object.__setattr__(self, "samples", SampleScheme(count, self.end_lattice))
+            if self.samples.drawn and self.sample_points == "fixed":
+                object.__setattr__(self, "sample_points", "draw")
+                object.__setattr__(self, "sample_seed", self.samples.seed)
+        seed = self.sample_seed if self.sample_points == "draw" else None
+        object.__setattr__(self, "samples", SampleScheme(count, self.end_lattice, seed))
         _one_of("traversal", self.traversal, TRAVERSALS)
         _one_of("packing", self.packing, PACKINGS)
         from ..traverse.endpoints import ENDS, MAX_DRAWS
         _one_of("end_points", self.end_points, ENDS)
-        if self.end_lattice != 1 and self.end_points == "centroid":
-            raise ParameterError(f"end_lattice {self.end_lattice} only moves end points of the kernel and draw rules; "
-                                 "the centroid rule would spend its bits for nothing", parameter="end_lattice")
+        if self.end_lattice != 1 and self.end_points == "centroid" and self.sample_points == "fixed":
+            raise ParameterError(f"end_lattice {self.end_lattice} only moves drawn sample points and end points of the "
+                                 "kernel and draw rules; the centroid rule with fixed samples would spend its bits for "
+                                 "nothing", parameter="end_lattice")
         if not _integer(self.end_draws) or not 1 <= self.end_draws <= MAX_DRAWS:
             raise ParameterError(f"end_draws must be an integer from 1 to {MAX_DRAWS}, not {self.end_draws!r}",
                                  parameter="end_draws")
         if self.end_draws > 1 and self.end_points != "draw":
             raise ParameterError(f"end_draws {self.end_draws} needs the draw rule: the {self.end_points} rule gives "
                                  "every row of a pair the same point", parameter="end_draws")
+        if not _integer(self.sample_seed) or not 0 <= self.sample_seed < 2 ** 63:
+            raise ParameterError(f"sample_seed must be an integer from 0 to 2**63 - 1, not {self.sample_seed!r}",
+                                 parameter="sample_seed")
         if not _integer(self.end_seed) or not 0 <= self.end_seed < 2 ** 63:
             raise ParameterError(f"end_seed must be an integer from 0 to 2**63 - 1, not {self.end_seed!r}",
                                  parameter="end_seed")
@@ -243,6 +258,9 @@ class RenderOptions:
         if s.solver == "hierarchical" and self.ray.end_points != "centroid":
             raise ParameterError(f"{option('end_points')}: the hierarchical solver's rays end at its elements' centroids",
                                  parameter="end_points")
+        if s.solver == "hierarchical" and self.ray.sample_points != "fixed":
+            raise ParameterError(f"{option('sample_points')}: the hierarchical solver's elements share one table of "
+                                 "sample points (fixed)", parameter="sample_points")
         if not self.run.distributed:
             return
         if s.closure != "off" and s.solver != "hierarchical":

@@ -98,7 +98,7 @@ def _resume(scene, board, options, params, checkpoint):
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
         "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
-        "end_lattice": ray.end_lattice,
+        "end_lattice": ray.end_lattice, "sample_points": ray.sample_points, "sample_seed": ray.sample_seed,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell.kind, "filter_format": repr(b.cell.format),
         "rows": params.rows, "cols": params.cols, "boards": params.boards, **hierarchical})
 
@@ -316,6 +316,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "traversal": ray.traversal,
         "packing": ray.packing,
         "end_points": _ends_label(ray),
+        "sample_points": ray.sample_points + (f" (seed {ray.sample_seed})" if ray.samples.drawn else ""),
         "partition": getattr(run.board, "partition", None),
         "solver": solve.solver,
         "sets": int(run.options.run.sets),

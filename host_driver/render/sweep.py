@@ -35,7 +35,7 @@ from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
 from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
-from .options import SOLVERS
+from .options import SAMPLE_POINTS, SOLVERS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
            "error_against", "map_to_mesh", "leaf_triangles", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
@@ -81,6 +81,8 @@ SETTINGS = {
     "end-seed": Setting("--end-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),
     "end-draws": Setting("--end-draws", int, check=_positive),
     "end-lattice": Setting("--end-lattice", int, END_LATTICES),
+    "sample-points": Setting("--sample-points", str, SAMPLE_POINTS),
+    "sample-seed": Setting("--sample-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),
     "contact": Setting("--contact", str, ("on", "off")),
     "rows": Setting("--rows", int, check=_positive),
     "cols": Setting("--cols", int, check=_positive),

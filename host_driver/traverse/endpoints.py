@@ -33,6 +33,7 @@ from functools import lru_cache
 import numpy as np
 
 from ...errors import ParameterError
+from ...samples import lattice_cells, uniforms
 from ..radiosity.elements import level_corners
 
 __all__ = ["ENDS", "EndPoints", "MAX_DRAWS"]
@@ -40,22 +41,6 @@ __all__ = ["ENDS", "EndPoints", "MAX_DRAWS"]
 ENDS = ("centroid", "kernel", "draw")
 MAX_DRAWS = 64       # rows per pair under ``draw``
 _LEVELS = 2          # 4^2 sub-triangles carry the density
-
-
-def _mix(x):
-    """splitmix64 finaliser on uint64 arrays: a well-spread hash of each value."""
-    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
-
-
-def uniforms(seed, i, receivers, stream):
-    """(R,) floats in [0, 1) from (seed, shooter i, receiver, stream): the same for a pair whatever
-    batch, order or process it is cast in."""
-    with np.errstate(over="ignore"):
-        key = _mix(np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(i))
-        key = _mix(key ^ (np.asarray(receivers, dtype=np.uint64) * np.uint64(0xD1B54A32D192ED03) + np.uint64(stream)))
-    return (key >> np.uint64(11)).astype(np.float64) / float(1 << 53)
 
 
 class EndPoints:
@@ -86,7 +71,7 @@ class EndPoints:
         w, members, count, centres = _lattice(self.D, self.p)
         V = self.scene.patch_vertices
         Y = np.einsum("cj,rjd->rcd", centres, V[receivers])                   # (R, C, 3) sub-centroids
-        X = self.samples.points(V[i][None])[0]                                # (K, 3) shooter samples
+        X = self.samples.points(V[i][None], [i])[0]                           # (K, 3) shooter samples
         g = _kernel_sum(X, self.scene.normals[i], Y, self.scene.normals[receivers])   # (R, C)
         total = g.sum(axis=1)
         lit = total > 0
@@ -115,21 +100,8 @@ class EndPoints:
 def _lattice(D, p):
     """Allowed weights (L, 3) on the 1/D lattice; per sub-triangle the indices of those inside it
     (padded rows) and their count; the sub-triangles' barycentric centroids (C, 3)."""
-    a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
-    w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
-    w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
     sub = level_corners(_LEVELS)                                       # (C, 3, 3)
-    # the sub-triangle holding each lattice point: barycentric coordinates within each sub-triangle
-    x = w / D
-    inv = np.linalg.inv(sub.transpose(0, 2, 1))                       # (C, 3, 3): corners as columns
-    local = np.einsum("cij,lj->lci", inv, x)                           # (L, C, 3)
-    owner = np.argmax(local.min(axis=2), axis=1)                       # the one it lies deepest inside
-    count = np.bincount(owner, minlength=len(sub))
-    assert count.min() > 0, "every sub-triangle holds a lattice point"
-    members = np.zeros((len(sub), count.max()), dtype=np.int64)
-    for c in range(len(sub)):
-        members[c, :count[c]] = np.flatnonzero(owner == c)
-    return w, members, count, sub.mean(axis=1)
+    return (*lattice_cells(D, p, sub), sub.mean(axis=1))
 
 
 def _kernel_sum(X, n_i, Y, n_j):

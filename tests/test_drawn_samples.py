@@ -1,0 +1,203 @@
+"""Shooter sample points drawn per patch (``SampleScheme(seed=)``, ``--sample-points draw``).
+
+Oracles written here: the cell of a barycentric point in the triangle's 4 x 4 congruent cells
+(row by row, from the point's coordinates), the exact predicate on sample points computed here from
+the weights, and a shooter whose contact shadow has a closed form (a shelf resting on a wall: a
+ray from height y on the wall clears the shelf's front edge exactly when y is above a line)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from blockray.errors import ParameterError
+from blockray.exact import blocked_reference, patch_normals
+from blockray.board import BlockRay
+from blockray.host_driver.board.golden import GoldenBoard
+from blockray.host_driver.radiosity import ray_weights
+from blockray.host_driver.render.options import RenderOptions
+from blockray.host_driver.traverse.visibility import Visibility, visible_fraction
+from blockray.host_driver.traverse.voxel import VoxelGrid
+from blockray.params import BoardParams
+from blockray.samples import SampleScheme
+from blockray.sim.model import ModelBoard
+
+from board_scenes import scattered_scene
+from scenes import make_scene
+
+
+def _cell(weights, D, n=4):
+    """Index of the cell (of n x n, row by row, up and down cells alternating) holding the point of
+    barycentric ``weights`` / D, from its coordinates: x = n (b1 + b2) picks the row, y = n b2 the
+    column, and a down cell is the one above the diagonal y - a = x - row."""
+    b = np.asarray(weights, dtype=np.float64) / D
+    x, y = n * (b[..., 1] + b[..., 2]), n * b[..., 2]
+    row, a = np.floor(x).astype(int), np.floor(y).astype(int)
+    down = (y - a) > (x - row)
+    return row * row + 2 * a + down
+
+
+@pytest.mark.parametrize("count, lattice", [(8, 1), (8, 8), (16, 2), (5, 4), (1, 1), (64, 8)])
+def test_drawn_weights_are_allowed_lattice_points_one_per_stratum(count, lattice):
+    scheme = SampleScheme(count, lattice, seed=11)
+    D, p = scheme.denominator, scheme.prime
+    W = scheme.weights_of(np.arange(500))
+    assert W.shape == (500, count, 3)
+    assert (W.sum(axis=2) == D).all() and (W >= 1).all() and (W % p != 0).all()
+    cell = _cell(W, D)
+    k = np.arange(count)
+    # stratum k is [k, k + 1) / K of the area: the cells it overlaps, of 16 equal ones
+    lo, hi = np.floor(16 * k / count).astype(int), np.ceil(16 * (k + 1) / count).astype(int) - 1
+    assert ((cell >= lo) & (cell <= hi)).all()
+    if count > 1:                                                 # (one point of 132 allowed repeats)
+        assert len({tuple(w.ravel()) for w in W}) == 500          # every patch its own points
+
+
+def test_drawn_points_are_uniform_and_reach_the_edge_strip():
+    """Over many patches the points cover the triangle evenly, the strip along its edges included
+    (the fixed pattern never goes there)."""
+    scheme = SampleScheme(8, 8, seed=5)
+    b = scheme.weights_of(np.arange(5000)).reshape(-1, 3) / scheme.denominator
+    np.testing.assert_allclose(b.mean(axis=0), 1 / 3, atol=0.005)
+    strip = (b.min(axis=1) < 0.05).mean()            # area within 0.05 of an edge: 1 - (1 - 3 x 0.05)^2
+    print(f"share of drawn points in the strip {strip:.4f} (its area {1 - 0.85 ** 2:.4f})")
+    assert abs(strip - (1 - 0.85 ** 2)) < 0.01
+    fixed = SampleScheme(8, 8).weights / SampleScheme(8, 8).denominator
+    assert (fixed.min(axis=1) >= 0.05).all()
+
+
+def test_a_patch_draws_the_same_points_in_any_batch_and_seeds_differ():
+    scheme = SampleScheme(8, 2, seed=3)
+    W = scheme.weights_of(np.arange(40))
+    np.testing.assert_array_equal(scheme.weights_of(np.arange(40)[::-1]), W[::-1])
+    np.testing.assert_array_equal(scheme.weights_of([17])[0], W[17])
+    assert (SampleScheme(8, 2, seed=4).weights_of(np.arange(40)) != W).any()
+    V = scattered_scene(3).patch_vertices
+    np.testing.assert_array_equal(scheme.points(V[[5, 9]], [5, 9]), scheme.points(V)[[5, 9]])
+    with pytest.raises(ParameterError):
+        scheme.weights                                  # no one pattern: each patch has its own
+
+
+def test_boards_cast_from_each_patchs_drawn_points():
+    """The golden board and the model test rays from the points the drawn weights give (exact
+    predicate on points computed here from the weights)."""
+    seed = 41
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    scheme = SampleScheme(8, 2, seed=9)
+    D = scheme.denominator
+    V = (rng.integers(0, 6, (30, 1, 3)) + rng.integers(-2, 3, (30, 3, 3))) * D
+    V = V[np.linalg.norm(patch_normals(V), axis=1) > 0]
+    golden = GoldenBoard()
+    golden.prepare(make_scene(V), scheme)
+    golden.load(SimpleNamespace(v=1, start=np.array([0]), count=np.array([len(V)]), patches=np.arange(len(V))))
+    total = blocked = 0
+    for _ in range(8):
+        sp, ss = rng.integers(0, len(V), 5), rng.integers(0, scheme.count, 5)
+        blk = BlockRay(sp, ss, rng.integers(0, len(V), 6), np.array([0]))
+        bits = golden.run([blk])[0]
+        P = [(scheme.weights_of([i])[0][k][:, None] * V[i]).sum(0) // D for i, k in zip(sp, ss)]
+        Q = V[blk.receiver_patch].sum(axis=1) // 3
+        ref = [[any(blocked_reference(p.tolist(), q.tolist(), *v.tolist()) for v in V) for p in P] for q in Q]
+        np.testing.assert_array_equal(bits, ref)
+        total, blocked = total + bits.size, blocked + int(bits.sum())
+    assert 0.1 * total < blocked < 0.9 * total
+    scene = scattered_scene(4)
+    model = ModelBoard(BoardParams(rows=4, cols=3, boards=1, bits=14))
+    model.prepare(scene, scheme)
+    q = model.quantised
+    for i in range(scene.patches):
+        W = scheme.weights_of([i])[0]
+        np.testing.assert_array_equal(q.shooters[i], (W[:, :, None] * q.vertices[i][None]).sum(1) // D)
+
+
+def test_ray_weights_take_each_patchs_own_points():
+    """A sample counts only in front of the receiver's plane: with drawn points, the test is made
+    on each shooter's own points (signs computed here in integers)."""
+    scheme = SampleScheme(8, 4, seed=2)
+    scene = scattered_scene(6, n=20)
+    V = scene.patch_vertices
+    for i in range(0, scene.patches, 4):
+        J = np.array([j for j in range(scene.patches) if j != i])
+        front = ray_weights.samples_in_front(scene, scheme, i, J)
+        w = ray_weights.pair_sample_weights(scene, scheme, np.full(len(J), i), J)
+        X = scheme.points(V[i][None], [i])[0]
+        n = np.cross(V[J, 1] - V[J, 0], V[J, 2] - V[J, 0])
+        side = np.einsum("jc,kjc->jk", n, X[:, None] - V[J, 0][None])
+        ok = np.abs(side) > 1e-9 * np.abs(n).sum(1)[:, None]
+        np.testing.assert_array_equal(front[ok], (side > 0)[ok])
+        assert ((w > 0) <= front).all()
+
+
+def _shelf_scene(shelf_depth=0.2):
+    """A wall shooter (patch 0, plane x = 0, facing +x, from y = 1 to 1.6) with a shelf resting on
+    the wall along its lower edge (y = 1, from x = 0 to ``shelf_depth``, z in [-3, 3], facing up),
+    and small receivers facing the wall at x = 2, at heights from 0.2 to 0.95."""
+    wall = [[0, 1, 0.3], [0, 1, -0.3], [0, 1.6, 0.0]]
+    d = shelf_depth
+    shelf = [[[0, 1, -3], [0, 1, 3], [d, 1, 3]], [[0, 1, -3], [d, 1, 3], [d, 1, -3]]]
+    heights = np.linspace(0.2, 0.95, 12)
+    recv = [[[2, y - 0.01, 0.01], [2, y + 0.01, 0.0], [2, y - 0.01, -0.01]] for y in heights]
+    return make_scene(np.array([wall] + shelf + recv, dtype=np.float64)), heights
+
+
+def _clear_share(heights, d, n=400):
+    """Clear share of each receiver (small, at x = 2, height h, z = 0) as seen from the wall
+    triangle, weighted by the kernel: a ray from (0, y, z) to (2, h, 0) meets the shelf's plane
+    y = 1 at x = 2 (y - 1) / (y - h), on the shelf when that is <= d, so it is clear exactly when
+    y > (2 - d h) / (2 - d). Midpoint rule on the triangle's n x n cells."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    keep = i + j < n
+    u, v = (i[keep] + 1 / 3) / n, (j[keep] + 1 / 3) / n
+    k2 = i[i + j < n - 1], j[i + j < n - 1]
+    u = np.concatenate([u, (k2[0] + 2 / 3) / n]); v = np.concatenate([v, (k2[1] + 2 / 3) / n])
+    A, B, C = np.array([0, 1, 0.3]), np.array([0, 1, -0.3]), np.array([0, 1.6, 0.0])
+    P = A + u[:, None] * (B - A) + v[:, None] * (C - A)
+    out = []
+    for h in heights:
+        dv = np.array([2.0, h, 0.0]) - P
+        k = dv[:, 0] ** 2 / (dv * dv).sum(1) ** 2          # cos_i cos_j / r^2 up to constants: both normals along x
+        out.append(k[P[:, 1] > (2 - d * h) / (2 - d)].sum() / k.sum())
+    return np.array(out)
+
+
+def _estimate(scene, scheme):
+    board = GoldenBoard()
+    board.prepare(scene, scheme)
+    grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
+    board.load(grid)
+    vis = Visibility(scene, board, grid, scheme, rows=4, cols=4)
+    return visible_fraction(scene, vis, scheme, 0, np.arange(3, scene.patches), vis.phases)
+
+
+def test_drawn_samples_see_a_contact_shadow_in_proportion():
+    """The fixed pattern misjudges how much of the shooter the shelf hides from each receiver (the
+    shadow is a strip along the contact line); the drawn points, averaged over seeds, agree with
+    the closed form."""
+    scene, heights = _shelf_scene()
+    truth = _clear_share(heights, 0.2)
+    assert ((truth > 0.02) & (truth < 0.98)).sum() >= 6             # the shadow line crosses the shooter
+    fixed = _estimate(scene, SampleScheme(16, 8))
+    seeds = range(300)
+    drawn = np.array([_estimate(scene, SampleScheme(16, 8, seed=s)) for s in seeds])
+    mean, err = drawn.mean(axis=0), drawn.std(axis=0) / np.sqrt(len(seeds))
+    print("truth", np.round(truth, 3), "\nfixed", np.round(fixed, 3), "\ndrawn", np.round(mean, 3),
+          "\nstd err", np.round(err, 3))
+    assert np.abs(fixed - truth).max() > 0.1                     # the bias the drawn points remove
+    assert (np.abs(mean - truth) < 4 * err + 0.01).all()
+    assert abs((mean - truth).mean()) < 0.01
+
+
+def test_sample_points_option():
+    o = RenderOptions.of(sample_points="draw", sample_seed=7, end_lattice=8)
+    assert o.ray.samples == SampleScheme(8, 8, seed=7)
+    assert o.with_(sample_seed=8).ray.samples == SampleScheme(8, 8, seed=8)
+    assert RenderOptions.of(samples=SampleScheme(4, seed=3)).ray.sample_points == "draw"
+    assert RenderOptions.of().ray.samples == SampleScheme(8)
+    for bad, name in ((dict(sample_points="random"), "sample_points"),
+                      (dict(sample_points="draw", sample_seed=-1), "sample_seed"),
+                      (dict(sample_points="draw", solver="hierarchical"), "sample_points"),
+                      (dict(end_lattice=8), "end_lattice")):
+        with pytest.raises(ParameterError) as e:
+            RenderOptions.of(**bad)
+        assert e.value.parameter == name, bad
