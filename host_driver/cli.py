@@ -161,7 +161,7 @@ def _check_render(args):
 def _render_parser(sub):
     from .traverse.endpoints import ENDS
     from ..samples import END_LATTICES
-    from .render.options import SAMPLE_POINTS, SOLVERS
+    from .render.options import ESTIMATORS, SAMPLE_POINTS, SOLVERS
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -181,18 +181,23 @@ def _render_parser(sub):
     p.add_argument("--packing", default="voxel", choices=["voxel", "fill"],
                    help="receivers of a block: those whose end points share a voxel (the paper; default) "
                         "or runs of R receivers in Z-order of their voxels (fills every array row)")
-    p.add_argument("--end-points", default="centroid", choices=list(ENDS),
+    p.add_argument("--estimator", default=None, choices=list(ESTIMATORS),
+                   help="how a pair's visibility is estimated, as one name: paper (the default: fixed samples to "
+                        "the receivers' centroids) or balanced (--sample-points draw --end-points draw --end-lattice 8 "
+                        "--end-draws 8: closes the energy of occluded closed scenes within 0.05%% for 8x the rays); "
+                        "the four options given explicitly win")
+    p.add_argument("--end-points", default=None, choices=list(ENDS),
                    help="where each ray ends on its receiver: the centroid (the paper; default), the centroid "
                         "weighted by the light the shooter sends (kernel), or a point drawn from that light per "
                         "pair (draw); docs/formfactors.md measures what each gives")
     p.add_argument("--end-seed", type=int, default=0, metavar="N", help="seed of --end-points draw")
-    p.add_argument("--end-draws", type=int, default=1, metavar="M",
+    p.add_argument("--end-draws", type=int, default=None, metavar="M",
                    help="--end-points draw: rows per pair, each to its own drawn point (M times the rays, "
                         "1/sqrt(M) the noise)")
-    p.add_argument("--end-lattice", type=int, default=1, choices=END_LATTICES, metavar="N",
+    p.add_argument("--end-lattice", type=int, default=None, choices=END_LATTICES, metavar="N",
                    help="--end-points kernel/draw: end points on a lattice N times finer, so they reach N times "
                         "nearer the receivers' edges (contact shadows); costs log2(N) coordinate bits")
-    p.add_argument("--sample-points", default="fixed", choices=list(SAMPLE_POINTS),
+    p.add_argument("--sample-points", default=None, choices=list(SAMPLE_POINTS),
                    help="where a shooter's K samples lie: one fixed pattern on every patch (default) or drawn per "
                         "patch, one in each of K equal-area strata (draw: sees shadows of objects resting on the "
                         "shooter in proportion; --end-lattice lets them nearer the edges); docs/formfactors.md")
@@ -306,6 +311,10 @@ def _cmd_render(args):
               f"{r['solver']} ({r['shots'] or r['iterations']} {'shots' if r['shots'] else 'iterations'}), "
               f"{r['rays']} rays, {r['tests']} tests, residual {r['residual']:.2e}, "
               f"{r['seconds']['total']:.1f} s", file=sys.stderr)
+        if any(b is not None for b in r.get("absorbed_balance") or ()):
+            print("energy: absorbed / emitted - 1 = " + ", ".join("-" if b is None else f"{b:+.1e}"
+                                                             for b in r["absorbed_balance"])
+                  + f" (0 in a closed scene; estimator {r.get('estimator', '-')}, docs/formfactors.md)", file=sys.stderr)
         if "closure" in r:
             c = r["closure"]
             print(f"closure {c['mode']}: absorbed / emitted - 1 = "

@@ -62,6 +62,17 @@ def test_correct_render_passes_and_reports_row_sums_and_balance(tmp_path, capsys
     assert all(-1 < b < 0 for b in report["absorbed_balance"])
 
 
+def test_the_summary_line_gives_the_energy_balance_and_the_estimator(tmp_path, capsys):
+    path = write(tmp_path, BOX, BOX_MTL, name="box")
+    report = tmp_path / "r.json"
+    code, err = cli(capsys, ["render", path, "--board", "golden", "--estimator", "balanced", "--report", report])
+    assert code == 0, err
+    balance = json.loads(report.read_text())["absorbed_balance"]
+    line = next(x for x in err.splitlines() if x.startswith("energy: "))
+    assert line == ("energy: absorbed / emitted - 1 = " + ", ".join(f"{b:+.1e}" for b in balance)
+                    + " (0 in a closed scene; estimator balanced, docs/formfactors.md)"), line
+
+
 def test_closed_box_balance_is_zero_and_a_dark_channel_is_null(box):
     scene, _ = box
     scene.emission[:, 2] = 0.0                  # nothing emits blue

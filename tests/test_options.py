@@ -118,3 +118,25 @@ def test_a_message_names_parameters_to_a_library_caller_and_options_on_the_comma
     assert str(caught.value).startswith("vcd needs a simulated RTL board (backend amaranth")
     again = pickle.loads(pickle.dumps(caught.value))
     assert again.spelled(_option).startswith("--vcd needs a simulated RTL board (--board amaranth")
+
+
+def test_an_estimator_names_its_ray_options_and_given_options_win():
+    """``--estimator balanced`` is the four options docs/formfactors.md measured the room's
+    closure with; an option given beside it wins, and the report names what was used."""
+    from blockray.host_driver.render.options import estimator_of
+    balanced = RenderOptions.of(estimator="balanced").ray
+    assert (balanced.end_points, balanced.end_lattice, balanced.end_draws, balanced.sample_points) == \
+        ("draw", 8, 8, "draw")
+    assert balanced.samples.drawn and balanced.samples.end_lattice == 8
+    assert estimator_of(balanced) == "balanced" and estimator_of(RenderOptions.of().ray) == "paper"
+    tuned = RenderOptions.of(estimator="balanced", end_draws=4, end_seed=3).ray
+    assert (tuned.end_draws, tuned.end_seed, tuned.end_points) == (4, 3, "draw") and estimator_of(tuned) == "custom"
+    args = build_parser().parse_args(["render", "cornell", "--estimator", "balanced", "--sample-points", "fixed"])
+    from_cli = RenderOptions.from_args(args).ray
+    assert (from_cli.sample_points, from_cli.end_points, from_cli.end_draws) == ("fixed", "draw", 8)
+    assert RenderOptions.of().with_(estimator="balanced").ray == balanced      # a sweep's point
+    assert RenderOptions.of(estimator="balanced").with_(samples=4).ray.end_draws == 8
+    for bad in (dict(estimator="exact"), dict(estimator="balanced", solver="hierarchical")):
+        with pytest.raises(ParameterError) as e:
+            RenderOptions.of(**bad)
+        assert e.value.parameter == "estimator", e.value

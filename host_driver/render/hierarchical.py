@@ -646,6 +646,7 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
 def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
     """The ``--report`` keys of a hierarchical render (the board's counters last, never overriding)."""
     from ..radiosity.closure import absorbed_balance
+    from .options import estimator_of
     h, solve, scene = result.hierarchy, options.solve, result.hierarchy.scene
     leaves = h.leaves()
     counters = caster.counters()
@@ -654,7 +655,7 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
     report = {
         "scene": scene.name, "source": scene.source, "patches": int(scene.patches), "solver": "hierarchical",
         "board": board.name, "samples": options.ray.samples.count, "voxels": int(voxels),
-        "epsilon": solve.epsilon, "min_area": solve.min_area, "max_level": h.points.max_level,
+        "estimator": estimator_of(options.ray), "epsilon": solve.epsilon, "min_area": solve.min_area, "max_level": h.points.max_level,
         "tolerance": solve.tolerance, "links": len(result.links), "leaves": int(len(leaves)),
         "elements": int(len(h)), "elements_per_level": np.bincount(h.level).tolist(),
         "leaves_per_level": np.bincount(h.level[leaves], minlength=h.points.max_level + 1).tolist(),

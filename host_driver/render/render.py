@@ -21,7 +21,7 @@ import numpy as np
 from ...atomic import Outputs
 from ...errors import ParameterError, option
 from ..board.backends import build_board, make_board
-from .options import SOLVERS, RenderOptions
+from .options import SOLVERS, RenderOptions, estimator_of
 from ... import threads as host_threads
 from ..radiosity import closure as closures, formfactor, solver as solvers
 from ..cluster.scaleout import check_sets, combine_counters, exchange_bytes_per_sweep
@@ -315,6 +315,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "samples": ray.samples.count,
         "traversal": ray.traversal,
         "packing": ray.packing,
+        "estimator": estimator_of(ray),
         "end_points": _ends_label(ray),
         "sample_points": ray.sample_points + (f" (seed {ray.sample_seed})" if ray.samples.drawn else ""),
         "partition": getattr(run.board, "partition", None),

@@ -35,7 +35,7 @@ from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
 from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
-from .options import SAMPLE_POINTS, SOLVERS
+from .options import ESTIMATORS, SAMPLE_POINTS, SOLVERS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
            "error_against", "map_to_mesh", "leaf_triangles", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
@@ -77,6 +77,7 @@ SETTINGS = {
     "cell": Setting("--cell", str, CELLS),
     "traversal": Setting("--traversal", str, ("block", "ray")),
     "packing": Setting("--packing", str, ("voxel", "fill")),
+    "estimator": Setting("--estimator", str, tuple(ESTIMATORS)),
     "end-points": Setting("--end-points", str, ENDS),
     "end-seed": Setting("--end-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),
     "end-draws": Setting("--end-draws", int, check=_positive),
