@@ -72,12 +72,7 @@ def lattice_cells(D, p, corners):
     """The allowed weights (L, 3) of the 1/D lattice (strictly inside, no weight a multiple of p),
     and per cell of ``corners`` (C, 3, 3 barycentric) the indices of those it holds (padded rows,
     each point in the cell it lies deepest inside) and their count."""
-    a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
-    w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
-    w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
-    inv = np.linalg.inv(np.asarray(corners, dtype=np.float64).transpose(0, 2, 1))   # corners as columns
-    owner = np.argmax(np.einsum("cij,lj->lci", inv, w / D).min(axis=2), axis=1)
-    count = np.bincount(owner, minlength=len(corners))
+    w, owner, count = _owners(D, p, corners)
     assert count.min() > 0, "every cell holds a lattice point"
     members = np.zeros((len(corners), count.max()), dtype=np.int64)
     for c in range(len(corners)):
@@ -85,12 +80,35 @@ def lattice_cells(D, p, corners):
     return w, members, count
 
 
+def _owners(D, p, corners):
+    """The allowed weights (L, 3), the cell each lies deepest inside, and the count per cell."""
+    a, b = np.meshgrid(np.arange(1, D), np.arange(1, D), indexing="ij")
+    w = np.stack([a.ravel(), b.ravel(), D - a.ravel() - b.ravel()], axis=1)
+    w = w[(w[:, 2] >= 1) & (w % p != 0).all(axis=1)]
+    inv = np.linalg.inv(np.asarray(corners, dtype=np.float64).transpose(0, 2, 1))   # corners as columns
+    owner = np.argmax(np.einsum("cij,lj->lci", inv, w / D).min(axis=2), axis=1)
+    return w, owner, np.bincount(owner, minlength=len(corners))
+
+
+def _cell_corners(n):
+    """The n x n cells (row order) as barycentric corners (n^2, 3, 3)."""
+    return np.array([[(n - i, i - j, j) for i, j in cell] for cell in _cells(n)], dtype=np.float64) / n
+
+
 @lru_cache(maxsize=None)
-def _draw_lattice(D, p):
-    """:func:`lattice_cells` of the drawn samples' cells (row order, samples.py's own)."""
-    n = _DRAW_CELLS
-    corners = [[(n - i, i - j, j) for i, j in cell] for cell in _cells(n)]
-    return lattice_cells(D, p, np.array(corners, dtype=np.float64) / n)
+def _draw_lattice(D, p, n=_DRAW_CELLS):
+    """:func:`lattice_cells` of the drawn samples' n x n cells (row order, samples.py's own)."""
+    return lattice_cells(D, p, _cell_corners(n))
+
+
+@lru_cache(maxsize=None)
+def _strata_cells(D, p, strata):
+    """Cells per side for ``strata`` drawn strata: 4 (16 cells) up to 16 strata, else the finest
+    n with n^2 <= strata whose every cell holds an allowed point of the 1/D lattice."""
+    n = max(_DRAW_CELLS, math.isqrt(strata))
+    while n > _DRAW_CELLS and _owners(D, p, _cell_corners(n))[2].min() == 0:    # a cell too small
+        n -= 1
+    return n
 
 
 def _primes_from(start):
@@ -160,6 +178,9 @@ class SampleScheme:
     end_lattice: int = 1
     #: None: the fixed pattern on every patch; an integer: each patch's points drawn from it
     seed: int = None
+    #: drawn points only: each patch has ``sets`` sets of K points, stratified together over K sets
+    #: strata; row d of a pair's ``--end-draws`` rows casts from set d (``--sample-points rows``)
+    sets: int = 1
 
     def __post_init__(self):
         if isinstance(self.count, bool) or not isinstance(self.count, int) or not 1 <= self.count <= 64:
@@ -172,6 +193,16 @@ class SampleScheme:
                                       or not 0 <= self.seed < 2 ** 63):
             raise ParameterError(f"sample_seed must be an integer from 0 to 2**63 - 1, not {self.seed!r}",
                                  parameter="sample_seed")
+        if isinstance(self.sets, bool) or not isinstance(self.sets, int) or not 1 <= self.sets <= 64:
+            raise ParameterError(f"sample sets must be an integer from 1 to 64, not {self.sets!r}",
+                                 parameter="end_draws")
+        if self.sets > 1 and self.seed is None:
+            raise ParameterError("sample sets per row need drawn points (a seed)", parameter="sample_points")
+
+    @property
+    def per_patch(self):
+        """Points per patch: K in each of ``sets`` sets, set d at indices [d K, (d + 1) K)."""
+        return self.count * self.sets
 
     @property
     def drawn(self):
@@ -215,14 +246,18 @@ class SampleScheme:
         return _balanced(cells) * self.end_lattice
 
     def weights_of(self, patches):
-        """(len(patches), K, 3) int64 weights of the sample points of each patch (a read-only
-        broadcast of :attr:`weights` for the fixed pattern)."""
+        """(len(patches), K sets, 3) int64 weights of the sample points of each patch (a read-only
+        broadcast of :attr:`weights` for the fixed pattern). Drawn: point d K + k (set d) from
+        stratum k sets + d of K sets equal-area strata, so each set spreads over the triangle."""
         patches = np.asarray(patches, dtype=np.int64).reshape(-1)
         if not self.drawn:
             return np.broadcast_to(self.weights, (len(patches), self.count, 3))
-        w, members, count = _draw_lattice(self.denominator, self.prime)
-        k = np.arange(self.count)
-        u = (k + uniforms(self.seed, patches[:, None], k, _DRAW_STREAM)) / self.count    # stratum k of K
+        S = self.per_patch
+        w, members, count = _draw_lattice(self.denominator, self.prime,
+                                          _strata_cells(self.denominator, self.prime, S))
+        t = np.arange(S)
+        k = (t % self.count) * self.sets + t // self.count                   # the stratum of point t
+        u = (k + uniforms(self.seed, patches[:, None], k, _DRAW_STREAM)) / S
         v = uniforms(self.seed, patches[:, None], k, _DRAW_STREAM + 1)
         cell = np.minimum((u * len(count)).astype(np.int64), len(count) - 1)
         return w[members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]]
@@ -232,7 +267,7 @@ class SampleScheme:
         return np.array([self.prime * self.end_lattice] * 3, dtype=np.int64)
 
     def points(self, vertices, patches=None):
-        """Float sample points of triangles (N, 3, 3) -> (N, K, 3); ``patches``: their patch
+        """Float sample points of triangles (N, 3, 3) -> (N, K sets, 3); ``patches``: their patch
         numbers (default 0 .. N - 1), which drawn points depend on."""
         v = np.asarray(vertices, dtype=np.float64)
         if not self.drawn:

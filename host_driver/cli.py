@@ -200,7 +200,9 @@ def _render_parser(sub):
     p.add_argument("--sample-points", default=None, choices=list(SAMPLE_POINTS),
                    help="where a shooter's K samples lie: one fixed pattern on every patch (default) or drawn per "
                         "patch, one in each of K equal-area strata (draw: sees shadows of objects resting on the "
-                        "shooter in proportion; --end-lattice lets them nearer the edges); docs/formfactors.md")
+                        "shooter in proportion; --end-lattice lets them nearer the edges), or drawn as one set of K "
+                        "per --end-draws row, the sets stratified together (rows: M K points per patch, each row "
+                        "of a pair from its own set); docs/formfactors.md")
     p.add_argument("--sample-seed", type=int, default=0, metavar="N", help="seed of --sample-points draw")
     p.add_argument("--solver", default="progressive", choices=list(SOLVERS),
                    help="hierarchical: elements subdivided on demand, links refined by --epsilon (one CSV row per "

@@ -16,6 +16,7 @@ from blockray.board import BlockRay
 from blockray.host_driver.board.golden import GoldenBoard
 from blockray.host_driver.radiosity import ray_weights
 from blockray.host_driver.render.options import RenderOptions
+from blockray.host_driver.traverse.endpoints import EndPoints
 from blockray.host_driver.traverse.visibility import Visibility, visible_fraction
 from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.params import BoardParams
@@ -44,10 +45,11 @@ def test_drawn_weights_are_allowed_lattice_points_one_per_stratum(count, lattice
     W = scheme.weights_of(np.arange(500))
     assert W.shape == (500, count, 3)
     assert (W.sum(axis=2) == D).all() and (W >= 1).all() and (W % p != 0).all()
-    cell = _cell(W, D)
+    n = max(4, int(np.sqrt(count)))                  # cells a side: 4, finer for more than 16 strata
+    cell = _cell(W, D, n)
     k = np.arange(count)
-    # stratum k is [k, k + 1) / K of the area: the cells it overlaps, of 16 equal ones
-    lo, hi = np.floor(16 * k / count).astype(int), np.ceil(16 * (k + 1) / count).astype(int) - 1
+    # stratum k is [k, k + 1) / K of the area: the cells it overlaps, of n^2 equal ones
+    lo, hi = np.floor(n * n * k / count).astype(int), np.ceil(n * n * (k + 1) / count).astype(int) - 1
     assert ((cell >= lo) & (cell <= hi)).all()
     if count > 1:                                                 # (one point of 132 allowed repeats)
         assert len({tuple(w.ravel()) for w in W}) == 500          # every patch its own points
@@ -78,13 +80,14 @@ def test_a_patch_draws_the_same_points_in_any_batch_and_seeds_differ():
         scheme.weights                                  # no one pattern: each patch has its own
 
 
-def test_boards_cast_from_each_patchs_drawn_points():
+@pytest.mark.parametrize("sets", [1, 3])
+def test_boards_cast_from_each_patchs_drawn_points(sets):
     """The golden board and the model test rays from the points the drawn weights give (exact
-    predicate on points computed here from the weights)."""
+    predicate on points computed here from the weights), every set's points with ``sets``."""
     seed = 41
     print(f"seed={seed}")
     rng = np.random.default_rng(seed)
-    scheme = SampleScheme(8, 2, seed=9)
+    scheme = SampleScheme(8, 2, seed=9, sets=sets)
     D = scheme.denominator
     V = (rng.integers(0, 6, (30, 1, 3)) + rng.integers(-2, 3, (30, 3, 3))) * D
     V = V[np.linalg.norm(patch_normals(V), axis=1) > 0]
@@ -93,7 +96,7 @@ def test_boards_cast_from_each_patchs_drawn_points():
     golden.load(SimpleNamespace(v=1, start=np.array([0]), count=np.array([len(V)]), patches=np.arange(len(V))))
     total = blocked = 0
     for _ in range(8):
-        sp, ss = rng.integers(0, len(V), 5), rng.integers(0, scheme.count, 5)
+        sp, ss = rng.integers(0, len(V), 5), rng.integers(0, scheme.per_patch, 5)
         blk = BlockRay(sp, ss, rng.integers(0, len(V), 6), np.array([0]))
         bits = golden.run([blk])[0]
         P = [(scheme.weights_of([i])[0][k][:, None] * V[i]).sum(0) // D for i, k in zip(sp, ss)]
@@ -161,12 +164,13 @@ def _clear_share(heights, d, n=400):
     return np.array(out)
 
 
-def _estimate(scene, scheme):
+def _estimate(scene, scheme, draws=1, seed=0):
     board = GoldenBoard()
     board.prepare(scene, scheme)
     grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
     board.load(grid)
-    vis = Visibility(scene, board, grid, scheme, rows=4, cols=4)
+    ends = EndPoints(scene, scheme, "draw", seed, draws) if draws > 1 else None
+    vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=ends)
     return visible_fraction(scene, vis, scheme, 0, np.arange(3, scene.patches), vis.phases)
 
 
@@ -188,12 +192,56 @@ def test_drawn_samples_see_a_contact_shadow_in_proportion():
     assert abs((mean - truth).mean()) < 0.01
 
 
+@pytest.mark.parametrize("count, sets, cells", [(8, 8, 8), (8, 4, 5), (4, 2, 4)])
+def test_row_sets_are_stratified_together(count, sets, cells):
+    """``sets`` sets of K points per patch (``--sample-points rows``): point d K + k lies in
+    stratum k sets + d of the K sets equal-area strata (isqrt(K sets) cells a side, at least 4),
+    so each set spreads over the whole triangle and together they fill every stratum once."""
+    scheme = SampleScheme(count, 8, seed=11, sets=sets)
+    D, S = scheme.denominator, count * sets
+    W = scheme.weights_of(np.arange(300))
+    assert W.shape == (300, S, 3) and scheme.per_patch == S
+    assert (W.sum(axis=2) == D).all() and (W >= 1).all() and (W % scheme.prime != 0).all()
+    cell = _cell(W, D, cells)
+    t = np.arange(S)
+    stratum = (t % count) * sets + t // count
+    lo = np.floor(cells ** 2 * stratum / S).astype(int)
+    hi = np.ceil(cells ** 2 * (stratum + 1) / S).astype(int) - 1
+    assert ((cell >= lo) & (cell <= hi)).all()
+    np.testing.assert_array_equal(SampleScheme(count, 8, seed=11, sets=1).weights_of(np.arange(300)),
+                                  SampleScheme(count, 8, seed=11).weights_of(np.arange(300)))
+    with pytest.raises(ParameterError):
+        SampleScheme(count, 8, sets=2)                     # sets are drawn
+
+
+def test_each_row_of_a_pair_casts_from_its_own_set():
+    """The shelf of the contact-shadow test with 4 rows per pair: row d's rays start at set d, so
+    a pair's estimate averages 4 K points (the closed form within four standard errors), and its
+    spread over seeds is well below the one of 4 rows sharing one drawn set."""
+    scene, heights = _shelf_scene()
+    truth = _clear_share(heights, 0.2)
+    seeds = range(120)
+    shared = np.array([_estimate(scene, SampleScheme(8, 8, seed=s), 4, s) for s in seeds])
+    rows = np.array([_estimate(scene, SampleScheme(8, 8, seed=s, sets=4), 4, s) for s in seeds])
+    mean, err = rows.mean(axis=0), rows.std(axis=0) / np.sqrt(len(seeds))
+    lit = (truth > 0.02) & (truth < 0.98)
+    ratio = rows.std(axis=0)[lit] / shared.std(axis=0)[lit]
+    print("truth", np.round(truth, 3), "\nrows", np.round(mean, 3), "\nstd err", np.round(err, 4),
+          "\nspread rows / shared", np.round(ratio, 2))
+    assert (np.abs(mean - truth) < 4 * err + 0.01).all()
+    assert np.median(ratio) < 0.7
+
+
 def test_sample_points_option():
     o = RenderOptions.of(sample_points="draw", sample_seed=7, end_lattice=8)
     assert o.ray.samples == SampleScheme(8, 8, seed=7)
     assert o.with_(sample_seed=8).ray.samples == SampleScheme(8, 8, seed=8)
     assert RenderOptions.of(samples=SampleScheme(4, seed=3)).ray.sample_points == "draw"
     assert RenderOptions.of().ray.samples == SampleScheme(8)
+    rows = RenderOptions.of(sample_points="rows", sample_seed=7, end_points="draw", end_lattice=8, end_draws=4)
+    assert rows.ray.samples == SampleScheme(8, 8, seed=7, sets=4)
+    assert RenderOptions.of(samples=SampleScheme(8, 8, seed=3, sets=2), end_points="draw", end_draws=2
+                            ).ray.sample_points == "rows"
     for bad, name in ((dict(sample_points="random"), "sample_points"),
                       (dict(sample_points="draw", sample_seed=-1), "sample_seed"),
                       (dict(sample_points="draw", solver="hierarchical"), "sample_points"),

@@ -120,6 +120,11 @@ class ElementPoints:
 
     drawn = False           # every input triangle has the same table
 
+    @property
+    def per_patch(self):
+        """Points per input triangle: the whole table."""
+        return self.count
+
     def weights_of(self, patches):
         """(len(patches), count, 3): the table of each input triangle ``patches`` (a broadcast)."""
         return np.broadcast_to(self.weights, (len(np.asarray(patches).reshape(-1)), self.count, 3))

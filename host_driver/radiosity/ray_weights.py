@@ -33,11 +33,11 @@ def _centroids_in_front(V, i, receivers):
 
 
 def samples_in_front(scene, samples, i, receivers):
-    """bool (len(receivers), K): sample point k of shooter i strictly in front of receiver j's
+    """bool (len(receivers), K sets): sample point k of shooter i strictly in front of receiver j's
     plane (exact signs). Only those rays carry light from i to j."""
     V = scene.patch_vertices
     receivers = np.asarray(receivers, dtype=np.int64)
-    K = samples.count
+    K = samples.per_patch                    # every set's points, when the patch has several
     tri = np.repeat(V[receivers], K, axis=0)
     pts = np.broadcast_to(V[i], (len(tri), 3, 3))
     w = np.tile(samples.weights_of([i])[0], (len(receivers), 1))
@@ -61,7 +61,7 @@ def weight_points(scene, samples, patches=None):
     V = scene.patch_vertices
     patches = range(scene.patches) if patches is None else patches
     points = [samples.points(V[j][None], [j])[0] for j in patches]
-    return np.stack(points) if points else np.zeros((0, samples.count, 3))
+    return np.stack(points) if points else np.zeros((0, samples.per_patch, 3))
 
 
 def pair_sample_weights(scene, samples, shooters, receivers, points=None):
@@ -73,7 +73,7 @@ def pair_sample_weights(scene, samples, shooters, receivers, points=None):
     shooters = np.asarray(shooters, dtype=np.int64)
     receivers = np.asarray(receivers, dtype=np.int64)
     if len(shooters) == 0:
-        return np.zeros((0, samples.count))
+        return np.zeros((0, samples.per_patch))
     if points is None:
         unique, which = np.unique(shooters, return_inverse=True)
         points, shooters = weight_points(scene, samples, unique), which.reshape(-1).astype(np.int64)

@@ -29,7 +29,7 @@ __all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOp
            "host_timing"]
 
 SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
-SAMPLE_POINTS = ("fixed", "draw")
+SAMPLE_POINTS = ("fixed", "draw", "rows")
 
 #: ``--estimator``: named sets of the ray options that decide how a pair's visibility is estimated.
 #: ``paper``: one fixed sample pattern to the receivers' centroids (the paper; fast, biased at contact
@@ -94,8 +94,9 @@ class RayOptions:
     ``packing`` of block rays, where each row ends on its receiver (``end_points``, a rule of
     host_driver/traverse/endpoints.py, with ``end_seed`` and ``end_draws`` rows per pair for ``draw``, on a
     lattice ``end_lattice`` times finer than the samples'), where the shooter's samples lie
-    (``sample_points``: ``fixed``, one pattern for every patch, or ``draw``, stratified and drawn per
-    patch from ``sample_seed``; blockray/samples.py), and the fraction of rays whose traversal is
+    (``sample_points``: ``fixed``, one pattern for every patch; ``draw``, stratified and drawn per
+    patch from ``sample_seed``; ``rows``, drawn as ``end_draws`` sets stratified together, row d of
+    a pair casting from set d; blockray/samples.py), and the fraction of rays whose traversal is
     measured."""
     voxels: int = None
     samples: SampleScheme = 8
@@ -122,10 +123,11 @@ class RayOptions:
                                      parameter="end_lattice")
             object.__setattr__(self, "end_lattice", max(own, self.end_lattice))
             if self.samples.drawn and self.sample_points == "fixed":
-                object.__setattr__(self, "sample_points", "draw")
+                object.__setattr__(self, "sample_points", "draw" if self.samples.sets == 1 else "rows")
                 object.__setattr__(self, "sample_seed", self.samples.seed)
-        seed = self.sample_seed if self.sample_points == "draw" else None
-        object.__setattr__(self, "samples", SampleScheme(count, self.end_lattice, seed))
+        seed = self.sample_seed if self.sample_points != "fixed" else None
+        sets = self.end_draws if self.sample_points == "rows" and _integer(self.end_draws) else 1
+        object.__setattr__(self, "samples", SampleScheme(count, self.end_lattice, seed, sets))
         _one_of("traversal", self.traversal, TRAVERSALS)
         _one_of("packing", self.packing, PACKINGS)
         from ..traverse.endpoints import ENDS, MAX_DRAWS

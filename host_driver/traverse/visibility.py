@@ -109,12 +109,12 @@ class Visibility:
         V = self.scene.patch_vertices[receivers]
         return np.einsum("rk,rkd->rd", end_weights / self.samples.denominator, V)
 
-    def _ray_batch(self, shooters, receivers, end_weights=None):
+    def _ray_batch(self, shooters, receivers, end_weights=None, sets=None):
         """One block per ray (pairs in order, samples inner) with its 3D-DDA voxels; each block's
         row is its pair."""
         K = self.samples.count
         pair = np.repeat(np.arange(len(receivers)), K)
-        ks = np.tile(np.arange(K), len(receivers))
+        ks = np.tile(np.arange(K), len(receivers)) + (0 if sets is None else K * sets[pair])
         ends = self._end_points(receivers, end_weights)
         with self.phases.timed("traverse"):
             vox, off = self.grid.rays_voxels(self.sample_points[shooters[pair], ks], ends[pair], nonempty_only=True)
@@ -127,16 +127,17 @@ class Visibility:
         receivers = np.asarray(receivers, dtype=np.int64)
         return self._pair_blocks(np.full(len(receivers), i, dtype=np.int64), receivers)[0]
 
-    def _pair_blocks(self, shooters, receivers, end_weights=None):
+    def _pair_blocks(self, shooters, receivers, end_weights=None, sets=None):
         """The block rays of the pairs (shooters[m], receivers[m]), packed and traversed, as one
         BlockBatch, and the pair of each of its rows; each pair's row ends at the point of
-        ``end_weights[m]`` if given, else at the receiver's centroid.
+        ``end_weights[m]`` if given, else at the receiver's centroid; its rays start at the
+        shooter's sample set ``sets[m]`` (default 0: the first K points).
 
-        A run of equal consecutive shooters is one column: its receivers are packed as those of
-        one shooter (:meth:`_blocks_for`), columns in order, so a column's blocks are the same
+        A run of equal consecutive (shooter, set) is one column: its receivers are packed as those
+        of one shooter (:meth:`_blocks_for`), columns in order, so a column's blocks are the same
         whatever else shares the batch."""
         if self.traversal == "ray":
-            return self._ray_batch(shooters, receivers, end_weights)
+            return self._ray_batch(shooters, receivers, end_weights, sets)
         K = self.samples.count
         with self.phases.timed("commands"):
             if end_weights is None:
@@ -146,7 +147,8 @@ class Visibility:
                 pair_end = self._end_points(receivers, end_weights)
                 pair_voxel, pair_morton = self.grid.voxel_of(pair_end), _morton(self.grid.cell_of(pair_end))
             column = np.zeros(len(shooters), dtype=np.int64)
-            column[1:] = np.cumsum(shooters[1:] != shooters[:-1])
+            change = shooters[1:] != shooters[:-1]
+            column[1:] = np.cumsum(change if sets is None else change | (sets[1:] != sets[:-1]))
             if self.packing == "fill":
                 # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
                 # A block then spans neighbouring voxels; its bundle is a little wider.
@@ -168,7 +170,8 @@ class Visibility:
             rows, cols = np.repeat(run_len, nc), np.tile(chunk_len, nr)
             row_pair = pair[ranges(np.repeat(run_start, nc), rows)]
             receiver_patch = receivers[row_pair]
-            shooter_sample = ranges(np.tile(chunk_start, nr), cols)
+            first_k = np.tile(chunk_start, nr) + (0 if sets is None else np.repeat(K * sets[pair[run_start]], nc))
+            shooter_sample = ranges(first_k, cols)
             shooter_patch = np.repeat(shooters[pair[run_start]], K)     # each run's K samples
             row_off = np.concatenate([[0], np.cumsum(rows)])
             col_off = np.concatenate([[0], np.cumsum(cols)])
@@ -190,9 +193,10 @@ class Visibility:
         return self.pair_clear_fraction(np.full(len(receivers), i, dtype=np.int64), receivers, weights,
                                         columns=1)
 
-    def pair_clear_fraction(self, shooters, receivers, weights=None, *, columns=None, end_weights=None):
+    def pair_clear_fraction(self, shooters, receivers, weights=None, *, columns=None, end_weights=None, sets=None):
         """:meth:`clear_fraction` of the pairs (shooters[m], receivers[m]), all in one board batch
-        (a run of equal consecutive shooters is one column; ``columns`` counts them unless given).
+        (a run of equal consecutive shooters is one column; ``columns`` counts them unless given),
+        pair m's rays from its shooter's sample set ``sets[m]`` (default 0).
         Each pair's value is the one :meth:`clear_fraction` gives it alone, to the bit."""
         shooters = np.asarray(shooters, dtype=np.int64)
         receivers = np.asarray(receivers, dtype=np.int64)
@@ -202,13 +206,15 @@ class Visibility:
         self.columns += columns
         if n == 0:
             return np.zeros(0)
-        batch, row_pair = self._pair_blocks(shooters, receivers, end_weights)
+        batch, row_pair = self._pair_blocks(shooters, receivers, end_weights,
+                                            None if sets is None else np.asarray(sets, dtype=np.int64))
         with self.phases.timed("board"):
             bits = self.board.run(batch)
         flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
             [np.asarray(b, dtype=bool).ravel() for b in bits])
         # the clear bit of every (pair, sample) ray, whatever block and batch it was cast in
-        bit = _clear_bits(batch.row_off, batch.col_off, batch.shooter_sample, row_pair, flat, n, self.samples.count)
+        K = self.samples.count
+        bit = _clear_bits(batch.row_off, batch.col_off, batch.shooter_sample % K, row_pair, flat, n, K)
         self.rays += batch.rays
         self.blocks += len(batch)
         plain = bit.sum(axis=1) / self.samples.count
@@ -239,19 +245,27 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         shooters = np.concatenate([np.full(len(forward), i, dtype=np.int64), reverse])
         targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
         weights = ray_weights.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
-        ends, draws = None, 1
+        K, S = samples.count, weights.shape[1] // samples.count        # S sample sets per patch
+        ends, draws, sets = None, 1, None
         if vis.ends is not None and vis.ends.rule != "centroid":
             # i's own rows end where the rule puts them, ``draws`` rows per pair (all in i's one
-            # column); reverse rows at i's centroid
+            # column), row d from sample set d if the patches have a set per row; reverse rows at
+            # i's centroid, from set 0
             draws, nf = vis.ends.draws, len(forward)
             ends = np.concatenate([vis.ends.rows(i, forward)]
                                   + [np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
             shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), reverse])
             targets = np.concatenate([np.tile(forward, draws), targets[nf:]])
-            weights = np.concatenate([np.tile(weights[:nf], (draws, 1)), weights[nf:]])
+            sets = np.concatenate([np.repeat(np.arange(draws) % S, nf), np.zeros(len(reverse), dtype=np.int64)])
+            own = weights[:nf].reshape(nf, S, K)
+            weights = np.concatenate([own[:, np.arange(draws) % S].transpose(1, 0, 2).reshape(-1, K),
+                                      weights[nf:, :K]])
+            if S == 1:
+                sets = None
+        weights = weights[:, :K]
     frac = np.empty(len(receivers))
     # the column count as one call per column would give it: i's own (even if empty), one per reverse
-    f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends)
+    f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends, sets=sets)
     split = draws * len(forward)
     frac[direct] = f[:split].reshape(draws, len(forward)).mean(axis=0)
     frac[~direct] = f[split:]
