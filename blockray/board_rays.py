@@ -38,7 +38,7 @@ from .params import BoardParams, check_bits
 from .protocol import BoardProtocol, Op
 from .records import pack, point_layout, unpack
 
-__all__ = ["RayOp", "RECEIVERS_PER_COMMAND", "MAX_SAMPLES", "MAX_GRID", "MAX_DENOMINATOR", "WEIGHT_BITS", "LoadSamples", "LoadGrid", "Column",
+__all__ = ["RayOp", "RECEIVERS_PER_COMMAND", "MAX_SAMPLES", "MAX_GRID", "MAX_DENOMINATOR", "WEIGHT_BITS", "STAMP_BITS", "LoadSamples", "LoadGrid", "Column",
            "Receivers", "RAY_COMMANDS", "RayProtocol", "record_addresses", "column_commands", "describe"]
 
 
@@ -60,6 +60,9 @@ MAX_GRID = 256
 MAX_DENOMINATOR = 3 * 11 * 16
 #: bits of a weight (0 .. D)
 WEIGHT_BITS = MAX_DENOMINATOR.bit_length()
+#: bits of the sequencer's visited stamp per voxel: the stamps are cleared once every 2^STAMP_BITS - 1
+#: blocks (and after LOAD_GRID)
+STAMP_BITS = 8
 
 
 @dataclass(frozen=True)

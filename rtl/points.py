@@ -15,6 +15,7 @@ from amaranth.hdl import Array, Module, Mux, Signal, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from ..board_rays import MAX_DENOMINATOR
 from ..points import POINT_LATENCY, PointArithmetic
 from ..records import patch_layout, point_layout
 
@@ -29,14 +30,20 @@ def point_job_layout(arithmetic):
 
 class PointUnit(wiring.Component):
     """``jobs`` (In, :func:`point_job_layout`) -> ``points`` (Out, :func:`~blockray.records.point_layout`
-    of B bits). ``bits``: B; ``denominator``: D, the weights' sum. The point is exact for records
-    whose vertices are multiples of D (every quantised scene's); latency :attr:`latency` cycles,
-    one job at a time."""
+    of B bits). ``bits``: B; ``denominator``: D, the weights' sum, or None for a D the board
+    learns (``LOAD_SAMPLES``): then e and d^-1 are inputs ``shift`` and ``inverse``, held while
+    a job runs, and the weights are :data:`~blockray.board_rays.WEIGHT_BITS` wide. The point is
+    exact for records whose vertices are multiples of D (every quantised scene's); latency
+    :attr:`latency` cycles, one job at a time."""
 
-    def __init__(self, *, bits, denominator):
-        self._arith = PointArithmetic(bits, denominator)
-        super().__init__({"jobs": In(stream.Signature(point_job_layout(self._arith))),
-                          "points": Out(stream.Signature(point_layout(bits)))})
+    def __init__(self, *, bits, denominator=None):
+        self._learnt = denominator is None
+        self._arith = PointArithmetic(bits, MAX_DENOMINATOR if self._learnt else denominator)
+        ports = {"jobs": In(stream.Signature(point_job_layout(self._arith))),
+                 "points": Out(stream.Signature(point_layout(bits)))}
+        if self._learnt:                    # MAX_DENOMINATOR sets the widths only
+            ports |= {"shift": In(range(self._arith.weight_bits)), "inverse": In(bits)}
+        super().__init__(ports)
 
     @property
     def arithmetic(self):
@@ -58,10 +65,11 @@ class PointUnit(wiring.Component):
 
         patch = job.patch
         coords = Array(Array(v[c] for c in "xyz") for v in (patch.v0, patch.v1, patch.v2))
-        scaled = (acc[coord] >> a.shift)[:a.bits]
+        shift, inverse = (self.shift, self.inverse) if self._learnt else (a.shift, a.inverse)
+        scaled = (acc[coord] >> shift)[:a.bits]
         product = Signal(a.sum_bits + a.bits)
         multiply = Signal()                                     # the inverse's multiplies, not the sums
-        m.d.comb += product.eq(Mux(multiply, scaled * a.inverse, job.weights[vertex] * coords[vertex][coord]))
+        m.d.comb += product.eq(Mux(multiply, scaled * inverse, job.weights[vertex] * coords[vertex][coord]))
         m.d.comb += self.points.payload.eq(out)
 
         with m.FSM(init="Take"):

@@ -30,21 +30,19 @@ Every other command passes by the sequencer (no cycles here; the board's own are
 """
 
 from ..block_walk import walk_block_cycles
-from ..board_rays import RayOp, RayProtocol
+from ..board_rays import STAMP_BITS, RayOp, RayProtocol
 from ..errors import ParameterError
 from ..memory import load_points_commands
 from ..points import POINT_LATENCY, PointArithmetic
 from ..protocol import BeginBlock, EndBlock, Op, Voxel
 from .points import point_of
 
-__all__ = ["BlockSequencer", "execute", "POINT_CYCLES", "GATHER_CYCLES", "STAMP_BITS"]
+__all__ = ["BlockSequencer", "execute", "POINT_CYCLES", "GATHER_CYCLES"]
 
 #: a point: its record (and weights) read, the job taken by the point unit, its latency
 POINT_CYCLES = 2 + POINT_LATENCY
 #: a point of a LOAD_POINTS record: read from the point memory, put in its slot
 GATHER_CYCLES = 2
-#: bits of a voxel's visited stamp: the stamps are cleared once every 2^STAMP_BITS - 2 blocks
-STAMP_BITS = 8
 
 
 class BlockSequencer:

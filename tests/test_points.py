@@ -9,7 +9,6 @@ import random
 
 import numpy as np
 import pytest
-from amaranth.sim import Simulator
 
 from blockray.errors import ParameterError
 from blockray.fixedpoint import quantise
@@ -17,6 +16,7 @@ from blockray.points import POINT_LATENCY, PointArithmetic
 from blockray.rtl.points import PointUnit, point_job_layout
 from blockray.samples import SampleScheme
 from blockray.sim.points import point_of
+from stream_bench import drive_streams
 
 BITS = 16
 
@@ -62,37 +62,25 @@ def test_gateware_equals_the_model_cycle_for_cycle(cornell, rng_seed):
     dut = PointUnit(bits=BITS, denominator=scheme.denominator)
     layout = point_job_layout(dut.arithmetic)
     V = q.vertices.tolist()
-    got = []
+    got, state = [], {"taken": None, "first_valid": None}
 
-    async def bench(ctx):
-        cycle, taken, first_valid, pending = 0, None, None, list(jobs)
-        while len(got) < len(jobs):
-            offer = bool(pending) and rng.random() < 0.7
-            ctx.set(dut.jobs.valid, offer)
-            if offer:
-                n, w, _ = pending[0]
-                ctx.set(dut.jobs.payload, layout.const({"patch": _record(q, n), "weights": list(w)}))
-            ctx.set(dut.points.ready, rng.random() < 0.6)
-            await ctx.delay(1e-9)
-            if ctx.get(dut.points.valid):
-                assert taken is not None
-                if first_valid is None:
-                    first_valid = cycle
-                    assert first_valid - taken[0] == POINT_LATENCY          # the model's cycle contract
-                if ctx.get(dut.points.ready):
-                    p = ctx.get(dut.points.payload)
-                    got.append(taken[1:] + ((p.x, p.y, p.z),))
-                    taken = first_valid = None
-            if offer and ctx.get(dut.jobs.ready):
-                assert taken is None                                        # one job at a time
-                taken = (cycle,) + pending.pop(0)
-            cycle += 1
-            await ctx.tick()
+    def step(ctx, cycle, job):
+        if ctx.get(dut.points.valid):
+            taken = state["taken"]
+            assert taken is not None
+            if state["first_valid"] is None:
+                state["first_valid"] = cycle
+                assert cycle - taken[0] == POINT_LATENCY                    # the model's cycle contract
+            if ctx.get(dut.points.ready):
+                p = ctx.get(dut.points.payload)
+                got.append(taken[1:] + ((p.x, p.y, p.z),))
+                state["taken"] = state["first_valid"] = None
+        if job is not None:
+            assert state["taken"] is None                                   # one job at a time
+            state["taken"] = (cycle,) + job
 
-    sim = Simulator(dut)
-    sim.add_clock(1e-8)
-    sim.add_testbench(bench)
-    sim.run()
+    drive_streams(dut, dut.jobs, dut.points, jobs, rng, step, until=lambda: len(got) == len(jobs),
+                  payload=lambda job: layout.const({"patch": _record(q, job[0]), "weights": list(job[1])}))
     for n, w, host, point in got:
         assert point == host == point_of(V[n], w, dut.arithmetic), (n, w)
 

@@ -8,10 +8,9 @@ length, with the grid's origin inside the scene's box and the points outside the
 import random
 
 import numpy as np
-from amaranth.sim import Simulator
-
 from blockray.block_walk import walk_block
 from blockray.rtl.ray_walk import RayWalker, walk_job_layout
+from stream_bench import drive_streams
 
 BITS = 8
 
@@ -58,42 +57,32 @@ def test_boxes_are_the_walks_voxels_one_a_cycle(rng_seed):
     jobs = [_job(rng) for _ in range(120)]
     dut = RayWalker(bits=BITS)
     layout = walk_job_layout(BITS)
-    got = []
+    got, state = [], {"taken": None, "boxes": []}
 
-    async def bench(ctx):
-        cycle, taken, pending, boxes = 0, None, list(jobs), []
-        while len(got) < len(jobs):
-            assert cycle < 100 * len(jobs), "the walker stopped giving boxes"     # a ray has < 30 boxes
-            offer = bool(pending) and rng.random() < 0.7
-            ctx.set(dut.jobs.valid, offer)
-            if offer:
-                p, q, origin, shift, v = pending[0]
-                ctx.set(dut.jobs.payload, layout.const({"p": _xyz(p), "q": _xyz(q), "origin": _xyz(origin),
-                                                        "shift": shift, "v": v}))
-            ctx.set(dut.boxes.ready, rng.random() < 0.6)
-            await ctx.delay(1e-9)
-            if ctx.get(dut.boxes.valid):
-                assert taken is not None and cycle == taken[0] + 1 + len(boxes) + taken[1]
-                if ctx.get(dut.boxes.ready):
-                    b = ctx.get(dut.boxes.payload)
-                    boxes.append((list(b.lo), list(b.hi), b.empty))
-                    if b.last:
-                        got.append((taken[2], boxes))
-                        taken, boxes = None, []
-                else:
-                    taken = (taken[0], taken[1] + 1, taken[2])          # a cycle waiting for ready
-            elif taken is not None:
-                raise AssertionError(f"no box in cycle {cycle}")
-            if offer and ctx.get(dut.jobs.ready):
-                assert taken is None                                    # one job at a time
-                taken = (cycle, 0, pending.pop(0))
-            cycle += 1
-            await ctx.tick()
+    def payload(job):
+        p, q, origin, shift, v = job
+        return layout.const({"p": _xyz(p), "q": _xyz(q), "origin": _xyz(origin), "shift": shift, "v": v})
 
-    sim = Simulator(dut)
-    sim.add_clock(1e-8)
-    sim.add_testbench(bench)
-    sim.run()
+    def step(ctx, cycle, job):
+        assert cycle < 100 * len(jobs), "the walker stopped giving boxes"         # a ray has < 30 boxes
+        taken, boxes = state["taken"], state["boxes"]
+        if ctx.get(dut.boxes.valid):
+            assert taken is not None and cycle == taken[0] + 1 + len(boxes) + taken[1]
+            if ctx.get(dut.boxes.ready):
+                b = ctx.get(dut.boxes.payload)
+                boxes.append((list(b.lo), list(b.hi), b.empty))
+                if b.last:
+                    got.append((taken[2], boxes))
+                    state["taken"], state["boxes"] = taken, boxes = None, []
+            else:
+                state["taken"] = taken = (taken[0], taken[1] + 1, taken[2])   # a cycle waiting for ready
+        elif taken is not None:
+            raise AssertionError(f"no box in cycle {cycle}")
+        if job is not None:
+            assert taken is None                                            # one job at a time
+            state["taken"] = (cycle, 0, job)
+
+    drive_streams(dut, dut.jobs, dut.boxes, jobs, rng, step, payload=payload, until=lambda: len(got) == len(jobs))
     for (p, q, origin, shift, v), boxes in got:
         want = walk_block([p], [q], origin, shift, v, np.ones(v ** 3, np.int64), nonempty_only=False)
         assert _expand(boxes, v) == want.tolist(), (p, q, origin, shift, v)
