@@ -64,13 +64,18 @@ class RayWalker(wiring.Component):
         for c in range(3):                                  # the next crossing of each axis: t = num / ad
             m.d.comb += num[c].eq(Mux(d[c] > 0, (plane[c] << shift) - x[c], x[c] - (plane[c] << shift)))
             m.d.comb += live[c].eq((d[c] != 0) & (num[c] <= ad[c]))
-        # axis c crosses next (with any equal ones) when its t is at most every live axis' t
+        # axis c crosses next (with any equal ones) when its t is at most every live axis' t; the six
+        # products num_a |d_b| once each (each enters two comparisons), B x B bits: a comparison
+        # counts only when both axes are live, and then 0 < num_a <= |d_a| < 2^B
+        product = {(a, b): Signal(unsigned(2 * B), name=f"num_{'xyz'[a]}_ad_{'xyz'[b]}")
+                   for a in range(3) for b in range(3) if a != b}
+        m.d.comb += [prod.eq(num[a][:B] * ad[b][:B]) for (a, b), prod in product.items()]
         first = [Signal(name=f"first_{c}") for c in "xyz"]
         for c in range(3):
             m.d.comb += first[c].eq(live[c])
             for b in range(3):
                 if b != c:
-                    with m.If(live[b] & (num[c] * ad[b] > num[b] * ad[c])):
+                    with m.If(live[b] & (product[c, b] > product[b, c])):
                         m.d.comb += first[c].eq(0)
         self._output(m, lo, hi, v, live)
 

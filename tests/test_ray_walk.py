@@ -17,7 +17,7 @@ BITS = 8
 
 def _job(rng):
     """A grid and a ray, coordinates often on the grid's planes or one off."""
-    shift, v = rng.randint(0, 4), rng.randint(1, 6)
+    shift, v = rng.randint(0, BITS - 3), rng.randint(1, 6)     # up to grids spanning the B-bit range
     origin = [rng.randint(0, 20) for _ in range(3)]
     edge = 1 << shift
 
