@@ -12,7 +12,9 @@ column, as bench_ulx3s_link.py), the CLI's voxels, B and K = 8. Counted after th
 bytes each way (commands; results) at the transport, and the framed link's wire bytes. The two
 modes' clear fractions must be equal (checked). Rays/s through a UART moving ``baud / 10`` bytes a
 second each way is bound by the busier direction (framed); the array's rate is rays per board
-cycle (the records' cycles: the sequencer's own are not modelled yet) at ``--clock``.
+cycle (the records' cycles) at ``--clock``; with ``board`` the block sequencer's cycles per ray
+(its model's cycle contract, docs/board-protocol.md "The sequencer's cycles": it makes the
+records one thing at a time while the board runs the earlier ones).
 """
 
 import argparse
@@ -51,12 +53,14 @@ def measure(scene, rows, cols, traversal, shooters):
             else VoxelGrid(scene.patch_vertices, voxels, margin=driver.margin))
     driver.load(grid)
     cycles0, wire0 = driver.counters()["board_cycles"], wires[0].stats()
+    sequencer0 = cores[0].sequencer.cycle
     cores[0].on = True
     vis = Visibility(scene, driver, grid, samples, rows=rows, cols=cols, traversal=traversal)
     frac = np.concatenate([vis.clear_fraction(int(i), np.arange(scene.patches)) for i in shooters])
     c, wire = driver.counters(), wires[0].stats()
     driver.close()
     return {"rays": c["rays"], "blocks": c["blocks"], "cycles": c["board_cycles"] - cycles0, "bits": driver.params.bits,
+            "sequencer": cores[0].sequencer.cycle - sequencer0,
             "down": cores[0].sent, "up": cores[0].received, "voxels": grid.v,
             "down_wire": wire["wire_bytes_sent"] - wire0["wire_bytes_sent"],
             "up_wire": wire["wire_bytes_received"] - wire0["wire_bytes_received"]}, frac
@@ -78,8 +82,9 @@ def main():
     print(f"{args.scene} ({scene.patches} patches), {args.shooters} shooter columns to every patch, seed {args.seed}, "
           f"K = 8; bytes per ray after the load (framed: on the wire)")
     print("| board | traversal | B | voxels | blocks | rays | to board B/ray | to host B/ray | together | "
-          "framed to board | framed to host | framed together | rays/s at 3 Mbaud | array rays/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "framed to board | framed to host | framed together | rays/s at 3 Mbaud | array rays/s | "
+          "board cycles/ray | sequencer cycles/ray |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for shape in args.boards.split(","):
         rows, cols = (int(x) for x in shape.split("x"))
         fracs = {}
@@ -89,7 +94,8 @@ def main():
             down, up, fdown, fup = (r[k] / n for k in ("down", "up", "down_wire", "up_wire"))
             print(f"| {rows} x {cols} | {traversal} | {r['bits']} | {r['voxels']}^3 | {r['blocks']} | {n} | "
                   f"{down:.3f} | {up:.3f} | **{down + up:.3f}** | {fdown:.3f} | {fup:.3f} | {fdown + fup:.3f} | "
-                  f"{bps / max(fdown, fup):,.0f} | {n / r['cycles'] * args.clock * 1e6:,.0f} |", flush=True)
+                  f"{bps / max(fdown, fup):,.0f} | {n / r['cycles'] * args.clock * 1e6:,.0f} | "
+                  f"{r['cycles'] / n:.1f} | {r['sequencer'] / n if traversal == 'board' else 0:.1f} |", flush=True)
         assert np.array_equal(fracs["block"], fracs["board"]), "the two traversals' clear fractions differ"
     print(f"clear fractions of the two traversals equal on every board; array rate at {args.clock:g} MHz")
 
