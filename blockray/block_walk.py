@@ -17,9 +17,10 @@ an axis is the closed interval [origin + i L, origin + (i + 1) L], linear index 
 
 The block sequencer's walk cycles (its cycle contract, docs/board-protocol.md "The sequencer's
 cycles"): per ray :data:`RAY_CYCLES` (its end points read, the job given to the ray walker), per
-box :data:`BOX_CYCLES` (taken from the walker) and per voxel of the clipped box
-:data:`VOXEL_CYCLES` (its voxel-table entry and visited stamp read, then decided: a VOXEL record
-offered in the second cycle if it is new and not empty), every voxel of a box, visited or not.
+box :data:`BOX_CYCLES` (taken from the walker, its first voxel's voxel-table entry and visited
+stamp read) and per voxel of the clipped box :data:`VOXEL_CYCLES` (decided: a VOXEL record
+offered if it is new and not empty, while the next voxel is read), every voxel of a box, visited
+or not.
 """
 
 import numpy as np
@@ -28,7 +29,7 @@ from numba import njit
 __all__ = ["walk_block", "walk_block_cycles", "walk_blocks", "RAY_CYCLES", "BOX_CYCLES", "VOXEL_CYCLES"]
 
 #: the sequencer's cycles per ray, per box and per voxel of a box (the module docstring)
-RAY_CYCLES, BOX_CYCLES, VOXEL_CYCLES = 2, 1, 2
+RAY_CYCLES, BOX_CYCLES, VOXEL_CYCLES = 2, 1, 1
 
 
 def walk_block(starts, ends, origin, shift, v, count, *, nonempty_only=True):

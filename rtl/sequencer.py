@@ -143,6 +143,9 @@ class BlockSequencer(wiring.Component):
         s.box = Signal(box_layout())
         s.at = Signal(box_layout()["lo"].shape)                # the box's voxel being read
         s.voxel = Signal(self._proto.voxel_width)
+        s.read_at = Signal(box_layout()["lo"].shape)           # the voxel whose entry and stamp are read
+        v = s.grid.v
+        s.index = (s.read_at[0] * v + s.read_at[1]) * v + s.read_at[2]
         m.submodules.weights = wm = Memory(shape=self._rays.weight_layout, depth=MAX_SAMPLES, init=[])
         m.submodules.points = pm = Memory(shape=point_layout(B), depth=MAX_SAMPLES + p.rows, init=[])
         m.submodules.stamps = sm = Memory(shape=unsigned(self._stamp_bits), depth=p.voxel_depth, init=[])
@@ -301,16 +304,11 @@ class BlockSequencer(wiring.Component):
             with m.If(walker.boxes.valid):
                 m.d.sync += [s.box.eq(box), s.at.eq(box.lo)]
                 with m.If(~box.empty):
-                    m.next = "Read"
+                    self._read(m, s, box.lo)
+                    m.next = "Voxel"
                 with m.Elif(box.last):
                     self._next_ray(m, s)
-        with m.State("Read"):
-            index = (s.at[0] * v + s.at[1]) * v + s.at[2]
-            m.d.comb += [self.table_read.addr.eq(index), s.s_read.addr.eq(index),
-                         self.table_read.en.eq(1), s.s_read.en.eq(1)]
-            m.d.sync += s.voxel.eq(index)
-            m.next = "Decide"
-        with m.State("Decide"):
+        with m.State("Voxel"):
             self._decide(m, s)
         with m.State("End"):
             self._offer(m, Op.END_BLOCK, "Idle")
@@ -321,23 +319,34 @@ class BlockSequencer(wiring.Component):
                 with m.Else():
                     m.d.sync += s.n.eq(0)
 
+    def _read(self, m, s, at):
+        """Read voxel ``at``'s table entry and stamp, to be decided in the next cycle."""
+        m.d.comb += [s.read_at.eq(at), self.table_read.addr.eq(s.index), s.s_read.addr.eq(s.index),
+                     self.table_read.en.eq(1), s.s_read.en.eq(1)]
+        m.d.sync += s.voxel.eq(s.index)
+
     def _decide(self, m, s):
-        """A voxel: stamped if new, its VOXEL offered if new and not empty; then the box's next
-        voxel, x outer, z inner, or the next box or ray."""
+        """A voxel a cycle: stamped if new, its VOXEL offered if new and not empty, while the box's
+        next voxel (x outer, z inner) is read; after the last, the next box or ray. Waiting for
+        the record to be taken, the read ports hold the voxel's entry and stamp."""
         new = s.s_read.data != s.tag
         offer = new & (self.table_read.data.count != 0)
         m.d.comb += [self.records.valid.eq(offer), self.records.payload.op.eq(Op.VOXEL),
                      self.records.payload.arg.voxel.voxel.eq(s.voxel)]
+        at, lo, hi = s.at, s.box.lo, s.box.hi
+        following = Signal.like(at)
+        m.d.comb += following.eq(at)
+        with m.If(at[2] != hi[2]):
+            m.d.comb += following[2].eq(at[2] + 1)
+        with m.Elif(at[1] != hi[1]):
+            m.d.comb += [following[1].eq(at[1] + 1), following[2].eq(lo[2])]
+        with m.Else():
+            m.d.comb += [following[0].eq(at[0] + 1), following[1].eq(lo[1]), following[2].eq(lo[2])]
         with m.If(~offer | self.records.ready):
             m.d.comb += [s.s_write.addr.eq(s.voxel), s.s_write.data.eq(s.tag), s.s_write.en.eq(new)]
-            at, lo, hi = s.at, s.box.lo, s.box.hi
-            m.next = "Read"
-            with m.If(at[2] != hi[2]):
-                m.d.sync += at[2].eq(at[2] + 1)
-            with m.Elif(at[1] != hi[1]):
-                m.d.sync += [at[1].eq(at[1] + 1), at[2].eq(lo[2])]
-            with m.Elif(at[0] != hi[0]):
-                m.d.sync += [at[0].eq(at[0] + 1), at[1].eq(lo[1]), at[2].eq(lo[2])]
+            with m.If((at[2] != hi[2]) | (at[1] != hi[1]) | (at[0] != hi[0])):
+                m.d.sync += at.eq(following)
+                self._read(m, s, following)
             with m.Elif(s.box.last):
                 self._next_ray(m, s)
             with m.Else():

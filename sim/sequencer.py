@@ -23,7 +23,7 @@ every cycle but those it waits in for a command or for its record to be taken:
 * per block: v^3 cycles to clear the visited stamps when the block's tag would wrap (and the
   first block after ``LOAD_GRID``), one cycle a record (BEGIN_BLOCK, each LOAD_POINTS, END_BLOCK),
   :data:`GATHER_CYCLES` a point put in a LOAD_POINTS slot, and the walk's cycles
-  (:func:`~blockray.block_walk.walk_block_cycles`: 2 a ray, 1 a box, 2 a voxel of a box).
+  (:func:`~blockray.block_walk.walk_block_cycles`: 2 a ray, 1 a box, 1 a voxel of a box).
 
 Every other command passes by the sequencer (no cycles here; the board's own are
 :class:`~blockray.timing.BoardTiming`'s).

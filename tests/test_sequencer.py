@@ -251,7 +251,7 @@ def test_column_commands_refuse_blocks_the_board_would_not_make():
 def test_cycles_follow_the_contract_by_hand():
     """docs/board-protocol.md "The sequencer's cycles", counted by hand on one voxel (v = 1: its
     stamps cleared in 1 cycle), K = 1, one receiver: a ray inside the voxel is one box of one
-    voxel (2 + 1 + 2 cycles), its VOXEL offered in the box's voxel's second cycle."""
+    voxel (2 + 1 + 1 cycles), its VOXEL offered in the voxel's cycle, after the box's."""
     params = _params(1, 2, bits=10)
     memory = type("Memory", (), {"vertices": np.full((2, 3, 3), 30), "count": np.array([1])})()
     seq = sequencer.BlockSequencer(params)
@@ -259,6 +259,6 @@ def test_cycles_follow_the_contract_by_hand():
     timed = [t for c in commands for t in seq.feed_timed(c, memory)]
     setup = 10 + 1 + (1 + 15) + (1 + 15)           # B cycles of LOAD_SAMPLES, LOAD_GRID, COLUMN, the receiver
     block = setup + 1                               # the stamps cleared
-    assert [c for c, _ in timed] == [block, block + 1 + 2 * 2, block + 6 + 4, block + 6 + 5]
+    assert [c for c, _ in timed] == [block, block + 1 + 2 * 2, block + 6 + 3, block + 6 + 4]
     assert [type(r).__name__ for _, r in timed] == ["BeginBlock", "LoadPoints", "Voxel", "EndBlock"]
-    assert seq.cycle == block + 6 + 5 + 1
+    assert seq.cycle == block + 6 + 4 + 1
