@@ -388,7 +388,7 @@ def rules(args):
         runs = [(r, 0) for r in args.rules if r != "draw"] + [("draw", s) for s in range(args.seeds) if "draw" in args.rules]
         for rule, seed in runs:
             t = time.perf_counter()
-            drawn = args.sample_points == "draw"
+            drawn = args.sample_points != "fixed"
             ends = {"end_lattice": args.end_lattice if rule != "centroid" or drawn else 1,
                     "end_draws": args.end_draws if rule == "draw" else 1}
             res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
@@ -404,7 +404,8 @@ def shooters(args):
     given --end-points and --sample-points), and each one's row sum s_i re-estimated with Embree
     (embreex): the exact factors times the weighted clear fraction of rays from K shooter points
     to one uniform random point per receiver, with the fixed pattern and with stratified random
-    points (mean over --draws sets). In a closed scene s_i should be 1."""
+    points of ``--sample-points draw`` (SampleScheme, mean over --draws seeds). In a closed scene s_i
+    should be 1."""
     from blockray.host_driver.scene.builtin import load_scene
     from blockray.host_driver.traverse.peer import embree_occluded
     from blockray.samples import SampleScheme
@@ -433,9 +434,10 @@ def shooters(args):
         rec = np.flatnonzero(f_all > 0)
         f = A[rec] * f_all[rec] / A[i]
         fixed = row_sum(i, SampleScheme(8).points(V[i][None])[0], rec, f) - 1
-        drawn = [row_sum(i, _stratified(rng, V[i], 8), rec, f) - 1 for _ in range(args.draws)]
+        drawn = [row_sum(i, SampleScheme(8, args.end_lattice, seed=args.seed * 1000 + d).points(V[i][None], [i])[0],
+                         rec, f) - 1 for d in range(args.draws)]            # the render's own drawn points
         print(f"| {i} | {scene.group_names[scene.group[i]]} | {100 * share[i]:+.4f}% | {s_i[i] - 1:+.4f} | {fixed:+.4f} "
-              f"| {np.mean(drawn):+.4f} +- {np.std(drawn) / np.sqrt(len(drawn)):.4f} |", flush=True)
+              f"| {np.mean(drawn):+.4f} +- {np.std(drawn, ddof=1) / np.sqrt(len(drawn)):.4f} |", flush=True)
 
 
 def estimators(args):
@@ -846,19 +848,19 @@ def main(argv=None):
     ru.add_argument("--tolerance", type=float, default=1e-6)
     ru.add_argument("--end-draws", type=int, default=1, help="draw: rows per pair")
     ru.add_argument("--end-lattice", type=int, default=1, help="kernel, draw: the end-point lattice's refinement")
-    ru.add_argument("--sample-points", default="fixed", choices=["fixed", "draw"],
-                    help="the shooters' samples (draw: seeded like the end points, seed N for run N)")
+    ru.add_argument("--sample-points", default="fixed", choices=["fixed", "draw", "rows"],
+                    help="the shooters' samples (draw, rows: seeded like the end points, seed N for run N)")
     r = sub.add_parser("rows")
     r.add_argument("--samples", type=int, nargs="+", default=[8, 32])
     r.add_argument("--kernel", action="store_true", help="weigh rays by formfactor.sample_weights")
     sh = sub.add_parser("shooters")
     sh.add_argument("scene", nargs="?", default="room")
     sh.add_argument("--top", type=int, default=12)
-    sh.add_argument("--draws", type=int, default=6, help="sets of stratified random shooter points")
+    sh.add_argument("--draws", type=int, default=24, help="seeds of drawn shooter points")
     sh.add_argument("--seed", type=int, default=7)
     sh.add_argument("--end-points", default="draw")
     sh.add_argument("--end-lattice", type=int, default=8)
-    sh.add_argument("--sample-points", default="fixed", choices=["fixed", "draw"])
+    sh.add_argument("--sample-points", default="fixed", choices=["fixed", "draw", "rows"])
     sp = sub.add_parser("speed")
     sp.add_argument("scenes", nargs="*", default=["cornell", "room"])
     sp.add_argument("--step", type=int, default=8, help="every step-th shooter's pairs")

@@ -71,7 +71,9 @@ class EndPoints:
         w, members, count, centres = _lattice(self.D, self.p)
         V = self.scene.patch_vertices
         Y = np.einsum("cj,rjd->rcd", centres, V[receivers])                   # (R, C, 3) sub-centroids
-        X = self.samples.points(V[i][None], [i])[0]                           # (K, 3) shooter samples
+        # (K, 3) shooter samples: the first set's, when each row has its own (the density's cost
+        # grows with the points; K of them estimate it as well as for one set)
+        X = self.samples.points(V[i][None], [i])[0][:self.samples.count]
         g = _kernel_sum(X, self.scene.normals[i], Y, self.scene.normals[receivers])   # (R, C)
         total = g.sum(axis=1)
         lit = total > 0
