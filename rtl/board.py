@@ -50,12 +50,14 @@ from amaranth.lib.wiring import In, Out
 from ..errors import ParameterError
 from ..params import BoardParams
 from ..records import point_layout
+from ..board_rays import RayProtocol
 from ..protocol import POINTS_PER_LOAD, BoardProtocol, Op, ResultKind
 from ..timing import BoardTiming
 from ..cell import Cell, check_cell
 from .array import ProcessorArray
 from .filtered import FilteredArray
 from .memctrl import MemoryController
+from .sequencer import BlockSequencer, item_layout
 from .processor import ArrayTiming, _delay
 
 __all__ = ["BoardTop"]
@@ -77,9 +79,13 @@ class BoardTop(wiring.Component):
     ``results``   Out stream of :attr:`protocol` ``.result_layout``, from the output register
                   of a FIFO. No ``valid`` or ``ready`` depends combinationally on a port of
                   the other stream.
+    ``rays``      with ``rays``: In stream of the block sequencer's items
+                  (:func:`~blockray.rtl.sequencer.item_layout`); its records take the command
+                  stream's place while it offers them (rtl/core.py keeps the two in order).
+    ``idle``      with ``rays``: Out, no command in the execute slot.
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=(), cell=Cell(), depth=None):
+    def __init__(self, params, *, patch_init=(), table_init=(), cell=Cell(), depth=None, rays=False):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
@@ -92,10 +98,11 @@ class BoardTop(wiring.Component):
         self._protocol = BoardProtocol(params)
         self._patch_init, self._table_init = patch_init, table_init
         self._array_timing = ArrayTiming(params.bits)
+        self._rays = rays
         super().__init__({
             "commands": In(stream.Signature(self._protocol.command_layout)),
             "results": Out(stream.Signature(self._protocol.result_layout)),
-        })
+        } | ({"rays": In(stream.Signature(item_layout(RayProtocol(params)))), "idle": Out(1)} if rays else {}))
         self._MustUse__silence = False
 
     @property
@@ -170,7 +177,8 @@ class BoardTop(wiring.Component):
     def _units(self, m, w):
         p = self._params
         R, S = p.rows, p.cols
-        m.submodules.memctrl = mc = MemoryController(p, patch_init=self._patch_init, table_init=self._table_init)
+        m.submodules.memctrl = mc = MemoryController(p, patch_init=self._patch_init, table_init=self._table_init,
+                                                     rays=self._rays)
         marker_layout = data.StructLayout({
             "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
         })
@@ -183,22 +191,42 @@ class BoardTop(wiring.Component):
         assert mc.latency == self.memory_latency
         w.mc, w.array, w.marker_layout = mc, array, marker_layout
 
+    def _sequencer(self, m, w):
+        """With ``rays``: the block sequencer between ``rays`` and the command stream. The core
+        keeps the order: a record waits while the sequencer is busy, an item until ``idle`` (no
+        command in the execute slot: the memory writes before it are done)."""
+        if not self._rays:
+            return self.commands
+        m.submodules.sequencer = seq = BlockSequencer(self._params)
+        wiring.connect(m, wiring.flipped(self.rays), seq.commands)
+        wiring.connect(m, seq.patch_read, w.mc.rays_patch)
+        wiring.connect(m, seq.table_read, w.mc.rays_table)
+        source = stream.Signature(self._protocol.command_layout).create()
+        own = seq.records.valid
+        m.d.comb += [source.valid.eq(own | self.commands.valid),
+                     source.payload.eq(Mux(own, seq.records.payload, self.commands.payload)),
+                     seq.records.ready.eq(source.ready), self.commands.ready.eq(source.ready & ~own),
+                     self.idle.eq(~w.cur_valid)]
+        return source
+
     def _fetch(self, m, w):
         """The head of the command stream goes to the free execute slot."""
         mc = w.mc
         cur = Signal(self._protocol.command_layout)
         cur_valid = Signal()
+        w.cur_valid = cur_valid
+        commands = self._sequencer(m, w)
         cur_done = Signal()                              # cur does its last step this cycle
         cur_step = Signal()                              # cur makes progress this cycle
         cur_free = ~cur_valid | cur_done
-        head = self.commands.payload
+        head = commands.payload
         head_voxel = head.op == Op.VOXEL
         m.d.comb += [
-            mc.voxels.valid.eq(self.commands.valid & head_voxel & cur_free),
+            mc.voxels.valid.eq(commands.valid & head_voxel & cur_free),
             mc.voxels.payload.eq(head.arg.voxel.voxel),
-            self.commands.ready.eq(cur_free & mc.free),
+            commands.ready.eq(cur_free & mc.free),
         ]
-        pop = self.commands.valid & self.commands.ready
+        pop = commands.valid & commands.ready
         with m.If(pop & ~head_voxel):
             m.d.sync += [cur.eq(head), cur_valid.eq(1)]
         with m.Elif(cur_done):

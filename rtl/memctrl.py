@@ -28,7 +28,7 @@ a VOXEL of the same voxel reads the new entry.
 
 from amaranth.hdl import Module, Mux, Signal, unsigned
 from amaranth.lib import stream, wiring
-from amaranth.lib.memory import Memory
+from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 
 from ..errors import ParameterError
@@ -58,9 +58,11 @@ class MemoryController(wiring.Component):
                      last step (the same as ``voxels.ready``).
     ``enable``       In (default 1): the slot may advance this cycle. A board with the filtered
                      cell lowers it when its array has no credit (the broadcast stalls).
+    ``rays_patch``, ``rays_table``  with ``rays``: a second read port of each memory, the block
+                     sequencer's (rays made on the board; the table's transparent to its writes).
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=()):
+    def __init__(self, params, *, patch_init=(), table_init=(), rays=False):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         if not isinstance(params, BoardParams):
             raise ParameterError(f"memory controller needs BoardParams, not {params!r}")
@@ -84,7 +86,11 @@ class MemoryController(wiring.Component):
             "step": Out(1),
             "free": Out(1),
             "enable": In(1, init=1),
-        })
+        } | ({"rays_patch": Out(ReadPort.Signature(addr_width=proto.address_width,
+                                                  shape=unsigned(patch_layout(params.bits).size))),
+              "rays_table": Out(ReadPort.Signature(addr_width=proto.voxel_width, shape=proto.table_entry_layout))}
+             if rays else {}))
+        self._rays = rays
         self._MustUse__silence = False
 
     @property
@@ -111,6 +117,9 @@ class MemoryController(wiring.Component):
         patch_r = patches.read_port()
         table_w = table.write_port()
         table_r = table.read_port(transparent_for=(table_w,))
+        if self._rays:
+            wiring.connect(m, wiring.flipped(self.rays_patch), patches.read_port())
+            wiring.connect(m, wiring.flipped(self.rays_table), table.read_port(transparent_for=(table_w,)))
 
         m.d.comb += [
             patch_w.addr.eq(self.patch_write.payload.address),

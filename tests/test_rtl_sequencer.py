@@ -17,8 +17,10 @@ from amaranth.lib.memory import Memory
 
 from blockray.board_rays import Column, LoadGrid, LoadSamples, RayProtocol, Receivers, RECEIVERS_PER_COMMAND
 from blockray.errors import ParameterError
+from blockray.exact import patch_normals
 from blockray.params import BoardParams
-from blockray.protocol import BoardProtocol
+from blockray.protocol import BoardProtocol, ReadCounters, WritePatch, WriteVoxel
+from blockray.rtl.core import BoardCore
 from blockray.records import pack, patch_layout
 from blockray.rtl.sequencer import BlockSequencer, command_items
 from blockray.sim import sequencer
@@ -37,16 +39,21 @@ class _Board(Elaboratable):
     def elaborate(self, platform):
         m = Module()
         p, layout = self.params, patch_layout(self.params.bits)
-        zero = {c: 0 for c in "xyz"}
-        words = [pack(layout, {**{f"v{j}": dict(zip("xyz", map(int, v[j]))) for j in range(3)}, "normal": zero})
-                 for v in self.vertices]
         m.submodules.seq = self.seq
-        m.submodules.patches = patches = Memory(shape=unsigned(layout.size), depth=p.patch_depth, init=words)
+        m.submodules.patches = patches = Memory(shape=unsigned(layout.size), depth=p.patch_depth,
+                                                init=_words(p, self.vertices))
         m.submodules.table = table = Memory(shape=BoardProtocol(p).table_entry_layout, depth=p.voxel_depth,
                                             init=[{"start": 0, "count": int(c)} for c in self.count])
         wiring.connect(m, self.seq.patch_read, patches.read_port())
         wiring.connect(m, self.seq.table_read, table.read_port())
         return m
+
+
+def _words(params, vertices):
+    """The packed patch records of ``vertices``, with their normals."""
+    layout, normals = patch_layout(params.bits), patch_normals(vertices)
+    return [pack(layout, {**{f"v{j}": dict(zip("xyz", map(int, v[j]))) for j in range(3)},
+                          "normal": dict(zip("xyz", map(int, n)))}) for v, n in zip(vertices, normals)]
 
 
 def _triple(rng, D):
@@ -143,6 +150,47 @@ def test_records_and_cycles_equal_the_model_long(rng_seed):
     """The 4 x 4 board at B = 14, grids up to 8^3, 40 columns a grid."""
     params = BoardParams(rows=4, cols=4, boards=1, bits=14, patch_depth=64, voxel_depth=512)
     _check(rng_seed, params, 40, 8, 0.7, 0.6)
+
+
+def test_board_core_equals_the_model_link(rng_seed):
+    """BoardCore with the sequencer behind its deframer: the byte stream of --board model-link
+    (memory writes, the ray commands, a shooter's record rewritten just before its COLUMN,
+    READ_COUNTERS) gives the model's results exactly: the blocked words and the counters (board
+    cycles included); random idle and back-pressure."""
+    from blockray.host_driver.board.simulated import ModelTransport
+    rng = random.Random(rng_seed)
+    params = BoardParams(rows=2, cols=3, boards=1, bits=10, patch_depth=32, voxel_depth=125)
+    vertices, count, commands = _case(rng, params, 3, 5)
+    writes = [WritePatch(a, w) for a, w in enumerate(_words(params, vertices))]
+    writes += [WriteVoxel(i, rng.randrange(len(vertices) - c + 1), c) for i, c in enumerate(count)]
+    fresh = _case(rng, params, 0, 2)[0]                 # the shooter's record rewritten just before
+    commands = [x for c in commands for x in ([WritePatch(c.address, _words(params, fresh[:1])[0])]
+                                              if isinstance(c, Column) else []) + [c]]
+    wire = RayProtocol(params).encode_all(writes + commands + [ReadCounters()])
+    want = ModelTransport(params).run(wire)
+    core, got = BoardCore(params, rays=True), []
+
+    def step(ctx, cycle, _):
+        assert cycle < 200 * len(wire), "the board stopped"
+        if ctx.get(core.o_bytes.valid) and ctx.get(core.o_bytes.ready):
+            got.append(ctx.get(core.o_bytes.payload))
+
+    drive_streams(core, core.i_bytes, core.o_bytes, list(wire), rng, step, payload=lambda b: b,
+                  until=lambda: len(got) == len(want))
+    assert _results(params, bytes(got)) == _results(params, want)
+
+
+def _results(params, wire):
+    """The results of a result byte stream, the counters without ``stalls`` (the model has no
+    host timing)."""
+    proto, out = BoardProtocol(params), []
+    while wire:
+        n = proto.result_length(wire[0])
+        r = proto.decode_result(wire[:n])
+        out.append((r.kind, r.blocked, None if r.counters is None else
+                    {k: v for k, v in r.counters.items() if k != "stalls"}))
+        wire = wire[n:]
+    return out
 
 
 @pytest.mark.parametrize("kw", [{"params": "8x8"}, {"params": BoardParams(bits=None)}, {"stamp_bits": 1},
