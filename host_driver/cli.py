@@ -183,7 +183,7 @@ def _render_parser(sub):
                         "or runs of R receivers in Z-order of their voxels (fills every array row)")
     p.add_argument("--estimator", default=None, choices=list(ESTIMATORS),
                    help="how a pair's visibility is estimated, as one name: paper (the default: fixed samples to "
-                        "the receivers' centroids) or balanced (--sample-points draw --end-points draw --end-lattice 8 "
+                        "the receivers' centroids) or balanced (--sample-points rows --end-points draw --end-lattice 8 "
                         "--end-draws 8: closes the energy of occluded closed scenes within 0.05%% for 8x the rays); "
                         "the four options given explicitly win")
     p.add_argument("--end-points", default=None, choices=list(ENDS),

@@ -126,8 +126,8 @@ def test_an_estimator_names_its_ray_options_and_given_options_win():
     from blockray.host_driver.render.options import estimator_of
     balanced = RenderOptions.of(estimator="balanced").ray
     assert (balanced.end_points, balanced.end_lattice, balanced.end_draws, balanced.sample_points) == \
-        ("draw", 8, 8, "draw")
-    assert balanced.samples.drawn and balanced.samples.end_lattice == 8
+        ("draw", 8, 8, "rows")
+    assert balanced.samples.drawn and balanced.samples.end_lattice == 8 and balanced.samples.sets == 8
     assert estimator_of(balanced) == "balanced" and estimator_of(RenderOptions.of().ray) == "paper"
     tuned = RenderOptions.of(estimator="balanced", end_draws=4, end_seed=3).ray
     assert (tuned.end_draws, tuned.end_seed, tuned.end_points) == (4, 3, "draw") and estimator_of(tuned) == "custom"
