@@ -212,6 +212,24 @@ def test_cli_render_verilator(tmp_path, capsys):
     assert "--vcd needs a simulated RTL board" in capsys.readouterr().err
 
 
+@pytest.mark.cocotb
+def test_cli_render_verilator_makes_rays(tmp_path):
+    """--traversal board on the Verilated board, whose deframer feeds the block sequencer: the
+    CSV of --board model --traversal board byte for byte, and its counters (one board)."""
+    room_scene(tmp_path, 1.5)
+    argv = ["render", str(tmp_path / "room.obj"), "--max-edge", "1.5", "--voxels", "3", "--samples", "4",
+            "--max-shots", "2", "--rows", "2", "--cols", "2", "--boards", "1", "--bits", str(BITS),
+            "--traversal", "board", "--quiet"]
+    for board in ("verilator", "model"):
+        assert main(argv + ["--board", board, "--patches", str(tmp_path / f"{board}.csv"),
+                            "--report", str(tmp_path / f"{board}.json")]) == 0
+    got, want = (json.loads((tmp_path / f"{b}.json").read_text()) for b in ("verilator", "model"))
+    assert want["blocks"] > 20
+    for key in COUNTER_KEYS:
+        assert got[key] == want[key], key
+    assert (tmp_path / "verilator.csv").read_bytes() == (tmp_path / "model.csv").read_bytes()
+
+
 @pytest.mark.slow
 @pytest.mark.cocotb
 def test_verilator_vcd(scene, tmp_path):

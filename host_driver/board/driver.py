@@ -20,7 +20,7 @@ Rays made on the board (``--traversal board``: :meth:`load` given a
 :class:`~blockray.host_driver.traverse.board_walk.LatticeGrid`): the load also sends LOAD_SAMPLES
 and LOAD_GRID, and each batch goes as COLUMN and RECEIVERS commands (:mod:`blockray.board_rays`)
 instead of its blocks' points and voxels; the board makes the same blocks. One board (P = 1),
-whose transport's board takes those commands (``makes_rays``: the model's).
+whose transport's board takes those commands (``makes_rays``: the model's, the Verilated board's).
 """
 
 import numpy as np

@@ -34,19 +34,22 @@ def native_build(params, *, cell=Cell(), trace=False):
         if key not in _builds:
             compiler_version()              # before the conversion: a missing compiler says so at once
             name = f"native_{params.rows}x{params.cols}_b{params.bits}" + (f"_{cell.kind}" if cell.filtered else "")
-            _builds[key] = build_native(lambda: BoardCore(params, cell=cell), name=name, trace=trace,
-                                        source=repr((params, cell)))
+            _builds[key] = build_native(lambda: BoardCore(params, cell=cell, rays=True), name=name, trace=trace,
+                                        source=repr((params, cell, "rays")))
         return _builds[key]
 
 
 class NativeTransport(_Buffered):
-    """One :class:`~blockray.rtl.core.BoardCore` for ``params`` in the native harness.
+    """One :class:`~blockray.rtl.core.BoardCore` for ``params`` in the native harness, built with
+    the block sequencer (``makes_rays``: ``--traversal board``).
 
     ``idle`` / ``backpressure``: :class:`~blockray.sim.drive.HostTiming` on the command and result
     streams, ``seed`` seeds them (as :class:`~blockray.host_driver.board.simulated.AmaranthTransport`).
     ``vcd``: build with ``--trace`` and write a waveform. ``patience``: clock cycles without a byte
     moving, once every command byte was taken, before :meth:`recv` gives up (default: longer than
     any command takes, as the Amaranth transport)."""
+
+    makes_rays = True
 
     def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell=Cell(), patience=None):
         from ...sim.drive import HostTiming
