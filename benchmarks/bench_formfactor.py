@@ -410,7 +410,8 @@ def shooters(args):
     from blockray.host_driver.traverse.peer import embree_occluded
     from blockray.samples import SampleScheme
     scene = load_scene(args.scene)
-    opts = dict(end_points=args.end_points, end_lattice=args.end_lattice, sample_points=args.sample_points)
+    opts = dict(end_points=args.end_points, end_lattice=args.end_lattice, sample_points=args.sample_points,
+                end_draws=args.end_draws, end_seed=args.render_seed, sample_seed=args.render_seed)
     res = render(scene, solver="jacobi", tolerance=1e-6, **opts)
     s_i, B, A = res.solve.row_sums.shot, res.radiosity, scene.areas
     emitted = (scene.emission * A[:, None]).sum(0)
@@ -861,6 +862,8 @@ def main(argv=None):
     sh.add_argument("--end-points", default="draw")
     sh.add_argument("--end-lattice", type=int, default=8)
     sh.add_argument("--sample-points", default="fixed", choices=["fixed", "draw", "rows"])
+    sh.add_argument("--end-draws", type=int, default=1, help="the render's rows per pair")
+    sh.add_argument("--render-seed", type=int, default=0, help="the render's end and sample seed")
     sp = sub.add_parser("speed")
     sp.add_argument("scenes", nargs="*", default=["cornell", "room"])
     sp.add_argument("--step", type=int, default=8, help="every step-th shooter's pairs")

@@ -184,7 +184,8 @@ def _render_parser(sub):
     p.add_argument("--estimator", default=None, choices=list(ESTIMATORS),
                    help="how a pair's visibility is estimated, as one name: paper (the default: fixed samples to "
                         "the receivers' centroids) or balanced (--sample-points rows --end-points draw --end-lattice 8 "
-                        "--end-draws 8: closes the energy of occluded closed scenes within 0.05%% for 8x the rays); "
+                        "--end-draws 8: drawn samples and end points, 8x the rays; docs/formfactors.md gives the "
+                        "energy balance it reaches); "
                         "the four options given explicitly win")
     p.add_argument("--end-points", default=None, choices=list(ENDS),
                    help="where each ray ends on its receiver: the centroid (the paper; default), the centroid "

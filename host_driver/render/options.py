@@ -34,9 +34,9 @@ SAMPLE_POINTS = ("fixed", "draw", "rows")
 #: ``--estimator``: named sets of the ray options that decide how a pair's visibility is estimated.
 #: ``paper``: one fixed sample pattern to the receivers' centroids (the paper; fast, biased at contact
 #: lines). ``balanced``: 8 drawn end points per pair on the 1/168 lattice, each row from its own
-#: drawn set of shooter samples, which closes the energy of occluded closed scenes within 0.05%
-#: (docs/formfactors.md) for 8x the rays and 3 coordinate bits. An option given explicitly wins
-#: over its estimator's value.
+#: drawn set of shooter samples, for 8x the rays and 3 coordinate bits: nearly no bias left at
+#: contact lines (the energy balance it gives, docs/formfactors.md). An option given explicitly wins over
+#: its estimator's value.
 ESTIMATORS = {
     "paper": {"end_points": "centroid", "end_lattice": 1, "end_draws": 1, "sample_points": "fixed"},
     "balanced": {"end_points": "draw", "end_lattice": 8, "end_draws": 8, "sample_points": "rows"},
