@@ -72,6 +72,11 @@ class BoardCore(wiring.Component):
     def timing(self):
         return self.board.timing
 
+    @property
+    def makes_rays(self):
+        """Built with the block sequencer (``rays``): it takes the commands of rays made on the board."""
+        return self._rays
+
     def elaborate(self, platform):
         m = Module()
         m.submodules.board = top = self.board

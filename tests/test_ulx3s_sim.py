@@ -37,17 +37,21 @@ def _compare(scene, params, bits, transport=ulx3s_sim_transport, **kw):
     return sim
 
 
-def test_small_scene_equals_the_model(tmp_path):
+@pytest.mark.parametrize("traversal", ["block", "board"])
+def test_small_scene_equals_the_model(tmp_path, traversal):
+    """``board``: rays made on the board, by the block sequencer behind the link's deframer."""
     from scenes import room_scene
     scene = room_scene(tmp_path, 1.5)
-    sim = _compare(scene, BoardParams(rows=2, cols=2, boards=1), 10, samples=4, max_shots=2, voxels=3)
+    sim = _compare(scene, BoardParams(rows=2, cols=2, boards=1), 10, samples=4, max_shots=2, voxels=3,
+                   traversal=traversal)
     assert sim.report["rays"] > 0
 
 
 @pytest.mark.slow
-def test_cornell_equals_the_model():
+@pytest.mark.parametrize("traversal", ["block", "board"])
+def test_cornell_equals_the_model(traversal):
     from blockray.host_driver.scene.builtin import load_scene
-    _compare(load_scene("cornell"), BoardParams(rows=2, cols=2, boards=1), None, max_shots=2)
+    _compare(load_scene("cornell"), BoardParams(rows=2, cols=2, boards=1), None, max_shots=2, traversal=traversal)
 
 
 # -- --link-faults through the simulated board's UART ---------------------------------------------

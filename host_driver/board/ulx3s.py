@@ -72,5 +72,5 @@ def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, faults=None, fi
     if vcd is not None or host is not None:
         raise ParameterError(f"{option('backend')} ulx3s-sim: the UART sets the host's timing; no {option('vcd')} "
                              f"or {option('host')}")
-    return UartSimTransport(BoardCore(params), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
+    return UartSimTransport(BoardCore(params, rays=True), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
                             board=board, name="blockray_ulx3s_sim")
