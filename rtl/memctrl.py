@@ -118,8 +118,10 @@ class MemoryController(wiring.Component):
         table_w = table.write_port()
         table_r = table.read_port(transparent_for=(table_w,))
         if self._rays:
-            wiring.connect(m, wiring.flipped(self.rays_patch), patches.read_port())
-            wiring.connect(m, wiring.flipped(self.rays_table), table.read_port(transparent_for=(table_w,)))
+            # assigned, not connected: a memory of one entry has 0 address bits, the protocol's 1
+            for port, memory_port in ((self.rays_patch, patches.read_port()),
+                                      (self.rays_table, table.read_port(transparent_for=(table_w,)))):
+                m.d.comb += [memory_port.addr.eq(port.addr), memory_port.en.eq(port.en), port.data.eq(memory_port.data)]
 
         m.d.comb += [
             patch_w.addr.eq(self.patch_write.payload.address),
