@@ -249,3 +249,34 @@ def test_sample_points_option():
         with pytest.raises(ParameterError) as e:
             RenderOptions.of(**bad)
         assert e.value.parameter == name, bad
+
+
+def _straddling_scene():
+    """Shooter 0: a floor-like triangle at y = 1 facing up, beside a wall (x = 0). Receiver 1: a wall
+    triangle from y = 0.3 to 1.3, its centroid below the shooter's plane (reverse rays) and only its
+    top tip (9% of it) in front. Patches 2, 3: a plate at x = 0.1 below y = 0.98, which hides the
+    shooter from the wall's part below its plane, never from the tip."""
+    shooter = [[0.02, 1, 0.2], [0.3, 1, 0], [0.02, 1, -0.2]]
+    wall = [[0, 0.3, -0.3], [0, 1.3, 0], [0, 0.3, 0.3]]
+    plate = [[[0.1, 0, -1], [0.1, 0.98, -1], [0.1, 0.98, 1]], [[0.1, 0, -1], [0.1, 0.98, 1], [0.1, 0, 1]]]
+    return make_scene(np.array([shooter, wall] + plate, dtype=np.float64))
+
+
+def test_a_straddling_receivers_reverse_rows_cast_from_every_set():
+    """The light the shooter sends reaches only the wall's tip, which nothing hides: the clear
+    fraction is 1. The reverse rays start at the wall's samples; one set of K often has none in
+    the tip, and its rays (all through the plate) would give 0. With a set per row every set casts,
+    and the rows are pooled by the light their samples carry."""
+    scene = _straddling_scene()
+    assert not ray_weights.centroid_in_front(scene, 0, [1])[0]          # the reverse path
+    got = []
+    for seed in range(30):
+        scheme = SampleScheme(8, 8, seed=seed, sets=8)
+        board = GoldenBoard()
+        board.prepare(scene, scheme)
+        grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
+        board.load(grid)
+        vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=EndPoints(scene, scheme, "draw", seed, 8))
+        got.append(visible_fraction(scene, vis, scheme, 0, np.array([1]), vis.phases)[0])
+    print("clear fraction per seed", np.round(got, 3))
+    np.testing.assert_array_equal(got, 1.0)

@@ -246,20 +246,23 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         targets = np.concatenate([forward, np.full(len(reverse), i, dtype=np.int64)])
         weights = ray_weights.pair_sample_weights(scene, samples, shooters, targets, points=vis.weight_points)
         K, S = samples.count, weights.shape[1] // samples.count        # S sample sets per patch
-        ends, draws, sets = None, 1, None
+        ends, draws, sets, back = None, 1, None, 1
         if vis.ends is not None and vis.ends.rule != "centroid":
             # i's own rows end where the rule puts them, ``draws`` rows per pair (all in i's one
             # column), row d from sample set d if the patches have a set per row; reverse rows at
-            # i's centroid, from set 0
-            draws, nf = vis.ends.draws, len(forward)
+            # i's centroid, from set 0, or with sets one per row from each set in turn (a thin
+            # front of a straddling receiver may hold none of one set's K points)
+            draws, nf, nr = vis.ends.draws, len(forward), len(reverse)
+            back = draws if S > 1 else 1
             ends = np.concatenate([vis.ends.rows(i, forward)]
-                                  + [np.full((len(reverse), 3), samples.denominator // 3, dtype=np.int64)])
-            shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), reverse])
-            targets = np.concatenate([np.tile(forward, draws), targets[nf:]])
-            sets = np.concatenate([np.repeat(np.arange(draws) % S, nf), np.zeros(len(reverse), dtype=np.int64)])
-            own = weights[:nf].reshape(nf, S, K)
-            weights = np.concatenate([own[:, np.arange(draws) % S].transpose(1, 0, 2).reshape(-1, K),
-                                      weights[nf:, :K]])
+                                  + [np.full((back * nr, 3), samples.denominator // 3, dtype=np.int64)])
+            shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), np.repeat(reverse, back)])
+            targets = np.concatenate([np.tile(forward, draws), np.full(back * nr, i, dtype=np.int64)])
+            rows = np.arange(draws) % S
+            sets = np.concatenate([np.repeat(rows, nf), np.tile(rows[:back], nr)])
+            own, theirs = weights[:nf].reshape(nf, S, K), weights[nf:].reshape(nr, S, K)
+            weights = np.concatenate([own[:, rows].transpose(1, 0, 2).reshape(-1, K),
+                                      theirs[:, rows[:back]].reshape(-1, K)])
             if S == 1:
                 sets = None
         weights = weights[:, :K]
@@ -268,8 +271,17 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
     f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends, sets=sets)
     split = draws * len(forward)
     frac[direct] = f[:split].reshape(draws, len(forward)).mean(axis=0)
-    frac[~direct] = f[split:]
+    frac[~direct] = f[split:] if back == 1 else _pooled(f[split:].reshape(-1, back),
+                                                         weights[split:].sum(axis=1).reshape(-1, back))
     return frac
+
+
+def _pooled(f, total):
+    """Each pair's rows (n, rows) as one weighted fraction: the rows' fractions weighed by their
+    weight totals, so a row whose samples carry no light (total 0) does not count; the plain mean
+    where no row carries any."""
+    t = total.sum(axis=1)
+    return np.where(t > 0, (f * total).sum(axis=1) / np.where(t > 0, t, 1), f.mean(axis=1))
 
 
 @njit(cache=True)
