@@ -35,8 +35,8 @@ SAMPLE_POINTS = ("fixed", "draw", "rows")
 #: ``paper``: one fixed sample pattern to the receivers' centroids (the paper; fast, biased at contact
 #: lines). ``balanced``: 8 drawn end points per pair on the 1/168 lattice, each row from its own
 #: drawn set of shooter samples, for 8x the rays and 3 coordinate bits: nearly no bias left at
-#: contact lines (the energy balance it gives, docs/formfactors.md). An option given explicitly wins over
-#: its estimator's value.
+#: contact lines (the energy balance it gives, docs/formfactors.md). An option given explicitly
+#: wins over its estimator's value.
 ESTIMATORS = {
     "paper": {"end_points": "centroid", "end_lattice": 1, "end_draws": 1, "sample_points": "fixed"},
     "balanced": {"end_points": "draw", "end_lattice": 8, "end_draws": 8, "sample_points": "rows"},
@@ -345,7 +345,8 @@ class RenderOptions:
         ``board``, ``cell``, ``filter_bits``, ``link_*`` as the options give them)."""
         flat = {f.name: getattr(args, f.name) for group in _GROUPS.values() for f in fields(group)
                 if hasattr(args, f.name)}
-        flat.update(estimator=getattr(args, "estimator", None), backend=args.board, rows=args.rows, cols=args.cols, boards=args.boards, bits=args.bits,
+        flat.update(estimator=getattr(args, "estimator", None), backend=args.board, rows=args.rows,
+                    cols=args.cols, boards=args.boards, bits=args.bits,
                     cell=cell_option(args.cell, args.filter_bits), host=host_timing(args),
                     faults=None if args.link_faults is None else _faults(args))
         return cls.of(**flat)
