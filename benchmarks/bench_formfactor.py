@@ -390,7 +390,8 @@ def rules(args):
             t = time.perf_counter()
             drawn = args.sample_points != "fixed"
             ends = {"end_lattice": args.end_lattice if rule != "centroid" or drawn else 1,
-                    "end_draws": args.end_draws if rule == "draw" else 1}
+                    "end_draws": args.end_draws if rule == "draw" else 1,
+                    "emitter_factor": args.emitter_factor if rule == "draw" else 1}
             res = render(scene, backend=args.board, solver="jacobi", tolerance=args.tolerance, end_points=rule,
                          end_seed=seed, sample_points=args.sample_points, sample_seed=seed, **ends)
             bal = absorbed_balance(scene, res.radiosity)
@@ -406,12 +407,13 @@ def shooters(args):
     to one uniform random point per receiver, with the fixed pattern and with stratified random
     points of ``--sample-points draw`` (SampleScheme, mean over --draws seeds). In a closed scene s_i
     should be 1."""
-    from blockray.host_driver.scene.builtin import load_scene
+    from blockray.host_driver.scene.builtin import NAMES, load_scene
     from blockray.host_driver.traverse.peer import embree_occluded
     from blockray.samples import SampleScheme
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene) if args.scene in NAMES else _study_scene(args.scene)
     opts = dict(end_points=args.end_points, end_lattice=args.end_lattice, sample_points=args.sample_points,
-                end_draws=args.end_draws, end_seed=args.render_seed, sample_seed=args.render_seed)
+                end_draws=args.end_draws, end_seed=args.render_seed, sample_seed=args.render_seed,
+                emitter_factor=args.emitter_factor)
     res = render(scene, solver="jacobi", tolerance=1e-6, **opts)
     s_i, B, A = res.solve.row_sums.shot, res.radiosity, scene.areas
     emitted = (scene.emission * A[:, None]).sum(0)
@@ -848,6 +850,7 @@ def main(argv=None):
     ru.add_argument("--rules", nargs="+", default=["centroid", "kernel", "draw"])
     ru.add_argument("--tolerance", type=float, default=1e-6)
     ru.add_argument("--end-draws", type=int, default=1, help="draw: rows per pair")
+    ru.add_argument("--emitter-factor", type=int, default=1, help="draw: times the rows from an emitting shooter")
     ru.add_argument("--end-lattice", type=int, default=1, help="kernel, draw: the end-point lattice's refinement")
     ru.add_argument("--sample-points", default="fixed", choices=["fixed", "draw", "rows"],
                     help="the shooters' samples (draw, rows: seeded like the end points, seed N for run N)")
@@ -863,6 +866,7 @@ def main(argv=None):
     sh.add_argument("--end-lattice", type=int, default=8)
     sh.add_argument("--sample-points", default="fixed", choices=["fixed", "draw", "rows"])
     sh.add_argument("--end-draws", type=int, default=1, help="the render's rows per pair")
+    sh.add_argument("--emitter-factor", type=int, default=1, help="the render's --emitter-factor")
     sh.add_argument("--render-seed", type=int, default=0, help="the render's end and sample seed")
     sp = sub.add_parser("speed")
     sp.add_argument("scenes", nargs="*", default=["cornell", "room"])

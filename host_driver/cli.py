@@ -184,9 +184,9 @@ def _render_parser(sub):
     p.add_argument("--estimator", default=None, choices=list(ESTIMATORS),
                    help="how a pair's visibility is estimated, as one name: paper (the default: fixed samples to "
                         "the receivers' centroids) or balanced (--sample-points rows --end-points draw --end-lattice 8 "
-                        "--end-draws 8: drawn samples and end points, 8x the rays; docs/formfactors.md gives the "
-                        "energy balance it reaches); "
-                        "the four options given explicitly win")
+                        "--end-draws 8 --emitter-factor 4: drawn samples and end points, 8x the rays, 32x from "
+                        "emitters; docs/formfactors.md gives the energy balance it reaches); "
+                        "the five options given explicitly win")
     p.add_argument("--end-points", default=None, choices=list(ENDS),
                    help="where each ray ends on its receiver: the centroid (the paper; default), the centroid "
                         "weighted by the light the shooter sends (kernel), or a point drawn from that light per "
@@ -195,6 +195,9 @@ def _render_parser(sub):
     p.add_argument("--end-draws", type=int, default=None, metavar="M",
                    help="--end-points draw: rows per pair, each to its own drawn point (M times the rays, "
                         "1/sqrt(M) the noise)")
+    p.add_argument("--emitter-factor", type=int, default=None, metavar="F",
+                   help="--end-points draw: F times the --end-draws rows for a pair whose shooter emits (its row "
+                        "sum carries the emitted power first-hand, so its noise weighs most; balanced: 4)")
     p.add_argument("--end-lattice", type=int, default=None, choices=END_LATTICES, metavar="N",
                    help="--end-points kernel/draw: end points on a lattice N times finer, so they reach N times "
                         "nearer the receivers' edges (contact shadows); costs log2(N) coordinate bits")

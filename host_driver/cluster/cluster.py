@@ -130,6 +130,7 @@ class SetJob:
     end_points: str = "centroid"
     end_seed: int = 0
     end_draws: int = 1
+    emitter_factor: int = 1
     threads: object = None     # cores for this worker's compiled kernels (None: its default)
 
 
@@ -192,7 +193,8 @@ def cast_set(k, scene, grid, owner, job):
         stats = TraversalStats(grid, sample_fraction=job.stats_fraction, seed=k)
         vis = Visibility(scene, board, grid, job.samples, rows=job.params.rows, cols=job.params.cols,
                          traversal=job.traversal, packing=job.packing, phases=phases, stats=stats,
-                         ends=EndPoints(scene, job.samples, job.end_points, job.end_seed, job.end_draws))
+                         ends=EndPoints(scene, job.samples, job.end_points, job.end_seed, job.end_draws,
+                                        job.emitter_factor))
         receivers = _Receivers(scene, own)
         F = np.zeros((len(own), scene.patches))
         for i in range(scene.patches):

@@ -35,11 +35,14 @@ SAMPLE_POINTS = ("fixed", "draw", "rows")
 #: ``paper``: one fixed sample pattern to the receivers' centroids (the paper; fast, biased at contact
 #: lines). ``balanced``: 8 drawn end points per pair on the 1/168 lattice, each row from its own
 #: drawn set of shooter samples, for 8x the rays and 3 coordinate bits: nearly no bias left at
-#: contact lines (the energy balance it gives, docs/formfactors.md). An option given explicitly
-#: wins over its estimator's value.
+#: contact lines; an emitting shooter's pairs get 4x those rows, since its row sum carries the
+#: emitted power first-hand (the energy balance it gives, docs/formfactors.md). An option given
+#: explicitly wins over its estimator's value.
 ESTIMATORS = {
-    "paper": {"end_points": "centroid", "end_lattice": 1, "end_draws": 1, "sample_points": "fixed"},
-    "balanced": {"end_points": "draw", "end_lattice": 8, "end_draws": 8, "sample_points": "rows"},
+    "paper": {"end_points": "centroid", "end_lattice": 1, "end_draws": 1, "sample_points": "fixed",
+              "emitter_factor": 1},
+    "balanced": {"end_points": "draw", "end_lattice": 8, "end_draws": 8, "sample_points": "rows",
+                 "emitter_factor": 4},
 }
 
 
@@ -97,8 +100,8 @@ class RayOptions:
     lattice ``end_lattice`` times finer than the samples'), where the shooter's samples lie
     (``sample_points``: ``fixed``, one pattern for every patch; ``draw``, stratified and drawn per
     patch from ``sample_seed``; ``rows``, drawn as ``end_draws`` sets stratified together, row d of
-    a pair casting from set d; blockray/samples.py), and the fraction of rays whose traversal is
-    measured."""
+    a pair casting from set d; blockray/samples.py), ``emitter_factor`` times the rows for a pair
+    whose shooter emits (``draw``), and the fraction of rays whose traversal is measured."""
     voxels: int = None
     samples: SampleScheme = 8
     traversal: str = "block"
@@ -109,6 +112,7 @@ class RayOptions:
     end_lattice: int = 1
     sample_points: str = "fixed"
     sample_seed: int = 0
+    emitter_factor: int = 1
     stats_fraction: float = 0.02
 
     def __post_init__(self):
@@ -143,6 +147,13 @@ class RayOptions:
         if self.end_draws > 1 and self.end_points != "draw":
             raise ParameterError(f"end_draws {self.end_draws} needs the draw rule: the {self.end_points} rule gives "
                                  "every row of a pair the same point", parameter="end_draws")
+        if not _integer(self.emitter_factor) or not 1 <= self.emitter_factor * self.end_draws <= MAX_DRAWS:
+            raise ParameterError(f"emitter_factor must be an integer from 1 to {MAX_DRAWS // self.end_draws} (at most "
+                                 f"{MAX_DRAWS} rows per pair with end_draws {self.end_draws}), not "
+                                 f"{self.emitter_factor!r}", parameter="emitter_factor")
+        if self.emitter_factor > 1 and self.end_points != "draw":
+            raise ParameterError(f"emitter_factor {self.emitter_factor} needs the draw rule: the {self.end_points} rule "
+                                 "gives every row of a pair the same point", parameter="emitter_factor")
         if not _integer(self.sample_seed) or not 0 <= self.sample_seed < 2 ** 63:
             raise ParameterError(f"sample_seed must be an integer from 0 to 2**63 - 1, not {self.sample_seed!r}",
                                  parameter="sample_seed")

@@ -98,6 +98,7 @@ def _resume(scene, board, options, params, checkpoint):
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
         "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
         "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
+        "emitter_factor": ray.emitter_factor,
         "end_lattice": ray.end_lattice, "sample_points": ray.sample_points, "sample_seed": ray.sample_seed,
         "partition": b.partition, "sets": options.run.sets, "cell": b.cell.kind, "filter_format": repr(b.cell.format),
         "rows": params.rows, "cols": params.cols, "boards": params.boards, **hierarchical})
@@ -139,7 +140,8 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
     stats = TraversalStats(grid, sample_fraction=ray.stats_fraction)
     vis = Visibility(scene, board, grid, samples, rows=params.rows, cols=params.cols,
                      traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats,
-                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed, ray.end_draws))
+                     ends=EndPoints(scene, samples, ray.end_points, ray.end_seed, ray.end_draws,
+                                    ray.emitter_factor))
     # A patch may shoot more than once; its column of visible form factors does not change.
     cache = {} if scene.patches <= 20000 else None
     if checkpoint is not None and cache is not None:
@@ -295,6 +297,7 @@ def _ends_label(ray):
     """The report's end-point rule: its name, with the draw's seed, rows per pair and lattice."""
     extra = [f"seed {ray.end_seed}"] if ray.end_points == "draw" else []
     extra += [f"{ray.end_draws} draws"] if ray.end_draws > 1 else []
+    extra += [f"{ray.emitter_factor}x from emitters"] if ray.emitter_factor > 1 else []
     extra += [f"lattice 1/{ray.samples.denominator}"] if ray.end_lattice > 1 else []
     return ray.end_points + (f" ({', '.join(extra)})" if extra else "")
 
@@ -364,7 +367,7 @@ def _render_sets(run, grid, *, progress, echo):
         job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
                      partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
                      stats_fraction=ray.stats_fraction, threads=threads, end_points=ray.end_points,
-                     end_seed=ray.end_seed, end_draws=ray.end_draws)
+                     end_seed=ray.end_seed, end_draws=ray.end_draws, emitter_factor=ray.emitter_factor)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
                                                     _morton(grid.cell_of(scene.centroids)), job,
                                                     solver=solve.solver, tolerance=solve.tolerance,

@@ -81,6 +81,7 @@ SETTINGS = {
     "end-points": Setting("--end-points", str, ENDS),
     "end-seed": Setting("--end-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),
     "end-draws": Setting("--end-draws", int, check=_positive),
+    "emitter-factor": Setting("--emitter-factor", int, check=_positive),
     "end-lattice": Setting("--end-lattice", int, END_LATTICES),
     "sample-points": Setting("--sample-points", str, SAMPLE_POINTS),
     "sample-seed": Setting("--sample-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),

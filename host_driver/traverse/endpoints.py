@@ -17,7 +17,9 @@ the estimate's bias (docs/formfactors.md, "The raw visibility estimate's bias"):
 
   ``draws`` rows per pair, each with its own drawn point, average the pair's estimate; row d draws
   from the stratum [d, d + 1) / draws of the density's cumulative distribution, so a pair's rows
-  spread over its receiver as the density does, at draws times the rays.
+  spread over its receiver as the density does, at draws times the rays. A pair whose shooter
+  emits gets ``emitter_factor`` times the rows: an emitter's row sum carries the emitted power
+  first-hand, so its noise weighs most in the result (docs/formfactors.md).
 
 The density is piecewise constant over the receiver's 16 congruent sub-triangles (two midpoint
 subdivisions), each valued at its centroid. End points lie on the samples' 1/D barycentric lattice,
@@ -47,12 +49,14 @@ class EndPoints:
     """Each (shooter, receiver) pair's end point under ``rule`` (one of :data:`ENDS`), as integer
     barycentric weights over the receiver's corners summing to the sample denominator D."""
 
-    def __init__(self, scene, samples, rule="centroid", seed=0, draws=1):
+    def __init__(self, scene, samples, rule="centroid", seed=0, draws=1, emitter_factor=1):
         if rule not in ENDS:
             raise ParameterError(f"end point rule must be one of {', '.join(ENDS)}, not {rule!r}", parameter="end_points")
-        if not 1 <= draws <= (MAX_DRAWS if rule == "draw" else 1):
-            raise ParameterError(f"end_draws {draws} needs the draw rule and at most {MAX_DRAWS}", parameter="end_draws")
+        if not 1 <= draws * emitter_factor <= (MAX_DRAWS if rule == "draw" else 1):
+            raise ParameterError(f"end_draws {draws} x emitter_factor {emitter_factor} needs the draw rule and at most "
+                                 f"{MAX_DRAWS}", parameter="end_draws")
         self.scene, self.samples, self.rule, self.seed, self.draws = scene, samples, rule, int(seed), int(draws)
+        self.emitter_factor = int(emitter_factor)
         self.D, self.p = int(samples.denominator), int(samples.prime)
 
     def weights(self, i, receivers, draw=0):
@@ -60,11 +64,15 @@ class EndPoints:
         ``draw`` of ``draws``); None for ``centroid`` (the board's own centroids)."""
         return self._ends(i, receivers, [draw])
 
-    def rows(self, i, receivers):
-        """(draws R, 3): :meth:`weights` of every row ``draw`` in turn, the density computed once."""
-        return self._ends(i, receivers, range(self.draws))
+    def draws_of(self, i):
+        """Rows per pair of shooter i: ``draws``, times ``emitter_factor`` if i emits."""
+        return self.draws * (self.emitter_factor if self.scene.emission[i].any() else 1)
 
-    def _ends(self, i, receivers, draws):
+    def rows(self, i, receivers):
+        """(:meth:`draws_of` i R, 3): every row's end weights in turn, the density computed once."""
+        return self._ends(i, receivers, range(self.draws_of(i)), self.draws_of(i))
+
+    def _ends(self, i, receivers, draws, strata=None):
         if self.rule == "centroid":
             return None
         receivers = np.asarray(receivers, dtype=np.int64)
@@ -86,7 +94,7 @@ class EndPoints:
                 row[lit] = w[np.argmin(((w[None] / self.D - target[:, None]) ** 2).sum(axis=2), axis=1)]
             else:
                 # row ``draw`` takes its own stratum of the density's CDF: the pair's rows cover it evenly
-                u = (draw + uniforms(self.seed, i, receivers, 2 * draw)) / self.draws
+                u = (draw + uniforms(self.seed, i, receivers, 2 * draw)) / (strata or self.draws)
                 v = uniforms(self.seed, i, receivers, 2 * draw + 1)
                 cell = np.minimum((cdf < u[:, None]).sum(axis=1), len(count) - 1)
                 pick = members[cell, np.minimum((v * count[cell]).astype(np.int64), count[cell] - 1)]

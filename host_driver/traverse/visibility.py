@@ -252,7 +252,7 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
             # column), row d from sample set d if the patches have a set per row; reverse rows at
             # i's centroid, from set 0, or with sets one per row from each set in turn (a thin
             # front of a straddling receiver may hold none of one set's K points)
-            draws, nf, nr = vis.ends.draws, len(forward), len(reverse)
+            draws, nf, nr = vis.ends.draws_of(i), len(forward), len(reverse)
             back = draws if S > 1 else 1
             ends = np.concatenate([vis.ends.rows(i, forward)]
                                   + [np.full((back * nr, 3), samples.denominator // 3, dtype=np.int64)])
@@ -270,7 +270,10 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
     # the column count as one call per column would give it: i's own (even if empty), one per reverse
     f = vis.pair_clear_fraction(shooters, targets, weights, columns=1 + len(reverse), end_weights=ends, sets=sets)
     split = draws * len(forward)
-    frac[direct] = f[:split].reshape(draws, len(forward)).mean(axis=0)
+    own = f[:split].reshape(draws, len(forward)).T
+    # with a set per row, a row whose K samples all lie behind the receiver's plane carries no
+    # light: pooled by weight totals it does not count (its plain fraction would stand in)
+    frac[direct] = own.mean(axis=1) if S == 1 else _pooled(own, weights[:split].sum(axis=1).reshape(draws, -1).T)
     frac[~direct] = f[split:] if back == 1 else _pooled(f[split:].reshape(-1, back),
                                                          weights[split:].sum(axis=1).reshape(-1, back))
     return frac
