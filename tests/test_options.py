@@ -128,6 +128,7 @@ def test_an_estimator_names_its_ray_options_and_given_options_win():
     assert (balanced.end_points, balanced.end_lattice, balanced.end_draws, balanced.sample_points) == \
         ("draw", 8, 8, "rows")
     assert balanced.samples.drawn and balanced.samples.end_lattice == 8 and balanced.samples.sets == 8
+    assert balanced.emitter_factor == 4 and RenderOptions.of().ray.emitter_factor == 1
     assert estimator_of(balanced) == "balanced" and estimator_of(RenderOptions.of().ray) == "paper"
     tuned = RenderOptions.of(estimator="balanced", end_draws=4, end_seed=3).ray
     assert (tuned.end_draws, tuned.end_seed, tuned.end_points) == (4, 3, "draw") and estimator_of(tuned) == "custom"
@@ -140,3 +141,17 @@ def test_an_estimator_names_its_ray_options_and_given_options_win():
         with pytest.raises(ParameterError) as e:
             RenderOptions.of(**bad)
         assert e.value.parameter == "estimator", e.value
+    assert RenderOptions.of(estimator="balanced", emitter_factor=1).ray.emitter_factor == 1
+    args = build_parser().parse_args(["render", "cornell", "--estimator", "balanced", "--emitter-factor", "2"])
+    assert RenderOptions.from_args(args).ray.emitter_factor == 2
+
+
+@pytest.mark.parametrize("bad", [dict(emitter_factor=0), dict(emitter_factor=2.0), dict(emitter_factor=True),
+                                 dict(emitter_factor=2), dict(end_points="kernel", emitter_factor=2),
+                                 dict(estimator="balanced", emitter_factor=9)])
+def test_emitter_factor_is_refused_where_it_cannot_apply(bad):
+    """More rows from emitters need the draw rule and at most 64 rows per pair (8 x 9 > 64)."""
+    with pytest.raises(ParameterError) as e:
+        RenderOptions.of(**bad)
+    assert e.value.parameter == "emitter_factor", e.value
+    assert "emitter_factor" in str(e.value)
