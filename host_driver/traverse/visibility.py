@@ -272,8 +272,9 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
     split = draws * len(forward)
     own = f[:split].reshape(draws, len(forward)).T
     # with a set per row, a row whose K samples all lie behind the receiver's plane carries no
-    # light: pooled by weight totals it does not count (its plain fraction would stand in)
-    frac[direct] = own.mean(axis=1) if S == 1 else _pooled(own, weights[:split].sum(axis=1).reshape(draws, -1).T)
+    # light and does not count (its plain fraction would stand in). The others count equally, not
+    # by weight: their end points were drawn by that weight already
+    frac[direct] = own.mean(axis=1) if S == 1 else _lit_mean(own, weights[:split].sum(axis=1).reshape(draws, -1).T)
     frac[~direct] = f[split:] if back == 1 else _pooled(f[split:].reshape(-1, back),
                                                          weights[split:].sum(axis=1).reshape(-1, back))
     return frac
@@ -285,6 +286,14 @@ def _pooled(f, total):
     where no row carries any."""
     t = total.sum(axis=1)
     return np.where(t > 0, (f * total).sum(axis=1) / np.where(t > 0, t, 1), f.mean(axis=1))
+
+
+def _lit_mean(f, total):
+    """Each pair's rows (n, rows) averaged over those whose samples carry light (total > 0); the
+    plain mean where none does."""
+    lit = total > 0
+    n = lit.sum(axis=1)
+    return np.where(n > 0, (f * lit).sum(axis=1) / np.maximum(n, 1), f.mean(axis=1))
 
 
 @njit(cache=True)
