@@ -282,6 +282,29 @@ def test_a_straddling_receivers_reverse_rows_cast_from_every_set():
     np.testing.assert_array_equal(got, 1.0)
 
 
+def test_a_straddling_shooters_rows_without_light_do_not_count():
+    """The same scene the other way: the wall shoots at the floor-like triangle, whose centroid is
+    in front of it (the wall's own rows). Only the wall's tip sends it light, and nothing hides the
+    tip: the clear fraction is 1. A set with no sample in the tip carries no light; its row (rays
+    from below the floor's plane, through the plate) must not count."""
+    scene = _straddling_scene()
+    assert ray_weights.centroid_in_front(scene, 1, [0])[0]
+    got, dark = [], 0
+    for seed in range(30):
+        scheme = SampleScheme(8, 8, seed=seed, sets=8)
+        board = GoldenBoard()
+        board.prepare(scene, scheme)
+        grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
+        board.load(grid)
+        vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=EndPoints(scene, scheme, "draw", seed, 8))
+        got.append(visible_fraction(scene, vis, scheme, 1, np.array([0]), vis.phases)[0])
+        w = ray_weights.pair_sample_weights(scene, scheme, np.array([1]), np.array([0]))[0].reshape(8, 8)
+        dark += int((w.sum(axis=1) == 0).sum())
+    print("seeds 0-29: clear fraction", np.round(got, 3), f"; rows without light {dark} of {30 * 8}")
+    assert dark > 0                                                    # the case is exercised
+    np.testing.assert_array_equal(got, 1.0)
+
+
 def _penumbra_scene():
     """Patch 0: a small emitting triangle at y = 2 facing down. Patches 1, 2: a plate at y = 1
     over x < 0.1. Patch 3: a large floor triangle (y = 0, facing up) that the plate's shadow edge
