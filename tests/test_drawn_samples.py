@@ -164,14 +164,20 @@ def _clear_share(heights, d, n=400):
     return np.array(out)
 
 
-def _estimate(scene, scheme, draws=1, seed=0):
+def _golden_fraction(scene, scheme, i, receivers, ends=None):
+    """visible_fraction of shooter i's pairs with ``receivers`` on the golden board (a 4 x 4
+    array), and the rays it cast."""
     board = GoldenBoard()
     board.prepare(scene, scheme)
     grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
     board.load(grid)
-    ends = EndPoints(scene, scheme, "draw", seed, draws) if draws > 1 else None
     vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=ends)
-    return visible_fraction(scene, vis, scheme, 0, np.arange(3, scene.patches), vis.phases)
+    return visible_fraction(scene, vis, scheme, i, np.asarray(receivers), vis.phases), board.counters()["rays"]
+
+
+def _estimate(scene, scheme, draws=1, seed=0):
+    ends = EndPoints(scene, scheme, "draw", seed, draws) if draws > 1 else None
+    return _golden_fraction(scene, scheme, 0, np.arange(3, scene.patches), ends)[0]
 
 
 def test_drawn_samples_see_a_contact_shadow_in_proportion():
@@ -272,13 +278,8 @@ def test_a_straddling_receivers_reverse_rows_cast_from_every_set():
     got = []
     for seed in range(30):
         scheme = SampleScheme(8, 8, seed=seed, sets=8)
-        board = GoldenBoard()
-        board.prepare(scene, scheme)
-        grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
-        board.load(grid)
-        vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=EndPoints(scene, scheme, "draw", seed, 8))
-        got.append(visible_fraction(scene, vis, scheme, 0, np.array([1]), vis.phases)[0])
-    print("clear fraction per seed", np.round(got, 3))
+        got.append(_golden_fraction(scene, scheme, 0, [1], EndPoints(scene, scheme, "draw", seed, 8))[0][0])
+    print("seeds 0-29: clear fraction", np.round(got, 3))
     np.testing.assert_array_equal(got, 1.0)
 
 
@@ -292,12 +293,7 @@ def test_a_straddling_shooters_rows_without_light_do_not_count():
     got, dark = [], 0
     for seed in range(30):
         scheme = SampleScheme(8, 8, seed=seed, sets=8)
-        board = GoldenBoard()
-        board.prepare(scene, scheme)
-        grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
-        board.load(grid)
-        vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=EndPoints(scene, scheme, "draw", seed, 8))
-        got.append(visible_fraction(scene, vis, scheme, 1, np.array([0]), vis.phases)[0])
+        got.append(_golden_fraction(scene, scheme, 1, [0], EndPoints(scene, scheme, "draw", seed, 8))[0][0])
         w = ray_weights.pair_sample_weights(scene, scheme, np.array([1]), np.array([0]))[0].reshape(8, 8)
         dark += int((w.sum(axis=1) == 0).sum())
     print("seeds 0-29: clear fraction", np.round(got, 3), f"; rows without light {dark} of {30 * 8}")
@@ -319,12 +315,8 @@ def _penumbra_scene():
 
 def _floor_fraction(scene, factor, seed):
     scheme = SampleScheme(8, 8, seed=seed, sets=4)
-    board = GoldenBoard()
-    board.prepare(scene, scheme)
-    grid = VoxelGrid(scene.patch_vertices, 2, margin=board.margin)
-    board.load(grid)
-    vis = Visibility(scene, board, grid, scheme, rows=4, cols=4, ends=EndPoints(scene, scheme, "draw", seed, 4, factor))
-    return visible_fraction(scene, vis, scheme, 0, np.array([3]), vis.phases)[0], board.counters()["rays"]
+    f, rays = _golden_fraction(scene, scheme, 0, [3], EndPoints(scene, scheme, "draw", seed, 4, factor))
+    return f[0], rays
 
 
 def test_an_emitters_pairs_cast_emitter_factor_times_the_rows():
