@@ -41,7 +41,7 @@ from .params import BoardParams
 from .records import pack, patch_layout, point_layout, unpack
 
 __all__ = ["Op", "POINTS_PER_LOAD", "MAGIC", "VERSION", "ResultKind", "COUNTERS", "COUNTER_WIDTH",
-           "IDENTITY_FIELDS", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
+           "IDENTITY_FIELDS", "RAYS_VERSION", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
            "LoadShooter", "LoadPoints", "Voxel", "EndBlock", "ReadCounters", "Identify", "COMMANDS",
            "BoardProtocol", "BoardResult", "ResultReader", "fit_params", "check_capacity", "describe"]
 
@@ -66,6 +66,9 @@ POINTS_PER_LOAD = 4
 #: IDENTIFY's ``magic`` and ``version``: the host checks both before it trusts a board
 MAGIC = 0xB10C
 VERSION = 2
+#: the ``version`` a board built with the block sequencer answers: the same fields and commands,
+#: and it takes the commands of rays made on the board too (:mod:`blockray.board_rays`)
+RAYS_VERSION = 3
 
 
 class ResultKind(enum.IntEnum):
@@ -306,10 +309,11 @@ class BoardProtocol:
     def params(self):
         return self._params
 
-    def identity(self):
-        """The IDENTIFY result's fields for this configuration."""
+    def identity(self, *, rays=False):
+        """The IDENTIFY result's fields for this configuration; ``rays``: of a board that makes
+        its rays (version :data:`RAYS_VERSION`)."""
         p = self._params
-        return {"magic": MAGIC, "version": VERSION, "rows": p.rows, "cols": p.cols, "bits": p.bits,
+        return {"magic": MAGIC, "version": RAYS_VERSION if rays else VERSION, "rows": p.rows, "cols": p.cols, "bits": p.bits,
                 "patch_depth": p.patch_depth, "voxel_depth": p.voxel_depth}
 
     # -- the internal command record --------------------------------------------------------------
@@ -540,7 +544,8 @@ def describe(params):
             _table(proto.result_layout["data"].shape["blocked"].shape, "data.blocked", res_offset), "",
             "`data.counters` (READ_COUNTERS):", "",
             _table(proto.counters_layout, "data.counters", res_offset), "",
-            f"`data.identity` (IDENTIFY; magic {MAGIC:#06x}, version {VERSION}):", "",
+            f"`data.identity` (IDENTIFY; magic {MAGIC:#06x}, version {VERSION}, {RAYS_VERSION} with the block "
+            f"sequencer):", "",
             _table(proto.identity_layout, "data.identity", res_offset)]
     return "\n".join(out) + "\n"
 

@@ -19,7 +19,9 @@ With ``rays`` (rays made on the board): the commands of :mod:`blockray.board_ray
 13) become the block sequencer's items (:func:`~blockray.rtl.sequencer.command_items` is their
 reference), its records go to :class:`BoardTop` in their place; no byte is taken while the
 sequencer works, so the commands after them wait (the board's cycles are the model's: the
-sequencer's own are stalls to the board). Not the default yet; IDENTIFY's version is unchanged.
+sequencer's own are stalls to the board). IDENTIFY then answers version
+:data:`~blockray.protocol.RAYS_VERSION` (3): the host's sign that the board makes its rays.
+``blockray bitstream`` builds the core with it.
 """
 
 from types import SimpleNamespace

@@ -90,11 +90,14 @@ class BoardModel:
     Memory contents are the unpacked patch records (``vertices``, ``normals``), so what the model
     tests is what the packed memory image holds. ``cell``: the array's
     :class:`~blockray.cell.Cell` (its format chosen at ``params.bits``); a filtering one has
-    ``depth`` credits (default: its array's).
+    ``depth`` credits (default: its array's). ``rays``: the board built with the block sequencer
+    (its IDENTIFY answers :data:`~blockray.protocol.RAYS_VERSION`; the sequencer's model is
+    :class:`~blockray.sim.sequencer.BlockSequencer`, in front of this one).
     """
 
-    def __init__(self, params, timing=None, *, cell=Cell(), depth=None):
+    def __init__(self, params, timing=None, *, cell=Cell(), depth=None, rays=False):
         self.params = params
+        self.rays = rays
         self.cell = check_cell(cell).at(params.bits)
         if cell.filtered:               # filtered or lean: the same hand-off, its exact unit's latency
             self.depth = depth or _array_depth(cell)
@@ -186,7 +189,7 @@ class BoardModel:
                                      "tests_issued": res.tests_issued, "tests_useful": res.tests_useful})
                 res.results.append(BoardResult(ResultKind.COUNTERS, counters=res.counters[-1]))
             elif op is Op.IDENTIFY:
-                res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity()))
+                res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity(rays=self.rays)))
             res.cycles += t.cost(op, count)
         if filtered:
             self._add_lost_cycles(res, commands, kinds, undecided, ends)

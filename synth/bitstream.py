@@ -215,6 +215,8 @@ def _platform(name):
 
 
 def _core(core, params):
+    """The link's test core, or the board core with the block sequencer (``--traversal board``
+    on ``--board ulx3s``; it takes the block commands too)."""
     if core == "echo":
         from ..rtl.link import EchoCore
         return EchoCore()
@@ -223,7 +225,7 @@ def _core(core, params):
     except ImportError:
         raise ParameterError(f"{option('core')}: board: this tree has no board core with byte streams "
                              f"(blockray.rtl.core.BoardCore); build {option('core')} echo", parameter="core") from None
-    return BoardCore(params)
+    return BoardCore(params, rays=True)
 
 
 def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ,
@@ -263,8 +265,9 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
     report = {
         "platform": platform_name, "device": dev["part"], "package": PACKAGE, "speed_grade": f"-{SPEED}",
         "core": core_name,
-        "params": {k: getattr(params, k) for k in ("rows", "cols", "bits", "patch_depth", "voxel_depth")}
-        if core_name == "board" else {},
+        # the board core is built with the block sequencer (rays made on the board; IDENTIFY version 3)
+        "params": {**{k: getattr(params, k) for k in ("rows", "cols", "bits", "patch_depth", "voxel_depth")},
+                   "rays": True} if core_name == "board" else {},
         "clock": {"target_mhz": float(freq), "pll_mhz": pll.f_out_mhz, "pll": pll.__dict__},
         "uart": {"baud": baud, "divisor": divisor, "actual_baud": round(pll.f_out_mhz * 1e6 / divisor),
                  "fifo_depth": FIFO_DEPTH, "frame_payload": FRAME_PAYLOAD, "frame_window": FRAME_WINDOW},

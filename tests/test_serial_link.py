@@ -114,30 +114,33 @@ def test_framed_link_over_a_pty(pty_pair):
 
 class ModelPtyBoard(PtyBoard):
     """A ULX3S on the master side of a pty, answered by the bit-exact model built for ``params``
-    (the bitstream's configuration) behind the board's half of the framed link."""
+    (the bitstream's configuration) behind the board's half of the framed link; ``rays``: built
+    with the block sequencer (IDENTIFY version 3, as ``blockray bitstream`` builds it)."""
 
-    def __init__(self, fd, params):
+    def __init__(self, fd, params, *, rays=True):
         from blockray.host_driver.board.simulated import ModelTransport
         super().__init__(fd, seed=0)
-        self.model = ModelTransport(params)
+        self.model = ModelTransport(params, rays=rays)
 
     def core(self, commands):
         return self.model.run(commands, whole=False)
 
 
-@pytest.fixture
-def ulx3s_on_a_pty(pty_pair, monkeypatch):
-    """A board built as its bitstream (B = 14, its own memories) on a pty."""
+@pytest.fixture(params=[True], ids=["rays"])
+def ulx3s_on_a_pty(pty_pair, request):
+    """A board built as its bitstream (B = 14, its own memories; with the block sequencer unless
+    the test asks otherwise, ``indirect``) on a pty."""
     master, name = pty_pair
     tty.setraw(master)
     built = BoardParams(rows=2, cols=2, boards=1, bits=14, patch_depth=20000, voxel_depth=4096)
-    board = ModelPtyBoard(master, built)
+    board = ModelPtyBoard(master, built, rays=request.param)
     board.start()
     yield name, built
     board.stop = True
     board.join(timeout=5)
 
 
+@pytest.mark.parametrize("ulx3s_on_a_pty", [True, False], ids=["rays", "no-rays"], indirect=True)
 def test_ulx3s_board_from_the_registry_takes_its_configuration_from_identify(ulx3s_on_a_pty):
     """``--board ulx3s`` is built by the registry over the serial port: the host is told R, S and
     P only, the board's IDENTIFY gives B and the memories; the render equals the model's."""
@@ -162,3 +165,32 @@ def test_ulx3s_board_refuses_another_configuration(ulx3s_on_a_pty, capsys):
                  "--cols", "2", "--bits", "16", "--max-shots", "1", "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err == ["blockray: error: board 0 was built for another configuration: bits 14 (host 16)"]
+
+
+def test_ulx3s_board_makes_its_rays(ulx3s_on_a_pty):
+    """A bitstream built with the block sequencer answers IDENTIFY version 3, so ``--board ulx3s``
+    takes ``--traversal board``: the render equals the model's with the same traversal."""
+    name, _ = ulx3s_on_a_pty
+    scene = load_scene("cornell")
+    run = dict(rows=2, cols=2, boards=1, samples=4, max_shots=1, traversal="board")
+    options = RenderOptions.of(backend="ulx3s", port=name, **run)
+    with build_board(options.board) as board:
+        real = render(scene, board, options)
+        assert [i["version"] for i in board.identities] == [3]
+    model = render(scene, backend="model", bits=14, **run)
+    assert np.array_equal(real.radiosity, model.radiosity)
+    for key in ("tests", "tests_issued", "board_cycles", "rays", "blocks"):
+        assert real.report[key] == model.report[key], key
+
+
+@pytest.mark.parametrize("ulx3s_on_a_pty", [False], ids=["no-rays"], indirect=True)
+def test_ulx3s_board_without_the_sequencer_refuses_board_rays(ulx3s_on_a_pty, capsys):
+    """A bitstream without the block sequencer (IDENTIFY version 2) renders block rays, and
+    ``--traversal board`` is refused before any ray command is sent."""
+    name, _ = ulx3s_on_a_pty
+    code = main(["render", "cornell", "--board", "ulx3s", "--port", name, "--boards", "1", "--rows", "2",
+                 "--cols", "2", "--max-shots", "1", "--traversal", "board", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    errors = [line for line in err if line.startswith("blockray: error:")]     # (B = 14 warns of cornell)
+    assert code == 2 and len(errors) == 1 and "needs a board that makes its rays" in errors[0], err
+    assert "IDENTIFY version 3" in errors[0] and "not ulx3s" in errors[0], err

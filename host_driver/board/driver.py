@@ -20,7 +20,8 @@ Rays made on the board (``--traversal board``: :meth:`load` given a
 :class:`~blockray.host_driver.traverse.board_walk.LatticeGrid`): the load also sends LOAD_SAMPLES
 and LOAD_GRID, and each batch goes as COLUMN and RECEIVERS commands (:mod:`blockray.board_rays`)
 instead of its blocks' points and voxels; the board makes the same blocks. One board (P = 1),
-whose transport's board takes those commands (``makes_rays``: the model's, the Verilated board's).
+built with the block sequencer: its IDENTIFY answers version ``RAYS_VERSION`` (the model's, the
+Verilated board's, the ULX3S bitstream's).
 """
 
 import numpy as np
@@ -32,7 +33,7 @@ from ...errors import CapacityError, ParameterError, option
 from ...fixedpoint import DEFAULT_MAX_ERROR
 from ...memory import BoardMemories, check_partition
 from ...params import BoardParams
-from ...protocol import (MAGIC, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
+from ...protocol import (MAGIC, RAYS_VERSION, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
                         fit_params)
 from .framed import integrity_report
 from .transport import TransportError
@@ -57,16 +58,6 @@ def _decode(protocol, b, transport, data):
     except ParameterError as e:
         where = getattr(transport, "where", "the link")
         raise TransportError(f"board {b} ({where}): a corrupted result: {e}") from None
-
-
-def _makes_rays(transport):
-    """Whether the board behind ``transport`` (through the link's wrappers) takes the commands of
-    rays made on the board."""
-    while transport is not None:
-        if getattr(transport, "makes_rays", False):
-            return True
-        transport = getattr(transport, "pipe", None) or getattr(transport, "core", None)
-    return False
 
 
 class BoardDriver(CountingBoard):
@@ -172,9 +163,10 @@ class BoardDriver(CountingBoard):
         if self.params.boards != 1:
             raise CapacityError(f"{option('traversal')} board needs one board ({option('boards')} 1): a board "
                                 f"makes rays from the patch records it holds")
-        if not all(_makes_rays(t) for t in self.transports):
-            raise CapacityError(f"{option('traversal')} board needs a board that makes its rays (the model's: "
-                                f"{option('backend')} model-link), not {self.name}")
+        if not all(ident["version"] == RAYS_VERSION for ident in self.identities):
+            raise CapacityError(f"{option('traversal')} board needs a board that makes its rays (built with the "
+                                f"block sequencer: IDENTIFY version {RAYS_VERSION}, as {option('backend')} model-link), "
+                                f"not {self.name}")
         self._address = record_addresses(self.memory.memories[0]["patch"], len(self.quantised.vertices))
         return RayProtocol(self.board_params)
 
@@ -214,14 +206,15 @@ class BoardDriver(CountingBoard):
 
     def identify(self):
         """Send IDENTIFY to every board; check each answers with the protocol's magic and version
-        and the configuration the host expects. Returns the identities."""
+        and the configuration the host expects. Returns the identities (``version``
+        :data:`~blockray.protocol.RAYS_VERSION`: the board makes its rays)."""
         want = self.protocol.identity()
         out = self.identities_of(self.transports, self.protocol)
         self._bytes_sent += len(self.protocol.encode(Identify())) * len(self.transports)
         self._bytes_received += self.protocol.result_bytes(ResultKind.IDENTITY) * len(self.transports)
         for b, ident in enumerate(out):
-            if ident != want:
-                diff = ", ".join(f"{k} {ident[k]} (host {want[k]})" for k in want if ident[k] != want[k])
+            diff = ", ".join(f"{k} {ident[k]} (host {want[k]})" for k in want if k != "version" and ident[k] != want[k])
+            if diff:
                 raise CapacityError(f"board {b} was built for another configuration: {diff}")
         return out
 
@@ -241,9 +234,10 @@ class BoardDriver(CountingBoard):
             if got.kind is not ResultKind.IDENTITY:
                 raise TransportError(f"board {b}: answered IDENTIFY with a {got.kind.name} result")
             ident = got.identity
-            if ident["magic"] != MAGIC or ident["version"] != VERSION:
+            if ident["magic"] != MAGIC or ident["version"] not in (VERSION, RAYS_VERSION):
                 raise TransportError(f"board {b}: magic {ident['magic']:#06x} version {ident['version']} is not a "
-                                     f"blockray board of protocol version {VERSION} (magic {MAGIC:#06x})")
+                                     f"blockray board of protocol version {VERSION} or {RAYS_VERSION} (magic "
+                                     f"{MAGIC:#06x})")
             out.append(ident)
         return out
 

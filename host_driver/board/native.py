@@ -41,15 +41,13 @@ def native_build(params, *, cell=Cell(), trace=False):
 
 class NativeTransport(_Buffered):
     """One :class:`~blockray.rtl.core.BoardCore` for ``params`` in the native harness, built with
-    the block sequencer (``makes_rays``: ``--traversal board``).
+    the block sequencer (IDENTIFY answers :data:`~blockray.protocol.RAYS_VERSION`: ``--traversal board``).
 
     ``idle`` / ``backpressure``: :class:`~blockray.sim.drive.HostTiming` on the command and result
     streams, ``seed`` seeds them (as :class:`~blockray.host_driver.board.simulated.AmaranthTransport`).
     ``vcd``: build with ``--trace`` and write a waveform. ``patience``: clock cycles without a byte
     moving, once every command byte was taken, before :meth:`recv` gives up (default: longer than
     any command takes, as the Amaranth transport)."""
-
-    makes_rays = True
 
     def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell=Cell(), patience=None):
         from ...sim.drive import HostTiming

@@ -217,13 +217,13 @@ class ModelTransport(_Buffered):
     """The bit-exact model behind the link: decodes the command bytes, runs
     :meth:`BoardModel.execute <blockray.sim.model.BoardModel.execute>`, encodes its results.
     Counter snapshots are cumulative since the last reset, as the board's; ``stalls`` is 0 (the
-    model has no host timing). It makes rays on the board (``makes_rays``): the commands of
-    :mod:`blockray.board_rays` go through the block sequencer's model
-    (:class:`~blockray.sim.sequencer.BlockSequencer`)."""
+    model has no host timing). It makes rays on the board (IDENTIFY answers
+    :data:`~blockray.protocol.RAYS_VERSION`): the commands of :mod:`blockray.board_rays` go through
+    the block sequencer's model (:class:`~blockray.sim.sequencer.BlockSequencer`). ``rays=False``:
+    IDENTIFY answers as a board built without the sequencer does (:data:`~blockray.protocol.VERSION`;
+    the host then sends it no ray commands)."""
 
-    makes_rays = True
-
-    def __init__(self, params, *, vcd=None, cell=Cell()):
+    def __init__(self, params, *, vcd=None, cell=Cell(), rays=True):
         import functools
 
         from ...board_rays import RayProtocol
@@ -236,7 +236,7 @@ class ModelTransport(_Buffered):
         self.params = params
         self.protocol = BoardProtocol(params)
         self._commands = RayProtocol(params)           # decodes both kinds of command
-        self._model = functools.partial(BoardModel, cell=cell)
+        self._model = functools.partial(BoardModel, cell=cell, rays=rays)
         self._out = bytearray()
         self.reset()
 

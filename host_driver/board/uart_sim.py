@@ -73,7 +73,6 @@ class NativeUartPipe(_SerialPort):
         from ...sim.native import UartPorts, build_native
         from ...sim.native.uart import NativeUart
         self.divisor, self.cycles, self.queued = divisor, 0, 0
-        self.core = core                    # the driver asks it whether it makes rays
         build = build_native(lambda: SerialLink(core, divisor=divisor, fifo_depth=fifo_depth), name=name,
                              ports=UartPorts(), source=source)
         self.log_path = build.build_dir / "build.log"
