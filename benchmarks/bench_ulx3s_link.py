@@ -12,6 +12,19 @@ own framing is added (:mod:`blockray.link`): a header byte per result frame (cou
 per result record: the board sends each as it forms, at UART pace) and a credit grant byte per
 32 command bytes (the bridge's batch while results wait; at most). A UART moves 10 bits per byte,
 so ``baud / 10`` bytes per second each way; the array's own rate is rays / board cycles x clock.
+
+    python benchmarks/bench_ulx3s_link.py --faults 1e-5 [--traversal board] [--shooters 40]
+
+What link integrity costs (issue 31): the same columns through the framed link
+(:mod:`blockray.framing`) to the model (``--board model-link``'s
+:class:`~blockray.host_driver.board.framed.ModelBoardLink`) twice in one run, with no faults and
+with ``RATE`` faults per byte each way (:class:`~blockray.host_driver.board.framed.LinkFaults`,
+seed ``--seed``), the commands made as ``--traversal`` makes them (``board``: rays made on the
+board, on the board's lattice grid). The bytes are the wire's (frames, their COBS, CRC and
+numbers, every frame resent, the status and acknowledgement frames); the link's time is the busier
+direction's wire bytes at ``baud / 10`` bytes a second plus ``TIMEOUT`` of silence per time-out
+(a NAK's round trip through the USB bridge is not modelled). The core bytes alone (no framing at
+all) give the framing's own share. The two runs' clear fractions must be equal to the bit (checked).
 """
 
 import argparse
@@ -20,12 +33,14 @@ import time
 
 import numpy as np
 
+from _run_header import print_run_header
 from blockray.host_driver.scene import builtin
 from blockray.link import DEFAULT_BAUD
 from blockray.host_driver.board.driver import BoardDriver
 from blockray.host_driver.board.framed import FaultyPipe, FramedTransport, LinkFaults, ModelBoardLink
 from blockray.host_driver.render.render import Visibility
 from blockray.host_driver.board.simulated import ModelTransport
+from blockray.host_driver.traverse.board_walk import board_grid
 from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.host_driver.traverse.cost import default_voxels
 from blockray.params import BoardParams
@@ -61,24 +76,16 @@ class Counting(ModelTransport):
         return out
 
 
-def _framed(core, faults):
-    """The framed link (blockray.framing) over ``core``, with ``faults`` injected."""
-    pipe = ModelBoardLink(core)
-    return FramedTransport(FaultyPipe(pipe, faults.injector(0, 0), faults.injector(0, 1)), where="bench")
-
-
-def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS, faults=None):
-    """Bytes on one board's link for the block rays; ``faults``: through the framed link with
-    them (:class:`~blockray.host_driver.board.framed.LinkFaults`), else the credited link's figures."""
+def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS):
+    """Bytes on one board's link for the block rays, as the credited link before the framing carried them."""
     scene = builtin.load(scene_name)
     samples = SampleScheme(8)
     params = BoardParams(rows=rows, cols=cols, boards=1, bits=None)
-    links, outer = [], []
+    links = []
 
     def transport(p, b):
         links.append(Counting(p))
-        outer.append(links[-1] if faults is None else _framed(links[-1], faults))
-        return outer[-1]
+        return links[-1]
 
     driver = BoardDriver(params, name="ulx3s-link", transport=transport)
     driver.prepare(scene, samples)
@@ -87,7 +94,6 @@ def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS, fa
     cycles0 = driver.counters()["board_cycles"]
     link = links[0]
     link.on = True
-    wire0 = outer[0].stats()
     vis = Visibility(scene, driver, grid, samples, rows=params.rows, cols=params.cols)
     rng = np.random.default_rng(seed)
     host = time.process_time()
@@ -96,12 +102,6 @@ def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS, fa
         driver.run(blocks)
     host = time.process_time() - host
     c = driver.counters()
-    if faults is not None:
-        wire = outer[0].stats()
-        return {"rays": c["rays"], "host_seconds": host, "down": link.sent, "up": link.received,
-                "down_wire": wire["wire_bytes_sent"] - wire0["wire_bytes_sent"],
-                "up_wire": wire["wire_bytes_received"] - wire0["wire_bytes_received"],
-                "timeouts": wire["host"]["timeouts"] - wire0["host"]["timeouts"], **c["link_integrity"]}
     proto = driver.protocol
     from blockray.protocol import ResultKind
     nb = proto.result_bytes(ResultKind.BLOCKED)
@@ -124,8 +124,13 @@ def main():
     ap.add_argument("--rows", type=int, default=DEFAULT_ROWS, help=f"array rows (default {DEFAULT_ROWS}: the bitstream's)")
     ap.add_argument("--cols", type=int, default=DEFAULT_COLS, help=f"array columns (default {DEFAULT_COLS})")
     ap.add_argument("--faults", type=float, default=None, metavar="RATE",
-                    help="also measure the framed link (issue 31) with RATE faults per byte each way")
+                    help="instead: the framed link with no faults and with RATE faults per byte each way, side by side")
+    ap.add_argument("--traversal", default="block", choices=["block", "board"],
+                    help="with --faults: the commands of block rays (default) or of rays made on the board")
     args = ap.parse_args()
+    if args.faults is not None:
+        _integrity(args)
+        return
     r = measure(args.scene, args.shooters, args.seed, args.rows, args.cols)
     rays = r["rays"]
     bps = args.baud / 10
@@ -148,32 +153,93 @@ def main():
         print(f"{name}: link {r_link:,.0f} rays/s; the board {min(r_link, array_rate):,.0f} rays/s, "
               f"{min(r_link, array_rate) / link_rate:.1f}x the UART ({'link' if r_link < array_rate else 'array'}-bound; "
               f"the link could feed {r_link / array_rate:.2f} such arrays)")
-    if args.faults is not None:
-        _integrity(args, r, link_rate, bps)
 
 
 #: seconds the framed host waits in silence before it resends (FramedTransport's default)
 TIMEOUT = FramedTransport.__init__.__kwdefaults__["timeout"]
 
 
-def _integrity(args, plain, plain_rate, bps):
-    """The framed link at ``--faults`` against the credited link (``plain``): its bytes, resends,
-    time-outs and rays/s through the UART (each time-out costs ``TIMEOUT`` seconds of silence)."""
-    f = measure(args.scene, args.shooters, args.seed, args.rows, args.cols, faults=LinkFaults(args.faults, args.seed))
-    rays = f["rays"]
-    assert (f["down"], f["up"]) == (plain["down"], plain["up"]), "the framed link carried other core bytes"
-    seconds = max(f["down_wire"], f["up_wire"]) / bps + f["timeouts"] * TIMEOUT
-    rate = rays / seconds
-    print(f"framed link at {args.faults:g} faults per byte each way (seed {args.seed}): host -> board "
-          f"{f['down_wire'] / rays:.2f} B/ray, board -> host {f['up_wire'] / rays:.2f} B/ray, "
-          f"{(f['down_wire'] + f['up_wire']) / rays:.2f} B/ray together (credited: "
-          f"{(plain['down_wire'] + plain['up_wire']) / rays:.2f}); {f['frames_sent']} frames sent, "
-          f"{f['frames_resent']} resent, {f['errors']} errors, {f['timeouts']} time-outs of {TIMEOUT * 1e3:g} ms; "
-          f"injected {f.get('injected_flipped', 0)} flips, {f.get('injected_dropped', 0)} drops, "
-          f"{f.get('injected_duplicated', 0)} duplicates")
-    print(f"framed link: {rate:,.0f} rays/s through the UART, {1 - rate / plain_rate:.1%} fewer than the credited "
-          f"link's {plain_rate:,.0f}; host CPU {f['host_seconds'] / rays * 1e6:.1f} us/ray (credited "
-          f"{plain['host_seconds'] / rays * 1e6:.1f})")
+def framed_columns(scene, rows, cols, traversal, shooters, faults):
+    """The columns of ``shooters`` to every patch through the framed link to the model with
+    ``faults`` (a LinkFaults; rate 0: none), the commands of ``traversal``. Returns the counts after
+    the load (core bytes, wire bytes, frames, time-outs, injected faults) and the clear fractions."""
+    samples = SampleScheme(8)
+    cores, wires = [], []
+
+    def transport(p, b):
+        cores.append(Counting(p))
+        wires.append(FramedTransport(FaultyPipe(ModelBoardLink(cores[-1]), faults.injector(b, 0),
+                                                faults.injector(b, 1)), where="bench"))
+        return wires[-1]
+
+    driver = BoardDriver(BoardParams(rows=rows, cols=cols, boards=1, bits=None), name="ulx3s-link", transport=transport)
+    driver.prepare(scene, samples)
+    voxels = default_voxels(scene.patches, parallelism=1)
+    grid = (board_grid(driver, voxels) if traversal == "board"
+            else VoxelGrid(scene.patch_vertices, voxels, margin=driver.margin))
+    driver.load(grid)
+    w0 = wires[0].stats()
+    cores[0].on = True
+    vis = Visibility(scene, driver, grid, samples, rows=rows, cols=cols, traversal=traversal)
+    host = time.process_time()
+    frac = np.concatenate([vis.clear_fraction(int(i), np.arange(scene.patches)) for i in shooters])
+    host = time.process_time() - host
+    c, w = driver.counters(), wires[0].stats()
+    driver.close()
+    injected = {k: sum(w["injected"][d][k] - w0["injected"][d][k] for d in ("to_board", "from_board"))
+                for k in w["injected"]["to_board"]}
+    return {"rays": c["rays"], "bits": driver.params.bits, "host_seconds": host,
+            "down": cores[0].sent, "up": cores[0].received,
+            "down_wire": w["wire_bytes_sent"] - w0["wire_bytes_sent"],
+            "up_wire": w["wire_bytes_received"] - w0["wire_bytes_received"],
+            "frames_sent": w["host"]["frames_sent"] - w0["host"]["frames_sent"],
+            "board_frames_sent": w["board_model"]["frames_sent"] - w0["board_model"]["frames_sent"],
+            "host_resent": w["host"]["frames_resent"] - w0["host"]["frames_resent"],
+            "board_resent": w["board_model"]["frames_resent"] - w0["board_model"]["frames_resent"],
+            "host_errors": w["host"]["errors"] - w0["host"]["errors"],
+            "board_errors": w["board_model"]["errors"] - w0["board_model"]["errors"],
+            "timeouts": w["host"]["timeouts"] - w0["host"]["timeouts"], "injected": injected}, frac
+
+
+def _integrity(args):
+    """The framed link with no faults and at ``--faults``, side by side: bytes, resends, time-outs
+    and rays/s through the UART (each time-out costs ``TIMEOUT`` seconds of silence)."""
+    print_run_header()
+    scene = builtin.load(args.scene)
+    shooters = np.random.default_rng(args.seed).choice(scene.patches, args.shooters, replace=False)
+    bps = args.baud / 10
+    runs, fracs = {}, {}
+    for rate in (0.0, args.faults):
+        start = time.perf_counter()
+        runs[rate], fracs[rate] = framed_columns(scene, args.rows, args.cols, args.traversal, shooters,
+                                                 LinkFaults(rate, args.seed))
+        runs[rate]["wall"] = time.perf_counter() - start
+    assert np.array_equal(fracs[0.0], fracs[args.faults]), "the faults changed a clear fraction"
+    f0 = runs[0.0]
+    assert all(runs[args.faults][k] == f0[k] for k in ("rays", "down", "up")), "the faults changed the core bytes"
+    rays = f0["rays"]
+    core_rate = rays * bps / max(f0["down"], f0["up"])
+    print(f"{args.scene} ({scene.patches} patches), B = {f0['bits']}, {args.rows} x {args.cols} x 1, "
+          f"--traversal {args.traversal}, {args.shooters} shooter columns to every patch, seed {args.seed}: {rays} rays; "
+          f"core bytes {f0['down'] / rays:.3f} B/ray to the board, {f0['up'] / rays:.3f} back "
+          f"(no framing: {core_rate:,.0f} rays/s through {args.baud} baud)")
+    print("| faults per byte | to board B/ray | to host B/ray | frames host / board | resent host / board | "
+          "errors host / board | time-outs | injected flip / drop / dup | link seconds | rays/s | of no faults | "
+          "of no framing | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for rate, r in runs.items():
+        seconds = max(r["down_wire"], r["up_wire"]) / bps + r["timeouts"] * TIMEOUT
+        r["rate"] = rays / seconds
+        inj = r["injected"]
+        print(f"| {rate:g} | {r['down_wire'] / rays:.3f} | {r['up_wire'] / rays:.3f} | {r['frames_sent']} / "
+              f"{r['board_frames_sent']} | {r['host_resent']} / {r['board_resent']} | {r['host_errors']} / "
+              f"{r['board_errors']} | {r['timeouts']} | {inj['flipped']} / {inj['dropped']} / {inj['duplicated']} | "
+              f"{seconds:.3f} | {r['rate']:,.0f} | {r['rate'] / f0['rate']:.4f} | {r['rate'] / core_rate:.4f} | "
+              f"{r['wall']:.0f} |", flush=True)
+    r = runs[args.faults]
+    print(f"link integrity at {args.faults:g} faults per byte: {1 - r['rate'] / f0['rate']:.2%} of the fault-free "
+          f"framed link's rays/s, {1 - r['rate'] / core_rate:.2%} of the unframed core bytes' (framing alone: "
+          f"{1 - f0['rate'] / core_rate:.2%}); clear fractions equal to the bit")
 
 
 if __name__ == "__main__":
