@@ -107,9 +107,9 @@ def test_builtin_room_has_no_open_boxes():
 def test_occluded_closed_scene_balances_from_rays_alone(seed):
     """No closure applied: the icosphere in a closed box (512 patches) with ``--estimator balanced``
     (8 stratified drawn end points per pair on the 1/168 lattice, each row from its own drawn set
-    of shooter samples) balances within 0.05% per channel (docs/formfactors.md, "Drawn shooter
-    samples"); the paper's centroid estimator does not (-0.09%, -0.06%, -0.14%), so the test tells
-    the two apart."""
+    of shooter samples, 4x the rows from emitters) balances within 0.05% per channel
+    (docs/formfactors.md, "More rows from emitters"); the paper's centroid estimator does not
+    (-0.09%, -0.06%, -0.14%), so the test tells the two apart."""
     scene = _scene("icosphere")
     result = render(scene, backend="model", solver="jacobi", tolerance=1e-6, estimator="balanced", end_seed=seed,
                     sample_seed=seed)
@@ -140,9 +140,9 @@ def test_the_slab_balances_on_every_seed():
 @pytest.mark.slow
 def test_room_balances_from_rays_alone():
     """The built-in room (3 653 patches, cut along its contact lines) with ``--estimator balanced``
-    (8 drawn rows per pair, each from its own set of samples): within 0.05% per channel from rays
-    alone (about 18 CPU min; the paper's estimator is at +0.8%). docs/formfactors.md records seeds
-    0 and 5; this is seed 0."""
+    (8 drawn rows per pair, each from its own set of samples, 32 from its 28 emitting patches):
+    within 0.05% per channel from rays alone (about 20 CPU min; the paper's estimator is at +0.8%).
+    docs/formfactors.md records seeds 0, 1, 2 and 5; this is seed 0."""
     from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("room")
     result = render(scene, backend="model", solver="jacobi", tolerance=1e-6, estimator="balanced", end_seed=0,
