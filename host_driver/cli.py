@@ -485,8 +485,8 @@ def _bitstream_parser(sub):
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=DEFAULT_BAUD, help=f"UART baud rate (default {DEFAULT_BAUD})")
     t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
-                   help="board clock from the PLL (default: DEFAULT_FREQ_MHZ of synth/bitstream.py, 45 = "
-                        "3 Mbaud x 15)")
+                   help="board clock from the PLL (default: DEFAULT_FREQ_MHZ of synth/bitstream.py, 15 = "
+                        "3 Mbaud x 5, the fastest exact clock the default board closes)")
     _add_tool_options(t)
     p.add_argument("--out", required=True, metavar="FILE.bit", help="bitstream to write")
     p.add_argument("--report", metavar="FILE.json", help="JSON report to write")

@@ -55,9 +55,11 @@ CORES = ("board", "echo")
 #: 9 minutes (63.3 MHz); the 2 x 2 board (the largest array the DSPs allow with its units) had not
 #: routed after 2 hours of router2 or 50 minutes of router1 (docs/ulx3s.md)
 DEFAULT_ROWS, DEFAULT_COLS = 1, 2
-#: the default board clock: 45 MHz is 3 Mbaud x 15 exactly, ecppll makes it exactly from 25 MHz,
-#: and the default board routes within it at -6 with margin (docs/ulx3s.md)
-DEFAULT_FREQ_MHZ = 45.0
+#: the default board clock: 15 MHz is 3 Mbaud x 5 exactly and ecppll makes it exactly from 25 MHz.
+#: With the block sequencer the default board routes at 28.4-29.9 MHz at -6; 30 MHz is just above
+#: that, and 18-27 MHz are not exact PLL clocks (docs/ulx3s.md). Block rays are link-bound at any
+#: of these clocks; rays made on the board come at 395 k/s, above the issue's 200 k
+DEFAULT_FREQ_MHZ = 15.0
 #: the default memories at most (:func:`largest_fit`): on the 2 x 2, B = 16 board nextpnr places
 #: them within DEFAULT_FREQ_MHZ at -6 (46.9 MHz before routing; 4096 and 4096 gave 41.2 MHz, and
 #: the most the block RAMs hold, 8192 and 32**3, 28.5 MHz and 47 thousand wires overused;

@@ -140,7 +140,7 @@ def test_echo_bitstream_builds(tmp_path):
     assert bytes.fromhex("41113043") in data[:128]                  # LFE5U-85F IDCODE (VERIFY_ID)
     report = json.loads(report_path.read_text())
     assert report["fits"] and report["timing_met"] and report["fmax_mhz"] >= bitstream.DEFAULT_FREQ_MHZ
-    assert report["speed_grade"] == "-6" and report["uart"]["divisor"] == 15
+    assert report["speed_grade"] == "-6" and report["uart"]["divisor"] == bitstream.DEFAULT_FREQ_MHZ * 1e6 // 3_000_000
     assert report["nextpnr"]["router"] == bitstream.ROUTER == "router1"          # routes the boards (docs/ulx3s.md)
     assert report["resources"]["brams"] >= 2 and report["bitstream"]["bytes"] == len(data)
 
@@ -149,8 +149,8 @@ def test_echo_bitstream_builds(tmp_path):
 @pytest.mark.slow
 def test_board_bitstream_builds(tmp_path):
     """The smallest board (1 x 1, B = 8, small memories) with the link and, as every board
-    ``blockray bitstream`` builds, the block sequencer (rays made on the board): fits, meets 45 MHz
-    at -6. Needs the board core with byte streams (issue 12)."""
+    ``blockray bitstream`` builds, the block sequencer (rays made on the board): fits, meets the
+    default clock (15 MHz) at -6. Needs the board core with byte streams (issue 12)."""
     out, report_path = tmp_path / "board.bit", tmp_path / "r.json"
     assert main(["bitstream", "--rows", "1", "--cols", "1", "--bits", "8", "--patch-depth", "256",
                  "--voxel-depth", "64", "--out", str(out), "--report", str(report_path)]) == 0
