@@ -22,16 +22,10 @@ import argparse
 import numpy as np
 
 from _run_header import print_run_header
-from bench_ulx3s_link import Counting
-from blockray.host_driver.board.driver import BoardDriver
-from blockray.host_driver.board.framed import FramedTransport, ModelBoardLink
+from bench_ulx3s_link import framed_board
 from blockray.host_driver.scene import builtin
-from blockray.host_driver.traverse.board_walk import board_grid
-from blockray.host_driver.traverse.cost import default_voxels
 from blockray.host_driver.traverse.visibility import Visibility
-from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.link import DEFAULT_BAUD
-from blockray.params import BoardParams
 from blockray.samples import SampleScheme
 from blockray.synth.bitstream import DEFAULT_FREQ_MHZ
 
@@ -39,19 +33,7 @@ from blockray.synth.bitstream import DEFAULT_FREQ_MHZ
 def measure(scene, rows, cols, traversal, shooters):
     """Bytes and cycles of ``shooters``' columns on a one-part R x S board; their clear fractions."""
     samples = SampleScheme(8)
-    cores, wires = [], []
-
-    def transport(p, b):
-        cores.append(Counting(p))
-        wires.append(FramedTransport(ModelBoardLink(cores[-1]), where="bench"))
-        return wires[-1]
-
-    driver = BoardDriver(BoardParams(rows=rows, cols=cols, boards=1, bits=None), name="bench", transport=transport)
-    driver.prepare(scene, samples)
-    voxels = default_voxels(scene.patches, parallelism=1)
-    grid = (board_grid(driver, voxels) if traversal == "board"
-            else VoxelGrid(scene.patch_vertices, voxels, margin=driver.margin))
-    driver.load(grid)
+    driver, grid, cores, wires = framed_board(scene, rows, cols, traversal, samples, "bench")
     cycles0, wire0 = driver.counters()["board_cycles"], wires[0].stats()
     sequencer0 = cores[0].sequencer.cycle
     cores[0].on = True

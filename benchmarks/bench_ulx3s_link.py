@@ -159,25 +159,34 @@ def main():
 TIMEOUT = FramedTransport.__init__.__kwdefaults__["timeout"]
 
 
-def framed_columns(scene, rows, cols, traversal, shooters, faults):
-    """The columns of ``shooters`` to every patch through the framed link to the model with
-    ``faults`` (a LinkFaults; rate 0: none), the commands of ``traversal``. Returns the counts after
-    the load (core bytes, wire bytes, frames, time-outs, injected faults) and the clear fractions."""
-    samples = SampleScheme(8)
+def framed_board(scene, rows, cols, traversal, samples, name, pipe=lambda link, b: link):
+    """A one-part R x S board: the driver over the framed link (its byte pipe ``pipe(link, b)``,
+    faults for example) to a :class:`Counting` model, loaded with the grid ``traversal`` needs.
+    Returns (driver, grid, the models, the framed transports)."""
     cores, wires = [], []
 
     def transport(p, b):
         cores.append(Counting(p))
-        wires.append(FramedTransport(FaultyPipe(ModelBoardLink(cores[-1]), faults.injector(b, 0),
-                                                faults.injector(b, 1)), where="bench"))
+        wires.append(FramedTransport(pipe(ModelBoardLink(cores[-1]), b), where="bench"))
         return wires[-1]
 
-    driver = BoardDriver(BoardParams(rows=rows, cols=cols, boards=1, bits=None), name="ulx3s-link", transport=transport)
+    driver = BoardDriver(BoardParams(rows=rows, cols=cols, boards=1, bits=None), name=name, transport=transport)
     driver.prepare(scene, samples)
     voxels = default_voxels(scene.patches, parallelism=1)
     grid = (board_grid(driver, voxels) if traversal == "board"
             else VoxelGrid(scene.patch_vertices, voxels, margin=driver.margin))
     driver.load(grid)
+    return driver, grid, cores, wires
+
+
+def framed_columns(scene, rows, cols, traversal, shooters, faults):
+    """The columns of ``shooters`` to every patch through the framed link to the model with
+    ``faults`` (a LinkFaults; rate 0: none), the commands of ``traversal``. Returns the counts after
+    the load (core bytes, wire bytes, frames, time-outs, injected faults) and the clear fractions."""
+    samples = SampleScheme(8)
+    driver, grid, cores, wires = framed_board(
+        scene, rows, cols, traversal, samples, "ulx3s-link",
+        lambda link, b: FaultyPipe(link, faults.injector(b, 0), faults.injector(b, 1)))
     w0 = wires[0].stats()
     cores[0].on = True
     vis = Visibility(scene, driver, grid, samples, rows=rows, cols=cols, traversal=traversal)
