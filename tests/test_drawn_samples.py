@@ -283,6 +283,22 @@ def test_a_straddling_receivers_reverse_rows_cast_from_every_set():
     np.testing.assert_array_equal(got, 1.0)
 
 
+def test_an_emitters_reverse_rows_cast_each_set_once():
+    """An emitting shooter's pair with a straddling receiver takes the reverse rays, which all end
+    at the shooter's centroid: ``emitter_factor`` 4 casts each of the receiver's sets once, the
+    same rays and the same fraction as factor 1 (repeating them would add no information)."""
+    E = np.zeros((4, 3))
+    E[0] = 1.0
+    scene = make_scene(_straddling_scene().patch_vertices.astype(np.float64), emission=E)
+    assert not ray_weights.centroid_in_front(scene, 0, [1])[0]          # the reverse path
+    for seed in range(5):
+        scheme = SampleScheme(8, 8, seed=seed, sets=8)
+        (f1,), r1 = _golden_fraction(scene, scheme, 0, [1], EndPoints(scene, scheme, "draw", seed, 8, 1))
+        (f4,), r4 = _golden_fraction(scene, scheme, 0, [1], EndPoints(scene, scheme, "draw", seed, 8, 4))
+        print(f"seed {seed}: factor 1 {f1:.4f} ({r1} rays), factor 4 {f4:.4f} ({r4} rays)")
+        assert r1 == r4 == 8 * 8 and f1 == f4
+
+
 def test_a_straddling_shooters_rows_without_light_do_not_count():
     """The same scene the other way: the wall shoots at the floor-like triangle, whose centroid is
     in front of it (the wall's own rows). Only the wall's tip sends it light, and nothing hides the

@@ -250,10 +250,11 @@ def visible_fraction(scene, vis, samples, i, receivers, phases):
         if vis.ends is not None and vis.ends.rule != "centroid":
             # i's own rows end where the rule puts them, ``draws`` rows per pair (all in i's one
             # column), row d from sample set d if the patches have a set per row; reverse rows at
-            # i's centroid, from set 0, or with sets one per row from each set in turn (a thin
-            # front of a straddling receiver may hold none of one set's K points)
+            # i's centroid, from set 0, or with sets one per row from each set once (a thin front
+            # of a straddling receiver may hold none of one set's K points; an emitter's extra
+            # rows would only repeat the same rays to the same centroid)
             draws, nf, nr = vis.ends.draws_of(i), len(forward), len(reverse)
-            back = draws if S > 1 else 1
+            back = min(draws, S)
             ends = np.concatenate([vis.ends.rows(i, forward)]
                                   + [np.full((back * nr, 3), samples.denominator // 3, dtype=np.int64)])
             shooters = np.concatenate([np.full(draws * nf, i, dtype=np.int64), np.repeat(reverse, back)])
