@@ -1,7 +1,8 @@
 """Error against speed: --solver hierarchical against the uniform progressive solve.
 
     python benchmarks/bench_hierarchical.py cornell --reference-edge 70 --check-edge 100 \
-        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4 --plot docs/img/hierarchical-cornell.png
+        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4 --link-rays samples,centroid \
+        --plot docs/img/hierarchical-cornell.png
 
 The reference is a uniform Jacobi solve on the golden board (``--reference-edge``,
 ``--reference-samples``, tolerance 1e-6), kept in ``--cache`` between runs; its distance to a coarser uniform solve of the
@@ -84,6 +85,8 @@ def main(argv=None):
     ap.add_argument("--check-edge", type=float, default=100.0)
     ap.add_argument("--uniform-edges", default="300,200,100")
     ap.add_argument("--epsilons", default="1e-2,3e-3,1e-3,3e-4,1e-4")
+    ap.add_argument("--link-rays", default="samples,centroid",
+                    help="the hierarchical runs' --link-rays, each in turn (comma-separated)")
     ap.add_argument("--tolerance", type=float, default=1e-3)
     ap.add_argument("--cache", default=os.environ.get("TMPDIR", "/tmp"))
     ap.add_argument("--plot", metavar="PNG", help="write error against rays and CPU seconds")
@@ -98,17 +101,20 @@ def main(argv=None):
           f"from it", flush=True)
     print("| solver | mesh | patches / leaves | links | rays | CPU s | error |")
     print("|---|---|---|---|---|---|---|")
-    rows = {"progressive": [], "hierarchical": []}
+    modes = args.link_rays.split(",")
+    rows = {"progressive": [], **{f"hierarchical, {m}": [] for m in modes}}
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
         rows["progressive"].append(r)
         print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} |",
               flush=True)
-    for eps in (float(x) for x in args.epsilons.split(",")):
-        r = run(ref, args.scene, RAW, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10)
-        rows["hierarchical"].append(r)
-        print(f"| hierarchical | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | {r['cpu']:.2f} | "
-              f"{r['error']:.4f} |", flush=True)
+    for mode in modes:
+        for eps in (float(x) for x in args.epsilons.split(",")):
+            r = run(ref, args.scene, RAW, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10,
+                    link_rays=mode)
+            rows[f"hierarchical, {mode}"].append(r)
+            print(f"| hierarchical, {mode} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
+                  f"{r['cpu']:.2f} | {r['error']:.4f} |", flush=True)
     print(f"# load average after: {os.getloadavg()}")
     if args.plot:
         plot(rows, args.plot, args.scene)
@@ -121,8 +127,8 @@ def plot(rows, path, name):
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
     for ax, key, label in zip(axes, ("rays", "cpu"), ("rays", "CPU seconds")):
-        for solver, marker in (("progressive", "o-"), ("hierarchical", "s-")):
-            ax.loglog([r[key] for r in rows[solver]], [r["error"] for r in rows[solver]], marker, label=solver)
+        for (solver, runs), marker in zip(rows.items(), ("o-", "s-", "^-", "v-")):
+            ax.loglog([r[key] for r in runs], [r["error"] for r in runs], marker, label=solver)
         ax.set_xlabel(label)
         ax.set_ylabel("relative L1 error")
         ax.grid(True, which="both", alpha=0.3)

@@ -161,7 +161,7 @@ def _check_render(args):
 def _render_parser(sub):
     from .traverse.endpoints import ENDS
     from ..samples import END_LATTICES
-    from .render.options import ESTIMATORS, SAMPLE_POINTS, SOLVERS
+    from .render.options import ESTIMATORS, LINK_RAYS, SAMPLE_POINTS, SOLVERS
     p = sub.add_parser("render", help="solve and render the radiosity of a scene",
                        description="Solve the radiosity of SCENE (a built-in name: cornell, room; or an "
                                    "OBJ file with its MTL) with every visibility query answered by a board.")
@@ -213,6 +213,10 @@ def _render_parser(sub):
                         "leaf element)")
     p.add_argument("--epsilon", type=_positive_float, default=1e-3,
                    help="hierarchical: refine a link that may carry more than this fraction of the emitted power")
+    p.add_argument("--link-rays", default="samples", choices=list(LINK_RAYS),
+                   help="hierarchical: a link's rays run between the K samples of both elements, each weighed by "
+                        "the point-to-point kernel (samples, K x K rays), or from the source's K samples to the "
+                        "receiver's centroid (centroid: K rays; biased where a shadow covers part of a receiver)")
     p.add_argument("--min-area", type=_positive_float, default=None, metavar="AREA",
                    help="hierarchical: smallest element area (scene units squared; default: 3 levels below each "
                         "input triangle)")

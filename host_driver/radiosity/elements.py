@@ -66,7 +66,10 @@ class ElementPoints:
 
     Point ``m (K + 1) + k`` of an input triangle is sample k (k < K) of its element m, or its
     centroid (k = K). A block ray's columns address the table as ``(patch, point)``; its rows end
-    at ``receiver_weights`` (blockray/board.py) taken from it, ``weights[point]``.
+    at ``receiver_weights`` (blockray/board.py) taken from it, :meth:`weights_at`. With drawn
+    ``samples`` (a seed) every element of every input triangle has its own K points, drawn and
+    stratified over the element as the scheme draws them over a patch: one pattern shared by every
+    element would give every link the same error, which sums instead of averaging out.
     """
 
     def __init__(self, samples, max_level):
@@ -77,13 +80,19 @@ class ElementPoints:
         self.samples, self.max_level = samples, int(max_level)
         self.K = samples.count
         self.per_element = self.K + 1
+        self.drawn = samples.drawn
         self.corners = _corner_weights(self.max_level)                       # (E, 3, 3) over 2**L
-        sample_w = np.einsum("kv,mvp->mkp", samples.weights, self.corners)
-        centre_w = np.einsum("v,mvp->mp", samples.centroid_weights, self.corners)[:, None]
-        self.weights = np.concatenate([sample_w, centre_w], axis=1).reshape(-1, 3)
-        self.count = len(self.weights)
+        self.centres = np.einsum("v,mvp->mp", samples.centroid_weights, self.corners)      # (E, 3)
+        self.count = self.elements * self.per_element
         self.denominator = samples.denominator << self.max_level
-        assert (self.weights.sum(axis=1) == self.denominator).all()
+        if not self.drawn:
+            self.weights = self._table(np.einsum("kv,mvp->mkp", samples.weights, self.corners)).reshape(-1, 3)
+            assert (self.weights.sum(axis=1) == self.denominator).all()
+
+    def _table(self, sample_w):
+        """(..., E, K + 1, 3): the elements' samples ``sample_w`` (..., E, K, 3) and their centroids."""
+        centre = np.broadcast_to(self.centres[:, None], sample_w.shape[:-3] + (self.elements, 1, 3))
+        return np.concatenate([sample_w, centre], axis=-2)
 
     @property
     def elements(self):
@@ -102,23 +111,37 @@ class ElementPoints:
         """(len(node), K) table indices of the K samples of elements ``node``."""
         return np.asarray(node, dtype=np.int64)[:, None] * self.per_element + np.arange(self.K)
 
-    def centre_index(self, node):
-        """Table index of the centroid of elements ``node``."""
-        return np.asarray(node, dtype=np.int64) * self.per_element + self.K
+    def element_samples(self, patch, node):
+        """(M, K, 3) weights of the K samples of elements ``node`` of input triangles ``patch``."""
+        node = np.asarray(node, dtype=np.int64).reshape(-1)
+        if not self.drawn:
+            return self.weights[self.sample_index(node)]
+        drawn = self.samples.weights_of(np.asarray(patch, dtype=np.int64).reshape(-1) * self.elements + node)
+        return np.einsum("mkv,mvp->mkp", drawn, self.corners[node])
+
+    def weights_at(self, patch, index):
+        """(M, 3) weights of table points ``index`` of input triangles ``patch``."""
+        index = np.asarray(index, dtype=np.int64).reshape(-1)
+        if not self.drawn:
+            return self.weights[index]
+        node, k = np.divmod(index, self.per_element)
+        out = self.centres[node].copy()
+        at = np.flatnonzero(k < self.K)
+        out[at] = self.element_samples(np.broadcast_to(patch, index.shape)[at], node[at])[np.arange(len(at)), k[at]]
+        return out
 
     def element_vertices(self, vertices, node):
         """Float corners (M, 3, 3) of elements ``node`` of input triangles ``vertices`` (M, 3, 3)."""
         w = self.corners[np.asarray(node, dtype=np.int64)] / float(1 << self.max_level)
         return np.einsum("mvp,mpc->mvc", w, np.asarray(vertices, dtype=np.float64))
 
-    def point(self, vertices, index):
-        """Float points (M, 3) of table points ``index`` of input triangles ``vertices`` (M, 3, 3)."""
-        w = self.weights[np.asarray(index, dtype=np.int64)] / float(self.denominator)
+    def point(self, vertices, patch, index):
+        """Float points (M, 3) of table points ``index`` of input triangles ``patch`` (corners
+        ``vertices`` (M, 3, 3))."""
+        w = self.weights_at(patch, index) / float(self.denominator)
         return np.einsum("mp,mpc->mc", w, np.asarray(vertices, dtype=np.float64))
 
     # -- the SampleScheme interface the boards and the quantiser use --------------------------------
-
-    drawn = False           # every input triangle has the same table
 
     @property
     def per_patch(self):
@@ -126,17 +149,26 @@ class ElementPoints:
         return self.count
 
     def weights_of(self, patches):
-        """(len(patches), count, 3): the table of each input triangle ``patches`` (a broadcast)."""
-        return np.broadcast_to(self.weights, (len(np.asarray(patches).reshape(-1)), self.count, 3))
+        """(len(patches), count, 3): the table of each input triangle ``patches``."""
+        patches = np.asarray(patches, dtype=np.int64).reshape(-1)
+        if not self.drawn:
+            return np.broadcast_to(self.weights, (len(patches), self.count, 3))
+        keys = (patches[:, None] * self.elements + np.arange(self.elements)).ravel()
+        drawn = self.samples.weights_of(keys).reshape(len(patches), self.elements, self.K, 3)
+        return self._table(np.einsum("nmkv,mvp->nmkp", drawn, self.corners)).reshape(len(patches), -1, 3)
 
     def points(self, vertices, patches=None):
         v = np.asarray(vertices, dtype=np.float64)
-        return np.einsum("kj,njc->nkc", self.weights / self.denominator, v)
+        return np.einsum("nkj,njc->nkc", self._weights_for(v, patches) / self.denominator, v)
 
     def points_int(self, vertices, patches=None):
-        num = np.einsum("kj,njc->nkc", self.weights, np.asarray(vertices, dtype=np.int64))
+        v = np.asarray(vertices, dtype=np.int64)
+        num = np.einsum("nkj,njc->nkc", self._weights_for(v, patches), v)
         assert (num % self.denominator == 0).all(), "vertex coordinates must be multiples of D 2**L"
         return num // self.denominator
+
+    def _weights_for(self, v, patches):
+        return self.weights_of(np.arange(len(v)) if patches is None else patches)
 
     def centroids_int(self, vertices):
         s = np.asarray(vertices, dtype=np.int64).sum(axis=1)

@@ -11,14 +11,19 @@ board reports. The initial links join every pair of input triangles that can exc
 (:func:`~blockray.host_driver.radiosity.formfactor.exchange_mask`): s**2 of them for s input triangles;
 clustering (Smits, Arvo and Greenberg 1994) is not built.
 
-**Visibility.** A link's rays run from the K sample points of its source to its receiver's
-centroid, or, where that centroid is not strictly in front of the source's plane, from the
-receiver's samples to the source's centroid (visibility is symmetric). A ray counts where its
-sample lies strictly in front of the far element's plane (the light it stands for reaches it);
-the visible fraction is the clear share of the rays that count (of all K if none does). The
-rays are grouped as today's: the links cast from one element, their end points sorted by voxel,
-runs of at most R end points times chunks of at most S samples, one block ray each, so every
-back-end of the registry answers them unchanged.
+**Visibility** (``link_rays``). ``samples`` (the default): a link's K x K rays run from each of
+the K sample points of its source to each of the K of its receiver, and weigh by the
+point-to-point kernel ``cos cos / r**2`` (0 where either end is not strictly in front of the
+other's plane); the visible fraction is the weighted clear share, an estimate of the occluded
+over the unoccluded factor over both elements' areas. ``centroid``: K rays from the source's
+samples to the receiver's centroid (or, where that centroid is not strictly in front of the
+source's plane, from the receiver's samples to the source's centroid), the clear share of those
+whose sample lies strictly in front of the far element's plane: 8x fewer rays, but the centroid
+judges the whole receiver, and closed scenes gain energy where shadows cover part of a receiver.
+Sample points are one fixed pattern on every element, or drawn per element (``--sample-points
+draw``). The rays are grouped as the uniform render's: the rows cast from one element, their end
+points sorted by voxel, runs of at most R end points times chunks of at most S samples, one block
+ray each, so every back-end of the registry answers them unchanged.
 
 **Refinement oracle.** A link's transported power bound ``b = max_rgb B_s * F_rs * A_r`` (F
 unoccluded) is compared with ``epsilon`` times the scene's emitted power ``sum_j A_j max_rgb
@@ -26,8 +31,9 @@ E_j``; links whose visibility is certain (every counted ray clear, or every one 
 ``b / 2``, so shadow boundaries refine first. A link over the threshold is replaced by four
 links to the children of its larger element, while that element's children are at least
 ``min_area``. Rounds: solve, refine with that solution, cast the new links, until no link
-refines. The other links of a receiver that is split move to its children (:func:`push_to_leaves`),
-so links end on leaves and a leaf's factors partition its sources. The factors of new and moved
+refines. The other links of a receiver that is split move to its children (:func:`leaf_pairs`),
+each cast again, so links end on leaves, each with its own rays, and a leaf's factors partition
+its sources. The factors of new and moved
 links are held to :func:`factor_tolerance` (absolute) where that is looser than the pair kernel's
 1e-6 relative: far pairs then take a cheaper cubature whose derived bound meets it.
 
@@ -214,8 +220,9 @@ class LinkCaster:
     #: links cast per board batch (bounds the host's arrays)
     CHUNK = 65536
 
-    def __init__(self, h, board, grid, *, rows, cols, phases):
+    def __init__(self, h, board, grid, *, rows, cols, phases, link_rays="samples"):
         self.h, self.board, self.grid, self.rows, self.cols, self.phases = h, board, grid, rows, cols, phases
+        self.link_rays = link_rays
         self.rays = self.blocks = 0
 
     def counters(self):
@@ -224,30 +231,70 @@ class LinkCaster:
     def cast(self, links):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
-        for a in range(0, len(links), self.CHUNK):
-            part = slice(a, a + self.CHUNK)
-            vis[part], partial[part] = self._fractions(links.recv[part], links.src[part])
+        fractions = self._sample_fractions if self.link_rays == "samples" else self._centroid_fractions
+        chunk = self.CHUNK // (self.h.points.K if self.link_rays == "samples" else 1)
+        for a in range(0, len(links), chunk):
+            part = slice(a, a + chunk)
+            vis[part], partial[part] = fractions(links.recv[part], links.src[part])
         links.vis, links.partial = vis, partial
 
-    def _fractions(self, recv, src):
+    def _centroid_fractions(self, recv, src):
         h, pts = self.h, self.h.points
         V, K = h.scene.patch_vertices, pts.K
         with self.phases.timed("formfactor"):
             # forward (source samples -> receiver centroid) where that centroid is in front of the source
-            ahead = plane_signs(V[h.patch[src]], V[h.patch[recv]], pts.weights[pts.centre_index(h.node[recv])]) > 0
+            ahead = plane_signs(V[h.patch[src]], V[h.patch[recv]], pts.centres[h.node[recv]]) > 0
             caster, target = np.where(ahead, src, recv), np.where(ahead, recv, src)
-            samples = pts.sample_index(h.node[caster]).ravel()
-            counts = (plane_signs(np.repeat(V[h.patch[target]], K, axis=0), np.repeat(V[h.patch[caster]], K, axis=0),
-                                  pts.weights[samples]) > 0).reshape(-1, K)
-        clear = self._clear(caster, target)
+            counts = self._in_front(target, caster)
+        clear = self._clear(caster, target, pts.centres[h.node[target]])
         counted = np.where(counts.any(axis=1, keepdims=True), counts, True)
         n_clear = (clear & counted).sum(axis=1)
         n = counted.sum(axis=1)
         return n_clear / n, (n_clear > 0) & (n_clear < n)
 
-    def _clear(self, caster, target):
-        """(n, K) bool: ray k of link m (sample k of ``caster[m]`` to the centroid of ``target[m]``) is clear."""
-        batch, row_link, col_k = self._blocks(caster, target)
+    def _sample_fractions(self, recv, src):
+        """K x K rays per link, every source sample to every receiver sample, each weighed by the
+        point-to-point kernel ``cos cos / r**2`` (0 where either end is not strictly in front of the
+        other's plane): the weighted clear share is the ratio of the occluded to the unoccluded
+        factor, over both elements' areas. (One end point at the receiver's centroid judges the whole
+        receiver by it: a receiver partly in shadow whose centroid is lit counts both the light the
+        shadow hides and the occluder's face the shadowed part sees, and closed scenes gain energy.)"""
+        h, pts = self.h, self.h.points
+        V, K, n = h.scene.patch_vertices, pts.K, len(recv)
+        with self.phases.timed("formfactor"):
+            lit = self._in_front(recv, src)[:, None, :] & self._in_front(src, recv)[:, :, None]   # (n, end, sample)
+            d = self._samples(recv)[:, :, None] - self._samples(src)[:, None]
+            r2 = np.einsum("...c,...c->...", d, d)
+            ns, nr = h.scene.normals[h.patch[src]], h.scene.normals[h.patch[recv]]
+            cos_s = np.einsum("nc,nekc->nek", ns, d)
+            cos_r = -np.einsum("nc,nekc->nek", nr, d)
+            weight = np.where(lit, np.abs(cos_s * cos_r) / np.maximum(r2, 1e-300) ** 2, 0.0)
+        ends = pts.element_samples(h.patch[recv], h.node[recv]).reshape(-1, 3)
+        clear = self._clear(np.repeat(src, K), np.repeat(recv, K), ends).reshape(n, K, K)
+        total = weight.sum(axis=(1, 2))
+        plain = clear.mean(axis=(1, 2))
+        frac = np.where(total > 0, (weight * clear).sum(axis=(1, 2)) / np.where(total > 0, total, 1), plain)
+        counted = np.where(total[:, None, None] > 0, weight > 0, True)
+        return frac, (clear & counted).any(axis=(1, 2)) & (~clear & counted).any(axis=(1, 2))
+
+    def _in_front(self, plane, points):
+        """(n, K) bool: sample k of element ``points[m]`` lies strictly in front of ``plane[m]``'s plane."""
+        h, pts = self.h, self.h.points
+        V, K = h.scene.patch_vertices, pts.K
+        w = pts.element_samples(h.patch[points], h.node[points]).reshape(-1, 3)
+        return (plane_signs(np.repeat(V[h.patch[plane]], K, axis=0), np.repeat(V[h.patch[points]], K, axis=0),
+                            w) > 0).reshape(-1, K)
+
+    def _samples(self, e):
+        """(n, K, 3) float sample points of elements ``e``."""
+        h, pts = self.h, self.h.points
+        w = pts.element_samples(h.patch[e], h.node[e]) / float(pts.denominator)
+        return np.einsum("nkp,npc->nkc", w, h.scene.patch_vertices[h.patch[e]])
+
+    def _clear(self, caster, target, end_w):
+        """(n, K) bool: ray k of row m (sample k of ``caster[m]`` to the point of weights ``end_w[m]``
+        (over the table's denominator) on ``target[m]``'s input triangle) is clear."""
+        batch, row_link, col_k = self._blocks(caster, target, end_w)
         with self.phases.timed("board"):
             bits = self.board.run(batch)
         flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
@@ -261,15 +308,14 @@ class LinkCaster:
         self.blocks += len(batch)
         return clear
 
-    def _blocks(self, caster, target):
-        """The block rays of the links (caster -> target centroid): each caster's end points grouped by
+    def _blocks(self, caster, target, end_w):
+        """The block rays of the rows (caster -> its end point): each caster's end points grouped by
         voxel, runs of at most R of them times chunks of at most S of its samples. Returns the
         BlockBatch, the link of each row and the sample (0..K-1) of each column."""
         h, pts, grid = self.h, self.h.points, self.grid
         V, K, n = h.scene.patch_vertices, pts.K, len(caster)
         with self.phases.timed("commands"):
-            end_node = pts.centre_index(h.node[target])
-            ends = pts.point(V[h.patch[target]], end_node)
+            ends = np.einsum("np,npc->nc", end_w / float(pts.denominator), V[h.patch[target]])
             voxel = grid.voxel_of(ends)
             order = np.lexsort((voxel, caster))
             c, v = caster[order], voxel[order]
@@ -286,10 +332,10 @@ class LinkCaster:
             col_elem = np.repeat(np.repeat(c[run_start], len(chunk_start)), cols)
             shooter_patch = h.patch[col_elem]
             shooter_point = h.node[col_elem] * pts.per_element + col_k
-            receiver_patch, receiver_weights = h.patch[target[row_link]], pts.weights[end_node[row_link]]
+            receiver_patch, receiver_weights = h.patch[target[row_link]], end_w[row_link]
             row_off = np.concatenate([[0], np.cumsum(rows)])
             col_off = np.concatenate([[0], np.cumsum(cols)])
-            starts = pts.point(V[shooter_patch], shooter_point)
+            starts = pts.point(V[shooter_patch], shooter_patch, shooter_point)
         with self.phases.timed("traverse"):
             vox, vox_off, _, _ = grid.traverse_blocks(starts, col_off, ends[row_link], row_off, nonempty_only=True)
         batch = BlockBatch(shooter_patch, shooter_point, col_off, receiver_patch, row_off, vox, vox_off,
@@ -316,6 +362,7 @@ class SetCaster:
                           partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
                           stats_fraction=ray.stats_fraction, threads=threads)
         self.owner = assign_sets(_morton(grid.cell_of(h.scene.centroids)), options.run.sets)
+        self.link_rays = options.solve.link_rays
         self.scene_f, self.grid_f = _hold(self.client, h.scene), _hold(self.client, grid)
         self.rays = self.blocks = 0
         self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
@@ -327,7 +374,8 @@ class SetCaster:
         mine = [np.flatnonzero(part == k) for k in range(sets)]
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], pure=False) for m in mine]
+                                          h.patch, h.node, links.recv[m], links.src[m], self.link_rays, pure=False)
+                       for m in mine]
             answers = _results(self.client, futures)
         links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
         for m, (vis, partial, rays, blocks, counters), total in zip(mine, answers, self.per_set):
@@ -346,10 +394,10 @@ class SetCaster:
         return out
 
 
-def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, link_rays):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
-    element points to ``max_level``, loaded with the grid): ``(vis, partial, rays, blocks,
-    counters)``."""
+    element points to ``max_level``, loaded with the grid) with rays ``link_rays``: ``(vis,
+    partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
     if job.threads is not None:
@@ -361,7 +409,8 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
         board.load(grid)
         h = Hierarchy(scene, points)
         h.patch, h.node = patch, node
-        caster = LinkCaster(h, board, grid, rows=job.params.rows, cols=job.params.cols, phases=Phases())
+        caster = LinkCaster(h, board, grid, rows=job.params.rows, cols=job.params.cols, phases=Phases(),
+                            link_rays=link_rays)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
             caster.cast(links)
@@ -393,22 +442,20 @@ def refine(h, links, B, threshold, min_area, max_level):
     return recv, src, links.take(~chosen)
 
 
-def push_to_leaves(h, links, tolerance=0.0):
-    """``links`` with every link whose receiver has children replaced by links to the children:
-    each its own unoccluded factor, the visible fraction the board gave the parent link.
-    So every receiver is a leaf and a leaf's factors partition its sources: the unoccluded
-    factors of a leaf in a closed scene sum to 1 (not so with the ancestors' averages, which a
-    leaf gathering through its ancestors' links would mix)."""
-    while True:
-        down = h.child[links.recv] >= 0
-        if not down.any():
-            return links
-        moved = links.take(down)
-        recv = (h.child[moved.recv][:, None] + np.arange(4)).ravel()
-        src = np.repeat(moved.src, 4)
-        F = element_factors(h, recv, src, tolerance)
-        pushed = Links(recv, src, F, np.repeat(moved.vis, 4), np.repeat(moved.partial, 4)).take(F > 0)
-        links = Links.join(links.take(~down), pushed)
+def leaf_pairs(h, recv, src):
+    """The pairs ``(recv, src)`` with every receiver that has children replaced by the leaves below
+    it, each with the same source. A link ends on a leaf, with its own unoccluded factor and its
+    own rays (a parent's visible fraction is not its children's: a shadow may cover one child and
+    miss the next), so a leaf's links partition its sources: the unoccluded factors of a leaf in a
+    closed scene sum to 1 (not so with the ancestors' averages, which a leaf gathering through its
+    ancestors' links would mix)."""
+    leaf_recv, leaf_src = [], []
+    while len(recv):
+        leaf = h.child[recv] < 0
+        leaf_recv.append(recv[leaf])
+        leaf_src.append(src[leaf])
+        recv, src = (h.child[recv[~leaf]][:, None] + np.arange(4)).ravel(), np.repeat(src[~leaf], 4)
+    return np.concatenate(leaf_recv + [recv]), np.concatenate(leaf_src + [src])
 
 
 def level_steps(h):
@@ -594,7 +641,8 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
     min_area = 0.0 if solve.min_area is None else solve.min_area
     points, grid, voxels = prepare_board(scene, board, ray, solve, phases)
     if cluster is None:
-        make_caster = lambda h: LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases)
+        make_caster = lambda h: LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases,
+                                           link_rays=solve.link_rays)
     else:
         make_caster = lambda h: SetCaster(cluster, h, board, grid, options, phases)
     threshold = link_threshold(scene, solve.epsilon)
@@ -629,11 +677,13 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
         rounds += 1
         B = np.concatenate([B, B[h.parent[len(B):]]])
         with phases.timed("formfactor"):
+            # the new links and those of receivers split this round, down to the leaves
+            down = h.child[kept.recv] >= 0
+            recv, src = leaf_pairs(h, np.concatenate([kept.recv[down], recv]), np.concatenate([kept.src[down], src]))
             F = element_factors(h, recv, src, tolerance)
             new = Links(recv[F > 0], src[F > 0], F[F > 0])
-            kept = push_to_leaves(h, kept, tolerance)
         caster.cast(new)
-        links = Links.join(kept, new)
+        links = Links.join(kept.take(~down), new)
     if solve.closure == "enforce":
         check_closed(balance)
     leaves = h.leaves()
@@ -655,7 +705,8 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
     report = {
         "scene": scene.name, "source": scene.source, "patches": int(scene.patches), "solver": "hierarchical",
         "board": board.name, "samples": options.ray.samples.count, "voxels": int(voxels),
-        "estimator": estimator_of(options.ray), "epsilon": solve.epsilon, "min_area": solve.min_area, "max_level": h.points.max_level,
+        "estimator": estimator_of(options.ray), "epsilon": solve.epsilon, "min_area": solve.min_area,
+        "link_rays": solve.link_rays, "max_level": h.points.max_level,
         "tolerance": solve.tolerance, "links": len(result.links), "leaves": int(len(leaves)),
         "elements": int(len(h)), "elements_per_level": np.bincount(h.level).tolist(),
         "leaves_per_level": np.bincount(h.level[leaves], minlength=h.points.max_level + 1).tolist(),

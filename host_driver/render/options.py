@@ -25,11 +25,14 @@ from ...samples import SampleScheme
 from ...link import DEFAULT_BAUD
 
 __all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOptions", "SOLVERS", "SAMPLE_POINTS",
+           "LINK_RAYS",
            "ESTIMATORS", "estimator_of", "cell_option",
            "host_timing"]
 
 SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
 SAMPLE_POINTS = ("fixed", "draw", "rows")
+#: where a hierarchical link's rays run (host_driver/render/hierarchical.py, "Visibility")
+LINK_RAYS = ("samples", "centroid")
 
 #: ``--estimator``: named sets of the ray options that decide how a pair's visibility is estimated.
 #: ``paper``: one fixed sample pattern to the receivers' centroids (the paper; fast, biased at contact
@@ -169,8 +172,10 @@ class RayOptions:
 class SolveOptions:
     """The ``solver``, its stopping ``tolerance``, ``max_shots`` (progressive) and
     ``max_iterations`` (gathering), the ``closure`` of the visible form factors, and the
-    hierarchical solver's refinement threshold ``epsilon`` (a fraction of the emitted power) and
-    smallest element ``min_area`` (None: 3 levels below each input triangle), host_driver/render/hierarchical.py."""
+    hierarchical solver's refinement threshold ``epsilon`` (a fraction of the emitted power),
+    smallest element ``min_area`` (None: 3 levels below each input triangle) and ``link_rays``
+    (``samples``: K x K rays between the two elements' samples; ``centroid``: K rays from the source
+    to the receiver's centroid), host_driver/render/hierarchical.py."""
     solver: str = "progressive"
     tolerance: float = 1e-3
     max_shots: int = None
@@ -178,10 +183,12 @@ class SolveOptions:
     closure: str = "off"
     epsilon: float = 1e-3
     min_area: float = None
+    link_rays: str = "samples"
 
     def __post_init__(self):
         from ..radiosity.closure import MODES
         _one_of("solver", self.solver, SOLVERS)
+        _one_of("link_rays", self.link_rays, LINK_RAYS)
         if not (isinstance(self.tolerance, (int, float)) and math.isfinite(self.tolerance) and self.tolerance > 0):
             raise ParameterError(f"tolerance must be a positive number, not {self.tolerance!r}",
                                  parameter="tolerance")
@@ -276,8 +283,8 @@ def _with_estimator(flat):
     name = flat.pop("estimator", None)
     preset = ESTIMATORS[_one_of("estimator", name, tuple(ESTIMATORS))] if name is not None else {}
     if name not in (None, "paper") and flat.get("solver") == "hierarchical":
-        raise ParameterError(f"estimator {name}: the hierarchical solver's elements share one table of sample "
-                             "points and their rays end at centroids (estimator paper)", parameter="estimator")
+        raise ParameterError(f"estimator {name}: the hierarchical solver's links choose their rays with "
+                             f"{option('link_rays')} and {option('sample_points')} (estimator paper)", parameter="estimator")
     for key in ESTIMATORS["paper"]:
         if flat.get(key) is None:
             flat.pop(key, None)
@@ -303,11 +310,11 @@ class RenderOptions:
     def __post_init__(self):
         b, s = self.board, self.solve
         if s.solver == "hierarchical" and self.ray.end_points != "centroid":
-            raise ParameterError(f"{option('end_points')}: the hierarchical solver's rays end at its elements' centroids",
-                                 parameter="end_points")
-        if s.solver == "hierarchical" and self.ray.sample_points != "fixed":
-            raise ParameterError(f"{option('sample_points')}: the hierarchical solver's elements share one table of "
-                                 "sample points (fixed)", parameter="sample_points")
+            raise ParameterError(f"{option('end_points')}: the hierarchical solver's rays end at its elements' own "
+                                 f"points ({option('link_rays')})", parameter="end_points")
+        if s.solver == "hierarchical" and self.ray.sample_points == "rows":
+            raise ParameterError(f"{option('sample_points')} rows: the hierarchical solver's links have one set of "
+                                 "samples per element (fixed or draw)", parameter="sample_points")
         if not self.run.distributed:
             return
         if s.closure != "off" and s.solver != "hierarchical":

@@ -35,7 +35,7 @@ from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
 from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
-from .options import ESTIMATORS, SAMPLE_POINTS, SOLVERS
+from .options import ESTIMATORS, LINK_RAYS, SAMPLE_POINTS, SOLVERS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
            "error_against", "map_to_mesh", "leaf_triangles", "pareto_front", "plot_front", "run_sweep", "COLUMNS"]
@@ -73,6 +73,7 @@ SETTINGS = {
     "solver": Setting("--solver", str, SOLVERS),
     "epsilon": Setting("--epsilon", float, check=_positive),      # hierarchical refinement threshold
     "min-area": Setting("--min-area", float, check=_positive),    # hierarchical smallest element
+    "link-rays": Setting("--link-rays", str, LINK_RAYS),           # hierarchical link visibility
     "board": Setting("--board", str, None),                # choices from the registry, when asked
     "cell": Setting("--cell", str, CELLS),
     "traversal": Setting("--traversal", str, ("block", "ray")),
