@@ -248,9 +248,10 @@ def test_sample_points_option():
     assert rows.ray.samples == SampleScheme(8, 8, seed=7, sets=4)
     assert RenderOptions.of(samples=SampleScheme(8, 8, seed=3, sets=2), end_points="draw", end_draws=2
                             ).ray.sample_points == "rows"
+    assert RenderOptions.of(sample_points="draw", solver="hierarchical").ray.samples.drawn   # every element draws
     for bad, name in ((dict(sample_points="random"), "sample_points"),
                       (dict(sample_points="draw", sample_seed=-1), "sample_seed"),
-                      (dict(sample_points="draw", solver="hierarchical"), "sample_points"),
+                      (dict(sample_points="rows", solver="hierarchical"), "sample_points"),
                       (dict(end_lattice=8), "end_lattice")):
         with pytest.raises(ParameterError) as e:
             RenderOptions.of(**bad)
