@@ -7,11 +7,15 @@ by a C++ loop, the transport of ``--board verilator``.
   board and the Amaranth simulator driven by StreamHost run the same number of clock cycles and
   answer the same bytes (the oracle shares no code with the C++ loop);
 * a missing compiler and a failed build are one-line errors (exit 2 from the CLI);
+* identical modules (the array's processors) are one Verilog module and one C++ class
+  (sim/native/share.py);
 * cornell through the native harness equals the model (``-m slow``).
 
 The RTL boards are a 2 x 2 array, P = 2, B = 10 (tests/test_rtl_board.py's); the build of the
 native harness is cached by content (docs/rtl-render.md, "Build").
 """
+
+import re
 
 import numpy as np
 import pytest
@@ -23,6 +27,7 @@ from blockray.host_driver.render.render import render
 from blockray.params import BoardParams
 from blockray.sim.drive import HostTiming
 from blockray.sim.native import NativeBuildError, Ports, build_native
+from blockray.sim.native.share import share_modules
 
 from scenes import COUNTER_KEYS, RTL_BITS as BITS, RTL_PARAMS as PARAMS, room_obj, room_scene, shooter_blocks
 
@@ -97,6 +102,69 @@ def test_host_timing_is_the_drive_loops_cycle_for_cycle(scene_small, rng_seed):
 @pytest.fixture(scope="module")
 def scene_small(rtl_room):
     return rtl_room
+
+
+def test_identical_modules_are_one_module_marked_for_verilator():
+    from amaranth.hdl import Cat, Module
+    from amaranth.lib import wiring
+    from amaranth.lib.wiring import In, Out
+
+    from blockray import hdl
+
+    class Count(wiring.Component):
+        def __init__(self, width):
+            super().__init__({"en": In(1), "n": Out(width)})
+
+        def elaborate(self, platform):
+            m = Module()
+            with m.If(self.en):
+                m.d.sync += self.n.eq(self.n + 1)
+            return m
+
+    class Pair(wiring.Component):
+        """A module with no logic of its own: its clock only passes to its submodule."""
+        en: In(1)
+        n: Out(4)
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.x = x = Count(4)
+            m.d.comb += [x.en.eq(self.en), self.n.eq(x.n)]
+            return m
+
+    class Top(wiring.Component):
+        en: In(1)
+        n: Out(21)
+
+        def elaborate(self, platform):
+            m = Module()
+            cells = Count(4), Count(4), Count(5), Pair(), Pair()
+            for name, cell in zip("abcde", cells):
+                m.submodules[name] = cell
+            m.d.comb += [*(c.en.eq(self.en) for c in cells), self.n.eq(Cat(*(c.n for c in cells)))]
+            return m
+
+    verilog = share_modules(hdl.convert(Top(), name="top", emit_src=False))
+    modules = re.findall(r"^module (\\\S+|\w+)", verilog, re.M)
+    # d.x and e.x are a's twins; then d and e are the same text too
+    assert modules == ["top", "\\top.a", "\\top.c", "\\top.d"], modules
+    assert re.findall(r"^  (\\top\.\w) +(\w+) \(", verilog, re.M) == [
+        ("\\top.a", "a"), ("\\top.a", "b"), ("\\top.c", "c"), ("\\top.d", "d"), ("\\top.d", "e"),
+        ("\\top.a", "x")]
+    text = {name: verilog.split(f"module {name} ")[1].split("endmodule")[0] for name in modules[1:]}
+    assert "/* verilator no_inline_module */" in text["\\top.a"] and "  input en /*verilator public*/;" in text["\\top.a"]
+    assert "  input clk;" in text["\\top.a"]              # a clock is not copied (sim/native/share.py)
+    assert "/* verilator no_inline_module */" in text["\\top.d"] and "public" not in text["\\top.d"]
+    assert "verilator" not in text["\\top.c"]
+
+
+@pytest.mark.cocotb
+def test_the_boards_processors_are_one_cpp_class():
+    """Verilator kept the processor module that share_modules made one (not inlined per instance)."""
+    from blockray.host_driver.board.native import native_build
+
+    obj = native_build(PARAMS).build_dir / "obj"
+    assert [p.name for p in obj.glob("Vboard_*processor*.h")] == ["Vboard_board__02eboard__02earray__02eprocessor_0_0.h"]
 
 
 def test_a_missing_compiler_is_a_one_line_error(tmp_path, monkeypatch, capsys):

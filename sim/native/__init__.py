@@ -2,7 +2,8 @@
 Verilator into a shared library, called through ctypes with whole buffers of bytes.
 
 :func:`build_native` converts the board (:class:`~blockray.rtl.core.BoardCore`, or any top with
-a command byte stream in and a result byte stream out: :class:`Ports`) to Verilog and builds it
+a command byte stream in and a result byte stream out: :class:`Ports`) to Verilog (identical
+modules merged into one, :func:`~blockray.sim.native.share.share_modules`) and builds it
 with ``harness.cpp`` (``verilator --cc --exe --build``, linked ``-shared``), cached by content
 like every Verilator build (:func:`~blockray.sim.cocotb_support.cached_build`): the key hashes the
 Verilog, ``harness.cpp``, the port configuration, the build arguments, the Verilator version and
@@ -27,6 +28,7 @@ from ... import hdl
 from ...errors import BlockrayError, option
 from ..cocotb_support import _version, cache_dir, cached_build, verilator_env
 from ..drive import HostTiming
+from .share import share_modules
 
 HERE = Path(__file__).resolve().parent
 
@@ -185,7 +187,7 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
             return NativeBuild(found / LIBRARY, found, bool(trace), 0.0, True)
     if callable(component):
         component = component()
-    files = {f"{TOP}.v": hdl.convert(component, name=TOP, emit_src=False),
+    files = {f"{TOP}.v": share_modules(hdl.convert(component, name=TOP, emit_src=False)),
              "harness.cpp": (HERE / ports.harness).read_text(),
              SHARED: (HERE / SHARED).read_text(),
              "native_config.h": ports.header(trace)}
@@ -238,6 +240,7 @@ def _index_path(cache, name, source, ports, trace, args, cxxflags, compiler):
     hashes besides the Verilog, which is a function of the rest)."""
     key = hashlib.sha256("\n".join([
         source, rtl_source_hash(), (HERE / ports.harness).read_text(), (HERE / SHARED).read_text(),
+        (HERE / "share.py").read_text(),
         ports.header(trace), repr(args),
         _makeflags(cxxflags), compiler, repr(_version("verilator")),
     ]).encode()).hexdigest()[:16]
