@@ -24,11 +24,11 @@ Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive ref
 with ``--board verilator`` and ``--board model``, checks that the radiosity and every counter are
 equal and prints both wall times and the native board cycles per second.
 
-Part 3 (``--clock``) clocks one idle 8 x 8 board at B = 17 (the Cornell box's fitted design) in
-the native harness for ``--cycles`` cycles and prints its clock cycles per second: the Verilated
-model's evaluation alone, without the link or the host. ``--library`` adds other builds of the
-native harness (``libblockray_native.so`` of another RTL, from the build cache) to the same run,
-measured in turn, each ``--repeat`` times.
+Part 3 (``--clock``) clocks one idle board of the Cornell box's fitted design (8 x 8, its B and
+memory depths: part 1's build) in the native harness for ``--cycles`` cycles and prints its clock
+cycles per second: the Verilated model's evaluation alone, without the link or the host.
+``--library`` adds other builds of the native harness (``libblockray_native.so`` of another RTL
+or build, from the build cache) to the same run, measured in turn, each ``--repeat`` times.
 """
 
 import argparse
@@ -61,13 +61,27 @@ def _boards(params):
             "model": lambda: ModelBoard(params)}
 
 
-def speed(shooters, routes):
+def _cornell():
+    """The Cornell box, its sample scheme, the default machine and the model board prepared for
+    it (its B fitted)."""
     scene = builtin.load("cornell")
     samples = SampleScheme(8)
     params = BoardParams(bits=None)
-    voxels = default_voxels(scene.patches, parallelism=1)
     reference = ModelBoard(params)
     reference.prepare(scene, samples)
+    return scene, samples, params, reference
+
+
+def _loaded(board, scene, samples):
+    """``board`` prepared for ``scene`` and loaded with its voxel grid (the renderer's default voxels)."""
+    board.prepare(scene, samples)
+    board.load(VoxelGrid(scene.patch_vertices, default_voxels(scene.patches, parallelism=1), margin=board.margin))
+    return board
+
+
+def speed(shooters, routes):
+    scene, samples, params, reference = _cornell()
+    voxels = default_voxels(scene.patches, parallelism=1)
     grid = VoxelGrid(scene.patch_vertices, voxels, margin=reference.margin)
     reference.load(grid)
     vis = Visibility(scene, reference, grid, samples, rows=params.rows, cols=params.cols)
@@ -85,9 +99,7 @@ def speed(shooters, routes):
     print(f"{'route':8} {'build s':>8} {'setup s':>8} {'batches s':>10} {'clock cycles/s':>15} {'board cycles/s':>15}")
     for name in routes:
         t0 = time.perf_counter()
-        board = _boards(params)[name]()
-        board.prepare(scene, samples)
-        board.load(VoxelGrid(scene.patch_vertices, voxels, margin=board.margin))
+        board = _loaded(_boards(params)[name](), scene, samples)
         setup = time.perf_counter() - t0
         trs = getattr(board, "transports", [])
         c0 = max((t.cycles for t in trs), default=0)
@@ -134,12 +146,15 @@ def clock(libraries, cycles, repeat):
     from blockray.host_driver.board.native import native_build
     from blockray.sim.native import NativeBoard, NativeBuild, NativeRunError
 
-    params = BoardParams(bits=17, patch_depth=256, voxel_depth=125)
+    scene, samples, params, _ = _cornell()
+    board = _loaded(make_board("model-link", params), scene, samples)
+    params = board.board_params             # fitted to the records and voxels each board holds, as part 1's
+    board.close()
     current = native_build(params)
     builds = {"this RTL": current}
     builds.update({str(lib): NativeBuild(Path(lib), Path(lib).parent, False, 0.0, True) for lib in libraries})
-    print(f"load average {os.getloadavg()[0]:.1f}; one idle 8 x 8 board, B = 17, {cycles} cycles; "
-          f"this RTL's build {current.seconds:.0f} s{' (cached)' if current.cached else ''}")
+    print(f"load average {os.getloadavg()[0]:.1f}; one idle {params.rows} x {params.cols} board, B = {params.bits}, "
+          f"{cycles} cycles; this RTL's build {current.seconds:.0f} s{' (cached)' if current.cached else ''}")
     for _ in range(repeat):
         for name, build in builds.items():
             board = NativeBoard(build, patience=cycles)
