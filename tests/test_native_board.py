@@ -121,36 +121,29 @@ def test_identical_modules_are_one_module_marked_for_verilator():
                 m.d.sync += self.n.eq(self.n + 1)
             return m
 
-    class Pair(wiring.Component):
-        """A module with no logic of its own: its clock only passes to its submodule."""
-        en: In(1)
-        n: Out(4)
+    class Group(wiring.Component):
+        """Its cells, enabled together, their counts side by side. A group of one cell has no
+        logic of its own: its clock only passes to its submodule."""
+
+        def __init__(self, *cells):
+            self.cells = cells
+            super().__init__({"en": In(1), "n": Out(sum(len(c.n) for c in cells))})
 
         def elaborate(self, platform):
             m = Module()
-            m.submodules.x = x = Count(4)
-            m.d.comb += [x.en.eq(self.en), self.n.eq(x.n)]
-            return m
-
-    class Top(wiring.Component):
-        en: In(1)
-        n: Out(21)
-
-        def elaborate(self, platform):
-            m = Module()
-            cells = Count(4), Count(4), Count(5), Pair(), Pair()
-            for name, cell in zip("abcde", cells):
+            for name, cell in zip("abcde", self.cells):
                 m.submodules[name] = cell
-            m.d.comb += [*(c.en.eq(self.en) for c in cells), self.n.eq(Cat(*(c.n for c in cells)))]
+            m.d.comb += [*(c.en.eq(self.en) for c in self.cells), self.n.eq(Cat(*(c.n for c in self.cells)))]
             return m
 
-    verilog = share_modules(hdl.convert(Top(), name="top", emit_src=False))
+    top = Group(Count(4), Count(4), Count(5), Group(Count(4)), Group(Count(4)))
+    verilog = share_modules(hdl.convert(top, name="top", emit_src=False))
     modules = re.findall(r"^module (\\\S+|\w+)", verilog, re.M)
-    # d.x and e.x are a's twins; then d and e are the same text too
+    # d.a and e.a are a's twins; then d and e are the same text too
     assert modules == ["top", "\\top.a", "\\top.c", "\\top.d"], modules
     assert re.findall(r"^  (\\top\.\w) +(\w+) \(", verilog, re.M) == [
         ("\\top.a", "a"), ("\\top.a", "b"), ("\\top.c", "c"), ("\\top.d", "d"), ("\\top.d", "e"),
-        ("\\top.a", "x")]
+        ("\\top.a", "a")]
     text = {name: verilog.split(f"module {name} ")[1].split("endmodule")[0] for name in modules[1:]}
     assert "/* verilator no_inline_module */" in text["\\top.a"] and "  input en /*verilator public*/;" in text["\\top.a"]
     assert "  input clk;" in text["\\top.a"]              # a clock is not copied (sim/native/share.py)
