@@ -245,7 +245,7 @@ class LinkCaster:
             # forward (source samples -> receiver centroid) where that centroid is in front of the source
             ahead = plane_signs(V[h.patch[src]], V[h.patch[recv]], pts.centres[h.node[recv]]) > 0
             caster, target = np.where(ahead, src, recv), np.where(ahead, recv, src)
-            counts = self._in_front(target, caster)
+            counts = self._in_front(target, caster, self._sample_weights(caster))
         clear = self._clear(caster, target, pts.centres[h.node[target]])
         counted = np.where(counts.any(axis=1, keepdims=True), counts, True)
         n_clear = (clear & counted).sum(axis=1)
@@ -259,37 +259,40 @@ class LinkCaster:
         factor, over both elements' areas. (One end point at the receiver's centroid judges the whole
         receiver by it: a receiver partly in shadow whose centroid is lit counts both the light the
         shadow hides and the occluder's face the shadowed part sees, and closed scenes gain energy.)"""
-        h, pts = self.h, self.h.points
-        V, K, n = h.scene.patch_vertices, pts.K, len(recv)
+        h, K, n = self.h, self.h.points.K, len(recv)
         with self.phases.timed("formfactor"):
-            lit = self._in_front(recv, src)[:, None, :] & self._in_front(src, recv)[:, :, None]   # (n, end, sample)
-            d = self._samples(recv)[:, :, None] - self._samples(src)[:, None]
+            ws, wr = self._sample_weights(src), self._sample_weights(recv)
+            # (n, end, sample): both ends strictly in front of the other element's plane
+            lit = self._in_front(recv, src, ws)[:, None, :] & self._in_front(src, recv, wr)[:, :, None]
+            d = self._points(recv, wr)[:, :, None] - self._points(src, ws)[:, None]
             r2 = np.einsum("...c,...c->...", d, d)
             ns, nr = h.scene.normals[h.patch[src]], h.scene.normals[h.patch[recv]]
             cos_s = np.einsum("nc,nekc->nek", ns, d)
             cos_r = -np.einsum("nc,nekc->nek", nr, d)
             weight = np.where(lit, np.abs(cos_s * cos_r) / np.maximum(r2, 1e-300) ** 2, 0.0)
-        ends = pts.element_samples(h.patch[recv], h.node[recv]).reshape(-1, 3)
-        clear = self._clear(np.repeat(src, K), np.repeat(recv, K), ends).reshape(n, K, K)
+        clear = self._clear(np.repeat(src, K), np.repeat(recv, K), wr.reshape(-1, 3)).reshape(n, K, K)
         total = weight.sum(axis=(1, 2))
         plain = clear.mean(axis=(1, 2))
         frac = np.where(total > 0, (weight * clear).sum(axis=(1, 2)) / np.where(total > 0, total, 1), plain)
         counted = np.where(total[:, None, None] > 0, weight > 0, True)
         return frac, (clear & counted).any(axis=(1, 2)) & (~clear & counted).any(axis=(1, 2))
 
-    def _in_front(self, plane, points):
-        """(n, K) bool: sample k of element ``points[m]`` lies strictly in front of ``plane[m]``'s plane."""
-        h, pts = self.h, self.h.points
-        V, K = h.scene.patch_vertices, pts.K
-        w = pts.element_samples(h.patch[points], h.node[points]).reshape(-1, 3)
-        return (plane_signs(np.repeat(V[h.patch[plane]], K, axis=0), np.repeat(V[h.patch[points]], K, axis=0),
-                            w) > 0).reshape(-1, K)
+    def _sample_weights(self, e):
+        """(n, K, 3) weights of the K samples of elements ``e`` on their input triangles."""
+        return self.h.points.element_samples(self.h.patch[e], self.h.node[e])
 
-    def _samples(self, e):
-        """(n, K, 3) float sample points of elements ``e``."""
-        h, pts = self.h, self.h.points
-        w = pts.element_samples(h.patch[e], h.node[e]) / float(pts.denominator)
-        return np.einsum("nkp,npc->nkc", w, h.scene.patch_vertices[h.patch[e]])
+    def _in_front(self, plane, points, w):
+        """(n, K) bool: sample k of element ``points[m]`` (weights ``w[m, k]``) lies strictly in front
+        of ``plane[m]``'s plane."""
+        V, K = self.h.scene.patch_vertices, self.h.points.K
+        patch = self.h.patch
+        return (plane_signs(np.repeat(V[patch[plane]], K, axis=0), np.repeat(V[patch[points]], K, axis=0),
+                            w.reshape(-1, 3)) > 0).reshape(-1, K)
+
+    def _points(self, e, w):
+        """(n, K, 3) float points of weights ``w`` (n, K, 3) on the input triangles of elements ``e``."""
+        V = self.h.scene.patch_vertices[self.h.patch[e]]
+        return np.einsum("nkp,npc->nkc", w / float(self.h.points.denominator), V)
 
     def _clear(self, caster, target, end_w):
         """(n, K) bool: ray k of row m (sample k of ``caster[m]`` to the point of weights ``end_w[m]``
@@ -360,9 +363,8 @@ class SetCaster:
         quantised = getattr(board, "quantised", None)
         self.job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
                           partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
-                          stats_fraction=ray.stats_fraction, threads=threads)
+                          stats_fraction=ray.stats_fraction, threads=threads, link_rays=options.solve.link_rays)
         self.owner = assign_sets(_morton(grid.cell_of(h.scene.centroids)), options.run.sets)
-        self.link_rays = options.solve.link_rays
         self.scene_f, self.grid_f = _hold(self.client, h.scene), _hold(self.client, grid)
         self.rays = self.blocks = 0
         self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
@@ -374,7 +376,7 @@ class SetCaster:
         mine = [np.flatnonzero(part == k) for k in range(sets)]
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], self.link_rays, pure=False)
+                                          h.patch, h.node, links.recv[m], links.src[m], pure=False)
                        for m in mine]
             answers = _results(self.client, futures)
         links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -394,9 +396,9 @@ class SetCaster:
         return out
 
 
-def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, link_rays):
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
-    element points to ``max_level``, loaded with the grid) with rays ``link_rays``: ``(vis,
+    element points to ``max_level``, loaded with the grid) with rays ``job.link_rays``: ``(vis,
     partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
@@ -410,7 +412,7 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, link_rays):
         h = Hierarchy(scene, points)
         h.patch, h.node = patch, node
         caster = LinkCaster(h, board, grid, rows=job.params.rows, cols=job.params.cols, phases=Phases(),
-                            link_rays=link_rays)
+                            link_rays=job.link_rays)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
             caster.cast(links)
