@@ -213,10 +213,11 @@ def _render_parser(sub):
                         "leaf element)")
     p.add_argument("--epsilon", type=_positive_float, default=1e-3,
                    help="hierarchical: refine a link that may carry more than this fraction of the emitted power")
-    p.add_argument("--link-rays", default="samples", choices=list(LINK_RAYS),
-                   help="hierarchical: a link's rays run between the K samples of both elements, each weighed by "
-                        "the point-to-point kernel (samples, K x K rays), or from the source's K samples to the "
-                        "receiver's centroid (centroid: K rays; biased where a shadow covers part of a receiver)")
+    p.add_argument("--link-rays", default="spread", choices=list(LINK_RAYS),
+                   help="hierarchical: a link's rays run from the source's K samples to one of the receiver's K, "
+                        "a different one per link (spread: K rays), or to every one of them (samples: K x K rays), "
+                        "each weighed by the point-to-point kernel; or to the receiver's centroid (centroid: K rays; "
+                        "biased where a shadow covers part of a receiver)")
     p.add_argument("--min-area", type=_positive_float, default=None, metavar="AREA",
                    help="hierarchical: smallest element area (scene units squared; default: 3 levels below each "
                         "input triangle)")

@@ -288,6 +288,77 @@ def test_a_partly_shadowed_receiver_gets_its_visible_factor():
     assert centroid.mean() / truth - 1 > 0.08
 
 
+def _caster(scene, points, link_rays, voxels=4):
+    """A LinkCaster on a golden board given ``scene``'s elements to ``points.max_level``."""
+    from blockray.host_driver.board.golden import GoldenBoard
+    from blockray.host_driver.render.hierarchical import Hierarchy, LinkCaster
+    from blockray.host_driver.traverse.visibility import Phases
+    from blockray.host_driver.traverse.voxel import VoxelGrid
+    board = GoldenBoard()
+    board.prepare(scene, points)
+    grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
+    board.load(grid)
+    h = Hierarchy(scene, points)
+    return h, LinkCaster(h, board, grid, rows=3, cols=5, phases=Phases(), link_rays=link_rays)
+
+
+def test_one_end_links_add_up_to_the_receivers_visible_factor():
+    """``spread`` casts a link from a source that does not emit to one of its receiver's samples,
+    a different one per link: over the leaves of a split receiver (32 leaves, 64 links, one end
+    each) the occluded factor ``sum A_l F_l v_l / A`` is the receiver's own (the midpoint rule of
+    :func:`strip_shadow_factor`) within 5% over 16 seeds of drawn points."""
+    from blockray.host_driver.render.hierarchical import Links, element_factors
+    edge = 0.35
+    lit = _strip_shadow(edge)
+    dark = make_scene(lit.patch_vertices, reflectance=lit.reflectance, emission=np.zeros_like(lit.emission))
+    truth = strip_shadow_factor(edge)
+    got, rays = [], []
+    for seed in range(16):
+        h, caster = _caster(dark, ElementPoints(SampleScheme(8, seed=seed), 2), "spread")
+        h.split([2, 3])
+        h.split(np.flatnonzero(h.parent >= 0))
+        leaves = h.leaves()[np.isin(h.patch[h.leaves()], [2, 3])]
+        recv, src = np.repeat(leaves, 2), np.tile([0, 1], len(leaves))
+        links = Links(recv, src, element_factors(h, recv, src))
+        caster.cast(links)
+        got.append((h.areas[recv] * links.F * links.vis).sum() / h.areas[leaves].sum())
+        rays.append(caster.rays)
+    got = np.array(got)
+    print(f"seeds 0-15, truth {truth:.5f}: {got.mean() / truth - 1:+.4f} (sd {got.std() / truth:.4f}), rays {rays[0]}")
+    assert rays == [64 * 8] * 16
+    assert abs(got.mean() / truth - 1) < 0.05
+
+
+def test_spread_gives_an_emitters_links_every_sample():
+    """``spread``: K x K rays for a link whose source emits, K for every other; ``samples``: K x K."""
+    from blockray.host_driver.render.hierarchical import Links, element_factors
+    scene = _strip_shadow(0.35)
+    for rule, rays in (("spread", 2 * 64 + 2 * 8), ("samples", 4 * 64)):
+        h, caster = _caster(scene, ElementPoints(SampleScheme(8), 0), rule)
+        recv, src = np.array([2, 3, 0, 1]), np.array([0, 1, 2, 3])     # emitter -> receiver, and back
+        caster.cast(Links(recv, src, element_factors(h, recv, src)))
+        assert caster.rays == rays, rule
+
+
+def test_end_samples_spread_over_the_receiver():
+    """A receiver's links end all over it: with one end a link, the K samples are taken about
+    equally often over many links (each within 15% of its share), the ends of one link are evenly
+    spaced, and every end is one of the K."""
+    from blockray.host_driver.render.hierarchical import end_samples
+    rng = np.random.default_rng(11)
+    print("seed 11")
+    recv, src = rng.integers(0, 10 ** 6, 16000), rng.integers(0, 10 ** 6, 16000)
+    for ends in (1, 2, 4):
+        picked = end_samples(recv, src, 8, ends)
+        assert picked.shape == (16000, ends) and picked.min() >= 0 and picked.max() < 8
+        assert (np.diff(picked, axis=1) == 8 // ends).all()
+        share = np.bincount(picked.ravel(), minlength=8) / picked.size
+        assert np.abs(share * 8 - 1).max() < 0.15, share
+    one = end_samples(np.full(64, 7), np.arange(64), 8, 1).ravel()      # one receiver, 64 sources
+    assert len(set(one.tolist())) == 8
+    assert (end_samples(recv, src, 8, 8) == np.arange(8)).all()
+
+
 def test_every_link_has_its_own_rays():
     """A link moved to the children of a split receiver is cast again for each child: every final
     link's visible fraction is what the board gives that link alone, not its parent's."""
@@ -349,7 +420,8 @@ def test_end_points_exact_on_their_triangles_plane():
     assert points.shape[1] == 85 * 9 and (side == 0).all()
 
 
-@pytest.mark.parametrize("link_rays,sample_points", [("samples", "draw"), ("samples", "fixed"), ("centroid", "fixed")])
+@pytest.mark.parametrize("link_rays,sample_points", [("spread", "draw"), ("spread", "fixed"), ("samples", "draw"),
+                                                     ("samples", "fixed"), ("centroid", "fixed")])
 def test_model_and_golden_same_blocked_bits(link_rays, sample_points):
     """A scene with partial occlusion: both boards give every link the same visible fraction,
     so the same refinement and radiosity."""

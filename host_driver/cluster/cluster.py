@@ -132,7 +132,7 @@ class SetJob:
     end_draws: int = 1
     emitter_factor: int = 1
     threads: object = None     # cores for this worker's compiled kernels (None: its default)
-    link_rays: str = "samples"  # the hierarchical solver's (host_driver/render/hierarchical.py)
+    link_rays: str = "spread"  # the hierarchical solver's (host_driver/render/hierarchical.py)
 
 
 @dataclass

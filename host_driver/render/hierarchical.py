@@ -11,11 +11,14 @@ board reports. The initial links join every pair of input triangles that can exc
 (:func:`~blockray.host_driver.radiosity.formfactor.exchange_mask`): s**2 of them for s input triangles;
 clustering (Smits, Arvo and Greenberg 1994) is not built.
 
-**Visibility** (``link_rays``). ``samples`` (the default): a link's K x K rays run from each of
-the K sample points of its source to each of the K of its receiver, and weigh by the
-point-to-point kernel ``cos cos / r**2`` (0 where either end is not strictly in front of the
-other's plane); the visible fraction is the weighted clear share, an estimate of the occluded
-over the unoccluded factor over both elements' areas. ``centroid``: K rays from the source's
+**Visibility** (``link_rays``). ``samples``: a link's K x K rays run from each of the K sample
+points of its source to each of the K of its receiver, and weigh by the point-to-point kernel
+``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane); the visible
+fraction is the weighted clear share, an estimate of the occluded over the unoccluded factor over
+both elements' areas. ``spread`` (the default): the same for a link whose source emits; every
+other link's K rays end at one of its receiver's samples, a different one per link
+(:func:`end_samples`), so a leaf's many links together still cover it: 7x fewer rays on the room,
+and no worse a balance (docs/hierarchical.md). ``centroid``: K rays from the source's
 samples to the receiver's centroid (or, where that centroid is not strictly in front of the
 source's plane, from the receiver's samples to the source's centroid), the clear share of those
 whose sample lies strictly in front of the far element's plane: 8x fewer rays, but the centroid
@@ -214,13 +217,23 @@ def element_factors(h, recv, src, tolerance=0.0):
     return formfactor.pair_factors(h.vertices(src), h.vertices(recv), tolerance=tolerance) / h.areas[recv]
 
 
+def end_samples(recv, src, K, ends):
+    """(n, ends): which of the receiver's K samples the links' rays end at. All K for ``ends = K``;
+    else ``ends`` evenly spaced samples from an offset hashed from the link's two elements, so the
+    links of one receiver end all over it (the same on every board and Dask set)."""
+    step = K // ends
+    mixed = (np.asarray(recv, np.uint64) * np.uint64(0x9E3779B97F4A7C15)) ^ (np.asarray(src, np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F))
+    offset = ((mixed >> np.uint64(29)) % np.uint64(step)).astype(np.int64)
+    return offset[:, None] + step * np.arange(ends)
+
+
 class LinkCaster:
     """Casts the rays of links through ``board`` as block rays (module docstring) and counts them."""
 
     #: links cast per board batch (bounds the host's arrays)
     CHUNK = 65536
 
-    def __init__(self, h, board, grid, *, rows, cols, phases, link_rays="samples"):
+    def __init__(self, h, board, grid, *, rows, cols, phases, link_rays="spread"):
         self.h, self.board, self.grid, self.rows, self.cols, self.phases = h, board, grid, rows, cols, phases
         self.link_rays = link_rays
         self.rays = self.blocks = 0
@@ -231,12 +244,26 @@ class LinkCaster:
     def cast(self, links):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
-        fractions = self._sample_fractions if self.link_rays == "samples" else self._centroid_fractions
-        chunk = self.CHUNK // (self.h.points.K if self.link_rays == "samples" else 1)
-        for a in range(0, len(links), chunk):
-            part = slice(a, a + chunk)
-            vis[part], partial[part] = fractions(links.recv[part], links.src[part])
+        for ends, which in self._groups(links):
+            if ends:
+                fractions, chunk = (lambda r, s: self._sample_fractions(r, s, ends)), self.CHUNK // ends
+            else:
+                fractions, chunk = self._centroid_fractions, self.CHUNK
+            for a in range(0, len(which), chunk):
+                part = which[a:a + chunk]
+                vis[part], partial[part] = fractions(links.recv[part], links.src[part])
         links.vis, links.partial = vis, partial
+
+    def _groups(self, links):
+        """``(ends, links)``: the receiver samples each link's rays end at (0: the centroid rule).
+        ``spread`` gives an emitter's links all K (they carry the first bounce, the most light a
+        link carries, as the uniform render's ``--emitter-factor`` gives them more rows) and every
+        other link one."""
+        K, every = self.h.points.K, np.arange(len(links))
+        if self.link_rays != "spread":
+            return [(K if self.link_rays == "samples" else 0, every)]
+        emits = self.h.scene.emission[self.h.patch[links.src]].max(axis=1) > 0
+        return [(K, every[emits]), (1, every[~emits])]
 
     def _centroid_fractions(self, recv, src):
         h, pts = self.h, self.h.points
@@ -252,16 +279,18 @@ class LinkCaster:
         n = counted.sum(axis=1)
         return n_clear / n, (n_clear > 0) & (n_clear < n)
 
-    def _sample_fractions(self, recv, src):
-        """K x K rays per link, every source sample to every receiver sample, each weighed by the
-        point-to-point kernel ``cos cos / r**2`` (0 where either end is not strictly in front of the
-        other's plane): the weighted clear share is the ratio of the occluded to the unoccluded
-        factor, over both elements' areas. (One end point at the receiver's centroid judges the whole
-        receiver by it: a receiver partly in shadow whose centroid is lit counts both the light the
-        shadow hides and the occluder's face the shadowed part sees, and closed scenes gain energy.)"""
+    def _sample_fractions(self, recv, src, ends):
+        """K x ``ends`` rays per link, every source sample to ``ends`` of the receiver's K samples
+        (:func:`end_samples`), each weighed by the point-to-point kernel ``cos cos / r**2`` (0 where
+        either end is not strictly in front of the other's plane): the weighted clear share is the
+        ratio of the occluded to the unoccluded factor, over both elements' areas. (One end point at
+        the receiver's centroid judges the whole receiver by it: a receiver partly in shadow whose
+        centroid is lit counts both the light the shadow hides and the occluder's face the shadowed
+        part sees, and closed scenes gain energy.)"""
         h, K, n = self.h, self.h.points.K, len(recv)
         with self.phases.timed("formfactor"):
-            ws, wr = self._sample_weights(src), self._sample_weights(recv)
+            ws = self._sample_weights(src)
+            wr = np.take_along_axis(self._sample_weights(recv), end_samples(recv, src, K, ends)[:, :, None], axis=1)
             # (n, end, sample): both ends strictly in front of the other element's plane
             lit = self._in_front(recv, src, ws)[:, None, :] & self._in_front(src, recv, wr)[:, :, None]
             d = self._points(recv, wr)[:, :, None] - self._points(src, ws)[:, None]
@@ -270,7 +299,7 @@ class LinkCaster:
             cos_s = np.einsum("nc,nekc->nek", ns, d)
             cos_r = -np.einsum("nc,nekc->nek", nr, d)
             weight = np.where(lit, np.abs(cos_s * cos_r) / np.maximum(r2, 1e-300) ** 2, 0.0)
-        clear = self._clear(np.repeat(src, K), np.repeat(recv, K), wr.reshape(-1, 3)).reshape(n, K, K)
+        clear = self._clear(np.repeat(src, ends), np.repeat(recv, ends), wr.reshape(-1, 3)).reshape(n, ends, K)
         total = weight.sum(axis=(1, 2))
         plain = clear.mean(axis=(1, 2))
         frac = np.where(total > 0, (weight * clear).sum(axis=(1, 2)) / np.where(total > 0, total, 1), plain)
@@ -282,9 +311,9 @@ class LinkCaster:
         return self.h.points.element_samples(self.h.patch[e], self.h.node[e])
 
     def _in_front(self, plane, points, w):
-        """(n, K) bool: sample k of element ``points[m]`` (weights ``w[m, k]``) lies strictly in front
+        """(n, k) bool: point j of element ``points[m]`` (weights ``w[m, j]``) lies strictly in front
         of ``plane[m]``'s plane."""
-        V, K = self.h.scene.patch_vertices, self.h.points.K
+        V, K = self.h.scene.patch_vertices, w.shape[1]
         patch = self.h.patch
         return (plane_signs(np.repeat(V[patch[plane]], K, axis=0), np.repeat(V[patch[points]], K, axis=0),
                             w.reshape(-1, 3)) > 0).reshape(-1, K)

@@ -32,7 +32,7 @@ __all__ = ["BoardOptions", "RayOptions", "SolveOptions", "SetOptions", "RenderOp
 SOLVERS = ("progressive", "jacobi", "gauss-seidel", "hierarchical")
 SAMPLE_POINTS = ("fixed", "draw", "rows")
 #: where a hierarchical link's rays run (host_driver/render/hierarchical.py, "Visibility")
-LINK_RAYS = ("samples", "centroid")
+LINK_RAYS = ("spread", "samples", "centroid")
 
 #: ``--estimator``: named sets of the ray options that decide how a pair's visibility is estimated.
 #: ``paper``: one fixed sample pattern to the receivers' centroids (the paper; fast, biased at contact
@@ -174,8 +174,9 @@ class SolveOptions:
     ``max_iterations`` (gathering), the ``closure`` of the visible form factors, and the
     hierarchical solver's refinement threshold ``epsilon`` (a fraction of the emitted power),
     smallest element ``min_area`` (None: 3 levels below each input triangle) and ``link_rays``
-    (``samples``: K x K rays between the two elements' samples; ``centroid``: K rays from the source
-    to the receiver's centroid), host_driver/render/hierarchical.py."""
+    (``spread``: K rays from the source's samples to one of the receiver's, a different one per
+    link; ``samples``: K x K rays between the two elements' samples; ``centroid``: K rays from the
+    source to the receiver's centroid), host_driver/render/hierarchical.py."""
     solver: str = "progressive"
     tolerance: float = 1e-3
     max_shots: int = None
@@ -183,7 +184,7 @@ class SolveOptions:
     closure: str = "off"
     epsilon: float = 1e-3
     min_area: float = None
-    link_rays: str = "samples"
+    link_rays: str = "spread"
 
     def __post_init__(self):
         from ..radiosity.closure import MODES
