@@ -54,15 +54,16 @@ def error(reference, result):
     return float((diff / (A * reference["B"]).sum(axis=0)).max())
 
 
-def reference_solution(name, edge, cache, samples):
-    path = os.path.join(cache, f"hier-ref-{name}-{edge:g}-{samples}.npz")
+def reference_solution(name, edge, cache, samples, board="golden"):
+    tag = "" if board == "golden" else f"-{board}"
+    path = os.path.join(cache, f"hier-ref-{name}-{edge:g}-{samples}{tag}.npz")
     scene = load_scene(name, max_edge=edge)
     if os.path.exists(path):
         B = np.load(path)["B"]
         if B.shape == (scene.patches, 3):
             return {"scene": scene, "B": B, "seconds": float(np.load(path)["seconds"])}
     t0 = time.process_time()
-    result = render(scene, backend="golden", solver="jacobi", samples=samples, tolerance=1e-6)
+    result = render(scene, backend=board, solver="jacobi", samples=samples, tolerance=1e-6)
     seconds = time.process_time() - t0
     os.makedirs(cache, exist_ok=True)
     np.savez(path, B=result.radiosity, seconds=seconds)
@@ -83,6 +84,8 @@ def main(argv=None):
     ap.add_argument("--reference-edge", type=float, default=70.0)
     ap.add_argument("--reference-samples", type=int, default=8)
     ap.add_argument("--check-edge", type=float, default=100.0)
+    ap.add_argument("--reference-board", default="golden", choices=["golden", "model"],
+                    help="the reference's board (model: for scenes too large for the golden board)")
     ap.add_argument("--uniform-edges", default="300,200,100")
     ap.add_argument("--epsilons", default="1e-2,3e-3,1e-3,3e-4,1e-4")
     ap.add_argument("--link-rays", default="samples,centroid",
@@ -93,10 +96,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     print_run_header()
     print(f"# load average before: {os.getloadavg()}", flush=True)
-    ref = reference_solution(args.scene, args.reference_edge, args.cache, args.reference_samples)
-    check = reference_solution(args.scene, args.check_edge, args.cache, args.reference_samples)
+    ref = reference_solution(args.scene, args.reference_edge, args.cache, args.reference_samples, args.reference_board)
+    check = reference_solution(args.scene, args.check_edge, args.cache, args.reference_samples, args.reference_board)
     fake = type("R", (), {"scene": check["scene"], "radiosity": check["B"]})
-    print(f"# reference: {ref['scene'].patches} patches, golden, jacobi 1e-6, {args.reference_samples} samples, {ref['seconds']:.0f} CPU s; "
+    print(f"# reference: {ref['scene'].patches} patches, {args.reference_board}, jacobi 1e-6, {args.reference_samples} samples, {ref['seconds']:.0f} CPU s; "
           f"the same at max edge {args.check_edge:g} ({check['scene'].patches} patches) is {error(ref, fake):.4f} "
           f"from it", flush=True)
     print("| solver | mesh | patches / leaves | links | rays | CPU s | error |")

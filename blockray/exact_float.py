@@ -36,7 +36,7 @@ from numba import njit
 
 from .errors import ParameterError
 
-__all__ = ["check_exact_range", "plane_signs", "blocked_rays", "LOW", "HIGH"]
+__all__ = ["check_exact_range", "plane_signs", "plane_signs_of", "blocked_rays", "LOW", "HIGH"]
 
 U = 2.0 ** -53
 #: magnitudes of nonzero coordinates for which the exact stage is exact
@@ -244,6 +244,25 @@ def _plane_signs(T, E, W):
     for m in range(len(T)):
         out[m] = _plane_sign(T[m], E[m], W[m])
     return out
+
+
+@njit(cache=True)
+def _plane_signs_of(V, tri, pts, W):
+    out = np.empty(W.shape[:2], dtype=np.int8)
+    for m in range(len(tri)):
+        for k in range(W.shape[1]):
+            out[m, k] = _plane_sign(V[tri[m]], V[pts[m]], W[m, k])
+    return out
+
+
+def plane_signs_of(vertices, triangle, points_of, weights):
+    """:func:`plane_signs` by index, without copying triangles per point: the signs (M, k) int8 of
+    the points of weights ``weights[m, j]`` (M, k, 3) on triangle ``points_of[m]`` against the
+    plane of triangle ``triangle[m]``, both indices into ``vertices`` (P, 3, 3)."""
+    V = np.ascontiguousarray(vertices, dtype=np.float64)
+    W = np.ascontiguousarray(weights, dtype=np.int64)
+    return _plane_signs_of(V, np.ascontiguousarray(triangle, dtype=np.int64),
+                           np.ascontiguousarray(points_of, dtype=np.int64), W)
 
 
 def plane_signs(triangles, points_of, weights):

@@ -326,3 +326,38 @@ def test_tiny_facing_triangles_beside_a_huge_one():
     print(f"receiver B = {result.radiosity[0]}, F = {F:.6f}")
     assert F > 0.5
     np.testing.assert_allclose(result.radiosity[0], rho[0] * E[1] * F, rtol=1e-12)
+
+
+def test_plane_signs_by_index_agree_with_rational_evaluation():
+    """``plane_signs_of`` (the hierarchical solver's sample-in-front test) gives each rational
+    point's exact side of a plane, as Fraction arithmetic does, on rotated, rounded and coplanar
+    triangles: points of a triangle against its own plane and against coplanar neighbours are 0."""
+    from fractions import Fraction
+    from blockray.exact_float import plane_signs, plane_signs_of
+    seed = 23
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    floor = np.round(rectangle([0, 0, 0], [1, 0, 0], [0, 1, 0], 2, 2) @ rotation(3).T + [0.3, 0.7, 0.1], 6)
+    V = np.concatenate([floor, np.round(rng.normal(size=(12, 3, 3)), 7), floor[:2] * 1e-3 + 0.5])
+    M, k = 400, 5
+    tri, pts = rng.integers(0, len(V), M), rng.integers(0, len(V), M)
+    tri[:40], pts[:40] = pts[:40], pts[:40]                            # a triangle's own plane
+    W = rng.integers(0, 50, size=(M, k, 3))
+    W[:, 0] = [1, 1, 1]
+    got = plane_signs_of(V, tri, pts, W)
+    assert got.shape == (M, k) and (got[:40] == 0).all()
+    assert np.array_equal(got, plane_signs(np.repeat(V[tri], k, axis=0), np.repeat(V[pts], k, axis=0),
+                                           W.reshape(-1, 3)).reshape(M, k))
+    F = lambda x: Fraction(float(x))
+    for m in range(M):
+        a, b, c = ([F(x) for x in v] for v in V[tri[m]])
+        n = [(b[1] - a[1]) * (c[2] - a[2]) - (b[2] - a[2]) * (c[1] - a[1]),
+             (b[2] - a[2]) * (c[0] - a[0]) - (b[0] - a[0]) * (c[2] - a[2]),
+             (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])]
+        for j in range(k):
+            w = [int(x) for x in W[m, j]]
+            if sum(w) == 0:
+                continue
+            p = [sum(w[i] * F(V[pts[m], i, d]) for i in range(3)) / sum(w) for d in range(3)]
+            side = sum(n[d] * (p[d] - a[d]) for d in range(3))
+            assert got[m, j] == (side > 0) - (side < 0), (m, j)

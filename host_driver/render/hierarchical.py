@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import CapacityError, ParameterError, SolveError, option
-from ...exact_float import plane_signs
+from ...exact_float import plane_signs, plane_signs_of
 from ..radiosity import formfactor
 from ...board import BlockBatch, BlockBits, ranges
 from ..radiosity.elements import ElementPoints, children_of
@@ -313,10 +313,8 @@ class LinkCaster:
     def _in_front(self, plane, points, w):
         """(n, k) bool: point j of element ``points[m]`` (weights ``w[m, j]``) lies strictly in front
         of ``plane[m]``'s plane."""
-        V, K = self.h.scene.patch_vertices, w.shape[1]
         patch = self.h.patch
-        return (plane_signs(np.repeat(V[patch[plane]], K, axis=0), np.repeat(V[patch[points]], K, axis=0),
-                            w.reshape(-1, 3)) > 0).reshape(-1, K)
+        return plane_signs_of(self.h.scene.patch_vertices, patch[plane], patch[points], w) > 0
 
     def _points(self, e, w):
         """(n, K, 3) float points of weights ``w`` (n, K, 3) on the input triangles of elements ``e``."""
