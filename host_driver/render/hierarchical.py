@@ -124,6 +124,7 @@ class Hierarchy:
         N = self.scene.patches
         self.patch, self.node = np.arange(N), np.zeros(N, np.int64)
         self.level, self.parent, self.child = np.zeros(N, np.int64), np.full(N, -1), np.full(N, -1)
+        self._corners = np.zeros((0, 3, 3))
 
     def __len__(self):
         return len(self.patch)
@@ -133,8 +134,13 @@ class Hierarchy:
         return self.scene.areas[self.patch] / 4.0 ** self.level
 
     def vertices(self, e):
-        """Float corners (M, 3, 3) of elements ``e``."""
-        return self.points.element_vertices(self.scene.patch_vertices[self.patch[e]], self.node[e])
+        """Float corners (M, 3, 3) of elements ``e``: computed once per element, as elements are
+        only ever appended (every link's factor and kernel weights take its two elements')."""
+        n = len(self._corners)
+        if n < len(self):
+            new = self.points.element_vertices(self.scene.patch_vertices[self.patch[n:]], self.node[n:])
+            self._corners = np.concatenate([self._corners, new])
+        return self._corners[e]
 
     def split(self, e):
         """Give the leaves among elements ``e`` their four children (appended)."""
