@@ -60,6 +60,7 @@ visibility estimate's own error included; refused beyond closure.MAX_CORRECTION)
 balance and tests take it as any scene), and a CSV row per leaf with its input triangle and level.
 """
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -228,7 +229,8 @@ def end_samples(recv, src, K, ends):
     else ``ends`` evenly spaced samples from an offset hashed from the link's two elements, so the
     links of one receiver end all over it (the same on every board and Dask set)."""
     step = K // ends
-    mixed = (np.asarray(recv, np.uint64) * np.uint64(0x9E3779B97F4A7C15)) ^ (np.asarray(src, np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F))
+    mixed = ((np.asarray(recv, np.uint64) * np.uint64(0x9E3779B97F4A7C15))
+             ^ (np.asarray(src, np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)))
     offset = ((mixed >> np.uint64(29)) % np.uint64(step)).astype(np.int64)
     return offset[:, None] + step * np.arange(ends)
 
@@ -252,7 +254,7 @@ class LinkCaster:
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
         for ends, which in self._groups(links):
             if ends:
-                fractions, chunk = (lambda r, s: self._sample_fractions(r, s, ends)), self.CHUNK // ends
+                fractions, chunk = functools.partial(self._sample_fractions, ends=ends), self.CHUNK // ends
             else:
                 fractions, chunk = self._centroid_fractions, self.CHUNK
             for a in range(0, len(which), chunk):
