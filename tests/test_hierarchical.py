@@ -509,9 +509,9 @@ def test_cli_too_many_levels_for_the_bits(capsys):
 @pytest.mark.slow
 @pytest.mark.cocotb
 def test_cornell_verilator_same_as_model():
-    """Cornell's input triangles refined at epsilon 1e-2 (284 k rays, B = 20: 17 for the scene and 3
-    levels) on the simulated RTL (2 x 2 array, P = 2): the model's visible fractions, radiosity,
-    tests and board cycles exactly."""
+    """Cornell's input triangles refined at epsilon 1e-2 (45 k rays with ``spread``, B = 20: 17 for
+    the scene and 3 levels) on the simulated RTL (2 x 2 array, P = 2): the model's visible
+    fractions, radiosity, tests and board cycles exactly."""
     from scenes import RTL_PARAMS
     from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("cornell", max_edge=1e9)
