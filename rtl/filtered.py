@@ -22,6 +22,7 @@ from amaranth.lib.wiring import In, Out
 
 from ..cell import Cell
 from .array import broadcast_signature
+from .lutdot import dot_product
 from .platform import product_platform
 from ..params import Widths, check_bits
 from .processor import (TAG_BITS, Processor, ReceiverUnit, ShooterUnit, _AXES, _credits, _crossing, _delay,
@@ -174,12 +175,25 @@ class ReceiverFilter(_Filter):
         return None
 
 
+def _carry_chain_cell(platform):
+    """The platform for :func:`~blockray.rtl.lutdot.dot_product` when the cells' products are in
+    the fabric of a target with carry cells (``ECP5Target(fabric_units={"cell"})``: ``CCU2C``
+    bit heaps instead of Yosys's LUT multipliers), else None."""
+    if getattr(platform, "ccu2c", False) and "cell" in getattr(platform, "fabric_units", ()):
+        return platform
+    return None
+
+
 class FilteredProcessor(wiring.Component):
     """Filtered cell: the certified decision of one test per cycle (:func:`blockray.filtered.
     filter_decision`).
 
     Stages 1-2: the nine products d^_kc w^_kc (:func:`~blockray.rtl.processor._product`, one
-    MULT18X18D each on ECP5) and lo_k, hi_k; stage 3: s^_k; stage 4: s^ - lo and s^ + hi (one
+    MULT18X18D each on ECP5; with ``carry_chains`` (the lean cell) and the cells in the fabric of
+    ``ECP5Target(fabric_units={"cell"})`` the three products and their sum are one bit heap on
+    CCU2C carry chains, :func:`~blockray.rtl.lutdot.dot_product`, the same register values from
+    stage 3) and lo_k,
+    hi_k; stage 3: s^_k; stage 4: s^ - lo and s^ + hi (one
     adder each); stage 5: the certificates s^ >= lo, s^ > lo, s^ <= -hi, s^ < -hi from their
     signs and zero tests, and ``decided`` and ``blocked`` (meaningful when ``decided``). ``crossing`` (sign(pP) sign(pQ) < 0, exact) comes with the terms.
     Latency :attr:`latency` = 5, one test per cycle.
@@ -187,8 +201,9 @@ class FilteredProcessor(wiring.Component):
 
     latency = 5
 
-    def __init__(self, fmt):
+    def __init__(self, fmt, *, carry_chains=False):
         self._fmt = fmt
+        self._carry_chains = carry_chains
         super().__init__({
             "shooter": In(filter_terms_layout(fmt.d_bits, sum_bits(fmt.d_bits, fmt))),
             "receiver": In(filter_terms_layout(fmt.w_bits, sum_bits(fmt.w_bits, fmt))),
@@ -202,15 +217,19 @@ class FilteredProcessor(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         f = self._fmt
+        chains = _carry_chain_cell(platform) if self._carry_chains else None
         platform = product_platform(platform, "cell")
         width = f.d_bits + f.w_bits + 2
         sh, rc = self.shooter, self.receiver
         ge, gt, le, lt = [], [], [], []
         for k in range(3):
-            products = [_product(m, sh.m[k][c], rc.m[k][c], f.d_bits + f.w_bits, f"p{k}{c}", platform)
-                        for c in range(3)]
-            s3 = Signal(signed(width), name=f"s{k}_3")
-            m.d.sync += s3.eq(sum(products))
+            if chains:      # the same s^_k, cycle for cycle, from one bit heap on carry chains
+                s3 = dot_product(m, [(sh.m[k][c], rc.m[k][c]) for c in range(3)], width, f"s{k}_3", chains)
+            else:
+                products = [_product(m, sh.m[k][c], rc.m[k][c], f.d_bits + f.w_bits, f"p{k}{c}", platform)
+                            for c in range(3)]
+                s3 = Signal(signed(width), name=f"s{k}_3")
+                m.d.sync += s3.eq(sum(products))
             a, b = sh.truncated[k], rc.truncated[k]
             lo1 = Signal(max(f.d_bits, f.w_bits) + 3, name=f"lo{k}_1")
             hi1 = Signal.like(lo1, name=f"hi{k}_1")
@@ -558,6 +577,9 @@ class FilteredArray(_FilteredCells, wiring.Component):
     earliest :attr:`latency` + 2 (the pending FIFO's write and output register).
     """
 
+    #: the cells' products as CCU2C bit heaps when in the ECP5 fabric (the lean array's)
+    carry_chain_cells = False
+
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1)):
         self._configure(bits, fmt, depth if depth is not None else self.default_depth())
         self._rows, self._cols = rows, cols
@@ -628,7 +650,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
         blocked, undecided = [], []
         for r in range(R):
             for s in range(S):
-                cell = m.submodules[f"cell_{r}_{s}"] = FilteredProcessor(fmt)
+                cell = m.submodules[f"cell_{r}_{s}"] = FilteredProcessor(fmt, carry_chains=self.carry_chain_cells)
                 m.d.comb += [
                     cell.shooter.eq(shooters[s].terms), cell.receiver.eq(receivers[r].terms),
                     cell.valid.eq(shooters[s].terms_valid),

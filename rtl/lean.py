@@ -202,6 +202,10 @@ class LeanArray(FilteredArray):
     :meth:`default_depth` (the filtered array's, plus the exact unit's 9 cycles and 4: a record
     with undecided tests every few records costs no cycle)."""
 
+    #: with ``--fabric-units cell`` on ECP5 the cells' three products and their sum per edge are
+    #: one bit heap on CCU2C carry chains (rtl/lutdot.py), not Yosys's LUT multipliers
+    carry_chain_cells = True
+
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1),
                  address_bits=DEFAULT_ADDRESS_BITS):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter

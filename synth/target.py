@@ -34,7 +34,7 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..rtl.platform import product_platform
 
-__all__ = ["TARGETS", "FABRIC_UNITS", "ECP5Target", "target_platform", "product_platform", "MULT18X18D_SIM"]
+__all__ = ["TARGETS", "FABRIC_UNITS", "ECP5Target", "target_platform", "product_platform", "MULT18X18D_SIM", "CCU2C_SIM"]
 
 TARGETS = ("generic", "ecp5")
 
@@ -46,6 +46,8 @@ FABRIC_UNITS = ("shooter", "receiver", "cell", "exact", "rounded")
 
 #: behavioural Verilog model of the MULT18X18D configuration the RTL instantiates (Verilator)
 MULT18X18D_SIM = Path(__file__).with_name("ecp5_mult18x18d_sim.v")
+#: behavioural Verilog model of the CCU2C carry cell as rtl/lutdot.py instantiates it (Verilator)
+CCU2C_SIM = Path(__file__).with_name("ecp5_ccu2c_sim.v")
 
 
 class ECP5Target:
@@ -54,6 +56,9 @@ class ECP5Target:
     name = "ecp5"
     #: the flag :mod:`blockray.rtl.processor` checks: instantiate MULT18X18D with internal registers
     mult18x18d = True
+    #: carry cells (``CCU2C``): the filtered and lean cells' products in the fabric
+    #: (``fabric_units`` ``cell``) as bit heaps on carry chains (:mod:`blockray.rtl.lutdot`)
+    ccu2c = True
 
     def __init__(self, fabric_units=()):
         fabric_units = frozenset(fabric_units)

@@ -80,7 +80,7 @@ def _lean_unit(unit, params, fmt):
     from ..rtl.filtered import FilteredProcessor
     from ..rtl.lean import LeanArray
     if unit == "cell":
-        return FilteredProcessor(fmt)
+        return FilteredProcessor(fmt, carry_chains=True)
     rows, cols = (1, 1) if unit == "processor" else (params.rows, params.cols)
     return LeanArray(params.bits, rows, cols, fmt=fmt, address_bits=max(1, (params.patch_depth - 1).bit_length()))
 

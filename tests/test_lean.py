@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from amaranth.hdl import Fragment, Module, Signal, signed
 from amaranth.sim import Simulator
 
 from blockray.cell import Cell
@@ -23,6 +24,7 @@ from blockray.params import BoardParams
 from blockray.records import pack_array, patch_columns, patch_layout, point_columns, point_layout
 from blockray.rtl.board import BoardTop
 from blockray.rtl.lean import LeanArray, LeanExact, LeanReceiver
+from blockray.rtl.lutdot import bit_heap, dot_product
 from blockray.sim.cocotb_support import build_verilator, run_cocotb
 from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
@@ -167,13 +169,14 @@ def test_model_on_a_small_scene_equals_the_exact_blocks():
     print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
 
 
-def _run_rtl(bits, rows, cols, fmt, depth, steps, V, n):
+def _run_rtl(bits, rows, cols, fmt, depth, steps, V, n, platform=None):
     """The RTL in the Amaranth simulator under the owner's credits (tests/lean_bench.py): the
-    cycle each step is presented, each marker's cycle and ``hit`` then."""
+    cycle each step is presented, each marker's cycle and ``hit`` then. ``platform``: the one
+    every ``elaborate`` sees (None: the generic netlist)."""
     words = pack_array(patch_layout(bits), patch_columns(V, n))
     bench = LeanBench(bits, rows, cols, fmt, depth, words)
     driver = StepDriver(steps, words, bits, rows, cols, depth)
-    sim = Simulator(bench)
+    sim = Simulator(bench if platform is None else Fragment.get(bench, platform))
     sim.add_clock(1e-8)
 
     async def drive(ctx):
@@ -242,6 +245,70 @@ def test_rtl_equals_model_on_processor_vectors(bits, fmt, depth, count):
     print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles)
 
 
+class CarryChainModel:
+    """A stand-in target for the Amaranth simulator: the cells' products in the fabric as
+    rtl/lutdot.py's CCU2C bit heaps, each carry cell built from its INIT tables in Amaranth logic
+    (``ccu2c = "model"``: the tables and wiring the ECP5 netlist instantiates); every other
+    product generic."""
+    ccu2c = "model"
+    fabric_units = frozenset({"cell"})
+
+
+@pytest.mark.parametrize("na,nb,terms,width", [(9, 9, 3, 20), (3, 3, 3, 8), (9, 12, 3, 23), (5, 7, 2, 14),
+                                               (2, 2, 1, 4), (18, 18, 3, 38)])
+def test_carry_chain_dot_product_equals_the_products(na, nb, terms, width):
+    """rtl/lutdot.py's bit heap on modelled CCU2C cells against ``reg(reg(a) * reg(b))`` summed,
+    cycle for cycle: the extremes of both operands (every sign combination) and random values."""
+    rng = np.random.default_rng(3600 + na * nb + terms)
+    lo_a, hi_a, lo_b, hi_b = -(1 << na - 1), (1 << na - 1) - 1, -(1 << nb - 1), (1 << nb - 1) - 1
+    vectors = [[(x, y)] * terms for x in (lo_a, hi_a, -1, 0, 1) for y in (lo_b, hi_b, -1, 0, 1)]
+    vectors += [list(zip(rng.integers(lo_a, hi_a + 1, terms).tolist(), rng.integers(lo_b, hi_b + 1, terms).tolist()))
+                for _ in range(400)]
+    a = [Signal(signed(na), name=f"a{i}") for i in range(terms)]
+    b = [Signal(signed(nb), name=f"b{i}") for i in range(terms)]
+    m = Module()
+    got = dot_product(m, list(zip(a, b)), width, "heap", CarryChainModel())
+    want = dot_product(m, list(zip(a, b)), width, "mul", None)
+    assert len(bit_heap(list(zip(a, b)), width)) >= na * terms
+    seen = []
+
+    async def bench(ctx):
+        for k, v in enumerate(vectors + [[(0, 0)] * terms] * 3):
+            for i, (x, y) in enumerate(v):
+                ctx.set(a[i], x)
+                ctx.set(b[i], y)
+            await ctx.tick()
+            seen.append((ctx.get(got), ctx.get(want)))
+
+    sim = Simulator(m)
+    sim.add_clock(1e-8)
+    sim.add_testbench(bench)
+    sim.run()
+    assert all(g == w for g, w in seen)
+    sums = [g for g, _ in seen[2:2 + len(vectors)]]
+    assert sums == [sum(x * y for x, y in v) for v in vectors]
+
+
+@pytest.mark.parametrize("bits,rows,cols,fmt,seed", [(16, 1, 1, None, 3511), (12, 2, 2, None, 3512),
+                                                     (8, 2, 3, FilterFormat(3, 3), 3513)])
+def test_rtl_with_carry_chain_cells_equals_model(bits, rows, cols, fmt, seed):
+    """The lean array with its cells' products as CCU2C bit heaps (CarryChainModel, what
+    ``--fabric-units cell`` builds on ECP5) against the model, zero tolerance: every step's cycle
+    and the bits at every marker (1 x 1: hard cases and random tests; else random blocks)."""
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    if rows * cols == 1:
+        hard = hard_cases(bits)
+        tests = hard[rng.permutation(len(hard))[:120]] + random_tests(bits, 60, rng)
+        steps, V, n = _single_tests(tests), tests.V, tests.n
+    else:
+        steps, V, n = _steps(rng, _scene_blocks(rng, bits, rows, cols, 8, 8), rows, cols)
+    trace = _compare(bits, rows, cols, fmt, None, steps, V, n,
+                     run=lambda *a: _run_rtl(*a, platform=CarryChainModel()))
+    assert trace.undecided.sum() > 0
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
+
+
 @pytest.mark.parametrize("bits,rows,cols,fmt,depth,seed", [(8, 2, 2, FilterFormat(3, 3), None, 3301),
                                                            (8, 2, 2, FilterFormat(3, 3, 4), None, 3304),
                                                            (8, 2, 3, FilterFormat(3, 3), 6, 3302),
@@ -306,4 +373,50 @@ def test_verilator_equals_model_on_blocks(tmp_path):
     trace = _compare(bits, rows, cols, FilterFormat(3, 3), None, steps, V, n,
                      run=lambda *a: _run_verilator(*a, tmp_path))
     assert trace.undecided.sum() > 50
+    print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
+
+
+@pytest.mark.slow           # a Verilator build of about 10 CPU minutes (16.5 min wall at load 7)
+@pytest.mark.cocotb
+def test_verilator_ecp5_carry_chain_cells_equal_model(tmp_path):
+    """The ECP5 netlist of a 1 x 2 lean array with ``--fabric-units cell`` (its cells' products
+    CCU2C bit heaps, the units' MULT18X18D instances) under cocotb + Verilator, with the
+    behavioural models synth/ecp5_ccu2c_sim.v and synth/ecp5_mult18x18d_sim.v: every step's cycle,
+    every marker's cycle and ``hit`` equal the model's (B = 12, the default 9 x 9 filter)."""
+    from amaranth.back import verilog
+    from cocotb_tools.runner import get_runner
+
+    from blockray.sim.cocotb_support import DEFAULT_BUILD_ARGS, VerilatorBuild, cached_build, verilator_env
+    from blockray.synth.target import CCU2C_SIM, MULT18X18D_SIM, ECP5Target
+
+    seed, bits, rows, cols = 3514, 12, 1, 2
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    steps, V, n = _steps(rng, _scene_blocks(rng, bits, rows, cols, 24, 8), rows, cols)
+
+    def run(bits, rows, cols, fmt, depth, steps, V, n):
+        words = pack_array(patch_layout(bits), patch_columns(V, n))
+        name = "lean_bench_ecp5_cells"
+        text = verilog.convert(LeanBench(bits, rows, cols, fmt, depth, words), name=name, emit_src=False,
+                               platform=ECP5Target({"cell"}))
+        verilator_env()
+        files = {f"{name}.v": text, MULT18X18D_SIM.name: MULT18X18D_SIM.read_text(), CCU2C_SIM.name: CCU2C_SIM.read_text()}
+
+        def build(staging, sources):
+            get_runner("verilator").build(sources=sources, hdl_toplevel=name, build_dir=staging,
+                                          build_args=list(DEFAULT_BUILD_ARGS), waves=False, always=True)
+
+        build_dir, seconds, cached = cached_build(name=name, toplevel=name, files=files,
+                                                  build_args=DEFAULT_BUILD_ARGS, build=build)
+        print(f"verilator build: {'cached' if cached else f'{seconds:.1f} s'}; CCU2C cells {text.count('CCU2C #(')}")
+        assert text.count("CCU2C #(") > 100
+        build = VerilatorBuild(name, build_dir, build_dir / f"{name}.v", seconds, cached)
+        (tmp_path / "steps.pkl").write_bytes(pickle.dumps((steps, words, bits, rows, cols, depth)))
+        out = tmp_path / "out.json"
+        run_cocotb(build, "cocotb_lean", module_dir=Path(__file__).parent, test_dir=tmp_path,
+                   env={"BLOCKRAY_STEPS": str(tmp_path / "steps.pkl"), "BLOCKRAY_OUT": str(out)})
+        got = json.loads(out.read_text())
+        return np.array(got["presented"]), np.array(got["marks"]), got["hits"]
+
+    trace = _compare(bits, rows, cols, None, None, steps, V, n, run=run)
     print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
