@@ -19,8 +19,9 @@ against the exact s_k and every decided bit against ``blocked_block``; ``wrong``
 ``units``: Yosys (synth_ecp5, no nextpnr)
 resources of each part of a lean array at B = 16, side by side: the row unit with exact w_k
 (ReceiverUnit + ReceiverFilter, 9 x 9), the lean row unit (``LeanReceiver``) with its products on
-DSPs and with w_k's on LUTs (``rounded``), the lean column unit, the 9 x 9 cell on DSPs and on
-LUTs, the shared exact unit.
+DSPs and with w_k's on LUTs (``rounded``), the lean column unit, the 9 x 9 cell on DSPs, on
+Yosys's LUT multipliers (the filtered cell's ``--fabric-units cell``) and as the lean array's
+CCU2C bit heaps (rtl/lutdot.py), the shared exact unit.
 """
 
 import argparse
@@ -146,7 +147,8 @@ def _units(bits):
             ("row, lean, w_k on LUTs", lambda: LeanReceiver(bits, lean), ("rounded",)),
             ("column, lean", lambda: Edge(ShooterUnit(bits), ShooterFilter(bits, lean)), ()),
             ("cell 9 x 9, DSPs", lambda: FilteredProcessor(lean), ()),
-            ("cell 9 x 9, LUTs", lambda: FilteredProcessor(lean), ("cell",)),
+            ("cell 9 x 9, LUT mult.", lambda: FilteredProcessor(lean), ("cell",)),
+            ("cell 9 x 9, carry chains", lambda: FilteredProcessor(lean, carry_chains=True), ("cell",)),
             ("exact unit", lambda: LeanExact(bits, 2, 2, 14, 33), ())]
 
 
