@@ -17,7 +17,8 @@ does) through three boards:
 
 Every route's blocked bits and board cycles are checked against the model. It prints per route
 the build (cached or not), the set-up (start + memory load), the wall time of the batches, the
-simulated clock cycles per second (all P boards advance together; max over the boards) and the
+part of it the host did not wait for a board (``host s``: the driver encoding the commands and
+decoding the results, while no board runs), the simulated clock cycles per second (all P boards advance together; max over the boards) and the
 board cycles per second (the model's ``board_cycles_per_board`` summed over the P boards).
 
 Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
@@ -96,17 +97,20 @@ def speed(shooters, routes):
     print(f"cornell: {scene.patches} patches, B = {reference.params.bits}, {params.boards} boards x {params.rows} x "
           f"{params.cols}; {shooters} shooter columns, {sum(len(b) for b in columns)} block rays, "
           f"{mc['board_cycles']} board cycles ({board_cycles} summed over the boards)")
-    print(f"{'route':8} {'build s':>8} {'setup s':>8} {'batches s':>10} {'clock cycles/s':>15} {'board cycles/s':>15}")
+    print(f"{'route':8} {'build s':>8} {'setup s':>8} {'batches s':>10} {'host s':>7} {'clock cycles/s':>15} "
+          f"{'board cycles/s':>15}")
     for name in routes:
         t0 = time.perf_counter()
         board = _loaded(_boards(params)[name](), scene, samples)
         setup = time.perf_counter() - t0
         trs = getattr(board, "transports", [])
         c0 = max((t.cycles for t in trs), default=0)
+        w0 = sum(getattr(t, "simulator_seconds", 0.0) for t in trs)
         t0 = time.perf_counter()
         bits = [board.run(blocks) for blocks in columns]
         wall = time.perf_counter() - t0
         cycles = max((t.cycles for t in trs), default=0) - c0
+        host = wall - (sum(getattr(t, "simulator_seconds", 0.0) for t in trs) - w0)
         rc = board.counters()
         build = trs[0].build if trs else None
         board.close()
@@ -115,7 +119,8 @@ def speed(shooters, routes):
             assert rc[key] == mc[key], f"{name}: {key} {rc[key]} != model {mc[key]}"
         built = "-" if build is None else f"{build.seconds:.0f}{' (cached)' if build.cached else ''}"
         clock = f"{cycles / wall:,.0f}" if trs else "-"
-        print(f"{name:8} {built:>8} {setup:8.1f} {wall:10.2f} {clock:>15} {board_cycles / wall:15,.0f}", flush=True)
+        print(f"{name:8} {built:>8} {setup:8.1f} {wall:10.2f} {host if trs else wall:7.2f} {clock:>15} "
+              f"{board_cycles / wall:15,.0f}", flush=True)
 
 
 def full(scene_name):

@@ -99,6 +99,43 @@ def test_host_timing_is_the_drive_loops_cycle_for_cycle(scene_small, rng_seed):
     assert min(acycles) > max(acounters["board_cycles_per_board"]) + max(acounters["load_cycles_per_board"])
 
 
+@pytest.mark.cocotb
+@pytest.mark.parametrize("stalls", [False, True])
+def test_reset_is_the_amaranth_transports_cycle_for_cycle(stalls):
+    """A reset right after the board opens and one while command bytes are queued and a byte is
+    on the wire (the build registers the board's reset: sim/native/share.py, register_reset):
+    the native board answers the same bytes as the Amaranth simulator after the same clock
+    cycles, its counters restart, and the queued commands are lost."""
+    from blockray.host_driver.board.native import NativeTransport
+    from blockray.host_driver.board.simulated import AmaranthTransport
+    from blockray.protocol import BoardProtocol, Identify, ReadCounters, ResultKind, Voxel
+
+    proto = BoardProtocol(PARAMS)
+    nc = proto.result_bytes(ResultKind.COUNTERS)
+    host = dict(idle=HostTiming(0.3, burst=0.01, burst_length=(4, 40)),
+                backpressure=HostTiming(0.3, burst=0.01, burst_length=(4, 40)), seed=7) if stalls else {}
+    runs = {}
+    for name, cls in (("amaranth", AmaranthTransport), ("native", NativeTransport)):
+        t = cls(PARAMS, **host)
+        try:
+            t.reset()                                   # before any cycle
+            t.send(proto.encode_all([Voxel(0), Voxel(1), ReadCounters()] + [Voxel(2)] * 40 + [ReadCounters()]))
+            first = t.recv(nc)                          # the rest stays queued, a byte on the wire
+            t.reset()
+            t.send(proto.encode_all([Voxel(3), Identify(), ReadCounters()]))
+            ident = proto.decode_result(t.recv(proto.result_bytes(ResultKind.IDENTITY))).identity
+            after = t.recv(nc)
+            runs[name] = (first, after, t.stats()["simulated_clock_cycles"], ident)
+        finally:
+            t.close()
+    (afirst, aafter, acycles, aident), (nfirst, nafter, ncycles, nident) = runs["amaranth"], runs["native"]
+    assert proto.decode_result(nfirst).counters["cycles"] == 2             # two empty voxels, one bubble each
+    assert proto.decode_result(nafter).counters["cycles"] == 2             # VOXEL 3 and IDENTIFY: restarted
+    assert {k: v for k, v in nident.items() if k != "version"} == {k: v for k, v in aident.items() if k != "version"}
+    assert (nfirst, nafter) == (afirst, aafter)
+    assert ncycles == acycles, f"clock cycles: native {ncycles}, amaranth {acycles}"
+
+
 @pytest.fixture(scope="module")
 def scene_small(rtl_room):
     return rtl_room
@@ -152,6 +189,49 @@ def test_identical_modules_are_one_module_marked_for_verilator():
 
 
 @pytest.mark.cocotb
+def test_the_tops_reset_is_a_register_loaded_from_a_new_port():
+    """register_reset: the top's rst is a register of the top loaded from rst_d at each edge of
+    its clock (the submodules' rst still connects to it); a top without that reset is refused."""
+    from amaranth.hdl import Module
+    from amaranth.lib import wiring
+    from amaranth.lib.wiring import In, Out
+
+    from blockray import hdl
+    from blockray.sim.native.share import register_reset
+
+    class Count(wiring.Component):
+        en: In(1)
+        n: Out(4)
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.inner = inner = Inner()
+            m.d.comb += [inner.en.eq(self.en), self.n.eq(inner.n)]
+            return m
+
+    class Inner(wiring.Component):
+        en: In(1)
+        n: Out(4)
+
+        def elaborate(self, platform):
+            m = Module()
+            with m.If(self.en):
+                m.d.sync += self.n.eq(self.n + 1)
+            return m
+
+    verilog = hdl.convert(Count(), name="top", emit_src=False)
+    out = register_reset(verilog, "top")
+    top = out[out.index("module top("):]
+    top = top[:top.index("endmodule")]
+    assert re.match(r"module top\([^)]*\brst_d\b", top) and not re.search(r"\(([^)]*, )?rst[,)]", top.splitlines()[0])
+    assert "  input rst_d;\n  reg rst = 1'h0;\n  always @(posedge clk)\n    rst <= rst_d;\n" in top
+    assert "  input rst;" not in top and "  wire rst;" not in top and ".rst(rst)" in top
+    inner = out[out.index("module \\top.inner"):]
+    assert "  input rst;" in inner[:inner.index("endmodule")]          # only the top changes
+    with pytest.raises(ValueError, match="no reset input"):
+        register_reset(verilog, "top", rst="reset")
+
+
 def test_the_boards_processors_are_one_cpp_class():
     """Verilator kept the processor module that share_modules made one (not inlined per instance)."""
     from blockray.host_driver.board.native import native_build

@@ -28,7 +28,7 @@ from ... import hdl
 from ...errors import BlockrayError, option
 from ..cocotb_support import _version, cache_dir, cached_build, verilator_env
 from ..drive import HostTiming
-from .share import share_modules
+from .share import register_reset, share_modules
 
 HERE = Path(__file__).resolve().parent
 
@@ -44,6 +44,8 @@ LIBRARY = "libblockray_native.so"
 #: part of a build's time) and reused by the later ones from ``native_runtime-KEY`` in the cache
 RUNTIME = ("verilated.o", "verilated_threads.o")
 TOP = "board"
+#: the top's reset input when :attr:`Ports.registered_reset` (the design's own ``rst`` is then a register)
+RESET_PORT = "rst_d"
 
 
 class NativeBuildError(BlockrayError):
@@ -73,13 +75,17 @@ class Ports:
     o_valid: str = "o_bytes__valid"
     o_ready: str = "o_bytes__ready"
     o_payload: str = "o_bytes__payload"
+    #: the top's reset made a register loaded from :data:`RESET_PORT` (:func:`~blockray.sim.native.share.register_reset`;
+    #: harness.cpp raises that port a cycle early)
+    registered_reset: bool = True
     #: the C++ loop these ports fit (in sim/native)
     harness = "harness.cpp"
 
     def header(self, trace):
-        return _config(trace, {"CLK": self.clk, "RST": self.rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
+        rst = RESET_PORT if self.registered_reset else self.rst
+        return _config(trace, {"CLK": self.clk, "RST": rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
                                 "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
-                                "O_PAYLOAD": self.o_payload})
+                                "O_PAYLOAD": self.o_payload}) + ("#define BR_RESET_REGISTERED 1\n" if self.registered_reset else "")
 
 
 @dataclass(frozen=True)
@@ -107,6 +113,7 @@ class VectorPorts(Ports):
     o_payload: str = "o__payload"
     i_bytes: int = 1
     o_bytes: int = 1
+    registered_reset: bool = False
     harness = "vector_harness.cpp"
 
     def header(self, trace):
@@ -187,7 +194,13 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
             return NativeBuild(found / LIBRARY, found, bool(trace), 0.0, True)
     if callable(component):
         component = component()
-    files = {f"{TOP}.v": share_modules(hdl.convert(component, name=TOP, emit_src=False)),
+    verilog = share_modules(hdl.convert(component, name=TOP, emit_src=False))
+    if getattr(ports, "registered_reset", False):
+        try:
+            verilog = register_reset(verilog, TOP, clk=ports.clk, rst=ports.rst, port=RESET_PORT)
+        except ValueError as e:
+            raise NativeBuildError(f"the native harness {name}: {e}") from None
+    files = {f"{TOP}.v": verilog,
              "harness.cpp": (HERE / ports.harness).read_text(),
              SHARED: (HERE / SHARED).read_text(),
              "native_config.h": ports.header(trace)}

@@ -13,12 +13,16 @@
 // The top module's ports are named by macros (-D on the compiler's command line), so any top
 // with a command byte stream in and a result byte stream out fits:
 //   BR_TOP (the Verilated class), BR_CLK, BR_RST, BR_I_VALID, BR_I_READY, BR_I_PAYLOAD,
-//   BR_O_VALID, BR_O_READY, BR_O_PAYLOAD.
+//   BR_O_VALID, BR_O_READY, BR_O_PAYLOAD; BR_RESET_REGISTERED (1: BR_RST is the port the
+//   top's reset register loads, br_reset below).
 #include <cstddef>
 #include <cstdint>
 #include <vector>
 
 #include "native_config.h"           // the BR_ macros, written by sim/native/__init__.py
+#ifndef BR_RESET_REGISTERED
+#define BR_RESET_REGISTERED 0
+#endif
 #include "verilated.h"
 #if BR_TRACE
 #include "verilated_vcd_c.h"
@@ -121,6 +125,11 @@ uint64_t br_cycles(void *handle) { return static_cast<Harness *>(handle)->cycles
 
 // The board's synchronous reset for one clock cycle (streams idle), after the cycle the host
 // already decided; queued command bytes are dropped, and so is a result byte of that cycle.
+// With BR_RESET_REGISTERED the board's rst is a register loaded from the BR_RST port at each
+// edge (sim/native/share.py, register_reset): the port is raised in the cycle before the reset
+// cycle, the decided one (or, if none was decided since br_open, an extra edge with the streams
+// idle that br_cycles and the waveform do not count: the board's state before its first reset
+// is the initial one either way).
 void br_reset(void *handle) {
     Harness *h = static_cast<Harness *>(handle);
     h->queue.clear();
@@ -131,13 +140,27 @@ void br_reset(void *handle) {
         h->top->BR_I_VALID = offered >= 0;
         h->top->BR_I_PAYLOAD = offered >= 0 ? offered : 0;
         h->top->BR_O_READY = h->ready;
+        h->top->BR_RST = BR_RESET_REGISTERED;
         h->top->BR_CLK = 0;
         h->top->eval();
         h->edge();
     }
+#if BR_RESET_REGISTERED
+    else {
+        h->top->BR_I_VALID = 0;
+        h->top->BR_O_READY = 0;
+        h->top->BR_RST = 1;
+        h->top->BR_CLK = 0;
+        h->top->eval();
+        h->top->BR_CLK = 1;
+        h->top->eval();
+    }
+    h->top->BR_RST = 0;
+#else
+    h->top->BR_RST = 1;
+#endif
     h->top->BR_I_VALID = 0;
     h->top->BR_O_READY = 0;
-    h->top->BR_RST = 1;
     h->top->BR_CLK = 0;
     h->top->eval();
     h->edge();

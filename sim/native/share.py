@@ -20,7 +20,7 @@ inputs a module passes on to a submodule (one of them may be the submodule's clo
 
 import re
 
-__all__ = ["share_modules"]
+__all__ = ["register_reset", "share_modules"]
 
 _NAME = r"(?:\\\S+ |[A-Za-z_][\w$]*)"
 #: a module of Yosys's Verilog back end: its attributes, its header and body, up to ``endmodule``
@@ -70,3 +70,29 @@ def _mark(module):
     body = _INPUT.sub(lambda m: m.group(0) if m.group(2) in clocks else f"{m.group(1)}{m.group(2)} /*verilator public*/;",
                       text[head:])
     return text[:head] + "  /* verilator no_inline_module */\n" + body
+
+
+def register_reset(verilog, top, *, clk="clk", rst="rst", port="rst_d"):
+    """``verilog`` with the top module ``top``'s reset input ``rst`` made a register loaded from
+    a new input ``port`` at each rising edge of ``clk``: the design inside sees in each cycle the
+    value ``port`` had in the cycle before, so a harness that raises ``port`` one cycle early
+    resets the design in the same cycles as before. Verilator evaluates the logic that depends on
+    a top input (every processor's ``rst``-masked terms) before each ``eval`` of the model, twice
+    a clock cycle; what depends on a register it evaluates once, after the edge. Raises
+    ValueError if ``top`` has no such reset and clock."""
+    module = next((m for m in _MODULE.finditer(verilog) if m.group(1) == top), None)
+    text = None if module is None else module.group(0)
+    header = None if text is None else re.match(r"[^;]*\);\n", text[text.index("module "):])
+    pattern = rf"(?<=[(, ]){rst}(?=[,)])"
+    if (header is None or len(re.findall(pattern, header.group(0))) != 1 or f"  input {rst};\n" not in text
+            or f"  input {clk};\n" not in text or re.search(rf"(?<![\w$\\.]){port}(?![\w$])", text)):
+        raise ValueError(f"module {top} has no reset input {rst!r} and clock {clk!r} to register")
+    start = text.index("module ")
+    text = (text[:start] + re.sub(pattern, port, header.group(0)) + text[start + header.end():])
+    text = text.replace(f"  input {rst};\n", f"  input {port};\n", 1)
+    register = f"  reg {rst} = 1'h0;\n  always @(posedge {clk})\n    {rst} <= {port};\n"
+    if f"  wire {rst};\n" in text:
+        text = text.replace(f"  wire {rst};\n", register, 1)
+    else:
+        text = text.replace(f"  input {port};\n", f"  input {port};\n" + register, 1)
+    return verilog[:module.start()] + text + verilog[module.end():]
