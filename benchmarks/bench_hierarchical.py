@@ -11,7 +11,8 @@ is the area-weighted L1 distance on the reference mesh, per channel (the largest
 printed), relative to the reference's area-weighted mean: every reference patch takes the
 radiosity of the run's patch or leaf that holds its centroid. Rays and CPU seconds (the process's,
 every thread) are the render's report. The hierarchical runs start from the input triangles
-(``--max-edge`` 1e9); the uniform runs from the scene subdivided to each edge length.
+(``--max-edge`` 1e9) or from the scene subdivided to each ``--hierarchical-edges``; the uniform
+runs from the scene subdivided to each edge length.
 """
 
 import argparse
@@ -88,6 +89,9 @@ def main(argv=None):
                     help="the reference's board (model: for scenes too large for the golden board)")
     ap.add_argument("--uniform-edges", default="300,200,100")
     ap.add_argument("--epsilons", default="1e-2,3e-3,1e-3,3e-4,1e-4")
+    ap.add_argument("--hierarchical-edges", default=f"{RAW:g}",
+                    help="the hierarchical runs' input meshes, each in turn (comma-separated max edges; "
+                         f"{RAW:g}: the input triangles)")
     ap.add_argument("--link-rays", default="samples,centroid",
                     help="the hierarchical runs' --link-rays, each in turn (comma-separated)")
     ap.add_argument("--tolerance", type=float, default=1e-3)
@@ -105,19 +109,22 @@ def main(argv=None):
     print("| solver | mesh | patches / leaves | links | rays | CPU s | error |")
     print("|---|---|---|---|---|---|---|")
     modes = args.link_rays.split(",")
-    rows = {"progressive": [], **{f"hierarchical, {m}": [] for m in modes}}
+    starts = [float(x) for x in args.hierarchical_edges.split(",")]
+    label = lambda mode, edge: f"hierarchical, {mode}" + ("" if edge == RAW else f", from max edge {edge:g}")
+    rows = {"progressive": [], **{label(m, e): [] for e in starts for m in modes}}
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
         rows["progressive"].append(r)
         print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} |",
               flush=True)
-    for mode in modes:
-        for eps in (float(x) for x in args.epsilons.split(",")):
-            r = run(ref, args.scene, RAW, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10,
-                    link_rays=mode)
-            rows[f"hierarchical, {mode}"].append(r)
-            print(f"| hierarchical, {mode} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
-                  f"{r['cpu']:.2f} | {r['error']:.4f} |", flush=True)
+    for edge in starts:
+        for mode in modes:
+            for eps in (float(x) for x in args.epsilons.split(",")):
+                r = run(ref, args.scene, edge, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10,
+                        link_rays=mode)
+                rows[label(mode, edge)].append(r)
+                print(f"| {label(mode, edge)} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
+                      f"{r['cpu']:.2f} | {r['error']:.4f} |", flush=True)
     print(f"# load average after: {os.getloadavg()}")
     if args.plot:
         plot(rows, args.plot, args.scene)
@@ -128,10 +135,12 @@ def plot(rows, path, name):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
     for ax, key, label in zip(axes, ("rays", "cpu"), ("rays", "CPU seconds")):
-        for (solver, runs), marker in zip(rows.items(), ("o-", "s-", "^-", "v-")):
+        for (solver, runs), marker in zip(rows.items(), ("o-", "s-", "^-", "v-", "D-", "x-")):
             ax.loglog([r[key] for r in runs], [r["error"] for r in runs], marker, label=solver)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())     # decade labels only
         ax.set_xlabel(label)
         ax.set_ylabel("relative L1 error")
         ax.grid(True, which="both", alpha=0.3)
