@@ -203,7 +203,12 @@ def _run_verilator(bits, rows, cols, fmt, depth, steps, V, n, tmp_path):
     words = pack_array(patch_layout(bits), patch_columns(V, n))
     build = build_verilator(LeanBench(bits, rows, cols, fmt, depth, words), name=f"lean_bench_{rows}x{cols}")
     print(f"verilator build: {'cached' if build.cached else f'{build.seconds:.1f} s'}")
-    (tmp_path / "steps.pkl").write_bytes(pickle.dumps((steps, words, bits, rows, cols, depth)))
+    return _run_bench(build, (steps, words, bits, rows, cols, depth), tmp_path)
+
+
+def _run_bench(build, steps_etc, tmp_path):
+    """Run tests/cocotb_lean.py on a Verilator ``build`` with the pickled steps: (presented, marks, hits)."""
+    (tmp_path / "steps.pkl").write_bytes(pickle.dumps(steps_etc))
     out = tmp_path / "out.json"
     run_cocotb(build, "cocotb_lean", module_dir=Path(__file__).parent, test_dir=tmp_path,
                env={"BLOCKRAY_STEPS": str(tmp_path / "steps.pkl"), "BLOCKRAY_OUT": str(out)})
@@ -411,12 +416,7 @@ def test_verilator_ecp5_carry_chain_cells_equal_model(tmp_path):
         print(f"verilator build: {'cached' if cached else f'{seconds:.1f} s'}; CCU2C cells {text.count('CCU2C #(')}")
         assert text.count("CCU2C #(") > 100
         build = VerilatorBuild(name, build_dir, build_dir / f"{name}.v", seconds, cached)
-        (tmp_path / "steps.pkl").write_bytes(pickle.dumps((steps, words, bits, rows, cols, depth)))
-        out = tmp_path / "out.json"
-        run_cocotb(build, "cocotb_lean", module_dir=Path(__file__).parent, test_dir=tmp_path,
-                   env={"BLOCKRAY_STEPS": str(tmp_path / "steps.pkl"), "BLOCKRAY_OUT": str(out)})
-        got = json.loads(out.read_text())
-        return np.array(got["presented"]), np.array(got["marks"]), got["hits"]
+        return _run_bench(build, (steps, words, bits, rows, cols, depth), tmp_path)
 
     trace = _compare(bits, rows, cols, None, None, steps, V, n, run=run)
     print("undecided", int(trace.undecided.sum()), "cycles", trace.cycles, "steps", len(steps))
