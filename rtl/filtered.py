@@ -192,9 +192,7 @@ class FilteredProcessor(wiring.Component):
     MULT18X18D each on ECP5; with ``carry_chains`` (the lean cell) and the cells in the fabric of
     ``ECP5Target(fabric_units={"cell"})`` the three products and their sum are one bit heap on
     CCU2C carry chains, :func:`~blockray.rtl.lutdot.dot_product`, the same register values from
-    stage 3) and lo_k,
-    hi_k; stage 3: s^_k; stage 4: s^ - lo and s^ + hi (one
-    adder each); stage 5: the certificates s^ >= lo, s^ > lo, s^ <= -hi, s^ < -hi from their
+    stage 3) and lo_k, hi_k; stage 3: s^_k; stage 4: s^ - lo and s^ + hi (one adder each); stage 5: the certificates s^ >= lo, s^ > lo, s^ <= -hi, s^ < -hi from their
     signs and zero tests, and ``decided`` and ``blocked`` (meaningful when ``decided``). ``crossing`` (sign(pP) sign(pQ) < 0, exact) comes with the terms.
     Latency :attr:`latency` = 5, one test per cycle.
     """
