@@ -32,13 +32,14 @@ import enum
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 from amaranth.hdl import Shape, unsigned
 from amaranth.lib import data
 from amaranth.utils import bits_for, ceil_log2
 
 from .errors import CapacityError, ParameterError
 from .params import BoardParams
-from .records import pack, patch_layout, point_layout, unpack
+from .records import leaves, pack, pack_bytes, patch_layout, point_layout, unpack
 
 __all__ = ["Op", "POINTS_PER_LOAD", "MAGIC", "VERSION", "ResultKind", "COUNTERS", "COUNTER_WIDTH",
            "IDENTITY_FIELDS", "RAYS_VERSION", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
@@ -304,6 +305,7 @@ class BoardProtocol:
         self._arg_offset = self.command_layout["arg"].offset
         self._kind_width = Shape.cast(ResultKind).width
         self._members = {kind: name for kind, name in zip(ResultKind, ("blocked", "counters", "identity"))}
+        self._payload_bits = {}
 
     @property
     def params(self):
@@ -338,11 +340,13 @@ class BoardProtocol:
 
     def payload_bits(self, op, points=POINTS_PER_LOAD):
         """Payload bits of a command (``points``: LOAD_POINTS slots carried)."""
-        op = Op(op)
-        if op is Op.LOAD_POINTS:
-            return points * self.point_slot_layout.size
-        member = COMMANDS[op].member
-        return 0 if member is None else self.arg_layout[member].shape.size
+        key = (op, points)
+        if key not in self._payload_bits:             # a layout's size walks it: once per command kind
+            op = Op(op)
+            member = COMMANDS[op].member
+            self._payload_bits[key] = (points * self.point_slot_layout.size if op is Op.LOAD_POINTS
+                                       else 0 if member is None else self.arg_layout[member].shape.size)
+        return self._payload_bits[key]
 
     def command_bytes(self, op, points=POINTS_PER_LOAD):
         """Bytes of a command on the link: the header and its payload."""
@@ -358,6 +362,82 @@ class BoardProtocol:
 
     def encode_all(self, commands):
         return b"".join(self.encode(c) for c in commands)
+
+    def encode_blocks(self, receivers, row_off, shooters, col_off, voxels, vox_off):
+        """The command stream of many block rays at once: the bytes of :meth:`encode_all` over each
+        block's BEGIN_BLOCK, LOAD_POINTS (its receiver rows 0.., then its shooter columns 0..,
+        :data:`POINTS_PER_LOAD` a command), VOXEL per voxel and END_BLOCK, one block after the other
+        (:meth:`blockray.memory.BoardMemories.block_commands`), built with array operations (no
+        Python per command). Block k's rows are ``receivers[row_off[k]:row_off[k + 1]]`` ((N, 3)
+        points), its columns ``shooters[col_off[k]:col_off[k + 1]]``, its voxels
+        ``voxels[vox_off[k]:vox_off[k + 1]]``."""
+        p = self._params
+        a = lambda x: np.asarray(x, dtype=np.int64)                             # noqa: E731
+        receivers, shooters = a(receivers).reshape(-1, 3), a(shooters).reshape(-1, 3)
+        row_off, col_off, vox_off = a(row_off), a(col_off), a(vox_off)
+        voxels = a(voxels).reshape(-1)[vox_off[0]:vox_off[-1]]
+        rows, cols, nvox = np.diff(row_off), np.diff(col_off), np.diff(vox_off)
+        nblk = len(rows)
+        for name, n, limit, param in (("receiver row", rows, p.rows, "rows"), ("shooter column", cols, p.cols, "cols")):
+            if nblk and n.max() > limit:
+                raise CapacityError(f"{name} {int(n.max()) - 1} does not fit the board ({param} {limit})")
+        for name, pts in (("receiver", receivers), ("shooter", shooters)):
+            bad = (pts < 0) | (pts >= 1 << p.bits)
+            if bad.any():
+                raise ValueError(f"a {name} point {pts[bad.any(axis=1)][0].tolist()} does not fit {p.bits} bits")
+        bad = (voxels < 0) | (voxels >= p.voxel_depth)
+        if bad.any():
+            raise CapacityError(f"voxel {int(voxels[bad][0])} does not fit the board (voxel_depth {p.voxel_depth})")
+
+        # one row of bytes per command (header, payload), kept up to its length: the rows in
+        # stream order, flattened, are the stream
+        npts = rows + cols
+        loads = -(-npts // POINTS_PER_LOAD)
+        ncmd = 2 + loads + nvox
+        first = np.cumsum(ncmd) - ncmd                                          # each block's BEGIN_BLOCK
+        vox_bytes = self.command_bytes(Op.VOXEL)
+        slot_size = self.point_slot_layout.size
+        width = max(self.command_bytes(Op.LOAD_POINTS), vox_bytes)
+        table = np.zeros((int(ncmd.sum()), width), dtype=np.uint8)
+        length = np.ones(len(table), dtype=np.int64)
+        table[first, 0] = Op.BEGIN_BLOCK
+        table[first + ncmd - 1, 0] = Op.END_BLOCK
+
+        # LOAD_POINTS: slot j of a block is its row j, then its column j - rows; slot j % 4 of the
+        # block's command j // 4
+        blk = np.repeat(np.arange(nblk), npts)
+        j = np.arange(len(blk)) - np.repeat(np.cumsum(npts) - npts, npts)
+        shooter = j >= rows[blk]
+        index = np.where(shooter, j - rows[blk], j)
+        point = np.empty((len(j), 3), dtype=np.int64)
+        point[shooter] = shooters[(col_off[blk] + index)[shooter]]
+        point[~shooter] = receivers[(row_off[blk] + index)[~shooter]]
+        load_first = np.cumsum(loads) - loads                                   # each block's first LOAD_POINTS
+        command = load_first[blk] + j // POINTS_PER_LOAD
+        place = j % POINTS_PER_LOAD
+        nload = int(loads.sum())
+        values = {"valid": np.ones_like(j), "shooter": shooter.astype(np.int64), "index": index,
+                  ("point", "x"): point[:, 0], ("point", "y"): point[:, 1], ("point", "z"): point[:, 2]}
+        columns = {}
+        for path, _, _ in leaves(self.arg_layout["load_points"].shape):
+            col = np.zeros(nload, dtype=np.int64)
+            here = place == path[0]
+            col[command[here]] = values[path[1] if len(path) == 2 else path[1:]][here]
+            columns[path] = col
+        payload = pack_bytes(self.arg_layout["load_points"].shape, columns) if nload else np.zeros((0, width - 1), np.uint8)
+        carried = np.bincount(command, minlength=nload)                         # slots in each command
+        load_rows = np.repeat(first + 1, loads) + np.arange(nload) - np.repeat(load_first, loads)
+        table[load_rows, 0] = Op.LOAD_POINTS | (carried - 1) << 4
+        table[load_rows, 1:1 + payload.shape[1]] = payload
+        length[load_rows] = 1 + -(-carried * slot_size // 8)
+
+        # VOXEL: the voxel number's bytes, least significant first
+        vox_rows = np.repeat(first + 1 + loads, nvox) + np.arange(len(voxels)) - np.repeat(vox_off[:-1] - vox_off[0], nvox)
+        table[vox_rows, 0] = Op.VOXEL
+        for k in range(vox_bytes - 1):
+            table[vox_rows, 1 + k] = voxels >> 8 * k & 0xFF
+        length[vox_rows] = vox_bytes
+        return table[np.arange(width) < length[:, None]].tobytes()
 
     def decode_commands(self, stream):
         """The typed commands of a wire-format byte string (the inverse of :meth:`encode_all`)."""
@@ -441,6 +521,18 @@ class BoardProtocol:
             raise ParameterError(f"result tag {value['kind']} is not a result kind") from None
         member = self._members[kind]
         return BoardResult(kind, **{member: value["data"][member]})
+
+    def decode_blocked(self, data, count):
+        """``count`` END_BLOCK results' wire bytes at once: ``(tags, bits)``, each result's tag
+        ((count,) int) and its blocked bits ((count, R * S) bool, bit ``r * S + s`` as
+        :meth:`decode_result`'s ``blocked``), without a Python loop. The bits mean something only
+        where the tag is :attr:`ResultKind.BLOCKED`; the caller checks the tags."""
+        n = self.result_bytes(ResultKind.BLOCKED)
+        raw = np.frombuffer(bytes(data), dtype=np.uint8, count=count * n).reshape(count, n)
+        tags = (raw[:, 0] & ((1 << self._kind_width) - 1)).astype(np.int64)
+        bits = np.unpackbits(raw, axis=1, bitorder="little")
+        lo = self.result_layout["data"].offset
+        return tags, bits[:, lo:lo + self._params.processors].astype(bool)
 
     def reader(self):
         return ResultReader(self)

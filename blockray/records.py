@@ -9,6 +9,8 @@ read field offsets from the same layout object (no hand-written shifts anywhere)
                      host-precomputed normal n = (V1 - V0) x (V2 - V0), signed 2B+2 bits each
 """
 
+import weakref
+
 import numpy as np
 from amaranth.hdl import unsigned, signed, Shape
 from amaranth.lib import data
@@ -78,16 +80,33 @@ def pack(layout, value):
     return bits
 
 
+_fields = {}
+
+
+def _leaf_fields(layout):
+    """:func:`leaves` of ``layout`` as ``(path, offset, width, signed)``, computed once per layout
+    object while it lives: walking a layout through Amaranth costs far more than the unpacking.
+    Keyed by identity (comparing layouts by value walks them too)."""
+    key = id(layout)
+    hit = _fields.get(key)
+    if hit is not None and hit[0]() is layout:
+        return hit[1]
+    fields = tuple((path, offset, shape.width, shape.signed) for path, offset, shape in leaves(layout))
+    _fields[key] = (weakref.ref(layout, lambda _, key=key: _fields.pop(key, None)), fields)
+    return fields
+
+
 def unpack(layout, bits):
     """Unpack an int into a nested dict (lists for array layouts) of Python ints.
 
     Every member of a union is unpacked (each is a view of the same bits, as in Amaranth).
     """
     out = {}
-    for path, offset, shape in leaves(layout):
-        v = (int(bits) >> offset) & ((1 << shape.width) - 1)
-        if shape.signed and v >> (shape.width - 1):
-            v -= 1 << shape.width
+    bits = int(bits)
+    for path, offset, width, signed in _leaf_fields(layout):
+        v = (bits >> offset) & ((1 << width) - 1)
+        if signed and v >> (width - 1):
+            v -= 1 << width
         node = out
         for key in path[:-1]:
             node = node.setdefault(key, {})

@@ -132,11 +132,11 @@ class BoardDriver(CountingBoard):
         p = self.params
         for block in blocks:
             self.check_block(block)
+        batch = BlockBatch.from_blocks(blocks)
         if self.rays is None:
-            wire = b"".join(self.protocol.encode_all(self.memory.block_commands(b)) for b in blocks)
+            wire = self._block_wire(batch)
         else:
-            wire = self.rays.encode_all(column_commands(BlockBatch.from_blocks(blocks), self._address,
-                                                        self._samples.count, p.cols))
+            wire = self.rays.encode_all(column_commands(batch, self._address, self._samples.count, p.cols))
         snaps, words = self._exchange([wire + self._read_counters] * p.boards, blocks=len(blocks))
         diff = {name: snaps[name] - self._last[name] for name in self._last}
         self._last = snaps
@@ -147,12 +147,16 @@ class BoardDriver(CountingBoard):
         self._rays += sum(b.rays for b in blocks)
         self._voxels += sum(len(b.voxels) for b in blocks)
         self._links_used.update(range(p.boards))
-        ored = [0] * len(blocks)
-        for board_words in words:
-            for k, w in enumerate(board_words):
-                ored[k] |= w
-        bits = blocked_bits(ored, p.rows, p.cols)
+        bits = np.logical_or.reduce(words).reshape(len(blocks), p.rows, p.cols)
         return [bits[k, :len(bl.receiver_patch), :len(bl.shooter_patch)].copy() for k, bl in enumerate(blocks)]
+
+    def _block_wire(self, batch):
+        """The command stream of a batch's block rays (each block's :meth:`BoardMemories.block_commands
+        <blockray.memory.BoardMemories.block_commands>`), encoded in bulk."""
+        q = self.memory.q
+        return self.protocol.encode_blocks(q.end_points(batch.receiver_patch, batch.receiver_weights), batch.row_off,
+                                           q.shooters[batch.shooter_patch, batch.shooter_sample], batch.col_off,
+                                           batch.voxels, batch.vox_off)
 
     def _rays_on_board(self, grid):
         """The protocol of rays made on the board, once every board can take it; each patch's
@@ -251,7 +255,7 @@ class BoardDriver(CountingBoard):
 
     def _exchange(self, batches, *, blocks):
         """Send each board its batch (``blocks`` END_BLOCKs then one READ_COUNTERS); return the
-        counter snapshots as (P,) arrays per counter, and (if ``blocks``) each board's blocked words."""
+        counter snapshots as (P,) arrays per counter, and (if ``blocks``) each board's blocked bits ((blocks, R * S) bool)."""
         proto = self.protocol
         nb, nc = proto.result_bytes(ResultKind.BLOCKED), proto.result_bytes(ResultKind.COUNTERS)
         expect = blocks * nb + nc
@@ -266,14 +270,17 @@ class BoardDriver(CountingBoard):
         words = []
         for b, t in enumerate(self.transports):
             data = self._recv(t, expect)
-            results = [self._decode(b, t, data[k * nb:(k + 1) * nb]) for k in range(blocks)]
-            results.append(self._decode(b, t, data[blocks * nb:]))
-            kinds = [r.kind for r in results]
-            if kinds != [ResultKind.BLOCKED] * blocks + [ResultKind.COUNTERS]:
-                raise TransportError(f"board {b}: result kinds {[k.name for k in kinds[:8]]}... do not follow the commands")
-            words.append([r.blocked for r in results[:-1]])
+            tags, bits = proto.decode_blocked(data, blocks)
+            if (tags != ResultKind.BLOCKED).any():      # decoded one by one: the error names what came
+                results = [self._decode(b, t, data[k * nb:(k + 1) * nb]) for k in range(blocks)]
+                raise TransportError(f"board {b}: result kinds {[r.kind.name for r in results[:8]]}... do not "
+                                     f"follow the commands")
+            last = self._decode(b, t, data[blocks * nb:])
+            if last.kind is not ResultKind.COUNTERS:
+                raise TransportError(f"board {b}: answered READ_COUNTERS with a {last.kind.name} result")
+            words.append(bits)
             for name in snaps:
-                snaps[name].append(results[-1].counters[name])
+                snaps[name].append(last.counters[name])
         snaps = {name: np.array(v, dtype=np.int64) for name, v in snaps.items()}
         return (snaps, words) if blocks else snaps
 
