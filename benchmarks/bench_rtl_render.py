@@ -10,7 +10,10 @@ renderer's block rays of ``--shooters`` shooter columns (one batch per shooter, 
 does) through three boards:
 
 * ``native``: ``--board verilator``, the BoardDriver over one
-  :class:`~blockray.host_driver.board.native.NativeTransport` per board (the C++ loop, sim/native/);
+  :class:`~blockray.host_driver.board.native.NativeTransport` per board (the C++ loop, sim/native/;
+  the commands go to each board as whole records, one a clock cycle);
+* ``bytes``: the same build and transport with ``records=False``: the commands' bytes one a clock
+  cycle over the board's byte stream;
 * ``cocotb``: the BoardDriver over one :class:`~blockray.host_driver.board.simulated.VerilatorTransport`
   per board (one Verilator process per board under cocotb, sim/rtl_harness.py);
 * ``model``: :class:`~blockray.sim.model.ModelBoard`.
@@ -55,8 +58,11 @@ COUNTERS = ("board_cycles", "tests_issued", "tests_useful", "board_cycles_per_bo
 
 
 def _boards(params):
+    from blockray.host_driver.board.native import NativeTransport
     from blockray.host_driver.board.simulated import VerilatorTransport
     return {"native": lambda: make_board("verilator", params),
+            "bytes": lambda: BoardDriver(params, name="verilator",
+                                         transport=lambda p, b: NativeTransport(p, records=False)),
             "cocotb": lambda: BoardDriver(params, name="verilator-cocotb",
                                           transport=lambda p, b: VerilatorTransport(p)),
             "model": lambda: ModelBoard(params)}
@@ -97,6 +103,7 @@ def speed(shooters, routes):
     print(f"cornell: {scene.patches} patches, B = {reference.params.bits}, {params.boards} boards x {params.rows} x "
           f"{params.cols}; {shooters} shooter columns, {sum(len(b) for b in columns)} block rays, "
           f"{mc['board_cycles']} board cycles ({board_cycles} summed over the boards)")
+    host_codec(params, scene, samples, columns)
     print(f"{'route':8} {'build s':>8} {'setup s':>8} {'batches s':>10} {'host s':>7} {'clock cycles/s':>15} "
           f"{'board cycles/s':>15}")
     for name in routes:
@@ -121,6 +128,45 @@ def speed(shooters, routes):
         clock = f"{cycles / wall:,.0f}" if trs else "-"
         print(f"{name:8} {built:>8} {setup:8.1f} {wall:10.2f} {host if trs else wall:7.2f} {clock:>15} "
               f"{board_cycles / wall:15,.0f}", flush=True)
+
+
+def host_codec(params, scene, samples, columns):
+    """The driver's host work on part 1's batches, per record (``encode_all`` over each block's
+    typed commands, ``decode_result`` per result) against in bulk (``encode_blocks``,
+    ``decode_blocked``: what the driver runs), both checked to give the same bytes and bits."""
+    from blockray.board import BlockBatch
+    from blockray.protocol import BoardResult, ResultKind
+
+    drv = _loaded(make_board("model-link", params), scene, samples)
+    proto = drv.protocol
+    times = {"per record": [0.0, 0.0], "bulk": [0.0, 0.0]}
+    for blocks in columns:
+        t0 = time.perf_counter()
+        old = b"".join(proto.encode_all(drv.memory.block_commands(b)) for b in blocks)
+        t1 = time.perf_counter()
+        new = drv._block_wire(BlockBatch.from_blocks(blocks))
+        t2 = time.perf_counter()
+        assert old == new, "the bulk commands differ"
+        times["per record"][0] += t1 - t0
+        times["bulk"][0] += t2 - t1
+        words = [int(w) for w in np.random.default_rng(len(blocks)).integers(0, 1 << 62, len(blocks))]
+        words = [w & ((1 << params.processors) - 1) for w in words]
+        wire = b"".join(proto.result_wire(BoardResult(ResultKind.BLOCKED, blocked=w)) for w in words)
+        nb = proto.result_bytes(ResultKind.BLOCKED)
+        t0 = time.perf_counter()
+        old = [proto.decode_result(wire[k * nb:(k + 1) * nb]).blocked for k in range(len(blocks))]
+        t1 = time.perf_counter()
+        _, bits = proto.decode_blocked(wire, len(blocks))
+        t2 = time.perf_counter()
+        assert old == words and (np.packbits(bits, axis=1, bitorder="little") ==
+                                 np.array([list(w.to_bytes(-(-params.processors // 8), "little")) for w in words])).all()
+        times["per record"][1] += t1 - t0
+        times["bulk"][1] += t2 - t1
+    drv.close()
+    rays = sum(len(b) for b in columns)
+    for name, (enc, dec) in times.items():
+        print(f"host {name}: encode {enc:.2f} s ({1e3 * enc / rays:.3f} ms a block ray), decode {dec:.2f} s "
+              f"({1e3 * dec / rays:.3f} ms a result)", flush=True)
 
 
 def full(scene_name):
@@ -177,7 +223,7 @@ def clock(libraries, cycles, repeat):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shooters", type=int, default=20, help="shooter columns for the speed measurement")
-    ap.add_argument("--routes", default="native,cocotb,model", help="comma-separated: native, cocotb, model")
+    ap.add_argument("--routes", default="native,cocotb,model", help="comma-separated: native, bytes, cocotb, model")
     ap.add_argument("--full", action="store_true", help="also render the whole scene, native and model")
     ap.add_argument("--scene", default="cornell", help="--full: the built-in scene")
     ap.add_argument("--no-speed", action="store_true", help="skip part 1")

@@ -47,20 +47,28 @@ class BoardCore(wiring.Component):
     Ports
     ``i_bytes``  In stream of bytes: commands in the wire format.
     ``o_bytes``  Out stream of bytes: results in the wire format.
+    ``i_records``  (``records``: simulation only, the native harness) In stream of whole command
+                   records (:attr:`~blockray.protocol.BoardProtocol.command_layout`), one a cycle,
+                   between the byte stream's commands: a record costs the board what the same
+                   command's bytes cost, without the clock cycles of its bytes.
 
     ``board`` is the wrapped :class:`BoardTop` (its ``params``, ``protocol``, ``timing`` and
     latencies are this core's); ``cell``, ``patch_init``, ``table_init`` are passed to it.
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=(), cell=Cell(), rays=False):
+    def __init__(self, params, *, patch_init=(), table_init=(), cell=Cell(), rays=False, records=False):
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
         self.board = BoardTop(params, patch_init=patch_init, table_init=table_init, cell=cell, rays=rays)
         self._rays = rays
-        super().__init__({
+        self._records = records
+        ports = {
             "i_bytes": In(stream.Signature(8)),
             "o_bytes": Out(stream.Signature(8)),
-        })
+        }
+        if records:
+            ports["i_records"] = In(stream.Signature(self.board.protocol.command_layout))
+        super().__init__(ports)
 
     @property
     def params(self):
@@ -106,6 +114,17 @@ class BoardCore(wiring.Component):
         rays = self._ray_items(m, top, out_valid) if self._rays else None
         if rays is not None:
             free = free & rays.free
+        if self._records:
+            # a whole command record a cycle (simulation only): the board sees it as the deframer's
+            # output, so it costs the same board cycles; it goes only while no command is on the
+            # byte side (none being collected, none waiting, no ray command's items left)
+            between = ~out_valid & ~collecting
+            if rays is not None:
+                between = between & rays.free & ~rays.samples
+            with m.If(~out_valid):
+                m.d.comb += [top.commands.payload.eq(self.i_records.payload),
+                             top.commands.valid.eq(self.i_records.valid & between)]
+            m.d.comb += self.i_records.ready.eq(between & top.commands.ready)
         m.d.comb += self.i_bytes.ready.eq(free)
         byte = self.i_bytes.payload
         take = self.i_bytes.valid & free

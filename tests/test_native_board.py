@@ -116,7 +116,7 @@ def test_reset_is_the_amaranth_transports_cycle_for_cycle(stalls):
                 backpressure=HostTiming(0.3, burst=0.01, burst_length=(4, 40)), seed=7) if stalls else {}
     runs = {}
     for name, cls in (("amaranth", AmaranthTransport), ("native", NativeTransport)):
-        t = cls(PARAMS, **host)
+        t = cls(PARAMS, **host) if name == "amaranth" else cls(PARAMS, records=False, **host)
         try:
             t.reset()                                   # before any cycle
             t.send(proto.encode_all([Voxel(0), Voxel(1), ReadCounters()] + [Voxel(2)] * 40 + [ReadCounters()]))
@@ -134,6 +134,70 @@ def test_reset_is_the_amaranth_transports_cycle_for_cycle(stalls):
     assert {k: v for k, v in nident.items() if k != "version"} == {k: v for k, v in aident.items() if k != "version"}
     assert (nfirst, nafter) == (afirst, aafter)
     assert ncycles == acycles, f"clock cycles: native {ncycles}, amaranth {acycles}"
+
+
+@pytest.mark.cocotb
+def test_records_answer_as_the_bytes_in_fewer_clock_cycles(rng_seed):
+    """A quiet host's commands go to the board as whole records (sim/native/harness.cpp,
+    ``BoardCore(records=True)``): random memory writes, blocks and counter reads answer the same
+    results (the board cycles and every counter but ``stalls``, the link's) as over the byte
+    stream, in fewer clock cycles; a stream cut inside a command waits for its rest; an unknown opcode (dropped by the
+    board) sends it and the rest over the byte stream; after a reset, records again."""
+    from blockray.host_driver.board.native import NativeTransport
+    from blockray.protocol import (BeginBlock, BoardProtocol, EndBlock, Identify, LoadPoints, ReadCounters, ResultKind,
+                                   Voxel, WritePatch, WriteVoxel)
+    from blockray.records import patch_layout
+
+    seed = rng_seed
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    proto = BoardProtocol(PARAMS)
+    top, depth = 1 << PARAMS.bits, 40
+    point = lambda: tuple(int(c) for c in rng.integers(0, top, 3))              # noqa: E731
+    patches = [WritePatch(a, int.from_bytes(rng.bytes(32), "little") % (1 << patch_layout(PARAMS.bits).size))
+               for a in range(depth)]
+    table = [WriteVoxel(v, int(s), int(rng.integers(0, depth - s + 1))) for v, s in enumerate(rng.integers(0, depth, 8))]
+
+    def blocks(n):
+        out = []
+        for _ in range(n):
+            slots = [(bool(rng.integers(2)), int(rng.integers(2)), point()) for _ in range(int(rng.integers(1, 5)))]
+            out += [BeginBlock(), LoadPoints(tuple(slots))] + [Voxel(int(v)) for v in rng.integers(0, 8, 3)] + [EndBlock()]
+        return out
+
+    length = {EndBlock: ResultKind.BLOCKED, ReadCounters: ResultKind.COUNTERS, Identify: ResultKind.IDENTITY}
+    answers = lambda cs: sum(proto.result_bytes(length[type(c)]) for c in cs if type(c) in length)    # noqa: E731
+    first = [Identify()] + patches + table + [ReadCounters()] + blocks(12) + [ReadCounters()]
+    wire = proto.encode_all(first)
+    cut = len(proto.encode_all(first[:-3])) + 1                 # after the header of the last block's last VOXEL
+    done, _ = proto.decode_prefix(wire[:cut])
+    second = blocks(6) + [ReadCounters()]
+    third = blocks(5) + [ReadCounters()]
+    runs = {}
+    for records in (True, False):
+        t = NativeTransport(PARAMS, records=records)
+        try:
+            t.send(wire[:cut])
+            got = t.recv(answers(done))                         # the board waits for the rest of the command
+            t.send(wire[cut:])
+            got += t.recv(answers(first) - answers(done))
+            t.send(proto.encode_all(second[:3]) + bytes([0x0F]) + proto.encode_all(second[3:]))
+            got += t.recv(answers(second))
+            t.reset()
+            t.send(proto.encode_all(patches + table + third))
+            got += t.recv(answers(third))
+            runs[records] = (got, t.stats()["simulated_clock_cycles"])
+        finally:
+            t.close()
+    (rgot, rcycles), (bgot, bcycles) = runs[True], runs[False]
+
+    def results(data):              # the stalls counter counts the link's clock cycles: not the board's
+        out = [proto.decode_result(r) for r in proto.reader().feed(data)]
+        return [r.counters | {"stalls": None} if r.kind is ResultKind.COUNTERS else r for r in out]
+
+    assert len(rgot) == len(bgot) and results(rgot) == results(bgot)
+    assert results(rgot)[-1]["cycles"] > 0
+    assert rcycles < bcycles, f"clock cycles: records {rcycles}, bytes {bcycles}"
 
 
 @pytest.fixture(scope="module")

@@ -69,12 +69,14 @@ def test_every_backend_renders_the_small_scene(scene, renders):
         assert got.report["link"] == renders["model-link"].report["link"]
         if name == "model-link":
             continue
-        # every board cycle was simulated: each board ran its load and its blocks, and the bytes
-        # of every command crossed the link one per clock cycle
+        # every board cycle was simulated: each board ran its load and its blocks; through the
+        # Amaranth simulator the bytes of every command crossed the link one per clock cycle, the
+        # native harness handed the board whole command records (sim/native/harness.cpp)
         for b, t in enumerate(driver["transports"]):
             assert t["simulated_clock_cycles"] >= (model.report["board_cycles_per_board"][b]
                                                    + model.report["load_cycles_per_board"][b])
-        assert sum(t["simulated_clock_cycles"] for t in driver["transports"]) >= got.report["link"]["bytes_sent"]
+        clock = sum(t["simulated_clock_cycles"] for t in driver["transports"])
+        assert clock >= got.report["link"]["bytes_sent"] if name == "amaranth" else clock < got.report["link"]["bytes_sent"]
     # the golden float64 board: the same picture up to the quantisation of the scene
     golden = renders["golden"]
     rel = np.abs(golden.radiosity - model.radiosity).max() / model.radiosity.max()

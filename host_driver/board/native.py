@@ -22,6 +22,11 @@ _builds = {}
 _builds_lock = threading.Lock()
 
 
+def _record_ports():
+    from ...sim.native import Ports
+    return Ports(records="i_records")
+
+
 def native_build(params, *, cell=Cell(), trace=False):
     """The native harness of :class:`~blockray.rtl.core.BoardCore` for ``params`` (built once per
     process and design, cached on disk by content and found there by parameters and RTL source
@@ -34,8 +39,8 @@ def native_build(params, *, cell=Cell(), trace=False):
         if key not in _builds:
             compiler_version()              # before the conversion: a missing compiler says so at once
             name = f"native_{params.rows}x{params.cols}_b{params.bits}" + (f"_{cell.kind}" if cell.filtered else "")
-            _builds[key] = build_native(lambda: BoardCore(params, cell=cell, rays=True), name=name, trace=trace,
-                                        source=repr((params, cell, "rays")))
+            _builds[key] = build_native(lambda: BoardCore(params, cell=cell, rays=True, records=True), name=name,
+                                        trace=trace, ports=_record_ports(), source=repr((params, cell, "rays", "records")))
         return _builds[key]
 
 
@@ -47,11 +52,17 @@ class NativeTransport(_Buffered):
     streams, ``seed`` seeds them (as :class:`~blockray.host_driver.board.simulated.AmaranthTransport`).
     ``vcd``: build with ``--trace`` and write a waveform. ``patience``: clock cycles without a byte
     moving, once every command byte was taken, before :meth:`recv` gives up (default: longer than
-    any command takes, as the Amaranth transport)."""
+    any command takes, as the Amaranth transport). ``records``: with a quiet host (no idle, no
+    back-pressure) hand the board each command as a whole record, one a clock cycle, instead of
+    its bytes one a clock cycle (the same board cycles and results; :class:`~blockray.sim.native.RecordFormat`);
+    False: the byte stream, cycle for cycle as the Amaranth transport. Host timing always drives
+    the byte stream."""
 
-    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell=Cell(), patience=None):
+    def __init__(self, params, *, vcd=None, idle=None, backpressure=None, seed=0, cell=Cell(), patience=None,
+                 records=True):
+        from ...protocol import BoardProtocol
         from ...sim.drive import HostTiming
-        from ...sim.native import NativeBoard
+        from ...sim.native import NativeBoard, RecordFormat
 
         super().__init__(vcd=vcd)
         self.params = params
@@ -60,9 +71,14 @@ class NativeTransport(_Buffered):
         self.build_seconds = time.perf_counter() - t0
         # the Verilated model is not thread-safe: every call on the board runs on this one thread
         self._thread = ThreadPoolExecutor(1, thread_name_prefix="blockray-native")
+        idle, backpressure = idle or HostTiming(), backpressure or HostTiming()
+        # a quiet host hands the board whole command records (the same board cycles, a fifth of the
+        # clock cycles); host timing drives the byte stream as sim/drive.py does
+        quiet = idle.never and backpressure.never
+        records = RecordFormat.of(BoardProtocol(params)) if records and quiet else None
         self._board = self._thread.submit(
-            NativeBoard, self.build, idle=idle or HostTiming(), backpressure=backpressure or HostTiming(), seed=seed,
-            vcd=vcd, patience=patience or params.patch_depth + 4096).result()
+            NativeBoard, self.build, idle=idle, backpressure=backpressure, seed=seed, vcd=vcd,
+            patience=patience or params.patch_depth + 4096, records=records).result()
         self._out = bytearray()
         self._pending = None
         self.simulator_seconds = 0.0

@@ -32,7 +32,7 @@ from .share import register_reset, share_modules
 
 HERE = Path(__file__).resolve().parent
 
-__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "UartPorts", "VectorPorts", "load_library", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
+__all__ = ["BUILD_ARGS", "CXXFLAGS", "Ports", "RecordFormat", "UartPorts", "VectorPorts", "load_library", "compiler_version", "NativeBuild", "NativeBuildError", "NativeRunError", "build_native",
            "rtl_source_hash", "NativeBoard", "seed_words"]
 
 #: Verilator's arguments (measured: docs/rtl-render.md)
@@ -78,14 +78,50 @@ class Ports:
     #: the top's reset made a register loaded from :data:`RESET_PORT` (:func:`~blockray.sim.native.share.register_reset`;
     #: harness.cpp raises that port a cycle early)
     registered_reset: bool = True
+    #: the top's stream of whole command records (``BoardCore(records=True)``'s ``i_records``), or
+    #: None: harness.cpp feeds it when :class:`NativeBoard` is given a :class:`RecordFormat`
+    records: str = None
     #: the C++ loop these ports fit (in sim/native)
     harness = "harness.cpp"
 
     def header(self, trace):
         rst = RESET_PORT if self.registered_reset else self.rst
-        return _config(trace, {"CLK": self.clk, "RST": rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
-                                "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
-                                "O_PAYLOAD": self.o_payload}) + ("#define BR_RESET_REGISTERED 1\n" if self.registered_reset else "")
+        names = {"CLK": self.clk, "RST": rst, "I_VALID": self.i_valid, "I_READY": self.i_ready,
+                 "I_PAYLOAD": self.i_payload, "O_VALID": self.o_valid, "O_READY": self.o_ready,
+                 "O_PAYLOAD": self.o_payload}
+        if self.records is not None:
+            names.update({"R_VALID": f"{self.records}__valid", "R_READY": f"{self.records}__ready",
+                          "R_PAYLOAD": f"{self.records}__payload"})
+        return (_config(trace, names) + ("#define BR_RESET_REGISTERED 1\n" if self.registered_reset else "")
+                + ("#define BR_RECORDS 1\n" if self.records is not None else ""))
+
+
+@dataclass(frozen=True)
+class RecordFormat:
+    """How harness.cpp cuts the command bytes into records (:meth:`of` a
+    :class:`~blockray.protocol.BoardProtocol`): per header kind (``op * 4 + points - 1``) the
+    payload bytes (-1: the opcode goes over the byte stream) and the record's argument bits, and
+    the op's bits below the argument."""
+    payload: tuple
+    arg_bits: tuple
+    arg_offset: int
+
+    @classmethod
+    def of(cls, protocol):
+        """The block protocol's commands (:class:`~blockray.protocol.Op`) as records, as the
+        deframer of :class:`~blockray.rtl.core.BoardCore` makes them: a LOAD_POINTS record holds
+        the slots it carries, any other its payload cut to the argument's width; other opcodes
+        (the ray commands) as bytes."""
+        from ...protocol import Op
+
+        payload, arg_bits = [-1] * 64, [0] * 64
+        for op in Op:
+            for n in range(4):
+                points = n + 1 if op is Op.LOAD_POINTS else 4
+                payload[4 * op + n] = protocol.command_bytes(op, points) - 1
+                arg_bits[4 * op + n] = (points * protocol.point_slot_layout.size if op is Op.LOAD_POINTS
+                                        else protocol.arg_layout.size)
+        return cls(tuple(payload), tuple(arg_bits), protocol.command_layout["arg"].offset)
 
 
 @dataclass(frozen=True)
@@ -300,6 +336,10 @@ def _bind(lib):
     lib.br_run.argtypes = [ctypes.c_void_p, ctypes.c_char_p, size, u8p, size, size, ctypes.c_uint64,
                            ctypes.POINTER(size)]
     lib.br_run.restype = ctypes.c_int
+    if hasattr(lib, "br_records"):         # not in a library built before it
+        lib.br_records.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int),
+                                   ctypes.c_int]
+        lib.br_records.restype = ctypes.c_int
 
 
 def seed_words(seed):
@@ -313,15 +353,20 @@ class NativeBoard:
     :class:`~blockray.sim.drive.HostTiming` of the host on the command and result streams, drawn
     from ``random.Random(seed)`` as :class:`~blockray.sim.drive.StreamHost` does; ``vcd``: a
     waveform file (a ``trace`` build). ``patience``: clock cycles without a byte moving, with no
-    command byte left to offer, before :meth:`run` gives up.
+    command byte left to offer, before :meth:`run` gives up. ``records``: a :class:`RecordFormat`
+    (a build with :attr:`Ports.records`, a quiet host: ``idle`` and ``backpressure`` never
+    stall): the commands go to the board as whole records, one a clock cycle (harness.cpp).
 
     The Verilated model is not thread-safe: call every method from one thread."""
 
     CHUNK = 1 << 16
 
-    def __init__(self, build, *, idle=HostTiming(), backpressure=HostTiming(), seed=0, vcd=None, patience=1 << 16):
+    def __init__(self, build, *, idle=HostTiming(), backpressure=HostTiming(), seed=0, vcd=None, patience=1 << 16,
+                 records=None):
         if vcd is not None and not build.trace:
             raise ValueError("a waveform needs a build with trace=True")
+        if records is not None and not (idle.never and backpressure.never):
+            raise ValueError("records need a quiet host: host timing drives the byte stream, as sim/drive.py does")
         self._lib = load_library(build.library, _bind)
         key = seed_words(seed)
         self.patience = patience
@@ -329,6 +374,12 @@ class NativeBoard:
                                     idle.rate, idle.burst, *idle.burst_length,
                                     backpressure.rate, backpressure.burst, *backpressure.burst_length,
                                     None if vcd is None else str(vcd).encode())
+        if records is not None:
+            ints = lambda v: (ctypes.c_int * len(v))(*v)                        # noqa: E731
+            if not (hasattr(self._lib, "br_records")
+                    and self._lib.br_records(self._h, ints(records.payload), ints(records.arg_bits), records.arg_offset)):
+                self.close()
+                raise ValueError(f"{build.library} was built without a record stream")
 
     @property
     def cycles(self):
