@@ -1,7 +1,7 @@
 """Error against speed: --solver hierarchical against the uniform progressive solve.
 
     python benchmarks/bench_hierarchical.py cornell --reference-edge 70 --check-edge 100 \
-        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4 --link-rays samples,centroid \
+        --uniform-edges 300,200,100 --epsilons 1e-2,3e-3,1e-3,3e-4,1e-4 --link-rays spread --clustering on,off \
         --plot docs/img/hierarchical-cornell.png
 
 The reference is a uniform Jacobi solve on the golden board (``--reference-edge``,
@@ -76,7 +76,8 @@ def run(reference, name, edge, **options):
     result = render(scene, backend="model", **options)
     r = result.report
     return {"patches": scene.patches, "rays": r["rays"], "cpu": r["cpu_seconds"]["total"],
-            "error": error(reference, result), "leaves": r.get("leaves", scene.patches), "links": r.get("links", "")}
+            "error": error(reference, result), "leaves": r.get("leaves", scene.patches),
+            "links": r["links"] + r["cluster_links"] if "cluster_links" in r else r.get("links", "")}
 
 
 def main(argv=None):
@@ -92,8 +93,10 @@ def main(argv=None):
     ap.add_argument("--hierarchical-edges", default=f"{RAW:g}",
                     help="the hierarchical runs' input meshes, each in turn (comma-separated max edges; "
                          f"{RAW:g}: the input triangles)")
-    ap.add_argument("--link-rays", default="samples,centroid",
+    ap.add_argument("--link-rays", default="spread",
                     help="the hierarchical runs' --link-rays, each in turn (comma-separated)")
+    ap.add_argument("--clustering", default="on",
+                    help="the hierarchical runs' --clustering, each in turn (comma-separated on/off)")
     ap.add_argument("--tolerance", type=float, default=1e-3)
     ap.add_argument("--cache", default=os.environ.get("TMPDIR", "/tmp"))
     ap.add_argument("--plot", metavar="PNG", help="write error against rays and CPU seconds")
@@ -110,7 +113,9 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|")
     modes = args.link_rays.split(",")
     starts = [float(x) for x in args.hierarchical_edges.split(",")]
-    label = lambda mode, edge: f"hierarchical, {mode}" + ("" if edge == RAW else f", from max edge {edge:g}")
+    modes = [(m, c == "on") for c in args.clustering.split(",") for m in modes]
+    label = lambda mode, edge: (f"hierarchical, {mode[0]}" + ("" if mode[1] else ", no clustering")
+                                + ("" if edge == RAW else f", from max edge {edge:g}"))
     rows = {"progressive": [], **{label(m, e): [] for e in starts for m in modes}}
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
@@ -121,7 +126,7 @@ def main(argv=None):
         for mode in modes:
             for eps in (float(x) for x in args.epsilons.split(",")):
                 r = run(ref, args.scene, edge, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10,
-                        link_rays=mode)
+                        link_rays=mode[0], clustering=mode[1])
                 rows[label(mode, edge)].append(r)
                 print(f"| {label(mode, edge)} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
                       f"{r['cpu']:.2f} | {r['error']:.4f} |", flush=True)

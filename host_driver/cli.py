@@ -17,6 +17,12 @@ from ..errors import BlockrayError, Spelled
 __all__ = ["main"]
 
 
+def _on_off(text):
+    if text not in ("on", "off"):
+        raise argparse.ArgumentTypeError(f"must be on or off, not {text!r}")
+    return text == "on"
+
+
 def _positive_float(text):
     try:
         value = float(text)
@@ -218,6 +224,9 @@ def _render_parser(sub):
                         "a different one per link (spread: K rays), or to every one of them (samples: K x K rays), "
                         "each weighed by the point-to-point kernel; or to the receiver's centroid (centroid: K rays; "
                         "biased where a shadow covers part of a receiver)")
+    p.add_argument("--clustering", type=_on_off, default=True, metavar="{on,off}",
+                   help="hierarchical: link clusters of input triangles while the power they can carry is under "
+                        "--epsilon, so the initial links grow about as s log s, not s**2 (default on)")
     p.add_argument("--min-area", type=_positive_float, default=None, metavar="AREA",
                    help="hierarchical: smallest element area (scene units squared; default: 3 levels below each "
                         "input triangle)")

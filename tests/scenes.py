@@ -337,3 +337,18 @@ def _ring(points):
     """The corners of a convex polygon on the floor, in order round its centre (x, z plane)."""
     c = points.mean(axis=0)
     return points[np.argsort(np.arctan2(points[:, 2] - c[2], points[:, 0] - c[0]))]
+
+
+def two_walls_and_blocker():
+    """Two walls of 8 triangles (2 x 2 units) facing each other 6 apart, the far one emitting, and a
+    square blocker between them: far enough apart for cluster links (hierarchical clustering), few
+    enough rays for the RTL boards; every coordinate dyadic."""
+    x, y, z = np.eye(3)
+    def grid(origin, u, v):
+        cells = [origin + i * u + j * v for i in range(2) for j in range(2)]
+        return np.array([t for o in cells for t in ([o, o + u, o + u + v], [o, o + u + v, o + v])])
+    blocker = rectangle(np.array([3.0, 0.5, 0.375]), z * 0.75, y * 0.875, 1, 1)
+    tris = np.concatenate([grid(np.zeros(3), y, z), grid(6.0 * x, z, y), blocker])
+    emission = np.zeros((len(tris), 3))
+    emission[8:16] = 1.0
+    return make_scene(tris, emission=emission)

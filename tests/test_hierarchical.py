@@ -439,6 +439,7 @@ def test_model_and_golden_same_blocked_bits(link_rays, sample_points):
                                             ({"closure": "symmetric"}, "closure"),
                                             ({"end_points": "kernel"}, "end_points"),
                                             ({"link_rays": "rows"}, "link_rays"),
+                                            ({"clustering": "yes"}, "clustering"),
                                             ({"sample_points": "rows"}, "sample_points")])
 def test_bad_options_named(flat, parameter):
     from blockray.host_driver.render.options import RenderOptions
@@ -455,20 +456,24 @@ def test_min_area_too_deep_is_refused():
 
 
 @pytest.mark.cocotb
-def test_rtl_boards_same_blocked_bits():
+@pytest.mark.parametrize("clustered", [False, True])
+def test_rtl_boards_same_blocked_bits(clustered):
     """The simulated RTL (verilator) and the model behind a link give every link the same
     visible fraction as the model: the same hierarchy and radiosity to the last bit (RTL array
-    2 x 2, P = 2, B = 10: one level of elements, samples 4)."""
-    from scenes import RTL_BITS, RTL_PARAMS
-    scene = _occluded_pair()
+    2 x 2, P = 2, B = 10: one level of elements, samples 4). ``clustered``: a scene whose links
+    are mostly cluster links, their member pairs' rays cast the same way."""
+    from scenes import RTL_BITS, RTL_PARAMS, two_walls_and_blocker
+    scene = two_walls_and_blocker() if clustered else _occluded_pair()
     results = {b: render(scene, backend=b, params=RTL_PARAMS, bits=RTL_BITS, samples=4, voxels=3,
                          solver="hierarchical", epsilon=1e-3, min_area=0.2, tolerance=1e-8)
                for b in ("model", "model-link", "verilator")}
     model = results["model"]
-    assert ((model.solve.links.vis > 0) & (model.solve.links.vis < 1)).any()
+    vis = model.solve.cluster_links.vis if clustered else model.solve.links.vis
+    assert ((vis > 0) & (vis < 1)).any()
     for name in ("model-link", "verilator"):
         got = results[name]
         assert np.array_equal(got.solve.links.vis, model.solve.links.vis), name
+        assert np.array_equal(got.solve.cluster_links.vis, model.solve.cluster_links.vis), name
         assert np.array_equal(got.radiosity, model.radiosity), name
         assert got.report["rays"] == model.report["rays"] and got.report["tests"] == model.report["tests"], name
 

@@ -72,6 +72,8 @@ from ...exact_float import plane_signs, plane_signs_of
 from ..radiosity import formfactor
 from ...board import BlockBatch, BlockBits, ranges
 from ..radiosity.elements import ElementPoints, children_of
+from .clusters import (ClusterLinks, Transfer, build_tree, link_clusters, member_pairs, power_bounds,
+                       split_pairs)
 from ..scene.scene import Scene
 from ..traverse.visibility import Phases
 from ..traverse.voxel import VoxelGrid
@@ -518,36 +520,60 @@ def push_sums(h, x, down):
     return x
 
 
-def shooter_sums(h, links, u, down):
+def shooter_sums(h, links, u, down, transfer=None):
     """Per element: ``sum F_sr v u_r`` over the links whose source is it or an ancestor, the share
-    of a leaf's light its ancestors' links deliver (``F_sr = A_r F_rs / A_s``)."""
+    of a leaf's light its ancestors' links deliver (``F_sr = A_r F_rs / A_s``); cluster links
+    (``transfer``) shoot from input triangles to their receivers' leaves."""
     A = h.areas
-    return push_sums(h, np.bincount(links.src, u[links.recv] * A[links.recv] * links.F * links.vis / A[links.src],
-                                    minlength=len(h)), down)
+    x = np.bincount(links.src, u[links.recv] * A[links.recv] * links.F * links.vis / A[links.src], minlength=len(h)).astype(np.float64)
+    if transfer is not None:
+        N = h.scene.patches
+        x[:N] += transfer.shoot(u * A) / A[:N]
+    return push_sums(h, x, down)
 
 
-def transport_scales(h, links, *, closed=False, tolerance=1e-14, max_iterations=200):
+def cluster_gathered(h, transfer, x):
+    """Per element: what the cluster links (``transfer``, or None) gather on the leaves from ``x``
+    (per element, every input triangle its leaves' mean)."""
+    if transfer is None:
+        return np.zeros((len(h),) + x.shape[1:])
+    return transfer.gather(x[:h.scene.patches])
+
+
+def cluster_transfer(tree, h, clinks):
+    """The cluster links' :class:`~.clusters.Transfer` onto the current leaves (None: no links)."""
+    if not len(clinks):
+        return None
+    leaves = h.leaves()
+    return Transfer(tree, h.scene, clinks, leaves=(leaves, h.patch[leaves], h.vertices(leaves)), size=len(h))
+
+
+def transport_scales(h, links, *, transfer=None, closed=False, tolerance=1e-14, max_iterations=200):
     """Receiver scales ``u`` and source scales ``w`` (per element; used on the leaves) with which
     every leaf gathers and shoots the same factor sum (module docstring, "Balance"): its own
     gathered sum ``g = sum F v``; ``closed``: 1 (0 where a leaf that gathers sees nothing).
-    Leaves of zero reflectance gather nothing, so only ``closed`` sets what they shoot.
+    Leaves of zero reflectance gather nothing, so only ``closed`` sets what they shoot. Cluster
+    links (``transfer``) count in both sums, scaled as element links are.
     Alternating Sinkhorn scaling; returns ``(u, w, info)``."""
     down, up = level_steps(h)
     leaves, n = h.leaves(), len(h)
     Fv = links.F * links.vis
-    g = np.bincount(links.recv, Fv, minlength=n)[leaves]
+    g = (np.bincount(links.recv, Fv, minlength=n) + cluster_gathered(h, transfer, np.ones(n)))[leaves]
     gathers = (h.scene.reflectance[h.patch[leaves]] > 0).any(axis=1)
     target = np.where(gathers, g > 0, 1.0) if closed else g
     u, w = np.ones(n), np.ones(n)
     gathered = target if closed else g
-    raw = shooter_sums(h, links, u, down)[leaves]
+    raw = shooter_sums(h, links, u, down, transfer)[leaves]
     fitted = (raw > 0) & (gathers | closed)
-    rows = lambda: np.bincount(links.recv, Fv * pull_means(h, w.copy(), up)[links.src], minlength=n)[leaves]
+
+    def rows():
+        mean = pull_means(h, w.copy(), up)
+        return (np.bincount(links.recv, Fv * mean[links.src], minlength=n) + cluster_gathered(h, transfer, mean))[leaves]
     history = []
     for it in range(1, max_iterations + 1):
         R = rows()
         u[leaves] = np.divide(gathered, R, out=np.ones_like(R), where=R > 0)
-        shot = w[leaves] * shooter_sums(h, links, u, down)[leaves]
+        shot = w[leaves] * shooter_sums(h, links, u, down, transfer)[leaves]
         ratio = np.divide(target, shot, out=np.ones_like(shot), where=fitted & (shot > 0))
         w[leaves] *= ratio
         history.append(float(np.abs(ratio - 1).max(initial=0.0)))
@@ -579,10 +605,11 @@ def _range(x):
     return [float(x.min(initial=np.inf)), float(x.max(initial=-np.inf))] if len(x) else [0.0, 0.0]
 
 
-def solve_links(h, links, B, scales, *, tolerance, max_iterations):
+def solve_links(h, links, B, scales, *, tolerance, max_iterations, transfer=None):
     """Jacobi sweeps with push-pull from ``B`` (every element's radiosity, (M, 3)) over the links
-    scaled by ``scales = (u, w)`` (:func:`transport_scales`): ``(B, sweeps, residual, history)``,
-    B the iterate whose residual is reported (as solver.jacobi_sweeps)."""
+    and the cluster links (``transfer``) scaled by ``scales = (u, w)`` (:func:`transport_scales`):
+    ``(B, sweeps, residual, history)``, B the iterate whose residual is reported (as
+    solver.jacobi_sweeps)."""
     scene = h.scene
     E, rho, A = scene.emission[h.patch], scene.reflectance[h.patch], h.areas
     leaves = h.leaves()
@@ -593,8 +620,11 @@ def solve_links(h, links, B, scales, *, tolerance, max_iterations):
     history = []
     for sweep in range(max_iterations + 1):
         shot = pull_means(h, w[:, None] * B, up)   # each leaf's light as its ancestors' links shoot it
-        G = np.stack([np.bincount(links.recv, weight * shot[links.src, c], minlength=len(h)) for c in range(3)], axis=1)
+        G = np.stack([np.bincount(links.recv, weight * shot[links.src, c], minlength=len(h)) for c in range(3)],
+                     axis=1).astype(np.float64)
         push_sums(h, G, down)                      # a leaf gathers through its ancestors' links too
+        if transfer is not None:
+            G[leaves] += u[leaves, None] * cluster_gathered(h, transfer, shot)[leaves]
         new = np.empty_like(B)
         new[leaves] = E[leaves] + rho[leaves] * G[leaves]
         pull_means(h, new, up)                     # an element's radiosity: the mean of its leaves'
@@ -622,6 +652,8 @@ class HierarchicalResult:
     history: list = field(default_factory=list)
     balance: dict = field(default_factory=dict)
     report: dict = field(default_factory=dict)
+    cluster_links: ClusterLinks = None
+    tree: object = None
 
 
 def prepare_board(scene, board, ray, solve, phases):
@@ -645,25 +677,83 @@ def prepare_board(scene, board, ray, solve, phases):
     return points, grid, voxels
 
 
-def solve_state(h, links, B, rounds, sweeps, solved):
-    """What the rounds need to continue after a solve (a checkpoint): the elements, the links,
-    every element's B, the rounds and sweeps done, and that solve's residual history and balance."""
+def solve_state(h, links, clinks, B, rounds, sweeps, solved):
+    """What the rounds need to continue after a solve (a checkpoint): the elements, the links and
+    cluster links, every element's B, the rounds and sweeps done, and that solve's residual
+    history and balance."""
     res, history, balance = solved
     arrays = dict(patch=h.patch, node=h.node, level=h.level, parent=h.parent, child=h.child, recv=links.recv,
                   src=links.src, F=links.F, vis=links.vis, partial=links.partial, B=B,
-                  history=np.array(history, dtype=np.float64))
+                  history=np.array(history, dtype=np.float64), cluster_R=clinks.R, cluster_S=clinks.S,
+                  cluster_vis=clinks.vis, cluster_partial=clinks.partial)
     return {"solver": "hierarchical", "shots": 0, "iterations": int(sweeps), "rounds": int(rounds),
             "residual": float(res), "balance": balance, "arrays": arrays}
 
 
 def _restore(state, scene, points):
-    """:func:`solve_state`'s ``state`` back as ``(h, links, B, rounds, sweeps, solved)``."""
+    """:func:`solve_state`'s ``state`` back as ``(h, links, clinks, B, rounds, sweeps, solved)``."""
     a = state["arrays"]
     h = Hierarchy(scene, points)
     h.patch, h.node, h.level, h.parent, h.child = (np.array(a[k]) for k in ("patch", "node", "level", "parent", "child"))
     links = Links(*(np.array(a[k]) for k in ("recv", "src", "F", "vis", "partial")))
+    clinks = ClusterLinks(*(np.array(a[f"cluster_{k}"]) for k in ("R", "S", "vis", "partial")))
     solved = (float(state["residual"]), list(a["history"]), dict(state["balance"]))
-    return h, links, np.array(a["B"]), int(state["rounds"]), int(state["iterations"]), solved
+    return h, links, clinks, np.array(a["B"]), int(state["rounds"]), int(state["iterations"]), solved
+
+
+def first_radiosity(scene):
+    """Per input triangle, a guess of its largest radiosity before any solve: its emission plus
+    its reflectance times the mean irradiance of a closed scene after one bounce (the emitted
+    power over the scene's area); refinement corrects it after each solve."""
+    A = scene.areas
+    mean = float((A * scene.emission.max(axis=1)).sum()) / max(float(A.sum()), 1e-300)
+    return scene.emission.max(axis=1) + scene.reflectance.max(axis=1) * mean
+
+
+def initial_links_clustered(h, tree, threshold, tolerance):
+    """The initial element links and cluster links (uncast), linked top down from (every triangle <-
+    every triangle) (clusters.link_clusters)."""
+    R, S, recv, src = link_clusters(tree, [0], [0], tree.maxima(first_radiosity(h.scene)), threshold)
+    F = element_factors(h, recv, src, tolerance)
+    return Links(recv[F > 0], src[F > 0], F[F > 0]), ClusterLinks(R, S)
+
+
+def cast_clusters(caster, tree, clinks):
+    """Set ``clinks.vis`` and ``partial`` from the rays of their member pairs (clusters.member_pairs):
+    the mean of the pairs' visible fractions; a link that carries nothing is clear."""
+    scene, n = caster.h.scene, len(clinks)
+    if not n:
+        clinks.vis, clinks.partial = np.zeros(0), np.zeros(0, dtype=bool)
+        return
+    link, r, s = member_pairs(tree, scene, clinks)
+    pairs = Links(r, s, np.zeros(len(r)))
+    if len(pairs):
+        caster.cast(pairs)
+    else:
+        pairs.vis, pairs.partial = np.zeros(0), np.zeros(0, dtype=bool)
+    count = np.bincount(link, minlength=n)
+    vis = np.bincount(link, pairs.vis, minlength=n) / np.maximum(count, 1)
+    clinks.vis = np.where(count > 0, vis, 1.0)
+    clinks.partial = (np.bincount(link, pairs.partial, minlength=n) > 0) | ((clinks.vis > 0) & (clinks.vis < 1))
+
+
+def refine_clusters(tree, h, clinks, B, threshold):
+    """The cluster links whose power bound (``CERTAIN_WEIGHT`` of it where visibility is certain)
+    exceeds ``threshold`` under the solve's ``B``, relinked from their child pairs:
+    ``(recv, src, kept, new)``, the input triangle pairs that became element links (factors not
+    computed), the cluster links kept, and the new ones (not cast)."""
+    if tree is None or not len(clinks):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), clinks, ClusterLinks.empty()
+    source_max = tree.maxima(B[:h.scene.patches].max(axis=1))
+    bound = power_bounds(tree, clinks.R, clinks.S, source_max)
+    over = np.where(clinks.partial, bound, CERTAIN_WEIGHT * bound) > threshold
+    R, S = clinks.R[over], clinks.S[over]
+    both = tree.leaf[R] & tree.leaf[S]
+    kid_R, kid_S = split_pairs(tree, R[~both], S[~both])
+    new_R, new_S, recv, src = link_clusters(tree, kid_R, kid_S, source_max, threshold)
+    recv = np.concatenate([tree.order[tree.start[R[both]]], recv])
+    src = np.concatenate([tree.order[tree.start[S[both]]], src])
+    return recv, src, clinks.take(~over), ClusterLinks(new_R, new_S)
 
 
 def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, resume=None, cluster=None):
@@ -684,48 +774,59 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
         make_caster = lambda h: SetCaster(cluster, h, board, grid, options, phases)
     threshold = link_threshold(scene, solve.epsilon)
     tolerance = factor_tolerance(scene, threshold)
+    with phases.timed("formfactor"):
+        tree = build_tree(scene) if solve.clustering else None
     if resume is None:
         h = Hierarchy(scene, points)
         caster = make_caster(h)
         with phases.timed("formfactor"):
-            links = initial_links(scene, tolerance)
+            if tree is None:
+                links, clinks = initial_links(scene, tolerance), ClusterLinks.empty()
+            else:
+                links, clinks = initial_links_clustered(h, tree, threshold, tolerance)
         caster.cast(links)
+        cast_clusters(caster, tree, clinks)
         B, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), 0, 0, None
     else:
-        h, links, B, rounds, sweeps, solved = _restore(resume, scene, points)
+        h, links, clinks, B, rounds, sweeps, solved = _restore(resume, scene, points)
         caster = make_caster(h)
     while True:
         if solved is None:
             with phases.timed("solve"):
-                u, w, balance = transport_scales(h, links, closed=solve.closure == "enforce",
+                transfer = cluster_transfer(tree, h, clinks)
+                u, w, balance = transport_scales(h, links, transfer=transfer, closed=solve.closure == "enforce",
                                                  tolerance=SCALE_TOLERANCE * solve.tolerance)
                 B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
-                                                    max_iterations=solve.max_iterations)
+                                                    max_iterations=solve.max_iterations, transfer=transfer)
             sweeps += done
             solved = (res, history, balance)
             if checkpoint is not None:
-                checkpoint(solve_state(h, links, B, rounds, sweeps, solved))
+                checkpoint(solve_state(h, links, clinks, B, rounds, sweeps, solved))
         res, history, balance = solved
         solved = None
         with phases.timed("formfactor"):
             recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
-        if not len(recv):
+            c_recv, c_src, c_kept, c_new = refine_clusters(tree, h, clinks, B, threshold)
+        if not (len(recv) or len(c_recv) or len(c_new)):
             break
         rounds += 1
         B = np.concatenate([B, B[h.parent[len(B):]]])
         with phases.timed("formfactor"):
             # the new links and those of receivers split this round, down to the leaves
             down = h.child[kept.recv] >= 0
-            recv, src = leaf_pairs(h, np.concatenate([kept.recv[down], recv]), np.concatenate([kept.src[down], src]))
+            recv, src = leaf_pairs(h, np.concatenate([kept.recv[down], recv, c_recv]),
+                                   np.concatenate([kept.src[down], src, c_src]))
             F = element_factors(h, recv, src, tolerance)
             new = Links(recv[F > 0], src[F > 0], F[F > 0])
         caster.cast(new)
-        links = Links.join(kept.take(~down), new)
+        cast_clusters(caster, tree, c_new)
+        links, clinks = Links.join(kept.take(~down), new), ClusterLinks.join(c_kept, c_new)
     if solve.closure == "enforce":
         check_closed(balance)
     leaves = h.leaves()
     out = leaf_scene(h, leaves)
-    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history, balance)
+    result = HierarchicalResult(out, B[leaves], h, links, res, sweeps, history, balance, cluster_links=clinks,
+                                tree=tree)
     result.report = _report(result, board, options, caster, rounds, voxels, phases, t0, c0)
     return result
 
@@ -743,8 +844,9 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
         "scene": scene.name, "source": scene.source, "patches": int(scene.patches), "solver": "hierarchical",
         "board": board.name, "samples": options.ray.samples.count, "voxels": int(voxels),
         "estimator": estimator_of(options.ray), "epsilon": solve.epsilon, "min_area": solve.min_area,
-        "link_rays": solve.link_rays, "max_level": h.points.max_level,
+        "link_rays": solve.link_rays, "clustering": solve.clustering, "max_level": h.points.max_level,
         "tolerance": solve.tolerance, "links": len(result.links), "leaves": int(len(leaves)),
+        "cluster_links": len(result.cluster_links), "clusters": 0 if result.tree is None else len(result.tree),
         "elements": int(len(h)), "elements_per_level": np.bincount(h.level).tolist(),
         "leaves_per_level": np.bincount(h.level[leaves], minlength=h.points.max_level + 1).tolist(),
         "refinement_rounds": int(rounds), "iterations": int(result.iterations), "shots": 0,

@@ -176,7 +176,8 @@ class SolveOptions:
     smallest element ``min_area`` (None: 3 levels below each input triangle) and ``link_rays``
     (``spread``: K rays from the source's samples to one of the receiver's, a different one per
     link; ``samples``: K x K rays between the two elements' samples; ``centroid``: K rays from the
-    source to the receiver's centroid), host_driver/render/hierarchical.py."""
+    source to the receiver's centroid) and ``clustering`` (initial links between clusters of input
+    triangles, host_driver/render/clusters.py), host_driver/render/hierarchical.py."""
     solver: str = "progressive"
     tolerance: float = 1e-3
     max_shots: int = None
@@ -185,11 +186,14 @@ class SolveOptions:
     epsilon: float = 1e-3
     min_area: float = None
     link_rays: str = "spread"
+    clustering: bool = True
 
     def __post_init__(self):
         from ..radiosity.closure import MODES
         _one_of("solver", self.solver, SOLVERS)
         _one_of("link_rays", self.link_rays, LINK_RAYS)
+        if not isinstance(self.clustering, bool):
+            raise ParameterError(f"clustering must be True or False, not {self.clustering!r}", parameter="clustering")
         if not (isinstance(self.tolerance, (int, float)) and math.isfinite(self.tolerance) and self.tolerance > 0):
             raise ParameterError(f"tolerance must be a positive number, not {self.tolerance!r}",
                                  parameter="tolerance")

@@ -88,7 +88,7 @@ def _resume(scene, board, options, params, checkpoint):
         return None
     b, ray, solve = options.board, options.ray, options.solve
     hierarchical = {"epsilon": solve.epsilon, "min_area": solve.min_area, "closure": solve.closure,
-                    "link_rays": solve.link_rays} \
+                    "link_rays": solve.link_rays, "clustering": solve.clustering} \
         if solve.solver == "hierarchical" else {}
     if solve.closure != "off" and not hierarchical:
         raise ParameterError(f"{option('checkpoint')} / {option('resume')}: a {option('closure')} render solves twice "

@@ -74,6 +74,7 @@ SETTINGS = {
     "epsilon": Setting("--epsilon", float, check=_positive),      # hierarchical refinement threshold
     "min-area": Setting("--min-area", float, check=_positive),    # hierarchical smallest element
     "link-rays": Setting("--link-rays", str, LINK_RAYS),           # hierarchical link visibility
+    "clustering": Setting("--clustering", str, ("on", "off")),     # hierarchical initial links
     "board": Setting("--board", str, None),                # choices from the registry, when asked
     "cell": Setting("--cell", str, CELLS),
     "traversal": Setting("--traversal", str, ("block", "ray")),
