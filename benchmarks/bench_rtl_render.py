@@ -26,7 +26,8 @@ board cycles per second (the model's ``board_cycles_per_board`` summed over the 
 
 Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
 with ``--board verilator`` and ``--board model``, checks that the radiosity and every counter are
-equal and prints both wall times and the native board cycles per second.
+equal and prints both wall times, the native render's CPU seconds (all threads: on a shared
+machine, what it would take alone) and the native board cycles per second.
 
 Part 3 (``--clock``) clocks one idle board of the Cornell box's fitted design (8 x 8, its B and
 memory depths: part 1's build) in the native harness for ``--cycles`` cycles and prints its clock
@@ -172,10 +173,12 @@ def host_codec(params, scene, samples, columns):
 def full(scene_name):
     scene = builtin.load(scene_name)
     runs = {}
+    print(f"load average {os.getloadavg()[0]:.1f} at the start", flush=True)
     for board in ("verilator", "model"):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         runs[board] = render(scene, backend=board, params=BoardParams(bits=None))
         runs[board + " wall"] = time.perf_counter() - t0
+        runs[board + " cpu"] = time.process_time() - c0
     v, m = runs["verilator"], runs["model"]
     assert np.array_equal(v.radiosity, m.radiosity), "radiosity differs from the model"
     for key in COUNTERS + ("utilization", "shots", "residual"):
@@ -184,8 +187,9 @@ def full(scene_name):
     transports = r["driver"]["transports"]
     clock = max(t["simulated_clock_cycles"] for t in transports)
     phases = ", ".join(f"{k} {s:.0f} s" for k, s in r["seconds"].items())
-    print(f"{scene_name} ({scene.patches} patches) --board verilator: {runs['verilator wall']:.0f} s wall "
-          f"(phases {phases}); --board model: {runs['model wall']:.0f} s; radiosity and counters equal")
+    print(f"{scene_name} ({scene.patches} patches) --board verilator: {runs['verilator wall']:.0f} s wall, "
+          f"{runs['verilator cpu']:.0f} CPU s (phases {phases}); --board model: {runs['model wall']:.0f} s; radiosity "
+          f"and counters equal; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"  board_cycles {r['board_cycles']} ({sum(r['board_cycles_per_board'])} summed over the boards), "
           f"simulated clock cycles {clock} per board (max), {r['shots']} shots, {r['blocks']} blocks")
     board = r["seconds"]["board"]
