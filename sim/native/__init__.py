@@ -10,7 +10,9 @@ Verilog, ``harness.cpp``, the port configuration, the build arguments, the Veril
 the C++ compiler's version line. :class:`NativeBoard` is one board in that library: ``run``
 queues command bytes and clocks the board in C++ until it sent the result bytes asked for,
 under the host timing of :mod:`blockray.sim.drive` (the same stalls from the same seed, cycle for
-cycle as :class:`~blockray.host_driver.board.simulated.AmaranthTransport`). Only the top's ports are visible to the harness (no ``--public-flat-rw``).
+cycle as :class:`~blockray.host_driver.board.simulated.AmaranthTransport`), or, given a
+:class:`RecordFormat` and a top with a record stream (:attr:`Ports.records`), as whole command
+records, one a clock cycle. Only the top's ports are visible to the harness (no ``--public-flat-rw``).
 """
 
 import ctypes
