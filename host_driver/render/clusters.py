@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from scipy import sparse
 
 from ...memory import ranges
@@ -217,35 +217,25 @@ class ClusterLinks:
 
 
 class Transfer:
-    """The kernels of cluster links (module docstring) as two tables: receiver rows ``(link,
-    receiver, a)`` and source rows ``(link, triangle, b)``, ``a`` and ``b`` of :data:`RANK`
-    terms. The receivers are the member triangles, or with ``leaves = (ids, patch, corners)`` the
-    leaf elements of each member (each with its own ``a``, so a leaf's factor sum is its own, not
-    its triangle's mean), numbered by ``ids`` among ``size`` elements."""
+    """The kernels of cluster links (module docstring) as two sparse tables, ``F = P diag(v) Q``:
+    ``P`` (receivers x links * RANK) and ``Q`` (links * RANK x input triangles), the visible
+    fractions in ``Q``. The receivers are the member triangles, or with ``leaves = (ids, patch,
+    corners)`` the leaf elements of each member (each with its own terms, so a leaf's factor sum
+    is its own, not its triangle's mean), numbered by ``ids`` among ``size`` elements."""
 
     def __init__(self, tree, scene, links, leaves=None, size=None):
-        self.vis = np.asarray(links.vis, dtype=np.float64)
-        self.recv_link, self.recv = tree.members(links.R)
-        self.src_link, self.src = tree.members(links.S)
         self.N, self.size = scene.patches, size or scene.patches
-        corners, row, tri = scene.patch_vertices, self.recv, self.recv
-        if leaves is not None:              # each member triangle's leaves in its place
-            ids, patch, corners = leaves
-            by_patch = np.argsort(patch, kind="stable")
-            count = np.bincount(patch, minlength=self.N)
-            first = np.concatenate([[0], np.cumsum(count)[:-1]])
-            n = count[self.recv]
-            row = by_patch[ranges(first[self.recv], n)]
-            self.recv_link, tri = np.repeat(self.recv_link, n), np.repeat(self.recv, n)
-            self.recv = ids[row]
-        # each receiver seen from the source's centre, each source member from the receiver's
-        c = tree.centre
-        self.a = _receiver_terms(corners, row, scene.normals, tri, c[links.S], self.recv_link)
-        self.b = _source_terms(scene.patch_vertices, scene.normals, scene.areas, self.src, c[links.R], c[links.S],
-                               self.src_link) * self.vis[self.src_link, None]
-        # F = P diag(v) Q as sparse matrices (v in Q): a gather costs the rows, in compiled loops
-        self.PT = _link_major(self.a, self.recv_link, self.recv, len(self.vis), self.size)
-        self.Q = _link_major(self.b, self.src_link, self.src, len(self.vis), self.N)
+        vis = np.asarray(links.vis, dtype=np.float64)
+        ids, patch, corners = leaves if leaves is not None else (np.arange(self.N), np.arange(self.N),
+                                                                   scene.patch_vertices)
+        by_patch = np.argsort(patch, kind="stable")
+        count = np.bincount(patch, minlength=self.N)
+        first = np.concatenate([[0], np.cumsum(count)[:-1]])
+        c, R, S = tree.centre, links.R, links.S
+        self.PT = _table(*_receiver_table(tree.start[R], tree.end[R], tree.order, first, count, by_patch, ids,
+                                          corners, scene.normals, c[S]), self.size)
+        self.Q = _table(*_source_table(tree.start[S], tree.end[S], tree.order, scene.patch_vertices, scene.normals,
+                                       scene.areas, c[R], c[S], vis), self.N)
         self.P, self.QT = self.PT.T, self.Q.T
 
     def gather(self, x):
@@ -257,23 +247,75 @@ class Transfer:
         return self.QT @ (self.PT @ y)
 
 
-#: terms of a cluster link's kernel (:func:`_receiver_terms`)
+#: terms of a cluster link's kernel (:func:`_receiver_table`, :func:`_source_terms`)
 RANK = 4
 
 
-def _link_major(terms, link, column, links, width):
-    """The CSR matrix (links * RANK, width) whose row ``l * RANK + k`` holds ``terms[i, k]`` at
-    ``column[i]`` for the rows i of link l (rows grouped by link, in link order): built in place,
-    no sort."""
-    count = np.bincount(link, minlength=links)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    within = np.arange(len(link)) - start[link]
-    pos = (RANK * start[link] + within)[:, None] + np.arange(RANK) * count[link][:, None]
-    data, index = np.empty(RANK * len(link)), np.empty(RANK * len(link), dtype=np.int64)
-    data[pos] = terms
-    index[pos] = column[:, None]
-    indptr = np.append((RANK * start[:, None] + np.arange(RANK) * count[:, None]).ravel(), RANK * len(link))
-    return sparse.csr_matrix((data, index, indptr), shape=(links * RANK, width))
+def _table(data, index, indptr, width):
+    return sparse.csr_matrix((data, index, indptr), shape=(len(indptr) - 1, width))
+
+
+@njit(cache=True)
+def _offsets(count):
+    """Rows of link l start at ``start[l]``; the CSR row ``k * L + l`` (term k) at ``k m + start[l]``."""
+    L = len(count)
+    start = np.zeros(L + 1, dtype=np.int64)
+    for l in range(L):
+        start[l + 1] = start[l] + count[l]
+    m = start[L]
+    indptr = np.empty(RANK * L + 1, dtype=np.int64)
+    for k in range(RANK):
+        for l in range(L):
+            indptr[k * L + l] = k * m + start[l]
+    indptr[RANK * L] = RANK * m
+    return start, m, indptr
+
+
+@njit(cache=True, parallel=True)
+def _receiver_table(R_start, R_end, order, first, count, by_patch, ids, corners, normals, c_S):
+    """The CSR arrays of ``P.T``: per link, the leaves of its receiver node's triangles, each with
+    its terms, the mean over its points x of ``max(0, cos_r) / (pi |c_S - x|**3) [x - c_S, 1]``
+    (:func:`_kernel_terms`, ``cos_r`` towards the source's centre). With :func:`_source_terms` the
+    dot product is ``cos_r A_s w_s N_s . (x - x_s) / (pi |c_S - x|**3)``: the source's cosine
+    towards this very receiver (linear in x), so a receiver near the source's plane sees it at its
+    own grazing angle."""
+    L = len(R_start)
+    per_link = np.zeros(L, dtype=np.int64)
+    for l in range(L):
+        for j in range(R_start[l], R_end[l]):
+            per_link[l] += count[order[j]]
+    start, m, indptr = _offsets(per_link)
+    data, index = np.empty(RANK * m), np.empty(RANK * m, dtype=np.int64)
+    for l in prange(L):
+        pos = start[l]
+        for j in range(R_start[l], R_end[l]):
+            t = order[j]
+            for q in range(count[t]):
+                e = by_patch[first[t] + q]
+                terms = _kernel_terms(corners[e], normals[t], c_S[l])
+                for k in range(RANK):
+                    data[k * m + pos] = terms[k] / np.pi
+                    index[k * m + pos] = ids[e]
+                pos += 1
+    return data, index, indptr
+
+
+@njit(cache=True, parallel=True)
+def _source_table(S_start, S_end, order, corners, normals, areas, c_R, c_S, vis):
+    """The CSR arrays of ``Q``: per link, its source node's triangles, each with
+    :func:`_source_terms` times the link's visible fraction."""
+    L = len(S_start)
+    start, m, indptr = _offsets(S_end - S_start)
+    data, index = np.empty(RANK * m), np.empty(RANK * m, dtype=np.int64)
+    for l in prange(L):
+        for j in range(S_start[l], S_end[l]):
+            pos = start[l] + j - S_start[l]
+            t = order[j]
+            terms = _source_terms(corners[t], normals[t], areas[t], c_R[l], c_S[l])
+            for k in range(RANK):
+                data[k * m + pos] = terms[k] * vis[l]
+                index[k * m + pos] = t
+    return data, index, indptr
 
 
 @njit(cache=True)
@@ -298,41 +340,24 @@ def _kernel_terms(corners, normal, target):
 
 
 @njit(cache=True)
-def _receiver_terms(corners, element, normals, triangle, c_S, link):
-    """(m, 4): the mean over a receiver's points x of ``max(0, cos_r) / (pi |c_S - x|**3) [x - c_S, 1]``,
-    ``cos_r`` towards the source's centre. With :func:`_source_terms` the dot product is
-    ``cos_r A_s w_s N_s . (x - x_s) / (pi |c_S - x|**3)``: the source's cosine towards this very
-    receiver (linear in x), so a receiver near the source's plane sees it at its own grazing angle."""
-    m = len(element)
-    out = np.empty((m, 4))
-    for i in range(m):
-        out[i] = _kernel_terms(corners[element[i]], normals[triangle[i]], c_S[link[i]]) / np.pi
-    return out
-
-
-@njit(cache=True)
-def _source_terms(corners, normals, areas, triangle, c_R, c_S, link):
-    """(m, 4): ``A_s`` times the mean over a source's points q facing the receiver's centre of
+def _source_terms(corners, n, area, c_R, c_S):
+    """A source's terms: ``A_s`` times the mean over its points q facing the receiver's centre of
     ``(d / |c_R - q|)**3 [N_s, N_s . (c_S - q)]``, d the centres' distance (the distance to this
     source point, exact where the receiver is at its centre)."""
-    m = len(triangle)
-    out = np.zeros((m, 4))
-    for i in range(m):
-        t, l = triangle[i], link[i]
-        n = normals[t]
-        dv = c_R[l] - c_S[l]
-        d = np.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
-        for q in range(3):
-            x = 0.5 * (corners[t, q] + corners[t, (q + 1) % 3])
-            to = c_R[l] - x
-            r2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2]
-            if r2 <= 0.0 or n[0] * to[0] + n[1] * to[1] + n[2] * to[2] <= 0.0:
-                continue
-            w = areas[t] * (d / np.sqrt(r2)) ** 3 / 3.0
-            out[i, 0] += w * n[0]
-            out[i, 1] += w * n[1]
-            out[i, 2] += w * n[2]
-            out[i, 3] += w * (n[0] * (c_S[l, 0] - x[0]) + n[1] * (c_S[l, 1] - x[1]) + n[2] * (c_S[l, 2] - x[2]))
+    out = np.zeros(4)
+    dv = c_R - c_S
+    d = np.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
+    for q in range(3):
+        x = 0.5 * (corners[q] + corners[(q + 1) % 3])
+        to = c_R - x
+        r2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2]
+        if r2 <= 0.0 or n[0] * to[0] + n[1] * to[1] + n[2] * to[2] <= 0.0:
+            continue
+        w = area * (d / np.sqrt(r2)) ** 3 / 3.0
+        out[0] += w * n[0]
+        out[1] += w * n[1]
+        out[2] += w * n[2]
+        out[3] += w * (n[0] * (c_S[0] - x[0]) + n[1] * (c_S[1] - x[1]) + n[2] * (c_S[2] - x[2]))
     return out
 
 

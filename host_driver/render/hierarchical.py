@@ -7,9 +7,14 @@ answered by the board: ``--solver hierarchical``.
 **Links.** A link (r <- s) carries light from source element s to receiver element r with the
 unoccluded patch-to-patch factor ``F_rs`` of the two elements (the pair kernel of
 host_driver/radiosity/formfactor.py, exact or certified to 1e-6) times the visible fraction ``v_rs`` the
-board reports. The initial links join every pair of input triangles that can exchange light
-(:func:`~blockray.host_driver.radiosity.formfactor.exchange_mask`): s**2 of them for s input triangles;
-clustering (Smits, Arvo and Greenberg 1994) is not built.
+board reports. With ``clustering`` (the default; Smits, Arvo and Greenberg 1994,
+host_driver/render/clusters.py) the initial links are made top down over a tree of the input
+triangles: a pair of clusters far enough apart whose power bound is under the threshold stays one
+*cluster link* (a low-rank kernel over its members, its visibility from one member pair's rays),
+the rest split down to pairs of input triangles, which become element links; refinement splits a
+cluster link the same way once the solve's radiosity puts it over the threshold. Without, the
+initial links join every pair of input triangles that can exchange light
+(:func:`~blockray.host_driver.radiosity.formfactor.exchange_mask`): s**2 of them for s input triangles.
 
 **Visibility** (``link_rays``). ``samples``: a link's K x K rays run from each of the K sample
 points of its source to each of the K of its receiver, and weigh by the point-to-point kernel
@@ -41,7 +46,8 @@ links are held to :func:`factor_tolerance` (absolute) where that is looser than 
 1e-6 relative: far pairs then take a cheaper cubature whose derived bound meets it.
 
 **Solve.** Jacobi over the links with push-pull (HSA's gathering): every element gathers
-``G_p = sum_links u_r F v S_s``; pushing down, a leaf's radiosity is ``E + rho (G of it and its
+``G_p = sum_links u_r F v S_s`` (cluster links gather on the leaves directly, from their members'
+``S_s``); pushing down, a leaf's radiosity is ``E + rho (G of it and its
 ancestors)``; pulling up, an element's radiosity is the mean of its four children's (equal
 areas), and ``S_s`` the mean of ``w B`` over its leaves. The residual is
 :mod:`~blockray.host_driver.radiosity.solver`'s, on the leaves: ``sum A |B' - B| / sum A E``, RGB summed.
