@@ -31,6 +31,7 @@ from ..records import patch_layout, point_layout, vector_layout
 from .filtered import (ArrayResolve, FilteredArray, _exponent, _Filter, _truncate, filter_terms_layout, sum_bits,
                        sum_or)
 from .platform import product_platform
+from .lutdot import dot_product
 from .processor import _AXES, _VERTICES, Processor, ReceiverUnit, ShooterUnit, _combine, _delay, _dot_sums, _product
 
 __all__ = ["LeanReceiver", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
@@ -64,7 +65,9 @@ class LeanReceiver(wiring.Component):
     rounded), w^ and the sums. pQ: the ReceiverUnit's (stage 4), delayed to 7. The ports and
     latency (7) of a ReceiverUnit followed by its ReceiverFilter: ``terms``, ``plane_out``,
     ``terms_valid``. Its products answer to the fabric-units key ``receiver``, the 18 of w_k also to
-    ``rounded`` (``--fabric-units rounded``: on LUTs, pQ on DSPs).
+    ``rounded`` (``--fabric-units rounded``: on LUTs, pQ on DSPs). In the fabric of a target with
+    carry cells (``ECP5Target``) each W_c = q_a g_b - q_b g_a is one bit heap on CCU2C carry
+    chains (:func:`~blockray.rtl.lutdot.dot_product`), the same register values from stage 4.
     """
 
     latency = ReceiverUnit.latency + _Filter.latency
@@ -82,8 +85,11 @@ class LeanReceiver(wiring.Component):
         m = Module()
         w, f = Widths(self._bits), self._fmt
         inputs = f.w_input_bits
+        target = platform
         platform = product_platform(platform, "receiver")
         rounded = product_platform(platform, "rounded")
+        # on a target with carry cells, w_k's products in the fabric are CCU2C bit heaps
+        chains = target if getattr(target, "ccu2c", False) and rounded is None else None
         dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
         e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
         for k, vertex in enumerate(_VERTICES):
@@ -101,6 +107,10 @@ class LeanReceiver(wiring.Component):
             W4 = []
             for i, c in enumerate(_AXES):       # (q x g)_c = q_{c+1} g_{c+2} - q_{c+2} g_{c+1}
                 a, b = (i + 1) % 3, (i + 2) % 3
+                if chains:      # the same W, cycle for cycle, from one bit heap on carry chains
+                    W4.append(dot_product(m, [(q[a], g[b]), (q[b], g[a], True)], 2 * inputs + 1,
+                                          f"W{k}_{c}_4", chains))
+                    continue
                 plus = _product(m, q[a], g[b], 2 * inputs, f"w{k}_{c}_plus_3", rounded)
                 minus = _product(m, q[b], g[a], 2 * inputs, f"w{k}_{c}_minus_3", rounded)
                 W4.append(Signal(signed(2 * inputs + 1), name=f"W{k}_{c}_4"))

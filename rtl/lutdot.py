@@ -129,10 +129,10 @@ def _register(m, row, name):
 
 
 def bit_heap(pairs, width):
-    """Baugh-Wooley rows of sum(a * b) modulo 2**width (a, b signed values): a list of rows
-    {weight: term}, the last the constant's (if not 0)."""
+    """Baugh-Wooley rows of sum(+-a * b) modulo 2**width (a, b signed values; a pair (a, b, True)
+    is subtracted): a list of rows {weight: term}, the last the constant's (if not 0)."""
     rows, constant = [], 0
-    for a, b in pairs:
+    for a, b, *minus in pairs:
         na, nb = len(a), len(b)
         assert a.shape().signed and b.shape().signed and na >= 2 and nb >= 2
         for i in range(na):
@@ -141,7 +141,8 @@ def bit_heap(pairs, width):
                 w = i + j
                 if w >= width:
                     continue
-                negative = (i == na - 1) != (j == nb - 1)
+                # a partial-product bit of weight -2^w: its complement, and -2^w in the constant
+                negative = ((i == na - 1) != (j == nb - 1)) != bool(minus and minus[0])
                 row[w] = ("nand" if negative else "and", a[i], b[j])
                 if negative:
                     constant -= 1 << w          # -x 2^w = (1 - x) 2^w - 2^w
@@ -173,21 +174,21 @@ def _reduce_level(m, rows, width, name, mode):
 
 def dot_product(m, pairs, width, name, platform=None, first_stage_levels=None):
     """sum(a * b for a, b in pairs) modulo 2**width as a ``signed(width)`` register, three cycles
-    after the operand expressions (see the module doc)."""
+    after the operand expressions (see the module doc); a pair ``(a, b, True)`` is subtracted."""
     mode = getattr(platform, "ccu2c", False)
     regs = []
-    for i, (a, b) in enumerate(pairs):
+    for i, (a, b, *minus) in enumerate(pairs):
         ra, rb = Signal(a.shape(), name=f"{name}_a{i}"), Signal(b.shape(), name=f"{name}_b{i}")
         m.d.sync += [ra.eq(a), rb.eq(b)]
-        regs.append((ra, rb))
+        regs.append((ra, rb, *minus))
     s = Signal(signed(width), name=name)
     if not mode:
-        products = []
-        for i, (ra, rb) in enumerate(regs):
+        total = 0
+        for i, (ra, rb, *minus) in enumerate(regs):
             p = Signal(signed(width), name=f"{name}_p{i}")
             m.d.sync += p.eq(ra * rb)
-            products.append(p)
-        m.d.sync += s.eq(sum(products))
+            total = total - p if minus and minus[0] else total + p
+        m.d.sync += s.eq(total)
         return s
     mode = "model" if mode == "model" else "ecp5"
     rows = bit_heap(regs, width)

@@ -49,12 +49,22 @@ def _single_tests(tests, first_mark=True):
     return steps
 
 
-@pytest.mark.parametrize("bits,fmt", [(16, FilterFormat(9, 9, 12)), (16, FilterFormat(4, 5, 3)), (20, FilterFormat(9, 9, 14)),
-                                      (6, FilterFormat(7, 9, 12))], ids=str)
-def test_lean_receiver_terms_equal_the_model(bits, fmt):
+class RowChainModel:
+    """The Amaranth simulator's stand-in for ``ECP5Target(fabric_units={"rounded"})``: the row
+    unit's w_k products as rtl/lutdot.py's CCU2C bit heaps built from their INIT tables
+    (``ccu2c = "model"``); pQ's products generic."""
+    ccu2c = "model"
+    fabric_units = frozenset({"rounded"})
+
+
+@pytest.mark.parametrize("bits,fmt,platform", [(16, FilterFormat(9, 9, 12), None), (16, FilterFormat(4, 5, 3), None),
+                                               (20, FilterFormat(9, 9, 14), None), (6, FilterFormat(7, 9, 12), None),
+                                               (16, FilterFormat(9, 9, 12), RowChainModel())], ids=str)
+def test_lean_receiver_terms_equal_the_model(bits, fmt, platform):
     """LeanReceiver against :func:`blockray.filtered.rounded_receiver_filter_terms` and the exact
     pQ, term by term, one test per cycle with gaps, at its latency 7: 300 hard and 300 random
-    tests (B = 6 with 12-bit inputs: nothing rounded)."""
+    tests (B = 6 with 12-bit inputs: nothing rounded); also with w_k's products on modelled
+    carry chains."""
     seed = 3500 + bits
     print(f"seed {seed}")
     rng = np.random.default_rng(seed)
@@ -82,7 +92,7 @@ def test_lean_receiver_terms_equal_the_model(bits, fmt):
                 got.append(([[v.m[k][c] for c in range(3)] for k in range(3)], [v.pos[k] for k in range(3)],
                             [v.neg[k] for k in range(3)], [(v.truncated >> k) & 1 for k in range(3)],
                             ctx.get(dut.plane_out)))
-    sim = Simulator(dut)
+    sim = Simulator(dut if platform is None else Fragment.get(dut, platform))
     sim.add_clock(1e-8)
     sim.add_testbench(bench)
     sim.run()
@@ -259,11 +269,14 @@ class CarryChainModel:
     fabric_units = frozenset({"cell"})
 
 
-@pytest.mark.parametrize("na,nb,terms,width", [(9, 9, 3, 20), (3, 3, 3, 8), (9, 12, 3, 23), (5, 7, 2, 14),
-                                               (2, 2, 1, 4), (18, 18, 3, 38)])
-def test_carry_chain_dot_product_equals_the_products(na, nb, terms, width):
-    """rtl/lutdot.py's bit heap on modelled CCU2C cells against ``reg(reg(a) * reg(b))`` summed,
-    cycle for cycle: the extremes of both operands (every sign combination) and random values."""
+@pytest.mark.parametrize("na,nb,terms,width,minus", [(9, 9, 3, 20, ()), (3, 3, 3, 8, ()), (9, 12, 3, 23, ()),
+                                                     (5, 7, 2, 14, ()), (2, 2, 1, 4, ()), (18, 18, 3, 38, ()),
+                                                     (12, 12, 2, 25, (1,)), (3, 3, 2, 7, (1,)), (2, 2, 1, 5, (0,)),
+                                                     (5, 4, 3, 10, (0, 2))], ids=str)
+def test_carry_chain_dot_product_equals_the_products(na, nb, terms, width, minus):
+    """rtl/lutdot.py's bit heap on modelled CCU2C cells against ``reg(reg(a) * reg(b))`` summed
+    (the pairs numbered in ``minus`` subtracted: the row unit's W = q_a g_b - q_b g_a), cycle for
+    cycle: the extremes of both operands (every sign combination) and random values."""
     rng = np.random.default_rng(3600 + na * nb + terms)
     lo_a, hi_a, lo_b, hi_b = -(1 << na - 1), (1 << na - 1) - 1, -(1 << nb - 1), (1 << nb - 1) - 1
     vectors = [[(x, y)] * terms for x in (lo_a, hi_a, -1, 0, 1) for y in (lo_b, hi_b, -1, 0, 1)]
@@ -272,9 +285,10 @@ def test_carry_chain_dot_product_equals_the_products(na, nb, terms, width):
     a = [Signal(signed(na), name=f"a{i}") for i in range(terms)]
     b = [Signal(signed(nb), name=f"b{i}") for i in range(terms)]
     m = Module()
-    got = dot_product(m, list(zip(a, b)), width, "heap", CarryChainModel())
-    want = dot_product(m, list(zip(a, b)), width, "mul", None)
-    assert len(bit_heap(list(zip(a, b)), width)) >= na * terms
+    pairs = [(x, y, i in minus) for i, (x, y) in enumerate(zip(a, b))]
+    got = dot_product(m, pairs, width, "heap", CarryChainModel())
+    want = dot_product(m, pairs, width, "mul", None)
+    assert len(bit_heap(pairs, width)) >= na * terms
     seen = []
 
     async def bench(ctx):
@@ -291,7 +305,7 @@ def test_carry_chain_dot_product_equals_the_products(na, nb, terms, width):
     sim.run()
     assert all(g == w for g, w in seen)
     sums = [g for g, _ in seen[2:2 + len(vectors)]]
-    assert sums == [sum(x * y for x, y in v) for v in vectors]
+    assert sums == [sum(-x * y if i in minus else x * y for i, (x, y) in enumerate(v)) for v in vectors]
 
 
 @pytest.mark.parametrize("bits,rows,cols,fmt,seed", [(16, 1, 1, None, 3511), (12, 2, 2, None, 3512),
