@@ -28,13 +28,13 @@ from ..errors import ParameterError
 from ..cell import Cell
 from ..params import Widths
 from ..records import patch_layout, point_layout, vector_layout
-from .filtered import (ArrayResolve, FilteredArray, _exponent, _Filter, _truncate, filter_terms_layout, sum_bits,
-                       sum_or)
+from .filtered import (ArrayResolve, FilteredArray, ReceiverFilter, _exponent, _Filter, _truncate,
+                       filter_terms_layout, sum_bits, sum_or)
 from .platform import product_platform
 from .lutdot import dot_product
 from .processor import _AXES, _VERTICES, Processor, ReceiverUnit, ShooterUnit, _combine, _delay, _dot_sums, _product
 
-__all__ = ["LeanReceiver", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
+__all__ = ["LeanReceiver", "LeanRowUnit", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
            "DEFAULT_ADDRESS_BITS"]
 
 #: patch memory address width of a stand-alone array (the board's is its memory's)
@@ -85,11 +85,9 @@ class LeanReceiver(wiring.Component):
         m = Module()
         w, f = Widths(self._bits), self._fmt
         inputs = f.w_input_bits
-        target = platform
+        chains = _row_chains(platform)
         platform = product_platform(platform, "receiver")
         rounded = product_platform(platform, "rounded")
-        # on a target with carry cells, w_k's products in the fabric are CCU2C bit heaps
-        chains = target if getattr(target, "ccu2c", False) and rounded is None else None
         dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
         e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
         for k, vertex in enumerate(_VERTICES):
@@ -123,6 +121,46 @@ class LeanReceiver(wiring.Component):
             m.d.comb += [self.terms.pos[k].eq(pos), self.terms.neg[k].eq(neg), self.terms.truncated[k].eq(trunc)]
         m.d.comb += [self.plane_out.eq(_delay(m, pq4, 3, "pq")),
                      self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))]
+        return m
+
+
+def _row_chains(platform):
+    """The platform for the row unit's w_k bit heaps (:func:`~blockray.rtl.lutdot.dot_product`):
+    a target with carry cells whose ``rounded`` products are in the fabric, else None."""
+    if getattr(platform, "ccu2c", False) and "rounded" in getattr(platform, "fabric_units", ()):
+        return platform
+    return None
+
+
+class LeanRowUnit(ReceiverUnit):
+    """The lean array's row unit with w_k exact: a :class:`~blockray.rtl.processor.ReceiverUnit`
+    (same ports, latency and bits) whose 18 cross products, with ``--fabric-units rounded`` on a
+    target with carry cells, are nine bit heaps w_kc = dQ_a e_b - dQ_b e_a on CCU2C carry chains
+    (stage 1 the operands, stage 3 w_k, as the products' registers) instead of 18 MULT18X18D;
+    pQ keeps its products (the ``receiver`` key)."""
+
+    def elaborate(self, platform):
+        chains = _row_chains(platform)
+        if chains is None:
+            return super().elaborate(platform)
+        m = Module()
+        w = Widths(self._bits)
+        dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
+        e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
+        for k, vertex in enumerate(_VERTICES):
+            for c in _AXES:
+                m.d.comb += [dq0[k][c].eq(self.point[c] - self.patch[vertex][c]),
+                             e0[k][c].eq(self.patch[_VERTICES[(k + 1) % 3]][c] - self.patch[vertex][c])]
+        w3 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_3")
+        for k in range(3):
+            for i, c in enumerate(_AXES):       # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}
+                a, b = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
+                m.d.comb += w3[k][c].eq(dot_product(m, [(dq0[k][a], e0[k][b]), (dq0[k][b], e0[k][a], True)],
+                                                    w.cross, f"w{k}_{c}_3", chains))
+        sums3 = _dot_sums(m, [(dq0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pq",
+                          product_platform(platform, self._unit))
+        m.d.sync += [self.terms.w.eq(w3), self.terms.pq.eq(_combine(sums3, w.orient))]
+        m.d.comb += self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))
         return m
 
 
@@ -237,7 +275,7 @@ class LeanArray(FilteredArray):
 
     def _receiver_edge(self, m, r):
         if self._fmt.w_input_bits is None:          # w_k exact, then rounded by the filter
-            return super()._receiver_edge(m, r)
+            return self._edge_unit(m, f"receiver_{r}", LeanRowUnit, ReceiverFilter, self.receivers[r])
         unit = m.submodules[f"receiver_{r}"] = LeanReceiver(self._bits, self._fmt)
         m.d.comb += [unit.point.eq(self.receivers[r]), unit.patch.eq(self.patch), unit.valid.eq(self.valid)]
         return unit
