@@ -18,10 +18,11 @@ plane, rotated, scaled and rounded to the grid; B = 8, 12, 16, 20 in turn), ever
 against the exact s_k and every decided bit against ``blocked_block``; ``wrong`` must be 0.
 ``units``: Yosys (synth_ecp5, no nextpnr)
 resources of each part of a lean array at B = 16, side by side: the row unit with exact w_k
-(ReceiverUnit + ReceiverFilter, 9 x 9), the lean row unit (``LeanReceiver``) with its products on
-DSPs and with w_k's on LUTs (``rounded``), the lean column unit, the 9 x 9 cell on DSPs, on
-Yosys's LUT multipliers (the filtered cell's ``--fabric-units cell``) and as the lean array's
-CCU2C bit heaps (rtl/lutdot.py), the shared exact unit.
+(ReceiverUnit + ReceiverFilter, 9 x 9: the lean default) with its products on DSPs and with w_k's
+18 cross products as CCU2C bit heaps (``LeanRowUnit``, ``rounded``), the row unit with w_k from
+12-bit inputs (``LeanReceiver``) on DSPs and on bit heaps, the lean column unit, the 9 x 9 cell on
+DSPs, on Yosys's LUT multipliers (the filtered cell's ``--fabric-units cell``) and as the lean
+array's CCU2C bit heaps (rtl/lutdot.py), the shared exact unit.
 """
 
 import argparse
@@ -122,7 +123,7 @@ def _units(bits):
     from amaranth.lib import wiring
     from blockray.cell import Cell
     from blockray.rtl.filtered import FilteredProcessor, ReceiverFilter, ShooterFilter
-    from blockray.rtl.lean import LeanExact, LeanReceiver
+    from blockray.rtl.lean import LeanExact, LeanReceiver, LeanRowUnit
     from blockray.rtl.processor import ReceiverUnit, ShooterUnit
 
     class Edge(wiring.Component):
@@ -141,10 +142,11 @@ def _units(bits):
                          self.plane_out.eq(f.plane_out)]
             return m
 
-    lean, exact_w = Cell("lean").format_at(bits), FilterFormat(9, 9)
+    lean, exact_w, rounded = Cell("lean").format_at(bits), FilterFormat(9, 9), FilterFormat(9, 9, 12)
     return [("row, exact w_k", lambda: Edge(ReceiverUnit(bits), ReceiverFilter(bits, exact_w)), ()),
-            ("row, lean", lambda: LeanReceiver(bits, lean), ()),
-            ("row, lean, w_k on LUTs", lambda: LeanReceiver(bits, lean), ("rounded",)),
+            ("row, exact w_k, chains", lambda: Edge(LeanRowUnit(bits), ReceiverFilter(bits, exact_w)), ("rounded",)),
+            ("row, m_i = 12", lambda: LeanReceiver(bits, rounded), ()),
+            ("row, m_i = 12, chains", lambda: LeanReceiver(bits, rounded), ("rounded",)),
             ("column, lean", lambda: Edge(ShooterUnit(bits), ShooterFilter(bits, lean)), ()),
             ("cell 9 x 9, DSPs", lambda: FilteredProcessor(lean), ()),
             ("cell 9 x 9, LUT mult.", lambda: FilteredProcessor(lean), ("cell",)),

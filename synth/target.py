@@ -40,8 +40,8 @@ TARGETS = ("generic", "ecp5")
 
 #: the units whose products :class:`ECP5Target` can leave to the fabric (LUT multipliers)
 #: shooter / receiver: the column / row units; cell: the R x S cells; exact: the filtered
-#: array's shared exact unit; rounded: the lean row unit's m_i x m_i products of w_k (its pQ
-#: stays with ``receiver``)
+#: array's shared exact unit; rounded: the lean row unit's 18 products of w_k (exact w_k or from
+#: m_i-bit inputs), on ECP5 as CCU2C bit heaps (rtl/lean.py; its pQ stays with ``receiver``)
 FABRIC_UNITS = ("shooter", "receiver", "cell", "exact", "rounded")
 
 #: behavioural Verilog model of the MULT18X18D configuration the RTL instantiates (Verilator)
