@@ -44,7 +44,7 @@ FORMAT = 1
 _STATE = ("B", "U", "energy", "history", "row_sums", "columns")
 #: a hierarchical render's arrays (host_driver/render/hierarchical.py, ``solve_state``)
 HIERARCHICAL = ("patch", "node", "level", "parent", "child", "recv", "src", "F", "vis", "partial", "B", "history",
-                "cluster_R", "cluster_S", "cluster_vis", "cluster_partial")
+                "cluster_R", "cluster_S", "cluster_vis", "cluster_partial", "u", "w")
 
 
 def scene_hash(scene):

@@ -554,12 +554,13 @@ def cluster_transfer(tree, h, clinks):
     return Transfer(tree, h.scene, clinks, leaves=(leaves, h.patch[leaves], h.vertices(leaves)), size=len(h))
 
 
-def transport_scales(h, links, *, transfer=None, closed=False, tolerance=1e-14, max_iterations=200):
+def transport_scales(h, links, *, transfer=None, closed=False, tolerance=1e-14, max_iterations=200, start=None):
     """Receiver scales ``u`` and source scales ``w`` (per element; used on the leaves) with which
     every leaf gathers and shoots the same factor sum (module docstring, "Balance"): its own
     gathered sum ``g = sum F v``; ``closed``: 1 (0 where a leaf that gathers sees nothing).
     Leaves of zero reflectance gather nothing, so only ``closed`` sets what they shoot. Cluster
-    links (``transfer``) count in both sums, scaled as element links are.
+    links (``transfer``) count in both sums, scaled as element links are. ``start``: ``(u, w)`` to
+    start from (the last round's: most leaves keep theirs, so a round takes fewer passes).
     Alternating Sinkhorn scaling; returns ``(u, w, info)``."""
     down, up = level_steps(h)
     leaves, n = h.leaves(), len(h)
@@ -567,9 +568,9 @@ def transport_scales(h, links, *, transfer=None, closed=False, tolerance=1e-14, 
     g = (np.bincount(links.recv, Fv, minlength=n) + cluster_gathered(h, transfer, np.ones(n)))[leaves]
     gathers = (h.scene.reflectance[h.patch[leaves]] > 0).any(axis=1)
     target = np.where(gathers, g > 0, 1.0) if closed else g
-    u, w = np.ones(n), np.ones(n)
+    u, w = (np.ones(n), np.ones(n)) if start is None else (start[0].copy(), start[1].copy())
     gathered = target if closed else g
-    raw = shooter_sums(h, links, u, down, transfer)[leaves]
+    raw = shooter_sums(h, links, np.ones(n), down, transfer)[leaves]
     fitted = (raw > 0) & (gathers | closed)
 
     def rows():
@@ -683,28 +684,29 @@ def prepare_board(scene, board, ray, solve, phases):
     return points, grid, voxels
 
 
-def solve_state(h, links, clinks, B, rounds, sweeps, solved):
+def solve_state(h, links, clinks, B, scales, rounds, sweeps, solved):
     """What the rounds need to continue after a solve (a checkpoint): the elements, the links and
-    cluster links, every element's B, the rounds and sweeps done, and that solve's residual
-    history and balance."""
+    cluster links, every element's B and transport scales, the rounds and sweeps done, and that
+    solve's residual history and balance."""
     res, history, balance = solved
     arrays = dict(patch=h.patch, node=h.node, level=h.level, parent=h.parent, child=h.child, recv=links.recv,
                   src=links.src, F=links.F, vis=links.vis, partial=links.partial, B=B,
                   history=np.array(history, dtype=np.float64), cluster_R=clinks.R, cluster_S=clinks.S,
-                  cluster_vis=clinks.vis, cluster_partial=clinks.partial)
+                  cluster_vis=clinks.vis, cluster_partial=clinks.partial, u=scales[0], w=scales[1])
     return {"solver": "hierarchical", "shots": 0, "iterations": int(sweeps), "rounds": int(rounds),
             "residual": float(res), "balance": balance, "arrays": arrays}
 
 
 def _restore(state, scene, points):
-    """:func:`solve_state`'s ``state`` back as ``(h, links, clinks, B, rounds, sweeps, solved)``."""
+    """:func:`solve_state`'s ``state`` back as ``(h, links, clinks, B, scales, rounds, sweeps, solved)``."""
     a = state["arrays"]
     h = Hierarchy(scene, points)
     h.patch, h.node, h.level, h.parent, h.child = (np.array(a[k]) for k in ("patch", "node", "level", "parent", "child"))
     links = Links(*(np.array(a[k]) for k in ("recv", "src", "F", "vis", "partial")))
     clinks = ClusterLinks(*(np.array(a[f"cluster_{k}"]) for k in ("R", "S", "vis", "partial")))
     solved = (float(state["residual"]), list(a["history"]), dict(state["balance"]))
-    return h, links, clinks, np.array(a["B"]), int(state["rounds"]), int(state["iterations"]), solved
+    scales = (np.array(a["u"]), np.array(a["w"]))
+    return h, links, clinks, np.array(a["B"]), scales, int(state["rounds"]), int(state["iterations"]), solved
 
 
 def first_radiosity(scene):
@@ -792,22 +794,23 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
                 links, clinks = initial_links_clustered(h, tree, threshold, tolerance)
         caster.cast(links)
         cast_clusters(caster, tree, clinks)
-        B, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), 0, 0, None
+        B, scales, rounds, sweeps, solved = np.array(scene.emission, dtype=np.float64), None, 0, 0, None
     else:
-        h, links, clinks, B, rounds, sweeps, solved = _restore(resume, scene, points)
+        h, links, clinks, B, scales, rounds, sweeps, solved = _restore(resume, scene, points)
         caster = make_caster(h)
     while True:
         if solved is None:
             with phases.timed("solve"):
                 transfer = cluster_transfer(tree, h, clinks)
                 u, w, balance = transport_scales(h, links, transfer=transfer, closed=solve.closure == "enforce",
-                                                 tolerance=SCALE_TOLERANCE * solve.tolerance)
+                                                 tolerance=SCALE_TOLERANCE * solve.tolerance, start=scales)
+                scales = (u, w)
                 B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
                                                     max_iterations=solve.max_iterations, transfer=transfer)
             sweeps += done
             solved = (res, history, balance)
             if checkpoint is not None:
-                checkpoint(solve_state(h, links, clinks, B, rounds, sweeps, solved))
+                checkpoint(solve_state(h, links, clinks, B, scales, rounds, sweeps, solved))
         res, history, balance = solved
         solved = None
         with phases.timed("formfactor"):
@@ -816,7 +819,8 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
         if not (len(recv) or len(c_recv) or len(c_new)):
             break
         rounds += 1
-        B = np.concatenate([B, B[h.parent[len(B):]]])
+        inherit = lambda x: np.concatenate([x, x[h.parent[len(x):]]])     # new elements start as their parent
+        B, scales = inherit(B), tuple(inherit(x) for x in scales)
         with phases.timed("formfactor"):
             # the new links and those of receivers split this round, down to the leaves
             down = h.child[kept.recv] >= 0
