@@ -6,26 +6,31 @@ contiguous run of ``order``, split at the median of their centroids along the wi
 single triangles. A node has the box of its members' vertices, their area and area-weighted centre.
 
 **Linking** (:func:`link_clusters`). From a pair (R <- S) of nodes, top down: the pair stays one
-*cluster link* while the power it can carry is at most the threshold; the bound is
-``B_S A_R A_S / (pi d**2)`` with ``B_S`` its members' largest radiosity and ``d`` the gap between
-the two boxes (the point-to-point kernel ``cos cos / (pi r**2)`` is at most ``1 / (pi d**2)``), so
-it holds whatever the members' orientation and distance, and it bounds the link's error as well as
-its power. Otherwise the node with the larger box is split (a node with itself: its children's
-four pairs); two single triangles become an element link (hierarchical.py).
+*cluster link* while its boxes are :data:`SEPARATION` times the larger one's diagonal apart and the
+power it can carry is at most the threshold; the bound is ``B_S A_R A_S / (pi d**2)`` with ``B_S``
+its members' largest radiosity and ``d`` the gap between the two boxes (the point-to-point kernel
+``cos cos / (pi r**2)`` is at most ``1 / (pi d**2)``), so it holds whatever the members'
+orientation and distance, and it bounds the link's error as well as its power. Otherwise the
+node with the larger box is split (a node with itself: its children's four pairs); two single
+triangles become an element link (hierarchical.py).
 
-**Transfer** (:class:`Transfer`). A cluster link moves light with a rank-one kernel: ``F_rs = a_r
-b_s`` with ``a_r`` the mean of ``max(0, N_r . u) / (pi |c_S - x|**2)`` over points x of receiver r
-(u the unit vector from x to ``c_S``) and ``b_s = A_s d**2`` times the same mean over source s
-towards ``c_R``, where ``c`` are the nodes' centres and ``d = |c_R - c_S|``: the point-to-point
-kernel where either member is small and at its node's centre. The points are each triangle's edge
-midpoints (exact for quadratics). It is reciprocal for each member pair (``A_r F_rs = A_s F_sr``),
-and costs the members, not their pairs. It gathers on the receivers (the leaves of the receiver
-node's triangles, each with its own ``a_r``) from its source triangles (their leaves' mean), times
-the link's visible fraction.
+**Transfer** (:class:`Transfer`). A cluster link moves light with a kernel of :data:`RANK` 4,
+``F_rs = a_r . b_s``: ``a_r`` the mean over points x of receiver r of ``max(0, N_r . u) / (pi |c_S
+- x|**3) [x - c_S, 1]`` (u the unit vector from x to the source node's centre ``c_S``), ``b_s``
+``A_s`` times the mean over points q of source s facing ``c_R`` of ``(d / |c_R - q|)**3 [N_s, N_s .
+(c_S - q)]`` (``d = |c_R - c_S|``). Their dot product is ``cos_r A_s N_s . (x - q) / (pi |c_S -
+x|**3)`` with a distance correction: the source's cosine is taken towards each receiver, which a
+rank-1 kernel (both cosines along the centres' line) cannot do, and a receiver near the source's
+plane sees it at its own grazing angle. The points are each triangle's edge midpoints (exact for
+quadratics). It is reciprocal for each member pair (``A_r F_rs = A_s F_sr``), and costs the
+members, not their pairs. It gathers on the receivers (the leaves of the receiver node's
+triangles, each with its own terms) from its source triangles (their leaves' mean), times the
+link's visible fraction.
 
 **Visibility.** A cluster link's rays are those of one element link between two of its members
-(:func:`member_pairs`), drawn in proportion to what the pair carries, ``A_r a_r b_s``, from a hash of
-the link's two nodes (the same on every board, Dask set and resumed checkpoint).
+(:func:`member_pairs`), drawn in proportion to what the pair carries (area times the kernel's
+mean towards the other node's centre, on each side), from a hash of the link's two nodes (the
+same on every board, Dask set and resumed checkpoint).
 """
 
 import math
@@ -38,7 +43,7 @@ from scipy import sparse
 from ...memory import ranges
 
 __all__ = ["ClusterTree", "ClusterLinks", "Transfer", "build_tree", "link_clusters", "member_pairs",
-           "split_links", "MEMBER_PAIRS"]
+           "power_bounds", "split_pairs", "SEPARATION", "MEMBER_PAIRS", "RANK"]
 
 #: a cluster link's two boxes are at least this many times the larger box's diagonal apart: the
 #: kernel's error falls with the nodes' size over their distance (a closed box of 432 triangles,
@@ -180,14 +185,6 @@ def split_pairs(tree, R, S):
         pairs_R.append(np.where(split_R, child[R], R))
         pairs_S.append(np.where(split_R, S, child[S]))
     return np.concatenate(pairs_R), np.concatenate(pairs_S)
-
-
-def split_links(tree, R, S):
-    """Each cluster link ``(R <- S)`` replaced by its two child pairs (:func:`split_pairs`); two
-    single triangles stay as they are (the caller makes them an element link)."""
-    both = tree.leaf[R] & tree.leaf[S]
-    kids_R, kids_S = split_pairs(tree, R[~both], S[~both])
-    return np.concatenate([R[both], kids_R]), np.concatenate([S[both], kids_S])
 
 
 @dataclass
