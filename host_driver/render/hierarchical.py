@@ -531,7 +531,8 @@ def shooter_sums(h, links, u, down, transfer=None):
     of a leaf's light its ancestors' links deliver (``F_sr = A_r F_rs / A_s``); cluster links
     (``transfer``) shoot from input triangles to their receivers' leaves."""
     A = h.areas
-    x = np.bincount(links.src, u[links.recv] * A[links.recv] * links.F * links.vis / A[links.src], minlength=len(h)).astype(np.float64)
+    share = u[links.recv] * A[links.recv] * links.F * links.vis / A[links.src]
+    x = np.bincount(links.src, share, minlength=len(h)).astype(np.float64)
     if transfer is not None:
         N = h.scene.patches
         x[:N] += transfer.shoot(u * A) / A[:N]
@@ -575,7 +576,8 @@ def transport_scales(h, links, *, transfer=None, closed=False, tolerance=1e-14, 
 
     def rows():
         mean = pull_means(h, w.copy(), up)
-        return (np.bincount(links.recv, Fv * mean[links.src], minlength=n) + cluster_gathered(h, transfer, mean))[leaves]
+        rows = np.bincount(links.recv, Fv * mean[links.src], minlength=n) + cluster_gathered(h, transfer, mean)
+        return rows[leaves]
     history = []
     for it in range(1, max_iterations + 1):
         R = rows()
