@@ -88,12 +88,7 @@ class LeanReceiver(wiring.Component):
         chains = _row_chains(platform)
         platform = product_platform(platform, "receiver")
         rounded = product_platform(platform, "rounded")
-        dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
-        e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
-        for k, vertex in enumerate(_VERTICES):
-            for c in _AXES:
-                m.d.comb += [dq0[k][c].eq(self.point[c] - self.patch[vertex][c]),
-                             e0[k][c].eq(self.patch[_VERTICES[(k + 1) % 3]][c] - self.patch[vertex][c])]
+        dq0, e0 = _edge_vectors(m, self.point, self.patch, w)
         pq4 = Signal(signed(w.orient), name="pq_4")
         sums3 = _dot_sums(m, [(dq0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pq", platform)
         m.d.sync += pq4.eq(_combine(sums3, w.orient))
@@ -124,6 +119,18 @@ class LeanReceiver(wiring.Component):
         return m
 
 
+def _edge_vectors(m, point, patch, w):
+    """The row unit's stage-0 vectors: ``dQ_k`` (the point minus vertex k) and ``e_k`` (vertex k+1
+    minus vertex k), combinational."""
+    dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
+    e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
+    for k, vertex in enumerate(_VERTICES):
+        for c in _AXES:
+            m.d.comb += [dq0[k][c].eq(point[c] - patch[vertex][c]),
+                         e0[k][c].eq(patch[_VERTICES[(k + 1) % 3]][c] - patch[vertex][c])]
+    return dq0, e0
+
+
 def _row_chains(platform):
     """The platform for the row unit's w_k bit heaps (:func:`~blockray.rtl.lutdot.dot_product`):
     a target with carry cells whose ``rounded`` products are in the fabric, else None."""
@@ -145,12 +152,7 @@ class LeanRowUnit(ReceiverUnit):
             return super().elaborate(platform)
         m = Module()
         w = Widths(self._bits)
-        dq0 = [Signal(vector_layout(w.diff), name=f"dq{k}_0") for k in range(3)]
-        e0 = [Signal(vector_layout(w.diff), name=f"e{k}_0") for k in range(3)]
-        for k, vertex in enumerate(_VERTICES):
-            for c in _AXES:
-                m.d.comb += [dq0[k][c].eq(self.point[c] - self.patch[vertex][c]),
-                             e0[k][c].eq(self.patch[_VERTICES[(k + 1) % 3]][c] - self.patch[vertex][c])]
+        dq0, e0 = _edge_vectors(m, self.point, self.patch, w)
         w3 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_3")
         for k in range(3):
             for i, c in enumerate(_AXES):       # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}
