@@ -57,6 +57,9 @@ class RowChainModel:
     ccu2c = "model"
     fabric_units = frozenset({"rounded"})
 
+    def __repr__(self):         # the test id: the same on every xdist worker (no address)
+        return "row-chains"
+
 
 @pytest.mark.parametrize("bits,fmt,platform", [(16, FilterFormat(9, 9, 12), None), (16, FilterFormat(4, 5, 3), None),
                                                (20, FilterFormat(9, 9, 14), None), (6, FilterFormat(7, 9, 12), None),
