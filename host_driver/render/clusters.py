@@ -35,6 +35,7 @@ same on every board, Dask set and resumed checkpoint).
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numba import njit, prange
@@ -78,10 +79,19 @@ class ClusterTree:
     def leaf(self):
         return self.left < 0
 
-    @property
+    @cached_property
     def size(self):
-        """The box's diagonal."""
+        """The box's diagonal (computed once: every linking pass reads it)."""
         return np.linalg.norm(self.hi - self.lo, axis=1)
+
+    @cached_property
+    def levels(self):
+        """The inner nodes by depth, deepest first (children are numbered after their parents)."""
+        depth = np.zeros(len(self), dtype=np.int64)
+        for k in range(1, len(self)):
+            depth[k] = depth[self.parent[k]] + 1
+        inner = ~self.leaf
+        return [np.flatnonzero(inner & (depth == d)) for d in range(int(depth.max(initial=0)), -1, -1)]
 
     def members(self, nodes):
         """``(row, triangle)``: for each member of each of ``nodes``, its index in ``nodes``."""
@@ -93,18 +103,9 @@ class ClusterTree:
         """Per node, the largest of its members' ``values`` (one per input triangle)."""
         out = np.full(len(self), -np.inf)
         out[self.leaf] = values[self.order[self.start[self.leaf]]]
-        for level in _levels_up(self):
+        for level in self.levels:
             out[level] = np.maximum(out[self.left[level]], out[self.right[level]])
         return out
-
-
-def _levels_up(tree):
-    """The inner nodes by depth, deepest first (children are numbered after their parents)."""
-    depth = np.zeros(len(tree), dtype=np.int64)
-    for k in range(1, len(tree)):
-        depth[k] = depth[tree.parent[k]] + 1
-    inner = ~tree.leaf
-    return [np.flatnonzero(inner & (depth == d)) for d in range(int(depth.max(initial=0)), -1, -1)]
 
 
 def build_tree(scene):
@@ -139,7 +140,7 @@ def build_tree(scene):
                        area, centre)
     leaf = tree.leaf
     tree.lo[leaf], tree.hi[leaf] = V[order[start[leaf]]].min(axis=1), V[order[start[leaf]]].max(axis=1)
-    for level in _levels_up(tree):
+    for level in tree.levels:
         tree.lo[level] = np.minimum(tree.lo[left[level]], tree.lo[right[level]])
         tree.hi[level] = np.maximum(tree.hi[left[level]], tree.hi[right[level]])
     return tree
