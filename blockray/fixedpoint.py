@@ -141,6 +141,25 @@ def _nonzero_area(scene):
     return np.any(scene.cross != 0, axis=1)
 
 
+def _lattice(scene, D, bits):
+    """The vertex lattice of ``bits`` bits and denominator ``D``: ``(lo, h, points, V, normals,
+    displacement, diagonal)``; all :func:`choose_bits` needs (its two tests read vertices only)."""
+    cells = ((1 << bits) - 1) // D
+    vx = np.asarray(scene.vertices, dtype=np.float64)
+    used = np.unique(scene.triangles)
+    if not np.isfinite(vx[used]).all():
+        raise CapacityError("the scene has non-finite vertex coordinates")
+    lo, hi = scene.bbox
+    lo = np.asarray(lo, dtype=np.float64)
+    extent = float(np.max(hi - lo))
+    step = extent / cells if extent > 0 else 1.0
+    h = step / D
+    points = np.clip(np.rint((vx - lo) / step), 0, cells).astype(np.int64) * D
+    V = points[scene.triangles]                                          # (N, 3, 3)
+    moved = np.linalg.norm(lo + points[used] * h - vx[used], axis=1)
+    return lo, h, points, V, patch_normals(V), float(moved.max(initial=0.0)), float(np.linalg.norm(hi - lo))
+
+
 def quantise(scene, samples, bits):
     """Put ``scene`` on the ``bits``-bit grid with the denominator of ``samples``.
 
@@ -149,26 +168,12 @@ def quantise(scene, samples, bits):
     """
     bits = check_bits(bits)
     D = int(samples.denominator)
-    cells = ((1 << bits) - 1) // D
-    if cells < 1:
+    if ((1 << bits) - 1) // D < 1:
         raise ParameterError(f"bits {bits} is too small for {samples.count} samples per patch "
                              f"(denominator {D} needs at least {D.bit_length()} bits)", parameter="bits")
     if scene.patches == 0:
         raise CapacityError("the scene has no patches to quantise")
-    vx = np.asarray(scene.vertices, dtype=np.float64)
-    used = np.unique(scene.triangles)
-    if not np.isfinite(vx[used]).all():
-        raise CapacityError("the scene has non-finite vertex coordinates")
-    lo, hi = scene.bbox
-    lo = np.asarray(lo, dtype=np.float64)
-    extent = float(np.max(hi - lo))
-    diagonal = float(np.linalg.norm(hi - lo))
-    step = extent / cells if extent > 0 else 1.0
-    h = step / D
-    lattice = np.clip(np.rint((vx - lo) / step), 0, cells).astype(np.int64)
-    points = lattice * D
-    V = points[scene.triangles]                                          # (N, 3, 3)
-    normals = patch_normals(V)
+    lo, h, points, V, normals, displacement, diagonal = _lattice(scene, D, bits)
     shooters = samples.points_int(V)
     receivers = samples.centroids_int(V)
 
@@ -176,8 +181,6 @@ def quantise(scene, samples, bits):
     assert V.min() >= 0 and V.max() < (1 << w.coord)
     assert np.abs(normals).max(initial=0) < (1 << (w.cross - 1))
 
-    moved = np.linalg.norm(lo + points[used] * h - vx[used], axis=1)
-    displacement = float(moved.max(initial=0.0))
     fv = scene.patch_vertices
     ends = np.concatenate([
         np.linalg.norm(lo + shooters * h - samples.points(fv), axis=-1).ravel(),
@@ -185,6 +188,7 @@ def quantise(scene, samples, bits):
     end_displacement = float(ends.max(initial=0.0))
 
     # distinct float vertices that land on one integer point
+    vx, used = np.asarray(scene.vertices, dtype=np.float64), np.unique(scene.triangles)
     upts, inv = np.unique(points[used], axis=0, return_inverse=True)
     collapsed = []
     if len(upts) < len(np.unique(vx[used], axis=0)):
@@ -217,16 +221,20 @@ def choose_bits(scene, samples, *, max_error=DEFAULT_MAX_ERROR, fine_points_erro
     bounds = [max_error] + ([fine_points_error] if finer > 1 and fine_points_error > max_error else [])
     first = max(MIN_BITS, int(samples.denominator).bit_length())
     fallback = None
-    for bits in range(first, MAX_BITS + 1):
-        q = quantise(scene, samples, bits)
-        met = [b for b in bounds if len(q.degenerate) == 0 and q.displacement <= b * q.diagonal]
+    if scene.patches == 0:
+        raise CapacityError("the scene has no patches to quantise")
+    nz = _nonzero_area(scene)
+    for bits in range(first, MAX_BITS + 1):     # the vertex lattice alone: the end points do not count here
+        _, _, _, _, normals, displacement, diagonal = _lattice(scene, int(samples.denominator), bits)
+        degenerate = int((nz & ~np.any(normals != 0, axis=1)).sum())
+        met = [b for b in bounds if degenerate == 0 and displacement <= b * diagonal]
         if max_error in met:
             return bits, max_error
         fallback = fallback or (met and (bits, met[0]))
     if fallback:
         return fallback
-    why = (f"{len(q.degenerate)} patches degenerate" if len(q.degenerate)
-           else f"max vertex displacement {q.displacement:.3g} > {bounds[-1]:g} x diagonal {q.diagonal:.3g}")
+    why = (f"{degenerate} patches degenerate" if degenerate
+           else f"max vertex displacement {displacement:.3g} > {bounds[-1]:g} x diagonal {diagonal:.3g}")
     if finer > 1:
         why += f" (the end points {finer} times finer than the sample lattice take {finer.bit_length() - 1} of the bits)"
     raise CapacityError(f"scene {scene.name!r} cannot be represented with at most {MAX_BITS} "

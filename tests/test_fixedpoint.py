@@ -86,16 +86,29 @@ def test_zero_area_triangle_is_not_degenerate_report():
     assert (q.normals[0] == 0).all()
 
 
-def test_choose_bits_is_the_fewest_that_meet_the_bound():
-    s = SampleScheme(8)
+def _moved(sc, q):
+    """The largest vertex displacement of ``q`` recomputed from its integer points (test-side)."""
+    used = np.unique(sc.triangles)
+    back = q.lo + q.points[used].astype(np.float64) * q.h
+    return float(np.sqrt(((back - np.asarray(sc.vertices)[used]) ** 2).sum(axis=1)).max()) / float(
+        np.linalg.norm(np.ptp(np.asarray(sc.vertices)[used], axis=0)))
+
+
+@pytest.mark.parametrize("scheme", ["uniform", "elements"])
+def test_choose_bits_is_the_fewest_that_meet_the_bound(scheme):
+    """choose_bits tests the vertex lattice alone; the full quantisation at its B and at B - 1
+    (end points and all) agrees, the displacement recomputed here from the integer points."""
+    from blockray.host_driver.radiosity.elements import ElementPoints
+    s = SampleScheme(8) if scheme == "uniform" else ElementPoints(SampleScheme(8, seed=3), 1)
     for seed in range(3):
         sc = random_scene(seed)
         b, bound = choose_bits(sc, s)
         assert bound == DEFAULT_MAX_ERROR
         q = quantise(sc, s, b)
         assert len(q.degenerate) == 0 and q.relative_error <= DEFAULT_MAX_ERROR
+        assert _moved(sc, q) == pytest.approx(q.relative_error, rel=1e-9)
         qb = quantise(sc, s, b - 1)
-        assert len(qb.degenerate) > 0 or qb.relative_error > DEFAULT_MAX_ERROR
+        assert len(qb.degenerate) > 0 or _moved(sc, qb) > DEFAULT_MAX_ERROR
         # a looser bound never needs more bits
         assert choose_bits(sc, s, max_error=1e-2)[0] <= b
 
