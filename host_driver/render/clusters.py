@@ -379,17 +379,19 @@ def member_pairs(tree, scene, links, pairs=MEMBER_PAIRS):
     return tuple(np.concatenate(x).astype(np.int64) for x in (out_link, out_r, out_s))
 
 
-def _square(v):
-    return np.einsum("...c,...c->...", v, v)
-
-
+@njit(cache=True)
 def _kernel_mean(corners, normals, target):
     """Mean of ``max(0, cos) / r**2`` from ``target`` over each triangle ``corners`` (m, 3, 3) (its
     edge midpoints), ``cos`` against the triangle's normal."""
-    to = target[:, None, :] - 0.5 * (corners + np.roll(corners, -1, axis=1))
-    r2 = _square(to)
-    cos = np.einsum("mc,mqc->mq", normals, to) / np.sqrt(np.where(r2 > 0, r2, 1.0))
-    return (np.maximum(cos, 0.0) / np.where(r2 > 0, r2, np.inf)).mean(axis=1)
+    out = np.zeros(len(corners))
+    for m in range(len(corners)):
+        for q in range(3):
+            to = target[m] - 0.5 * (corners[m, q] + corners[m, (q + 1) % 3])
+            r2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2]
+            cos = normals[m, 0] * to[0] + normals[m, 1] * to[1] + normals[m, 2] * to[2]
+            if r2 > 0.0 and cos > 0.0:
+                out[m] += cos / np.sqrt(r2) / r2 / 3.0
+    return out
 
 
 def _uniform(R, S, k):

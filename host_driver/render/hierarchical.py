@@ -89,7 +89,9 @@ __all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_lea
            "CERTAIN_WEIGHT", "LEAF_COLUMNS"]
 
 #: The scales' tolerance (largest ``|shot / target - 1|``) relative to the solve's: the power the
-#: scaling leaves unbalanced stays well below what the solve's residual leaves.
+#: scaling leaves unbalanced stays well below what the solve's residual leaves. Only the last
+#: round's scales are held to it; the rounds before (their B only decides what to refine) stop at
+#: the solve's own tolerance, which saves about 20 scaling passes a round.
 SCALE_TOLERANCE = 1e-2
 
 #: The scaling stops when its residual has not halved in this many passes (a leaf whose gathered
@@ -766,6 +768,19 @@ def refine_clusters(tree, h, clinks, B, threshold):
     return recv, src, clinks.take(~over), ClusterLinks(new_R, new_S)
 
 
+def solve_round(tree, h, links, clinks, B, scales, solve, *, final, transfer=None):
+    """One round's transport scales and Jacobi sweeps, each started from the last round's:
+    ``(B, scales, sweeps, (residual, history, balance), transfer)``. The scales stop at the
+    solve's tolerance, or ``final`` at :data:`SCALE_TOLERANCE` times it. ``transfer``: the cluster
+    links' tables if already built for these links and leaves."""
+    transfer = transfer or cluster_transfer(tree, h, clinks)
+    u, w, balance = transport_scales(h, links, transfer=transfer, closed=solve.closure == "enforce",
+                                     tolerance=(SCALE_TOLERANCE if final else 1.0) * solve.tolerance, start=scales)
+    B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
+                                        max_iterations=solve.max_iterations, transfer=transfer)
+    return B, (u, w), done, (res, history, balance), transfer
+
+
 def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, resume=None, cluster=None):
     """``--solver hierarchical`` on a built ``board`` (see the module docstring). ``checkpoint``:
     called with :func:`solve_state` after every round's solve; ``resume``: such a state to
@@ -800,20 +815,14 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
     else:
         h, links, clinks, B, scales, rounds, sweeps, solved = _restore(resume, scene, points)
         caster = make_caster(h)
+    transfer = None                        # the cluster tables of the last round's solve
     while True:
         if solved is None:
             with phases.timed("solve"):
-                transfer = cluster_transfer(tree, h, clinks)
-                u, w, balance = transport_scales(h, links, transfer=transfer, closed=solve.closure == "enforce",
-                                                 tolerance=SCALE_TOLERANCE * solve.tolerance, start=scales)
-                scales = (u, w)
-                B, done, res, history = solve_links(h, links, B, (u, w), tolerance=solve.tolerance,
-                                                    max_iterations=solve.max_iterations, transfer=transfer)
+                B, scales, done, solved, transfer = solve_round(tree, h, links, clinks, B, scales, solve, final=False)
             sweeps += done
-            solved = (res, history, balance)
             if checkpoint is not None:
                 checkpoint(solve_state(h, links, clinks, B, scales, rounds, sweeps, solved))
-        res, history, balance = solved
         solved = None
         with phases.timed("formfactor"):
             recv, src, kept = refine(h, links, B, threshold, min_area, points.max_level)
@@ -833,6 +842,10 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
         caster.cast(new)
         cast_clusters(caster, tree, c_new)
         links, clinks = Links.join(kept.take(~down), new), ClusterLinks.join(c_kept, c_new)
+    with phases.timed("solve"):             # the last round's scales and B to the full tolerances
+        B, scales, done, (res, history, balance), _ = solve_round(tree, h, links, clinks, B, scales, solve,
+                                                                  final=True, transfer=transfer)
+    sweeps += done
     if solve.closure == "enforce":
         check_closed(balance)
     leaves = h.leaves()
