@@ -319,44 +319,50 @@ def _source_table(S_start, S_end, order, corners, normals, areas, c_R, c_S, vis)
 @njit(cache=True)
 def _kernel_terms(corners, normal, target):
     """Over the edge midpoints x of a triangle (a rule exact for quadratics): the means of
-    ``k`` and ``k (x - target)`` with ``k = max(0, cos) / |target - x|**3``, cos against ``normal``."""
-    out = np.zeros(4)
+    ``k`` and ``k (x - target)`` with ``k = max(0, cos) / |target - x|**3``, cos against ``normal``.
+    (Scalars throughout: no array is allocated per call.)"""
+    o0 = o1 = o2 = o3 = 0.0
     for q in range(3):
-        x = 0.5 * (corners[q] + corners[(q + 1) % 3])
-        to = target - x
-        r2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2]
+        p = (q + 1) % 3
+        t0 = target[0] - 0.5 * (corners[q, 0] + corners[p, 0])
+        t1 = target[1] - 0.5 * (corners[q, 1] + corners[p, 1])
+        t2 = target[2] - 0.5 * (corners[q, 2] + corners[p, 2])
+        r2 = t0 * t0 + t1 * t1 + t2 * t2
         if r2 <= 0.0:
             continue
-        cos = (normal[0] * to[0] + normal[1] * to[1] + normal[2] * to[2]) / np.sqrt(r2)
+        cos = (normal[0] * t0 + normal[1] * t1 + normal[2] * t2) / np.sqrt(r2)
         if cos > 0.0:
             k = cos / (r2 * np.sqrt(r2)) / 3.0
-            out[0] -= k * to[0]
-            out[1] -= k * to[1]
-            out[2] -= k * to[2]
-            out[3] += k
-    return out
+            o0 -= k * t0
+            o1 -= k * t1
+            o2 -= k * t2
+            o3 += k
+    return (o0, o1, o2, o3)
 
 
 @njit(cache=True)
 def _source_terms(corners, n, area, c_R, c_S):
     """A source's terms: ``A_s`` times the mean over its points q facing the receiver's centre of
     ``(d / |c_R - q|)**3 [N_s, N_s . (c_S - q)]``, d the centres' distance (the distance to this
-    source point, exact where the receiver is at its centre)."""
-    out = np.zeros(4)
-    dv = c_R - c_S
-    d = np.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
+    source point, exact where the receiver is at its centre). (Scalars throughout.)"""
+    o0 = o1 = o2 = o3 = 0.0
+    d0, d1, d2 = c_R[0] - c_S[0], c_R[1] - c_S[1], c_R[2] - c_S[2]
+    d = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     for q in range(3):
-        x = 0.5 * (corners[q] + corners[(q + 1) % 3])
-        to = c_R - x
-        r2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2]
-        if r2 <= 0.0 or n[0] * to[0] + n[1] * to[1] + n[2] * to[2] <= 0.0:
+        p = (q + 1) % 3
+        x0 = 0.5 * (corners[q, 0] + corners[p, 0])
+        x1 = 0.5 * (corners[q, 1] + corners[p, 1])
+        x2 = 0.5 * (corners[q, 2] + corners[p, 2])
+        t0, t1, t2 = c_R[0] - x0, c_R[1] - x1, c_R[2] - x2
+        r2 = t0 * t0 + t1 * t1 + t2 * t2
+        if r2 <= 0.0 or n[0] * t0 + n[1] * t1 + n[2] * t2 <= 0.0:
             continue
         w = area * (d / np.sqrt(r2)) ** 3 / 3.0
-        out[0] += w * n[0]
-        out[1] += w * n[1]
-        out[2] += w * n[2]
-        out[3] += w * (n[0] * (c_S[0] - x[0]) + n[1] * (c_S[1] - x[1]) + n[2] * (c_S[2] - x[2]))
-    return out
+        o0 += w * n[0]
+        o1 += w * n[1]
+        o2 += w * n[2]
+        o3 += w * (n[0] * (c_S[0] - x0) + n[1] * (c_S[1] - x1) + n[2] * (c_S[2] - x2))
+    return (o0, o1, o2, o3)
 
 
 def member_pairs(tree, scene, links, pairs=MEMBER_PAIRS):
