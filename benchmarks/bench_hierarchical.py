@@ -77,7 +77,17 @@ def run(reference, name, edge, **options):
     r = result.report
     return {"patches": scene.patches, "rays": r["rays"], "cpu": r["cpu_seconds"]["total"],
             "error": error(reference, result), "leaves": r.get("leaves", scene.patches),
-            "links": r["links"] + r["cluster_links"] if "cluster_links" in r else r.get("links", "")}
+            "links": r["links"] + r["cluster_links"] if "cluster_links" in r else r.get("links", ""),
+            "balance": max((b for b in r.get("absorbed_balance") or [] if b is not None), key=abs, default=float("nan"))}
+
+
+def warm_up():
+    """Render a small scene once with each solver, so numba's compilation (cached on disk after a
+    first run, recompiled when a kernel's module changes) falls in no measured run."""
+    scene = load_scene("cornell", max_edge=RAW)
+    render(scene, backend="model", solver="progressive", tolerance=1e-2)
+    for clustering in (True, False):
+        render(scene, backend="model", solver="hierarchical", epsilon=1e-2, clustering=clustering)
 
 
 def main(argv=None):
@@ -103,14 +113,15 @@ def main(argv=None):
     args = ap.parse_args(argv)
     print_run_header()
     print(f"# load average before: {os.getloadavg()}", flush=True)
+    warm_up()
     ref = reference_solution(args.scene, args.reference_edge, args.cache, args.reference_samples, args.reference_board)
     check = reference_solution(args.scene, args.check_edge, args.cache, args.reference_samples, args.reference_board)
     fake = type("R", (), {"scene": check["scene"], "radiosity": check["B"]})
     print(f"# reference: {ref['scene'].patches} patches, {args.reference_board}, jacobi 1e-6, {args.reference_samples} samples, {ref['seconds']:.0f} CPU s; "
           f"the same at max edge {args.check_edge:g} ({check['scene'].patches} patches) is {error(ref, fake):.4f} "
           f"from it", flush=True)
-    print("| solver | mesh | patches / leaves | links | rays | CPU s | error |")
-    print("|---|---|---|---|---|---|---|")
+    print("| solver | mesh | patches / leaves | links | rays | CPU s | error | balance |")
+    print("|---|---|---|---|---|---|---|---|")
     modes = args.link_rays.split(",")
     starts = [float(x) for x in args.hierarchical_edges.split(",")]
     modes = [(m, c == "on") for c in args.clustering.split(",") for m in modes]
@@ -120,8 +131,8 @@ def main(argv=None):
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
         rows["progressive"].append(r)
-        print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} |",
-              flush=True)
+        print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} | "
+              f"{r['balance']:+.2%} |", flush=True)
     for edge in starts:
         for mode in modes:
             for eps in (float(x) for x in args.epsilons.split(",")):
@@ -129,7 +140,7 @@ def main(argv=None):
                         link_rays=mode[0], clustering=mode[1])
                 rows[label(mode, edge)].append(r)
                 print(f"| {label(mode, edge)} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
-                      f"{r['cpu']:.2f} | {r['error']:.4f} |", flush=True)
+                      f"{r['cpu']:.2f} | {r['error']:.4f} | {r['balance']:+.2%} |", flush=True)
     print(f"# load average after: {os.getloadavg()}")
     if args.plot:
         plot(rows, args.plot, args.scene)

@@ -40,11 +40,11 @@ FILE = "checkpoint.npz"
 #: seconds between two checkpoints of a running solve (the first: the first step this long after
 #: the solve starts)
 INTERVAL = 30.0
-FORMAT = 1
+FORMAT = 2
 _STATE = ("B", "U", "energy", "history", "row_sums", "columns")
 #: a hierarchical render's arrays (host_driver/render/hierarchical.py, ``solve_state``)
 HIERARCHICAL = ("patch", "node", "level", "parent", "child", "recv", "src", "F", "vis", "partial", "B", "history",
-                "cluster_R", "cluster_S", "cluster_vis", "cluster_partial", "u", "w")
+                "cluster_R", "cluster_S", "cluster_vis", "cluster_partial", "cluster_rkey", "cluster_rvis", "u", "w")
 
 
 def scene_hash(scene):

@@ -27,10 +27,13 @@ members, not their pairs. It gathers on the receivers (the leaves of the receive
 triangles, each with its own terms) from its source triangles (their leaves' mean), times the
 link's visible fraction.
 
-**Visibility.** A cluster link's rays are those of one element link between two of its members
-(:func:`member_pairs`), drawn in proportion to what the pair carries (area times the kernel's
-mean towards the other node's centre, on each side), from a hash of the link's two nodes (the
-same on every board, Dask set and resumed checkpoint).
+**Visibility.** Each leaf of a cluster link's receiver node has its own visible fraction: the
+rays of the element link to it from one member of the source node (:func:`source_members`),
+drawn in proportion to what it sends (area times the kernel's mean towards the receiver node's
+centre) from a hash of the link's two nodes (the same on every board, Dask set and resumed
+checkpoint); a leaf split later gets its children's own rays, a leaf kept keeps its fraction. One
+fraction for all the receivers would light a receiver cluster half under a table as a whole, and
+the solve would gain energy (docs/hierarchical.md, "Energy balance with clustering").
 """
 
 import math
@@ -43,8 +46,8 @@ from scipy import sparse
 
 from ...memory import ranges
 
-__all__ = ["ClusterTree", "ClusterLinks", "Transfer", "build_tree", "link_clusters", "member_pairs",
-           "power_bounds", "split_pairs", "SEPARATION", "MEMBER_PAIRS", "RANK"]
+__all__ = ["ClusterTree", "ClusterLinks", "Transfer", "build_tree", "link_clusters", "receiver_entries",
+           "entry_keys", "leaf_weights", "source_members", "power_bounds", "split_pairs", "SEPARATION", "RANK"]
 
 #: a cluster link's two boxes are at least this many times the larger box's diagonal apart: the
 #: kernel's error falls with the nodes' size over their distance (a closed box of 432 triangles,
@@ -52,8 +55,6 @@ __all__ = ["ClusterTree", "ClusterLinks", "Transfer", "build_tree", "link_cluste
 #: for 29 k, 67 k and 112 k links; docs/hierarchical.md)
 SEPARATION = 2.0
 
-#: element links between members whose rays stand for a cluster link's
-MEMBER_PAIRS = 1
 
 
 @dataclass(frozen=True)
@@ -191,16 +192,21 @@ def split_pairs(tree, R, S):
 @dataclass
 class ClusterLinks:
     """Cluster links (node ``R`` <- node ``S``), their visible fraction ``vis`` and ``partial`` (the
-    member pairs' rays neither all clear nor all blocked)."""
+    rays neither all clear nor all blocked). ``rvis``: once cast, the visible fraction of each
+    receiver leaf of each link, in the order of :func:`receiver_entries` on the leaves they were
+    cast for, and ``rkey`` the entries' keys (:func:`entry_keys`); None: ``vis`` for all of them
+    (links not cast; :meth:`take` and :meth:`join` drop them, a new cast carries them over)."""
     R: np.ndarray
     S: np.ndarray
     vis: np.ndarray = None
     partial: np.ndarray = None
+    rkey: np.ndarray = None
+    rvis: np.ndarray = None
 
     @staticmethod
     def empty():
         z = np.zeros(0, dtype=np.int64)
-        return ClusterLinks(z, z.copy(), np.zeros(0), np.zeros(0, dtype=bool))
+        return ClusterLinks(z, z.copy(), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2), np.int64), np.zeros(0))
 
     def __len__(self):
         return len(self.R)
@@ -210,8 +216,28 @@ class ClusterLinks:
 
     @staticmethod
     def join(a, b):
+        """``a`` then ``b`` (links not cast yet: clear, not partial, until cast)."""
         cat = np.concatenate
-        return ClusterLinks(cat([a.R, b.R]), cat([a.S, b.S]), cat([a.vis, b.vis]), cat([a.partial, b.partial]))
+        vis = [np.ones(len(x)) if x.vis is None else x.vis for x in (a, b)]
+        partial = [np.zeros(len(x), dtype=bool) if x.partial is None else x.partial for x in (a, b)]
+        return ClusterLinks(cat([a.R, b.R]), cat([a.S, b.S]), cat(vis), cat(partial))
+
+
+def receiver_entries(tree, links, leaves, N):
+    """``(link, leaf)``: every leaf of every triangle of each link's receiver node, link after link,
+    triangles in the tree's member order, a triangle's leaves in the order of ``leaves = (ids,
+    patch)`` (the rows of :class:`Transfer`'s receiver table; ``leaf`` indexes ``ids``)."""
+    ids, patch = leaves
+    by_patch = np.argsort(patch, kind="stable")
+    count = np.bincount(patch, minlength=N)
+    first = np.concatenate([[0], np.cumsum(count)[:-1]])
+    return _receiver_entries(tree.start[links.R], tree.end[links.R], tree.order, first, count, by_patch)
+
+
+def entry_keys(tree, links, link, element):
+    """(m, 2) keys of (cluster link, receiver element) entries that stay the same while the link
+    and the element exist: the link's two nodes, and the element's id."""
+    return np.stack([links.R[link] * np.int64(len(tree)) + links.S[link], np.asarray(element, np.int64)], axis=1)
 
 
 class Transfer:
@@ -223,15 +249,17 @@ class Transfer:
 
     def __init__(self, tree, scene, links, leaves=None, size=None):
         self.N, self.size = scene.patches, size or scene.patches
-        vis = np.asarray(links.vis, dtype=np.float64)
         ids, patch, corners = leaves if leaves is not None else (np.arange(self.N), np.arange(self.N),
                                                                    scene.patch_vertices)
-        by_patch = np.argsort(patch, kind="stable")
-        count = np.bincount(patch, minlength=self.N)
-        first = np.concatenate([[0], np.cumsum(count)[:-1]])
+        per_link, link, leaf = receiver_entries(tree, links, (ids, patch), self.N)
         c, R, S = tree.centre, links.R, links.S
-        self.PT = _table(*_receiver_table(tree.start[R], tree.end[R], tree.order, first, count, by_patch, ids,
-                                          corners, scene.normals, c[S]), self.size)
+        if links.rvis is None:              # one fraction per link: on the source side
+            rvis, vis = np.ones(len(link)), np.asarray(links.vis, dtype=np.float64)
+        else:                               # each receiver leaf its own
+            rvis, vis = np.asarray(links.rvis, dtype=np.float64), np.ones(len(R))
+            assert len(rvis) == len(link), "cluster links cast for other leaves"
+        self.PT = _table(*_receiver_table(per_link, link, leaf, patch, ids, corners, scene.normals, c[S], rvis),
+                         self.size)
         self.Q = _table(*_source_table(tree.start[S], tree.end[S], tree.order, scene.patch_vertices, scene.normals,
                                        scene.areas, c[R], c[S], vis), self.N)
         self.P, self.QT = self.PT.T, self.Q.T
@@ -269,32 +297,42 @@ def _offsets(count):
     return start, m, indptr
 
 
-@njit(cache=True, parallel=True)
-def _receiver_table(R_start, R_end, order, first, count, by_patch, ids, corners, normals, c_S):
-    """The CSR arrays of ``P.T``: per link, the leaves of its receiver node's triangles, each with
-    its terms, the mean over its points x of ``max(0, cos_r) / (pi |c_S - x|**3) [x - c_S, 1]``
-    (:func:`_kernel_terms`, ``cos_r`` towards the source's centre). With :func:`_source_terms` the
-    dot product is ``cos_r A_s w_s N_s . (x - x_s) / (pi |c_S - x|**3)``: the source's cosine
-    towards this very receiver (linear in x), so a receiver near the source's plane sees it at its
-    own grazing angle."""
+@njit(cache=True)
+def _receiver_entries(R_start, R_end, order, first, count, by_patch):
+    """:func:`receiver_entries`: ``(per_link, link, leaf)``."""
     L = len(R_start)
     per_link = np.zeros(L, dtype=np.int64)
     for l in range(L):
         for j in range(R_start[l], R_end[l]):
             per_link[l] += count[order[j]]
-    start, m, indptr = _offsets(per_link)
-    data, index = np.empty(RANK * m), np.empty(RANK * m, dtype=np.int64)
-    for l in prange(L):
-        pos = start[l]
+    m = per_link.sum()
+    link, leaf = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    pos = 0
+    for l in range(L):
         for j in range(R_start[l], R_end[l]):
             t = order[j]
             for q in range(count[t]):
-                e = by_patch[first[t] + q]
-                terms = _kernel_terms(corners[e], normals[t], c_S[l])
-                for k in range(RANK):
-                    data[k * m + pos] = terms[k] / np.pi
-                    index[k * m + pos] = ids[e]
+                link[pos], leaf[pos] = l, by_patch[first[t] + q]
                 pos += 1
+    return per_link, link, leaf
+
+
+@njit(cache=True, parallel=True)
+def _receiver_table(per_link, link, leaf, patch, ids, corners, normals, c_S, rvis):
+    """The CSR arrays of ``P.T``: per link, its receiver entries (:func:`receiver_entries`), each
+    with its terms times its visible fraction ``rvis``, the mean over its points x of ``max(0,
+    cos_r) / (pi |c_S - x|**3) [x - c_S, 1]`` (:func:`_kernel_terms`, ``cos_r`` towards the
+    source's centre). With :func:`_source_terms` the dot product is ``cos_r A_s w_s N_s . (x -
+    x_s) / (pi |c_S - x|**3)``: the source's cosine towards this very receiver (linear in x), so
+    a receiver near the source's plane sees it at its own grazing angle."""
+    start, m, indptr = _offsets(per_link)
+    data, index = np.empty(RANK * m), np.empty(RANK * m, dtype=np.int64)
+    for i in prange(m):
+        e = leaf[i]
+        terms = _kernel_terms(corners[e], normals[patch[e]], c_S[link[i]])
+        for k in range(RANK):
+            data[k * m + i] = terms[k] * rvis[i] / np.pi
+            index[k * m + i] = ids[e]
     return data, index, indptr
 
 
@@ -365,24 +403,25 @@ def _source_terms(corners, n, area, c_R, c_S):
     return (o0, o1, o2, o3)
 
 
-def member_pairs(tree, scene, links, pairs=MEMBER_PAIRS):
-    """``(link, recv, src)``: ``pairs`` member pairs per cluster link, each drawn in proportion to
-    what it carries (``A_r A_s`` times each one's kernel mean towards the other node's centre)
-    from a hash of the link's nodes; links that carry nothing (no member faces the other node)
-    get none."""
+def leaf_weights(tree, scene, links, link, corners, patch):
+    """What each receiver entry (``link``, a leaf of corners ``corners`` on input triangle
+    ``patch``) can receive: its area times its kernel mean towards the link's source centre (0:
+    it faces away)."""
+    a, b = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    area = 0.5 * np.linalg.norm(np.cross(a, b), axis=1)
+    return area * _kernel_mean(corners, scene.normals[patch], tree.centre[links.S][link])
+
+
+def source_members(tree, scene, links, stream=0):
+    """Per link, one member of its source node, drawn in proportion to what it sends (its area
+    times its kernel mean towards the receiver node's centre) from a hash of the link's nodes and
+    ``stream`` (the same on every board, Dask set and checkpoint); -1 where none faces the receiver."""
     n = len(links)
-    recv_link, recv = tree.members(links.R)
-    src_link, src = tree.members(links.S)
+    link, src = tree.members(links.S)
     c, V, N_ = tree.centre, scene.patch_vertices, scene.normals
-    wr = scene.areas[recv] * _kernel_mean(V[recv], N_[recv], c[links.S][recv_link])
-    ws = scene.areas[src] * _kernel_mean(V[src], N_[src], c[links.R][src_link])
-    live = (np.bincount(recv_link, wr, minlength=n) > 0) & (np.bincount(src_link, ws, minlength=n) > 0)
-    out_link, out_r, out_s = [], [], []
-    for k in range(pairs):
-        r = _draw(recv_link, recv, wr, n, _uniform(links.R, links.S, 2 * k))
-        s = _draw(src_link, src, ws, n, _uniform(links.R, links.S, 2 * k + 1))
-        out_link.append(np.flatnonzero(live)), out_r.append(r[live]), out_s.append(s[live])
-    return tuple(np.concatenate(x).astype(np.int64) for x in (out_link, out_r, out_s))
+    weight = scene.areas[src] * _kernel_mean(V[src], N_[src], c[links.R][link])
+    drawn = _draw(link, src, weight, n, _uniform(links.R, links.S, 2 * stream + 1))
+    return np.where(np.bincount(link, weight, minlength=n) > 0, drawn, -1)
 
 
 @njit(cache=True)

@@ -78,8 +78,8 @@ from ...exact_float import plane_signs, plane_signs_of
 from ..radiosity import formfactor
 from ...board import BlockBatch, BlockBits, ranges
 from ..radiosity.elements import ElementPoints, children_of
-from .clusters import (ClusterLinks, Transfer, build_tree, link_clusters, member_pairs, power_bounds,
-                       split_pairs)
+from .clusters import (ClusterLinks, Transfer, build_tree, entry_keys, leaf_weights, link_clusters, power_bounds,
+                       receiver_entries, source_members, split_pairs)
 from ..scene.scene import Scene
 from ..traverse.visibility import Phases
 from ..traverse.voxel import VoxelGrid
@@ -259,10 +259,11 @@ class LinkCaster:
     def counters(self):
         return self.board.counters()
 
-    def cast(self, links):
-        """Set ``links.vis`` and ``links.partial`` from the board's blocked bits."""
+    def cast(self, links, ends=None):
+        """Set ``links.vis`` and ``links.partial`` from the board's blocked bits (``ends``: the
+        receiver samples every link's rays end at, instead of :meth:`_groups`' rule)."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
-        for ends, which in self._groups(links):
+        for ends, which in (self._groups(links) if ends is None else [(ends, np.arange(len(links)))]):
             if ends:
                 fractions, chunk = functools.partial(self._sample_fractions, ends=ends), self.CHUNK // ends
             else:
@@ -414,14 +415,14 @@ class SetCaster:
         self.rays = self.blocks = 0
         self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
 
-    def cast(self, links):
+    def cast(self, links, ends=None):
         from ..cluster.cluster import _results
         h, sets = self.h, len(self.per_set)
         part = self.owner[h.patch[links.recv]]
         mine = [np.flatnonzero(part == k) for k in range(sets)]
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], pure=False)
+                                          h.patch, h.node, links.recv[m], links.src[m], ends, pure=False)
                        for m in mine]
             answers = _results(self.client, futures)
         links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -441,9 +442,10 @@ class SetCaster:
         return out
 
 
-def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
-    element points to ``max_level``, loaded with the grid) with rays ``job.link_rays``: ``(vis,
+    element points to ``max_level``, loaded with the grid) with rays ``job.link_rays`` (``ends``:
+    :meth:`LinkCaster.cast`'s): ``(vis,
     partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
@@ -460,7 +462,7 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src):
                             link_rays=job.link_rays)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
-            caster.cast(links)
+            caster.cast(links, ends)
         else:
             links.vis, links.partial = np.zeros(0), np.zeros(0, dtype=bool)
         return links.vis, links.partial, caster.rays, caster.blocks, board.counters()
@@ -696,7 +698,8 @@ def solve_state(h, links, clinks, B, scales, rounds, sweeps, solved):
     arrays = dict(patch=h.patch, node=h.node, level=h.level, parent=h.parent, child=h.child, recv=links.recv,
                   src=links.src, F=links.F, vis=links.vis, partial=links.partial, B=B,
                   history=np.array(history, dtype=np.float64), cluster_R=clinks.R, cluster_S=clinks.S,
-                  cluster_vis=clinks.vis, cluster_partial=clinks.partial, u=scales[0], w=scales[1])
+                  cluster_vis=clinks.vis, cluster_partial=clinks.partial, cluster_rkey=clinks.rkey,
+                  cluster_rvis=clinks.rvis, u=scales[0], w=scales[1])
     return {"solver": "hierarchical", "shots": 0, "iterations": int(sweeps), "rounds": int(rounds),
             "residual": float(res), "balance": balance, "arrays": arrays}
 
@@ -707,7 +710,7 @@ def _restore(state, scene, points):
     h = Hierarchy(scene, points)
     h.patch, h.node, h.level, h.parent, h.child = (np.array(a[k]) for k in ("patch", "node", "level", "parent", "child"))
     links = Links(*(np.array(a[k]) for k in ("recv", "src", "F", "vis", "partial")))
-    clinks = ClusterLinks(*(np.array(a[f"cluster_{k}"]) for k in ("R", "S", "vis", "partial")))
+    clinks = ClusterLinks(*(np.array(a[f"cluster_{k}"]) for k in ("R", "S", "vis", "partial", "rkey", "rvis")))
     solved = (float(state["residual"]), list(a["history"]), dict(state["balance"]))
     scales = (np.array(a["u"]), np.array(a["w"]))
     return h, links, clinks, np.array(a["B"]), scales, int(state["rounds"]), int(state["iterations"]), solved
@@ -730,23 +733,52 @@ def initial_links_clustered(h, tree, threshold, tolerance):
     return Links(recv[F > 0], src[F > 0], F[F > 0]), ClusterLinks(R, S)
 
 
-def cast_clusters(caster, tree, clinks):
-    """Set ``clinks.vis`` and ``partial`` from the rays of their member pairs (clusters.member_pairs):
-    the mean of the pairs' visible fractions; a link that carries nothing is clear."""
-    scene, n = caster.h.scene, len(clinks)
+def cast_clusters(caster, tree, clinks, known=None):
+    """Set ``clinks.rvis`` (each receiver leaf's visible fraction: clusters.receiver_entries on the
+    current leaves), ``rkey``, ``vis`` (the leaves' fractions weighted by what each can receive) and
+    ``partial``. An entry of ``known`` (cluster links cast before) keeps its fraction; the others
+    get the rays of the element link to the leaf from the link's drawn source member
+    (clusters.source_members). Leaves that face away, and links whose source members all do,
+    carry nothing and count as clear."""
+    h, n = caster.h, len(clinks)
     if not n:
-        clinks.vis, clinks.partial = np.zeros(0), np.zeros(0, dtype=bool)
+        empty = ClusterLinks.empty()
+        clinks.vis, clinks.partial, clinks.rkey, clinks.rvis = empty.vis, empty.partial, empty.rkey, empty.rvis
         return
-    link, r, s = member_pairs(tree, scene, clinks)
-    pairs = Links(r, s, np.zeros(len(r)))
-    if len(pairs):
-        caster.cast(pairs)
-    else:
-        pairs.vis, pairs.partial = np.zeros(0), np.zeros(0, dtype=bool)
-    count = np.bincount(link, minlength=n)
-    vis = np.bincount(link, pairs.vis, minlength=n) / np.maximum(count, 1)
-    clinks.vis = np.where(count > 0, vis, 1.0)
-    clinks.partial = (np.bincount(link, pairs.partial, minlength=n) > 0) | ((clinks.vis > 0) & (clinks.vis < 1))
+    leaves = h.leaves()
+    _, link, leaf = receiver_entries(tree, clinks, (leaves, h.patch[leaves]), h.scene.patches)
+    element = leaves[leaf]
+    key = entry_keys(tree, clinks, link, element)
+    rvis, found = _known_fractions(known, key)
+    weight = leaf_weights(tree, h.scene, clinks, link, h.vertices(element), h.patch[element])
+    src = np.full(len(key), -1)
+    src[~found] = source_members(tree, h.scene, clinks)[link[~found]]
+    cast = np.flatnonzero(~found & (src >= 0) & (weight > 0))
+    if len(cast):
+        pairs = Links(element[cast], src[cast], np.zeros(len(cast)))
+        caster.cast(pairs, ends=1)          # a receiver leaf's K rays: the link's light is spread over its leaves
+        rvis[cast] = pairs.vis
+    total = np.bincount(link, weight, minlength=n)
+    clinks.vis = np.where(total > 0, np.bincount(link, weight * rvis, minlength=n) / np.where(total > 0, total, 1), 1.0)
+    some = lambda x: np.bincount(link, (weight > 0) & x, minlength=n) > 0
+    clinks.partial = some(rvis < 1) & some(rvis > 0)
+    clinks.rkey, clinks.rvis = key, rvis
+
+
+def _known_fractions(known, key):
+    """``(rvis, found)``: the fractions ``known`` (cast cluster links, or None) holds for entries
+    ``key`` (clusters.entry_keys), 1 where it has none."""
+    rvis, found = np.ones(len(key)), np.zeros(len(key), dtype=bool)
+    if known is None or known.rkey is None or not len(known.rkey):
+        return rvis, found
+    both = np.concatenate([known.rkey, key])
+    new = np.arange(len(both)) >= len(known.rkey)
+    order = np.lexsort((new, both[:, 1], both[:, 0]))          # each key: the known one first
+    same = (both[order[1:]] == both[order[:-1]]).all(axis=1) & new[order[1:]] & ~new[order[:-1]]
+    hit = order[1:][same] - len(known.rkey)
+    found[hit] = True
+    rvis[hit] = known.rvis[order[:-1][same]]
+    return rvis, found
 
 
 def refine_clusters(tree, h, clinks, B, threshold):
@@ -840,8 +872,8 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
             F = element_factors(h, recv, src, tolerance)
             new = Links(recv[F > 0], src[F > 0], F[F > 0])
         caster.cast(new)
-        cast_clusters(caster, tree, c_new)
-        links, clinks = Links.join(kept.take(~down), new), ClusterLinks.join(c_kept, c_new)
+        links, known, clinks = Links.join(kept.take(~down), new), clinks, ClusterLinks.join(c_kept, c_new)
+        cast_clusters(caster, tree, clinks, known)
     with phases.timed("solve"):             # the last round's scales and B to the full tolerances
         B, scales, done, (res, history, balance), _ = solve_round(tree, h, links, clinks, B, scales, solve,
                                                                   final=True, transfer=transfer)
