@@ -591,3 +591,27 @@ def test_sets_same_bits_and_csv_as_one_set(tmp_path):
     assert three.report["sets"] == 3 and len(three.report["set_counters"]) == 3
     for key in ("rays", "tests"):
         assert three.report[key] == one.report[key], key
+
+
+def test_anderson_steps_reach_the_fixed_point_sooner():
+    """The transport scales' Anderson acceleration on a linear fixed point x = A x + b (A a
+    contraction with eigenvalues in [0, 0.95), seeded): the same point as numpy's solve, to 1e-9, in a
+    fifth of the plain iteration's steps or fewer."""
+    from blockray.host_driver.render.hierarchical import Anderson
+    rng = np.random.default_rng(11)
+    print("seed 11")
+    Q, _ = np.linalg.qr(rng.normal(size=(40, 40)))
+    A = Q @ np.diag(rng.uniform(0.0, 0.95, 40)) @ Q.T        # monotone, as the scales near theirs
+    b = rng.normal(size=40) * 0.1
+    want = np.linalg.solve(np.eye(40) - A, b)
+
+    def steps(mix):
+        x = np.zeros(40)
+        for k in range(1, 5000):
+            f = A @ x + b - x
+            if np.abs(f).max() < 1e-11:
+                return k, x
+            x = mix.step(x, f) if mix else x + f
+    plain, fast = steps(None), steps(Anderson())
+    print(f"plain {plain[0]} steps, Anderson {fast[0]}")
+    assert np.abs(fast[1] - want).max() < 1e-9 and fast[0] * 5 <= plain[0]
