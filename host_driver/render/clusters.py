@@ -33,7 +33,7 @@ drawn in proportion to what it sends (area times the kernel's mean towards the r
 centre) from a hash of the link's two nodes (the same on every board, Dask set and resumed
 checkpoint); a leaf split later gets its children's own rays, a leaf kept keeps its fraction. One
 fraction for all the receivers would light a receiver cluster half under a table as a whole, and
-the solve would gain energy (docs/hierarchical.md, "Energy balance with clustering").
+the solve would gain energy (docs/hierarchical.md, "A visible fraction per receiver leaf").
 """
 
 import math
@@ -403,12 +403,10 @@ def _source_terms(corners, n, area, c_R, c_S):
     return (o0, o1, o2, o3)
 
 
-def leaf_weights(tree, scene, links, link, corners, patch):
-    """What each receiver entry (``link``, a leaf of corners ``corners`` on input triangle
-    ``patch``) can receive: its area times its kernel mean towards the link's source centre (0:
-    it faces away)."""
-    a, b = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    area = 0.5 * np.linalg.norm(np.cross(a, b), axis=1)
+def leaf_weights(tree, scene, links, link, corners, patch, area):
+    """What each receiver entry (``link``, a leaf of corners ``corners`` and ``area`` on input
+    triangle ``patch``) can receive: its area times its kernel mean towards the link's source
+    centre (0: it faces away)."""
     return area * _kernel_mean(corners, scene.normals[patch], tree.centre[links.S][link])
 
 

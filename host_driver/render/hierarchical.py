@@ -775,14 +775,15 @@ def cast_clusters(caster, tree, clinks, known=None):
         empty = ClusterLinks.empty()
         clinks.vis, clinks.partial, clinks.rkey, clinks.rvis = empty.vis, empty.partial, empty.rkey, empty.rvis
         return
-    leaves = h.leaves()
-    _, link, leaf = receiver_entries(tree, clinks, (leaves, h.patch[leaves]), h.scene.patches)
-    element = leaves[leaf]
-    key = entry_keys(tree, clinks, link, element)
-    rvis, found = _known_fractions(known, key)
-    weight = leaf_weights(tree, h.scene, clinks, link, h.vertices(element), h.patch[element])
-    src = np.full(len(key), -1)
-    src[~found] = source_members(tree, h.scene, clinks)[link[~found]]
+    with caster.phases.timed("formfactor"):      # the entries, their kernel weights and draws
+        leaves = h.leaves()
+        _, link, leaf = receiver_entries(tree, clinks, (leaves, h.patch[leaves]), h.scene.patches)
+        element = leaves[leaf]
+        key = entry_keys(tree, clinks, link, element)
+        rvis, found = _known_fractions(known, key, len(h))
+        weight = leaf_weights(tree, h.scene, clinks, link, h.vertices(element), h.patch[element], h.areas[element])
+        src = np.full(len(key), -1)
+        src[~found] = source_members(tree, h.scene, clinks)[link[~found]]
     cast = np.flatnonzero(~found & (src >= 0) & (weight > 0))
     if len(cast):
         pairs = Links(element[cast], src[cast], np.zeros(len(cast)))
@@ -795,19 +796,21 @@ def cast_clusters(caster, tree, clinks, known=None):
     clinks.rkey, clinks.rvis = key, rvis
 
 
-def _known_fractions(known, key):
+def _known_fractions(known, key, elements):
     """``(rvis, found)``: the fractions ``known`` (cast cluster links, or None) holds for entries
-    ``key`` (clusters.entry_keys), 1 where it has none."""
+    ``key`` (clusters.entry_keys; element ids below ``elements``), 1 where it has none."""
     rvis, found = np.ones(len(key)), np.zeros(len(key), dtype=bool)
     if known is None or known.rkey is None or not len(known.rkey):
         return rvis, found
-    both = np.concatenate([known.rkey, key])
-    new = np.arange(len(both)) >= len(known.rkey)
-    order = np.lexsort((new, both[:, 1], both[:, 0]))          # each key: the known one first
-    same = (both[order[1:]] == both[order[:-1]]).all(axis=1) & new[order[1:]] & ~new[order[:-1]]
-    hit = order[1:][same] - len(known.rkey)
-    found[hit] = True
-    rvis[hit] = known.rvis[order[:-1][same]]
+    flat = lambda k: k[:, 0] * np.int64(elements) + k[:, 1]     # one int64 while it cannot overflow
+    if max(int(known.rkey[:, 0].max()), int(key[:, 0].max())) >= (1 << 62) // max(elements, 1):
+        raise CapacityError(f"{len(known.rkey)} cluster link entries over {elements} elements overflow their keys")
+    old = flat(known.rkey)
+    order = np.argsort(old)
+    new = flat(key)
+    at = np.minimum(np.searchsorted(old, new, sorter=order), len(order) - 1)
+    found = old[order[at]] == new
+    rvis[found] = known.rvis[order[at[found]]]
     return rvis, found
 
 
