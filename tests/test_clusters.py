@@ -189,7 +189,7 @@ def test_member_draws_in_proportion():
     links = ClusterLinks(np.array([R]), np.array([S]))
     _, link, leaf = receiver_entries(tree, links, (np.arange(scene.patches), np.arange(scene.patches)), scene.patches)
     assert sorted(leaf) == list(range(8)) and set(link) == {0}
-    assert (leaf_weights(tree, scene, links, link, scene.patch_vertices[leaf], leaf) > 0).all()
+    assert (leaf_weights(tree, scene, links, link, scene.patch_vertices[leaf], leaf, scene.areas[leaf]) > 0).all()
     drawn = np.array([source_members(tree, scene, links, stream=k)[0] for k in range(400)])
     assert set(drawn) <= set(range(8, 16))
     share = np.bincount(drawn - 8, minlength=8) / 400
