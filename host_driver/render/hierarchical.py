@@ -805,12 +805,9 @@ def _known_fractions(known, key, elements):
     flat = lambda k: k[:, 0] * np.int64(elements) + k[:, 1]     # one int64 while it cannot overflow
     if max(int(known.rkey[:, 0].max()), int(key[:, 0].max())) >= (1 << 62) // max(elements, 1):
         raise CapacityError(f"{len(known.rkey)} cluster link entries over {elements} elements overflow their keys")
-    old = flat(known.rkey)
-    order = np.argsort(old)
-    new = flat(key)
-    at = np.minimum(np.searchsorted(old, new, sorter=order), len(order) - 1)
-    found = old[order[at]] == new
-    rvis[found] = known.rvis[order[at[found]]]
+    _, mine, theirs = np.intersect1d(flat(key), flat(known.rkey), assume_unique=True, return_indices=True)
+    found[mine] = True
+    rvis[mine] = known.rvis[theirs]
     return rvis, found
 
 
