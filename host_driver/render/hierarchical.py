@@ -782,8 +782,10 @@ def cast_clusters(caster, tree, clinks, known=None):
         key = entry_keys(tree, clinks, link, element)
         rvis, found = _known_fractions(known, key, len(h))
         weight = leaf_weights(tree, h.scene, clinks, link, h.vertices(element), h.patch[element], h.areas[element])
-        src = np.full(len(key), -1)
-        src[~found] = source_members(tree, h.scene, clinks)[link[~found]]
+        src, need = np.full(len(key), -1), np.unique(link[~found])     # draws only for links with new entries
+        drawn = np.full(n, -1)
+        drawn[need] = source_members(tree, h.scene, ClusterLinks(clinks.R[need], clinks.S[need]))
+        src[~found] = drawn[link[~found]]
     cast = np.flatnonzero(~found & (src >= 0) & (weight > 0))
     if len(cast):
         pairs = Links(element[cast], src[cast], np.zeros(len(cast)))
