@@ -304,6 +304,32 @@ def test_the_boards_processors_are_one_cpp_class():
     assert [p.name for p in obj.glob("Vboard_*processor*.h")] == ["Vboard_board__02eboard__02earray__02eprocessor_0_0.h"]
 
 
+def test_the_board_is_clocked_with_one_eval_a_cycle():
+    """The board's sampled ports are registered: its build runs one eval a clock cycle (the
+    comparisons with the Amaranth simulator above run through it); a port the input phase writes,
+    or another trigger, keeps two."""
+    from dataclasses import replace
+
+    from blockray.host_driver.board.native import native_build
+    from blockray.sim.native import SINGLE_EVAL, Ports, single_eval_allowed
+
+    build = native_build(PARAMS)
+    assert (build.build_dir / SINGLE_EVAL).exists()
+    obj = build.build_dir / "obj"
+    ports = Ports(records="i_records")
+    assert single_eval_allowed(obj, ports)
+    assert not single_eval_allowed(obj, replace(ports, clk="other_clk"))
+    bodies = [m.group(1).split("// Body", 1)[-1] for cpp in sorted(obj.glob("*.cpp"))
+              for m in re.finditer(r"_ico_sequent\w*\([^)\n]*\)\s*\{\n(.*?)^\}", cpp.read_text(), re.M | re.S)]
+    written = next(m.group(1) for body in bodies for m in [re.search(r"[\s.](\w+) = ", body)] if m)
+
+    class Written(Ports):               # a signal the input phase writes, as if it were sampled
+        def sampled(self):
+            return [written]
+
+    assert not single_eval_allowed(obj, Written(records="i_records"))
+
+
 def test_a_missing_compiler_is_a_one_line_error(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("CXX", str(tmp_path / "no-such-g++"))
     monkeypatch.setenv("BLOCKRAY_CACHE_DIR", str(tmp_path / "cache"))

@@ -18,6 +18,7 @@ records, one a clock cycle. Only the top's ports are visible to the harness (no 
 import ctypes
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -95,7 +96,45 @@ class Ports:
             names.update({"R_VALID": f"{self.records}__valid", "R_READY": f"{self.records}__ready",
                           "R_PAYLOAD": f"{self.records}__payload"})
         return (_config(trace, names) + ("#define BR_RESET_REGISTERED 1\n" if self.registered_reset else "")
-                + ("#define BR_RECORDS 1\n" if self.records is not None else ""))
+                + ("#define BR_RECORDS 1\n" if self.records is not None else "")
+                # the model's root (its clock's previous value, for one eval a cycle: single_eval_allowed)
+                + f'#define BR_ROOT_HEADER "V{TOP}___024root.h"\n#define BR_CLK_PREV {_clock_prev(self.clk)}\n')
+
+    def sampled(self):
+        """The C++ names of the output ports harness.cpp reads before a clock edge."""
+        names = [self.i_ready, self.o_valid, self.o_payload] + ([f"{self.records}__ready"] if self.records else [])
+        return [n.replace("__", "___05F") for n in names]
+
+
+def _clock_prev(clk):
+    """The member of the Verilated model's root holding ``clk``'s value at the previous eval (its
+    rising edge's trigger compares against it)."""
+    return f"__Vtrigprevexpr___TOP__{clk}__0"
+
+
+#: the file beside a library built with harness.cpp whose model allows one eval a clock cycle
+SINGLE_EVAL = "single_eval"
+
+
+def single_eval_allowed(obj, ports):
+    """Whether the Verilated model in ``obj`` (the build's C++) may be clocked with one eval a
+    cycle (harness.cpp, ``br_single_eval``): its only trigger is ``ports.clk``'s rising edge (the
+    root has no other previous value), and no function of the input phase (``_ico``) writes a
+    port harness.cpp reads before the edge (``Ports.sampled``: those are then registered, set by
+    the previous edge's eval, so the eval with the clock low changes none of them and the edge's
+    eval, which runs the input phase first, sees the cycle's inputs)."""
+    roots = list(Path(obj).glob(f"V{TOP}___024root.h"))
+    if len(roots) != 1:
+        return False
+    if set(re.findall(r"__Vtrigprevexpr\w*", roots[0].read_text())) != {_clock_prev(ports.clk)}:
+        return False
+    assign = re.compile(r"\b(" + "|".join(map(re.escape, ports.sampled())) + r")\s*=(?!=)")
+    function = re.compile(r"^\S[^\n]*?(\w*_ico\w*)\([^)\n]*\)\s*\{\n(.*?)^\}", re.M | re.S)
+    for cpp in Path(obj).glob("*.cpp"):
+        for match in function.finditer(cpp.read_text()):
+            if assign.search(match.group(2)):
+                return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -264,6 +303,8 @@ def build_native(component, *, name, ports=Ports(), trace=False, build_args=BUIL
         if done.returncode != 0 or not (staging / LIBRARY).exists():
             raise NativeBuildError(f"the Verilator build of the native harness {name} failed "
                                    f"(status {done.returncode}); see {log}")
+        if getattr(ports, "harness", None) == "harness.cpp" and not trace and single_eval_allowed(staging / "obj", ports):
+            (staging / SINGLE_EVAL).write_text("one eval a clock cycle (harness.cpp, br_single_eval)\n")
         if not runtime.exists():
             part = runtime.with_name(f"{runtime.name}.tmp{os.getpid()}")
             part.mkdir(parents=True, exist_ok=True)
@@ -338,6 +379,9 @@ def _bind(lib):
     lib.br_run.argtypes = [ctypes.c_void_p, ctypes.c_char_p, size, u8p, size, size, ctypes.c_uint64,
                            ctypes.POINTER(size)]
     lib.br_run.restype = ctypes.c_int
+    if hasattr(lib, "br_single_eval"):
+        lib.br_single_eval.argtypes = [ctypes.c_void_p, ctypes.c_int]
+        lib.br_single_eval.restype = ctypes.c_int
     if hasattr(lib, "br_records"):         # not in a library built before it
         lib.br_records.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int),
                                    ctypes.c_int]
@@ -376,6 +420,8 @@ class NativeBoard:
                                     idle.rate, idle.burst, *idle.burst_length,
                                     backpressure.rate, backpressure.burst, *backpressure.burst_length,
                                     None if vcd is None else str(vcd).encode())
+        if (Path(build.library).parent / SINGLE_EVAL).exists() and hasattr(self._lib, "br_single_eval"):
+            self._lib.br_single_eval(self._h, 1)
         if records is not None:
             ints = lambda v: (ctypes.c_int * len(v))(*v)                        # noqa: E731
             if not (hasattr(self._lib, "br_records")

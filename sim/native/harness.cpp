@@ -41,6 +41,9 @@
 #include "verilated_vcd_c.h"
 #endif
 #include BR_HEADER
+#ifdef BR_ROOT_HEADER
+#include BR_ROOT_HEADER             // the clock's previous value (br_single_eval)
+#endif
 #include "stalls.h"                   // Twister, Stalls
 
 namespace {
@@ -61,6 +64,10 @@ struct Harness : HostTiming {
     bool record_offered = false;
     bool incomplete = false;                // the queue ends in the middle of the next record
     uint32_t record[64];                    // the record on the record stream (words of 32 bits)
+    // one eval a clock cycle (br_single_eval): the ports sampled before the edge are registered
+    // (set by the previous edge's eval), so the eval with the clock low is skipped and the edge's
+    // eval, whose input phase comes first, sees the cycle's inputs
+    bool single_eval = false;
 #if BR_TRACE
     VerilatedVcdC *trace = nullptr;
 #endif
@@ -128,11 +135,16 @@ struct Harness : HostTiming {
 
     int cycle() {
         inputs();
-        top->BR_CLK = 0;
-        top->eval();
+        if (!single_eval) {
+            top->BR_CLK = 0;
+            top->eval();
+        }
         int cready = top->BR_I_READY, rvalid = top->BR_O_VALID, rpayload = top->BR_O_PAYLOAD;
 #if BR_RECORDS
         bool rtaken = record_offered && top->BR_R_READY;
+#endif
+#ifdef BR_CLK_PREV
+        if (single_eval) top->rootp->BR_CLK_PREV = 0;   // the clock was low: this eval is a rising edge
 #endif
         edge();
         if (offer >= 0 && cready) offer = -1;
@@ -203,6 +215,19 @@ int br_records(void *handle, const int *payload, const int *arg_bits, int arg_of
     return 1;
 #else
     (void)handle; (void)payload; (void)arg_bits; (void)arg_offset;
+    return 0;
+#endif
+}
+
+// One eval a clock cycle instead of two (sim/native/__init__.py checks that the generated model
+// allows it: no sampled output port is computed in the input phase, the clock is the only
+// trigger). Returns 0 if this build cannot (a waveform build: it dumps the clock low too).
+int br_single_eval(void *handle, int on) {
+#if defined(BR_CLK_PREV) && !BR_TRACE
+    static_cast<Harness *>(handle)->single_eval = on != 0;
+    return 1;
+#else
+    (void)handle; (void)on;
     return 0;
 #endif
 }
