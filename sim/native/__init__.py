@@ -98,7 +98,8 @@ class Ports:
         return (_config(trace, names) + ("#define BR_RESET_REGISTERED 1\n" if self.registered_reset else "")
                 + ("#define BR_RECORDS 1\n" if self.records is not None else "")
                 # the model's root (its clock's previous value, for one eval a cycle: single_eval_allowed)
-                + f'#define BR_ROOT_HEADER "V{TOP}___024root.h"\n#define BR_CLK_PREV {_clock_prev(self.clk)}\n')
+                + (f'#define BR_ROOT_HEADER "V{TOP}___024root.h"\n#define BR_CLK_PREV {_clock_prev(self.clk)}\n'
+                   if self.harness == "harness.cpp" else ""))
 
     def sampled(self):
         """The C++ names of the output ports harness.cpp reads before a clock edge."""
