@@ -448,8 +448,7 @@ class SetCaster:
 def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
     element points to ``max_level``, loaded with the grid) with rays ``job.link_rays`` (``ends``:
-    :meth:`LinkCaster.cast`'s): ``(vis,
-    partial, rays, blocks, counters)``."""
+    :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
     if job.threads is not None:
@@ -613,8 +612,9 @@ def transport_scales(h, links, *, transfer=None, closed=False, tolerance=1e-14, 
 class Anderson:
     """Anderson acceleration (Walker and Ni 2011) of a fixed-point iteration ``x <- x + f``: the
     next ``x`` from the last :data:`ANDERSON` steps' ``x`` and ``f`` (least squares), restarted
-    when ``f`` grows or the extrapolation strays more than 1 from the plain step ``x + f``. On the room's transport scales it halves the passes (from max edge 1 at
-    1e-3: 59 to 30 over the five solves, the same B to 1e-8)."""
+    when ``f`` grows or the extrapolation strays more than 1 from the plain step ``x + f``. On
+    the room's transport scales it halves the passes (from max edge 1 at 1e-3: 59 to 30 over the
+    five solves, the same B to 1e-8)."""
 
     def __init__(self, memory=None):
         self.memory, self.xs, self.fs = ANDERSON if memory is None else memory, [], []
