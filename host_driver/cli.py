@@ -220,8 +220,9 @@ def _render_parser(sub):
     p.add_argument("--epsilon", type=_positive_float, default=1e-3,
                    help="hierarchical: refine a link that may carry more than this fraction of the emitted power")
     p.add_argument("--link-rays", default="spread", choices=list(LINK_RAYS),
-                   help="hierarchical: a link's rays run from the source's K samples to one of the receiver's K, "
-                        "a different one per link (spread: K rays), or to every one of them (samples: K x K rays), "
+                   help="hierarchical: a link's rays run from half the source's K samples to one of the receiver's "
+                        "K, a different one per link, or from all K to all K where the source emits (spread: K / 2 "
+                        "or K x K rays), or from all K to every one of them (samples: K x K rays), "
                         "each weighed by the point-to-point kernel; or to the receiver's centroid (centroid: K rays; "
                         "biased where a shadow covers part of a receiver)")
     p.add_argument("--clustering", type=_on_off, default=True, metavar="{on,off}",

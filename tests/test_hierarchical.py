@@ -304,10 +304,10 @@ def _caster(scene, points, link_rays, voxels=4):
 
 def test_one_end_links_add_up_to_the_receivers_visible_factor():
     """``spread`` casts a link from a source that does not emit to one of its receiver's samples,
-    a different one per link: over the leaves of a split receiver (32 leaves, 64 links, one end
-    each) the occluded factor ``sum A_l F_l v_l / A`` is the receiver's own (the midpoint rule of
+    a different one per link, from every SOURCE_STEP-th of its source's samples: over the leaves
+    of a split receiver (32 leaves, 64 links, one end each) the occluded factor ``sum A_l F_l v_l / A`` is the receiver's own (the midpoint rule of
     :func:`strip_shadow_factor`) within 5% over 16 seeds of drawn points."""
-    from blockray.host_driver.render.hierarchical import Links, element_factors
+    from blockray.host_driver.render.hierarchical import Links, element_factors, SOURCE_STEP
     edge = 0.35
     lit = _strip_shadow(edge)
     dark = make_scene(lit.patch_vertices, reflectance=lit.reflectance, emission=np.zeros_like(lit.emission))
@@ -325,15 +325,16 @@ def test_one_end_links_add_up_to_the_receivers_visible_factor():
         rays.append(caster.rays)
     got = np.array(got)
     print(f"seeds 0-15, truth {truth:.5f}: {got.mean() / truth - 1:+.4f} (sd {got.std() / truth:.4f}), rays {rays[0]}")
-    assert rays == [64 * 8] * 16
+    assert rays == [64 * 8 // SOURCE_STEP] * 16
     assert abs(got.mean() / truth - 1) < 0.05
 
 
 def test_spread_gives_an_emitters_links_every_sample():
-    """``spread``: K x K rays for a link whose source emits, K for every other; ``samples``: K x K."""
-    from blockray.host_driver.render.hierarchical import Links, element_factors
+    """``spread``: K x K rays for a link whose source emits, K / SOURCE_STEP for every other;
+    ``samples``: K x K."""
+    from blockray.host_driver.render.hierarchical import Links, element_factors, SOURCE_STEP
     scene = _strip_shadow(0.35)
-    for rule, rays in (("spread", 2 * 64 + 2 * 8), ("samples", 4 * 64)):
+    for rule, rays in (("spread", 2 * 64 + 2 * 8 // SOURCE_STEP), ("samples", 4 * 64)):
         h, caster = _caster(scene, ElementPoints(SampleScheme(8), 0), rule)
         recv, src = np.array([2, 3, 0, 1]), np.array([0, 1, 2, 3])     # emitter -> receiver, and back
         caster.cast(Links(recv, src, element_factors(h, recv, src)))

@@ -21,9 +21,10 @@ points of its source to each of the K of its receiver, and weigh by the point-to
 ``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane); the visible
 fraction is the weighted clear share, an estimate of the occluded over the unoccluded factor over
 both elements' areas. ``spread`` (the default): the same for a link whose source emits; every
-other link's K rays end at one of its receiver's samples, a different one per link
-(:func:`end_samples`), so a leaf's many links together still cover it: 7x fewer rays on the room,
-and no worse a balance (docs/hierarchical.md). ``centroid``: K rays from the source's
+other link's rays run from K / SOURCE_STEP of its source's samples to one of its receiver's, each
+chosen per link (:func:`end_samples`), so a leaf's many links together still cover both
+elements: 7x fewer rays on the room with all K source samples, and no worse a balance; half
+of them again halves those rays at the same error (docs/hierarchical.md). ``centroid``: K rays from the source's
 samples to the receiver's centroid (or, where that centroid is not strictly in front of the
 source's plane, from the receiver's samples to the source's centroid), the clear share of those
 whose sample lies strictly in front of the far element's plane: 8x fewer rays, but the centroid
@@ -103,6 +104,11 @@ ANDERSON = 5
 
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
+
+#: A link's rays to one receiver sample (``spread``'s non-emitter links, a cluster link's receiver
+#: leaves) start at every SOURCE_STEP-th of the source's K samples: on the room from max edge 1 at
+#: 1e-3 half the samples give the same error for half those rays (docs/hierarchical.md).
+SOURCE_STEP = 2
 
 #: Share of the refinement threshold a link's unoccluded factor may misplace: the absolute
 #: tolerance of its ``A_r F_rs`` (:func:`factor_tolerance`).
@@ -262,13 +268,15 @@ class LinkCaster:
     def counters(self):
         return self.board.counters()
 
-    def cast(self, links, ends=None):
+    def cast(self, links, ends=None, sources=None):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits (``ends``: the
-        receiver samples every link's rays end at, instead of :meth:`_groups`' rule)."""
+        receiver samples every link's rays end at, instead of :meth:`_groups`' rule; ``sources``:
+        how many of the source's K samples they start at, all K if None)."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
         for ends, which in (self._groups(links) if ends is None else [(ends, np.arange(len(links)))]):
             if ends:
-                fractions, chunk = functools.partial(self._sample_fractions, ends=ends), self.CHUNK // ends
+                fractions = functools.partial(self._sample_fractions, ends=ends, sources=sources or self._sources(ends))
+                chunk = self.CHUNK // ends
             else:
                 fractions, chunk = self._centroid_fractions, self.CHUNK
             for a in range(0, len(which), chunk):
@@ -276,11 +284,16 @@ class LinkCaster:
                 vis[part], partial[part] = fractions(links.recv[part], links.src[part])
         links.vis, links.partial = vis, partial
 
+    def _sources(self, ends):
+        """The source samples a link's rays start at when they end at ``ends`` receiver samples."""
+        K = self.h.points.K
+        return K if ends > 1 else max(1, K // SOURCE_STEP)
+
     def _groups(self, links):
         """``(ends, links)``: the receiver samples each link's rays end at (0: the centroid rule).
         ``spread`` gives an emitter's links all K (they carry the first bounce, the most light a
         link carries, as the uniform render's ``--emitter-factor`` gives them more rows) and every
-        other link one."""
+        other link one (from :meth:`_sources` of the source's)."""
         K, every = self.h.points.K, np.arange(len(links))
         if self.link_rays != "spread":
             return [(K if self.link_rays == "samples" else 0, every)]
@@ -295,15 +308,16 @@ class LinkCaster:
             ahead = plane_signs(V[h.patch[src]], V[h.patch[recv]], pts.centres[h.node[recv]]) > 0
             caster, target = np.where(ahead, src, recv), np.where(ahead, recv, src)
             counts = self._in_front(target, caster, self._sample_weights(caster))
-        clear = self._clear(caster, target, pts.centres[h.node[target]])
+        clear = self._clear(caster, target, pts.centres[h.node[target]], np.broadcast_to(np.arange(K), (len(caster), K)))
         counted = np.where(counts.any(axis=1, keepdims=True), counts, True)
         n_clear = (clear & counted).sum(axis=1)
         n = counted.sum(axis=1)
         return n_clear / n, (n_clear > 0) & (n_clear < n)
 
-    def _sample_fractions(self, recv, src, ends):
-        """K x ``ends`` rays per link, every source sample to ``ends`` of the receiver's K samples
-        (:func:`end_samples`), each weighed by the point-to-point kernel ``cos cos / r**2`` (0 where
+    def _sample_fractions(self, recv, src, ends, sources):
+        """``sources`` x ``ends`` rays per link, ``sources`` of the source's K samples (all, or evenly
+        spaced from a hashed offset: :func:`end_samples` with the ends swapped) to ``ends`` of the
+        receiver's K samples (:func:`end_samples`), each weighed by the point-to-point kernel ``cos cos / r**2`` (0 where
         either end is not strictly in front of the other's plane): the weighted clear share is the
         ratio of the occluded to the unoccluded factor, over both elements' areas. (One end point at
         the receiver's centroid judges the whole receiver by it: a receiver partly in shadow whose
@@ -311,7 +325,8 @@ class LinkCaster:
         part sees, and closed scenes gain energy.)"""
         h, K, n = self.h, self.h.points.K, len(recv)
         with self.phases.timed("formfactor"):
-            ws = self._sample_weights(src)
+            take = end_samples(src, recv, K, sources)
+            ws = np.take_along_axis(self._sample_weights(src), take[:, :, None], axis=1)
             wr = np.take_along_axis(self._sample_weights(recv), end_samples(recv, src, K, ends)[:, :, None], axis=1)
             # (n, end, sample): both ends strictly in front of the other element's plane
             lit = self._in_front(recv, src, ws)[:, None, :] & self._in_front(src, recv, wr)[:, :, None]
@@ -321,7 +336,8 @@ class LinkCaster:
             cos_s = np.einsum("nc,nekc->nek", ns, d)
             cos_r = -np.einsum("nc,nekc->nek", nr, d)
             weight = np.where(lit, np.abs(cos_s * cos_r) / np.maximum(r2, 1e-300) ** 2, 0.0)
-        clear = self._clear(np.repeat(src, ends), np.repeat(recv, ends), wr.reshape(-1, 3)).reshape(n, ends, K)
+        clear = self._clear(np.repeat(src, ends), np.repeat(recv, ends), wr.reshape(-1, 3),
+                            np.repeat(take, ends, axis=0)).reshape(n, ends, sources)
         total = weight.sum(axis=(1, 2))
         plain = clear.mean(axis=(1, 2))
         frac = np.where(total > 0, (weight * clear).sum(axis=(1, 2)) / np.where(total > 0, total, 1), plain)
@@ -343,10 +359,10 @@ class LinkCaster:
         V = self.h.scene.patch_vertices[self.h.patch[e]]
         return np.einsum("nkp,npc->nkc", w / float(self.h.points.denominator), V)
 
-    def _clear(self, caster, target, end_w):
-        """(n, K) bool: ray k of row m (sample k of ``caster[m]`` to the point of weights ``end_w[m]``
-        (over the table's denominator) on ``target[m]``'s input triangle) is clear."""
-        batch, row_link, col_k = self._blocks(caster, target, end_w)
+    def _clear(self, caster, target, end_w, take):
+        """(n, k) bool: ray j of row m (sample ``take[m, j]`` of ``caster[m]`` to the point of weights
+        ``end_w[m]`` (over the table's denominator) on ``target[m]``'s input triangle) is clear."""
+        batch, row_link, col_j = self._blocks(caster, target, end_w, take)
         with self.phases.timed("board"):
             bits = self.board.run(batch)
         flat = bits.flat if isinstance(bits, BlockBits) else np.concatenate(
@@ -354,36 +370,38 @@ class LinkCaster:
         rb, cb = batch.rows, batch.cols
         block = np.repeat(np.arange(len(batch)), rb * cb)
         t = np.arange(len(flat)) - batch.ray_off[block]
-        clear = np.zeros((len(caster), self.h.points.K), dtype=bool)
-        clear[row_link[batch.row_off[block] + t // cb[block]], col_k[batch.col_off[block] + t % cb[block]]] = ~flat
+        clear = np.zeros(take.shape, dtype=bool)
+        clear[row_link[batch.row_off[block] + t // cb[block]], col_j[batch.col_off[block] + t % cb[block]]] = ~flat
         self.rays += batch.rays
         self.blocks += len(batch)
         return clear
 
-    def _blocks(self, caster, target, end_w):
-        """The block rays of the rows (caster -> its end point): each caster's end points grouped by
-        voxel, runs of at most R of them times chunks of at most S of its samples. Returns the
-        BlockBatch, the link of each row and the sample (0..K-1) of each column."""
+    def _blocks(self, caster, target, end_w, take):
+        """The block rays of the rows (caster samples ``take[m]`` -> its end point): the rows grouped
+        by caster, samples taken and voxel of the end, runs of at most R of them times chunks of at
+        most S of the samples. Returns the BlockBatch, the row of each block row and the position
+        in ``take`` of each column."""
         h, pts, grid = self.h, self.h.points, self.grid
-        V, K, n = h.scene.patch_vertices, pts.K, len(caster)
+        V, n, k = h.scene.patch_vertices, len(caster), take.shape[1]
         with self.phases.timed("commands"):
             ends = np.einsum("np,npc->nc", end_w / float(pts.denominator), V[h.patch[target]])
             voxel = grid.voxel_of(ends)
-            order = np.lexsort((voxel, caster))
-            c, v = caster[order], voxel[order]
+            order = np.lexsort((voxel, take[:, 0], caster))
+            c, v, t = caster[order], voxel[order], take[order, 0]
             first = np.ones(n, dtype=bool)
-            first[1:] = (c[1:] != c[:-1]) | (v[1:] != v[:-1])
+            first[1:] = (c[1:] != c[:-1]) | (v[1:] != v[:-1]) | (t[1:] != t[:-1])
             pos = np.arange(n) - np.flatnonzero(first)[np.cumsum(first) - 1]
             run_start = np.flatnonzero(pos % self.rows == 0)
             run_len = np.diff(np.append(run_start, n))
-            chunk_start = np.arange(0, K, self.cols)
-            chunk_len = np.minimum(self.cols, K - chunk_start)
+            chunk_start = np.arange(0, k, self.cols)
+            chunk_len = np.minimum(self.cols, k - chunk_start)
             rows, cols = np.repeat(run_len, len(chunk_start)), np.tile(chunk_len, len(run_start))
             row_link = order[ranges(np.repeat(run_start, len(chunk_start)), rows)]
-            col_k = ranges(np.tile(chunk_start, len(run_start)), cols)
-            col_elem = np.repeat(np.repeat(c[run_start], len(chunk_start)), cols)
+            col_j = ranges(np.tile(chunk_start, len(run_start)), cols)
+            col_row = np.repeat(np.repeat(order[run_start], len(chunk_start)), cols)     # a row of the column's run
+            col_elem = caster[col_row]
             shooter_patch = h.patch[col_elem]
-            shooter_point = h.node[col_elem] * pts.per_element + col_k
+            shooter_point = h.node[col_elem] * pts.per_element + take[col_row, col_j]
             receiver_patch, receiver_weights = h.patch[target[row_link]], end_w[row_link]
             row_off = np.concatenate([[0], np.cumsum(rows)])
             col_off = np.concatenate([[0], np.cumsum(cols)])
@@ -392,7 +410,7 @@ class LinkCaster:
             vox, vox_off, _, _ = grid.traverse_blocks(starts, col_off, ends[row_link], row_off, nonempty_only=True)
         batch = BlockBatch(shooter_patch, shooter_point, col_off, receiver_patch, row_off, vox, vox_off,
                            receiver_weights)
-        return batch, row_link, col_k
+        return batch, row_link, col_j
 
 
 class SetCaster:
@@ -418,14 +436,14 @@ class SetCaster:
         self.rays = self.blocks = 0
         self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
 
-    def cast(self, links, ends=None):
+    def cast(self, links, ends=None, sources=None):
         from ..cluster.cluster import _results
         h, sets = self.h, len(self.per_set)
         part = self.owner[h.patch[links.recv]]
         mine = [np.flatnonzero(part == k) for k in range(sets)]
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], ends, pure=False)
+                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources, pure=False)
                        for m in mine]
             answers = _results(self.client, futures)
         links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -445,10 +463,10 @@ class SetCaster:
         return out
 
 
-def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None):
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, sources=None):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
-    element points to ``max_level``, loaded with the grid) with rays ``job.link_rays`` (``ends``:
-    :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
+    element points to ``max_level``, loaded with the grid) with rays ``job.link_rays`` (``ends``,
+    ``sources``: :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
     if job.threads is not None:
@@ -464,7 +482,7 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None):
                             link_rays=job.link_rays)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
-            caster.cast(links, ends)
+            caster.cast(links, ends, sources)
         else:
             links.vis, links.partial = np.zeros(0), np.zeros(0, dtype=bool)
         return links.vis, links.partial, caster.rays, caster.blocks, board.counters()
@@ -789,7 +807,7 @@ def cast_clusters(caster, tree, clinks, known=None):
     cast = np.flatnonzero(~found & (src >= 0) & (weight > 0))
     if len(cast):
         pairs = Links(element[cast], src[cast], np.zeros(len(cast)))
-        caster.cast(pairs, ends=1)          # a receiver leaf's K rays: the link's light is spread over its leaves
+        caster.cast(pairs, ends=1)          # a receiver leaf's rays: the link's light is spread over its leaves
         rvis[cast] = pairs.vis
     total = np.bincount(link, weight, minlength=n)
     clinks.vis = np.where(total > 0, np.bincount(link, weight * rvis, minlength=n) / np.where(total > 0, total, 1), 1.0)

@@ -174,8 +174,8 @@ class SolveOptions:
     ``max_iterations`` (gathering), the ``closure`` of the visible form factors, and the
     hierarchical solver's refinement threshold ``epsilon`` (a fraction of the emitted power),
     smallest element ``min_area`` (None: 3 levels below each input triangle) and ``link_rays``
-    (``spread``: K rays from the source's samples to one of the receiver's, a different one per
-    link; ``samples``: K x K rays between the two elements' samples; ``centroid``: K rays from the
+    (``spread``: K / 2 rays from half the source's samples to one of the receiver's, a different
+    one per link, and K x K where the source emits; ``samples``: K x K rays between the two elements' samples; ``centroid``: K rays from the
     source to the receiver's centroid) and ``clustering`` (initial links between clusters of input
     triangles, host_driver/render/clusters.py), host_driver/render/hierarchical.py."""
     solver: str = "progressive"
