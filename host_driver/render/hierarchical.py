@@ -24,8 +24,8 @@ both elements' areas. ``spread`` (the default): the same for a link whose source
 other link's rays run from K / SOURCE_STEP of its source's samples to one of its receiver's, each
 chosen per link (:func:`end_samples`), so a leaf's many links together still cover both
 elements: 7x fewer rays on the room with all K source samples, and no worse a balance; half
-of them again halves those rays at the same error (docs/hierarchical.md). ``centroid``: K rays from the source's
-samples to the receiver's centroid (or, where that centroid is not strictly in front of the
+of them again halves those rays at the same error (docs/hierarchical.md). ``centroid``: K rays
+from the source's samples to the receiver's centroid (or, where that centroid is not strictly in front of the
 source's plane, from the receiver's samples to the source's centroid), the clear share of those
 whose sample lies strictly in front of the far element's plane: 8x fewer rays, but the centroid
 judges the whole receiver, and closed scenes gain energy where shadows cover part of a receiver.
@@ -275,7 +275,8 @@ class LinkCaster:
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
         for ends, which in (self._groups(links) if ends is None else [(ends, np.arange(len(links)))]):
             if ends:
-                fractions = functools.partial(self._sample_fractions, ends=ends, sources=sources or self._sources(ends))
+                fractions = functools.partial(self._sample_fractions, ends=ends,
+                                              sources=sources or self._sources(ends))
                 chunk = self.CHUNK // ends
             else:
                 fractions, chunk = self._centroid_fractions, self.CHUNK
@@ -308,7 +309,8 @@ class LinkCaster:
             ahead = plane_signs(V[h.patch[src]], V[h.patch[recv]], pts.centres[h.node[recv]]) > 0
             caster, target = np.where(ahead, src, recv), np.where(ahead, recv, src)
             counts = self._in_front(target, caster, self._sample_weights(caster))
-        clear = self._clear(caster, target, pts.centres[h.node[target]], np.broadcast_to(np.arange(K), (len(caster), K)))
+        every = np.broadcast_to(np.arange(K), (len(caster), K))
+        clear = self._clear(caster, target, pts.centres[h.node[target]], every)
         counted = np.where(counts.any(axis=1, keepdims=True), counts, True)
         n_clear = (clear & counted).sum(axis=1)
         n = counted.sum(axis=1)
@@ -317,9 +319,10 @@ class LinkCaster:
     def _sample_fractions(self, recv, src, ends, sources):
         """``sources`` x ``ends`` rays per link, ``sources`` of the source's K samples (all, or evenly
         spaced from a hashed offset: :func:`end_samples` with the ends swapped) to ``ends`` of the
-        receiver's K samples (:func:`end_samples`), each weighed by the point-to-point kernel ``cos cos / r**2`` (0 where
-        either end is not strictly in front of the other's plane): the weighted clear share is the
-        ratio of the occluded to the unoccluded factor, over both elements' areas. (One end point at
+        receiver's K samples (:func:`end_samples`), each weighed by the point-to-point kernel
+        ``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane): the
+        weighted clear share is the ratio of the occluded to the unoccluded factor, over both
+        elements' areas. (One end point at
         the receiver's centroid judges the whole receiver by it: a receiver partly in shadow whose
         centroid is lit counts both the light the shadow hides and the occluder's face the shadowed
         part sees, and closed scenes gain energy.)"""
@@ -386,7 +389,7 @@ class LinkCaster:
         with self.phases.timed("commands"):
             ends = np.einsum("np,npc->nc", end_w / float(pts.denominator), V[h.patch[target]])
             voxel = grid.voxel_of(ends)
-            order = np.lexsort((voxel, take[:, 0], caster))
+            order = np.lexsort((voxel, take[:, 0], caster))     # evenly spaced: the first names them all
             c, v, t = caster[order], voxel[order], take[order, 0]
             first = np.ones(n, dtype=bool)
             first[1:] = (c[1:] != c[:-1]) | (v[1:] != v[:-1]) | (t[1:] != t[:-1])
