@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from blockray.host_driver.render import clusters
 from blockray.host_driver.render.clusters import (SEPARATION, ClusterLinks, Transfer, build_tree, link_clusters,
                                                   leaf_weights, receiver_entries, source_members)
 from blockray.host_driver.render.render import render
@@ -179,6 +180,27 @@ def test_gather_and_shoot_are_transposes():
     t = Transfer(tree, scene, ClusterLinks(R, S, rng.random(len(R))))
     x, y = rng.random(scene.patches), rng.random(scene.patches)
     assert math.isclose(float(y @ t.gather(x)), float(t.shoot(y) @ x), rel_tol=1e-12)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_dense_product_equals_the_two_tables(seed, monkeypatch):
+    """Where it fits, :class:`Transfer` holds ``P Q`` as one dense array; it gathers and shoots as
+    the two sparse tables do (built again with the product turned off), on leaves of a random soup
+    with random fractions."""
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    scene = random_soup(seed)
+    tree = build_tree(scene)
+    R, S, _, _ = link_clusters(tree, [0], [0], tree.maxima(np.ones(scene.patches)), 1e-4 * scene.areas.sum())
+    links = ClusterLinks(R, S, rng.random(len(R)))
+    dense = Transfer(tree, scene, links)
+    monkeypatch.setattr(clusters, "DENSE_ENTRIES", 0)
+    tables = Transfer(tree, scene, links)
+    assert dense.M is not None and tables.M is None
+    x, y = rng.random((scene.patches, 3)), rng.random(scene.patches)
+    assert np.allclose(dense.gather(x), tables.P @ (tables.Q @ x), rtol=1e-12, atol=0)
+    assert np.allclose(dense.shoot(y), tables.QT @ (tables.PT @ y), rtol=1e-12, atol=0)
+    assert np.allclose(tables.gather(x), dense.M @ x, rtol=1e-12, atol=0)
 
 
 def test_member_draws_in_proportion():

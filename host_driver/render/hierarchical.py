@@ -801,8 +801,16 @@ def cast_clusters(caster, tree, clinks, known=None):
         _, link, leaf = receiver_entries(tree, clinks, (leaves, h.patch[leaves]), h.scene.patches)
         element = leaves[leaf]
         key = entry_keys(tree, clinks, link, element)
-        rvis, found = _known_fractions(known, key, len(h))
-        weight = leaf_weights(tree, h.scene, clinks, link, h.vertices(element), h.patch[element], h.areas[element])
+        found, theirs = _known_entries(known, key, len(h))
+        rvis, weight, fresh = np.ones(len(key)), np.empty(len(key)), ~found
+        if len(theirs):
+            rvis[found] = known.rvis[theirs]
+        if len(theirs) and known.rweight is not None:        # kept entries keep their weights
+            weight[found] = known.rweight[theirs]
+        else:
+            fresh[:] = True
+        weight[fresh] = leaf_weights(tree, h.scene, clinks, link[fresh], h.vertices(element[fresh]),
+                                     h.patch[element[fresh]], h.areas[element[fresh]])
         src, need = np.full(len(key), -1), np.unique(link[~found])     # draws only for links with new entries
         drawn = np.full(n, -1)
         drawn[need] = source_members(tree, h.scene, ClusterLinks(clinks.R[need], clinks.S[need]))
@@ -816,22 +824,25 @@ def cast_clusters(caster, tree, clinks, known=None):
     clinks.vis = np.where(total > 0, np.bincount(link, weight * rvis, minlength=n) / np.where(total > 0, total, 1), 1.0)
     some = lambda x: np.bincount(link, (weight > 0) & x, minlength=n) > 0
     clinks.partial = some(rvis < 1) & some(rvis > 0)
-    clinks.rkey, clinks.rvis = key, rvis
+    clinks.rkey, clinks.rvis, clinks.rweight = key, rvis, weight
 
 
-def _known_fractions(known, key, elements):
-    """``(rvis, found)``: the fractions ``known`` (cast cluster links, or None) holds for entries
-    ``key`` (clusters.entry_keys; element ids below ``elements``), 1 where it has none."""
-    rvis, found = np.ones(len(key)), np.zeros(len(key), dtype=bool)
-    if known is None or known.rkey is None or not len(known.rkey):
-        return rvis, found
+def _known_entries(known, key, elements):
+    """``(found, theirs)``: which entries ``key`` (clusters.entry_keys; element ids below
+    ``elements``) ``known`` (cast cluster links, or None) holds, and where in its entries."""
+    found, none = np.zeros(len(key), dtype=bool), np.zeros(0, dtype=np.int64)
+    if known is None or known.rkey is None or not len(known.rkey) or not len(key):
+        return found, none
     flat = lambda k: k[:, 0] * np.int64(elements) + k[:, 1]     # one int64 while it cannot overflow
     if max(int(known.rkey[:, 0].max()), int(key[:, 0].max())) >= (1 << 62) // max(elements, 1):
         raise CapacityError(f"{len(known.rkey)} cluster link entries over {elements} elements overflow their keys")
-    _, mine, theirs = np.intersect1d(flat(key), flat(known.rkey), assume_unique=True, return_indices=True)
-    found[mine] = True
-    rvis[mine] = known.rvis[theirs]
-    return rvis, found
+    theirs, mine = flat(known.rkey), flat(key)
+    order, by_key = np.argsort(theirs), np.argsort(mine)       # both sorted: the search runs in order
+    at = np.minimum(np.searchsorted(theirs[order], mine[by_key]), len(order) - 1)     # keys are unique
+    found[by_key] = theirs[order[at]] == mine[by_key]
+    where = np.empty(len(key), dtype=np.int64)
+    where[by_key] = order[at]
+    return found, where[found]
 
 
 def refine_clusters(tree, h, clinks, B, threshold):
