@@ -5,6 +5,7 @@ convert (and build) anew. The Verilator build itself is replaced by a stand-in t
 library file, so these run in the default suite; the real build is tests/test_native_board.py's.
 """
 
+import os
 import shutil
 
 import pytest
@@ -85,3 +86,14 @@ def test_the_rtl_source_hash_follows_the_sources(tmp_path, monkeypatch):
     assert native.rtl_source_hash() == before
     monkeypatch.setattr(native, "_version", lambda dist: "another " + dist)
     assert native.rtl_source_hash() != before
+
+
+def test_several_compiler_flags_reach_make_as_one_variable(tmp_path):
+    """``cxxflags`` of more than one flag reach verilated.mk's ``OPT_FAST`` whole: GNU make reads
+    the MAKEFLAGS the build sets (a bare space there would start a new make argument)."""
+    import subprocess
+    (tmp_path / "Makefile").write_text("all:\n\t@echo [$(OPT_FAST)] [$(VK_PCH_I_FAST)]\n")
+    flags = ("-O3", "-march=native", "-fno-plt")
+    out = subprocess.run(["make", "-s", "-C", str(tmp_path)], env={**os.environ, "MAKEFLAGS": native._makeflags(flags)},
+                         capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[-O3 -march=native -fno-plt] []"

@@ -231,7 +231,8 @@ def _makeflags(cxxflags):
     run-once code stays unoptimised); no precompiled header (generating the two 70 MB headers
     costs more than they save on a model of a few files: the rule that makes them only
     preprocesses, and nothing includes them)."""
-    return " ".join([f"OPT_FAST={' '.join(cxxflags)}", "CFG_CXXFLAGS_PCH=-E", "VK_PCH_I_FAST=", "VK_PCH_I_SLOW="])
+    # MAKEFLAGS splits at spaces: the spaces between flags are escaped
+    return " ".join(["OPT_FAST=" + "\\ ".join(cxxflags), "CFG_CXXFLAGS_PCH=-E", "VK_PCH_I_FAST=", "VK_PCH_I_SLOW="])
 
 
 def rtl_source_hash():
