@@ -354,17 +354,32 @@ def test_cluster_kernel_on_leaves_against_quadrature():
     assert np.abs(got[ids] / want - 1).max() < 0.02
 
 
-def test_room_balance_with_a_fraction_per_receiver_leaf():
+def test_room_balance_with_a_fraction_per_receiver_leaf(monkeypatch):
     """The built-in room from max edge 2 at epsilon 1e-3 (cluster links under tables and chairs):
     absorbed is emitted power within 0.6% per channel, from B, E, rho and A alone. Measured: one
     visible fraction per cluster link for all its receivers +0.86%; one per leaf from all K source
     samples +0.28%, from every SOURCE_STEP = 2nd (the default) +0.51%, every 4th +0.92%, every 8th
     -0.29% to +0.36% (the rays' noise); the uniform progressive solve of this mesh +3.6%, the
-    uniform Jacobi solve's within 0.05% (docs/hierarchical.md)."""
+    uniform Jacobi solve's within 0.05% (docs/hierarchical.md).
+
+    On the way, each round's entries kept from the last cast, found in order
+    (hierarchical._kept_entries), are the ones a search of their keys finds."""
+    from blockray.host_driver.render import hierarchical
     from blockray.host_driver.scene.builtin import load_scene
     from scenes import balance
+    ordered, searched = hierarchical._kept_entries, hierarchical._known_entries
+    kept = []
+
+    def checked(known, key, origin, link, element, leaf):
+        got = ordered(known, key, origin, link, element, leaf)
+        want = searched(known, key, leaf.size)
+        assert got is not None and all((a == b).all() for a, b in zip(got, want))
+        kept.append(int(got[0].sum()))
+        return got
+    monkeypatch.setattr(hierarchical, "_kept_entries", checked)
     r = render(load_scene("room", max_edge=2.0), backend="model", solver="hierarchical", epsilon=1e-3,
                tolerance=1e-4)
     got = balance(r.scene, r.radiosity)
-    print(f"cluster links {r.report['cluster_links']}, balance {got}")
+    print(f"cluster links {r.report['cluster_links']}, balance {got}, entries kept per round {kept}")
     assert r.report["cluster_links"] > 10000 and np.abs(got).max() < 6e-3
+    assert len(kept) >= 2 and min(kept) > 1000

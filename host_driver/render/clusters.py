@@ -196,8 +196,10 @@ class ClusterLinks:
     receiver leaf of each link, in the order of :func:`receiver_entries` on the leaves they were
     cast for, and ``rkey`` the entries' keys (:func:`entry_keys`); None: ``vis`` for all of them
     (links not cast; :meth:`take` and :meth:`join` drop them, a new cast carries them over).
-    ``rweight``: the entries' :func:`leaf_weights`, kept so a new cast computes only its new
-    entries' (None: not kept, as after a checkpoint)."""
+    ``rweight``: the entries' :func:`leaf_weights`, ``rlink`` their links and ``rsize`` the
+    elements there were, kept so a new cast finds the entries it shares with this one in order and
+    computes only the others' weights (None: not kept, as after a checkpoint). ``origin``: each
+    link's index in the links it was taken from (:meth:`take`; -1 for a link :meth:`join` added)."""
     R: np.ndarray
     S: np.ndarray
     vis: np.ndarray = None
@@ -205,6 +207,9 @@ class ClusterLinks:
     rkey: np.ndarray = None
     rvis: np.ndarray = None
     rweight: np.ndarray = None
+    rlink: np.ndarray = None
+    rsize: int = None
+    origin: np.ndarray = None
 
     @staticmethod
     def empty():
@@ -215,7 +220,8 @@ class ClusterLinks:
         return len(self.R)
 
     def take(self, keep):
-        return ClusterLinks(self.R[keep], self.S[keep], self.vis[keep], self.partial[keep])
+        return ClusterLinks(self.R[keep], self.S[keep], self.vis[keep], self.partial[keep],
+                            origin=np.arange(len(self))[keep])
 
     @staticmethod
     def join(a, b):
@@ -223,7 +229,8 @@ class ClusterLinks:
         cat = np.concatenate
         vis = [np.ones(len(x)) if x.vis is None else x.vis for x in (a, b)]
         partial = [np.zeros(len(x), dtype=bool) if x.partial is None else x.partial for x in (a, b)]
-        return ClusterLinks(cat([a.R, b.R]), cat([a.S, b.S]), cat(vis), cat(partial))
+        origin = [np.full(len(x), -1) if x.origin is None else x.origin for x in (a, b)]
+        return ClusterLinks(cat([a.R, b.R]), cat([a.S, b.S]), cat(vis), cat(partial), origin=cat(origin))
 
 
 def receiver_entries(tree, links, leaves, N):
@@ -271,8 +278,8 @@ class Transfer:
         # from max edge 1: 4.4 M entries, 5 ms a use against 17-26 ms through both tables)
         self.M = None
         if self.size * self.N <= DENSE_ENTRIES:
-            P = self.PT.tocsc()                 # P's rows: each receiver's terms
-            self.M = _dense_product(P.indptr, P.indices, P.data, self.Q.indptr, self.Q.indices, self.Q.data, self.N)
+            self.M = _dense_product(self.PT.indptr, self.PT.indices, self.PT.data, self.Q.indptr, self.Q.indices,
+                                    self.Q.data, self.size, self.N)
 
     def gather(self, x):
         """Per receiver r: ``sum_links v sum_s F_rs x_s`` (``x`` per input triangle, (N,) or (N, c))."""
@@ -288,16 +295,21 @@ class Transfer:
 DENSE_ENTRIES = 1 << 23
 
 
-@njit(cache=True, parallel=True)
-def _dense_product(p_ptr, p_idx, p_dat, q_ptr, q_idx, q_dat, cols):
-    """``P Q`` as a dense array (P's rows, ``cols``) from the CSR arrays of ``P`` and ``Q``: a
-    receiver's row at a time (rows on the thread pool, each written by one thread)."""
-    M = np.zeros((len(p_ptr) - 1, cols))
-    for r in prange(len(p_ptr) - 1):
-        for a in range(p_ptr[r], p_ptr[r + 1]):
-            t, v = p_idx[a], p_dat[a]
-            for b in range(q_ptr[t], q_ptr[t + 1]):
-                M[r, q_idx[b]] += v * q_dat[b]
+@njit(cache=True)
+def _dense_product(pt_ptr, pt_idx, pt_dat, q_ptr, q_idx, q_dat, rows, cols):
+    """``P Q`` as a dense (rows, cols) array from the CSR arrays of ``P.T`` and ``Q``, link by
+    link: a link's RANK term rows hold the same receivers (in ``P.T``) and the same sources (in
+    ``Q``), so each (receiver, source) pair of the link adds its RANK-term dot product once."""
+    L = (len(pt_ptr) - 1) // RANK
+    M = np.zeros((rows, cols))
+    for l in range(L):
+        for a in range(pt_ptr[l + 1] - pt_ptr[l]):
+            r = pt_idx[pt_ptr[l] + a]
+            for b in range(q_ptr[l + 1] - q_ptr[l]):
+                v = 0.0
+                for k in range(RANK):
+                    v += pt_dat[pt_ptr[k * L + l] + a] * q_dat[q_ptr[k * L + l] + b]
+                M[r, q_idx[q_ptr[l] + b]] += v
     return M
 
 

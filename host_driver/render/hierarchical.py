@@ -801,7 +801,7 @@ def cast_clusters(caster, tree, clinks, known=None):
         _, link, leaf = receiver_entries(tree, clinks, (leaves, h.patch[leaves]), h.scene.patches)
         element = leaves[leaf]
         key = entry_keys(tree, clinks, link, element)
-        found, theirs = _known_entries(known, key, len(h))
+        found, theirs = _known_entries(known, key, len(h), clinks.origin, link, element, h.child < 0)
         rvis, weight, fresh = np.ones(len(key)), np.empty(len(key)), ~found
         if len(theirs):
             rvis[found] = known.rvis[theirs]
@@ -824,15 +824,22 @@ def cast_clusters(caster, tree, clinks, known=None):
     clinks.vis = np.where(total > 0, np.bincount(link, weight * rvis, minlength=n) / np.where(total > 0, total, 1), 1.0)
     some = lambda x: np.bincount(link, (weight > 0) & x, minlength=n) > 0
     clinks.partial = some(rvis < 1) & some(rvis > 0)
-    clinks.rkey, clinks.rvis, clinks.rweight = key, rvis, weight
+    clinks.rkey, clinks.rvis, clinks.rweight, clinks.rlink, clinks.rsize = key, rvis, weight, link, len(h)
 
 
-def _known_entries(known, key, elements):
+def _known_entries(known, key, elements, origin=None, link=None, element=None, leaf=None):
     """``(found, theirs)``: which entries ``key`` (clusters.entry_keys; element ids below
-    ``elements``) ``known`` (cast cluster links, or None) holds, and where in its entries."""
+    ``elements``) ``known`` (cast cluster links, or None) holds, and where in its entries.
+    ``origin`` (each link's index in ``known``, -1 if new), the entries' ``link`` and ``element``
+    and the current ``leaf`` mask find them in order (:func:`_kept_entries`); otherwise, or if
+    that does not hold, by their keys."""
     found, none = np.zeros(len(key), dtype=bool), np.zeros(0, dtype=np.int64)
     if known is None or known.rkey is None or not len(known.rkey) or not len(key):
         return found, none
+    if origin is not None and known.rlink is not None:
+        kept = _kept_entries(known, key, origin, link, element, leaf)
+        if kept is not None:
+            return kept
     flat = lambda k: k[:, 0] * np.int64(elements) + k[:, 1]     # one int64 while it cannot overflow
     if max(int(known.rkey[:, 0].max()), int(key[:, 0].max())) >= (1 << 62) // max(elements, 1):
         raise CapacityError(f"{len(known.rkey)} cluster link entries over {elements} elements overflow their keys")
@@ -843,6 +850,20 @@ def _known_entries(known, key, elements):
     where = np.empty(len(key), dtype=np.int64)
     where[by_key] = order[at]
     return found, where[found]
+
+
+def _kept_entries(known, key, origin, link, element, leaf):
+    """:func:`_known_entries` without a search: a kept link's entries that were cast before are
+    its receiver leaves that existed then (elements are only appended, and a leaf that existed
+    was a leaf then), in the same order, and ``known``'s entries that stay are those of kept
+    links whose element is still a leaf. None where the two do not pair up key for key."""
+    was_kept = np.zeros(len(known), dtype=bool)
+    was_kept[origin[origin >= 0]] = True
+    theirs = np.flatnonzero(was_kept[known.rlink] & leaf[known.rkey[:, 1]])
+    found = (origin[link] >= 0) & (element < known.rsize)
+    if len(theirs) != found.sum() or not (known.rkey[theirs] == key[found]).all():
+        return None
+    return found, theirs
 
 
 def refine_clusters(tree, h, clinks, B, threshold):
