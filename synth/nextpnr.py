@@ -253,6 +253,11 @@ def _critical_path(report, clock):
     return None
 
 
+def _check_router(router):
+    if router not in ("router1", "router2"):
+        raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
+
+
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
                  threads=2, workdir=None, place=True, router=ROUTER, fabric_units=(), cell=Cell(),
                  also_speeds=(), route=True):
@@ -275,8 +280,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     147.6 against 156.7 MHz at -6; docs/synthesis.md). A run of its own at another grade places
     and routes for that grade's delays, and may do better.
     """
-    if router not in ("router1", "router2"):
-        raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
+    _check_router(router)
     if not route and (workdir is None or also_speeds):
         raise ParameterError("a placement without routing is kept for a later route: it needs a workdir "
                              "and no other speed grades", parameter="no_route")
@@ -440,7 +444,6 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
 def _keep_placement(report, tmp, pnr):
     """Turn a placing run's report into a placement's (its estimate, not a routed Fmax) and keep it
     beside the saved placement for :func:`route_placed`."""
-    report.pop("fmax_mhz")
     # nextpnr's JSON report has no Fmax without routing; its log has the placer's timing estimate
     found = re.findall(r"Max frequency for clock '[^']*': ([0-9.]+) MHz", (tmp / "nextpnr.log").read_text(errors="replace"))
     report["placement"] = {"estimate_mhz": min(map(float, found)) if found else None,
@@ -459,8 +462,7 @@ def route_placed(workdir, *, router=ROUTER, threads=2):
     if not ((tmp / PLACED).is_file() and (tmp / PLACE_REPORT).is_file()):
         raise ParameterError(f"{workdir}: no saved placement ({PLACED} and {PLACE_REPORT} of a run "
                              "with --no-route)", parameter="from_placement")
-    if router not in ("router1", "router2"):
-        raise ParameterError(f"router must be router1 or router2, not {router!r}", parameter="router")
+    _check_router(router)
     report = json.loads((tmp / PLACE_REPORT).read_text())
     placement = report["placement"]
     set_saved_router(tmp / PLACED, router)
