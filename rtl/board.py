@@ -56,6 +56,7 @@ from ..timing import BoardTiming
 from ..cell import Cell, check_cell
 from .array import ProcessorArray
 from .filtered import FilteredArray
+from .lean import LeanArray
 from .memctrl import MemoryController
 from .sequencer import BlockSequencer, item_layout
 from .processor import ArrayTiming, _delay
@@ -89,11 +90,9 @@ class BoardTop(wiring.Component):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         if not isinstance(params, BoardParams):
             raise ParameterError(f"board needs BoardParams, not {params!r}")
-        if check_cell(cell).lean:      # LeanArray needs the patch memory's second read port (docs/processor.md)
-            raise ParameterError("the lean cell has no board yet (its array and model do: --board model, "
-                                 "blockray synth array --cell lean)", parameter="cell")
-        self._cell = cell.at(params.bits)
-        self._depth = depth if depth is not None else FilteredArray.default_depth(MemoryController.latency)
+        self._cell = check_cell(cell).at(params.bits)
+        array = LeanArray if self._cell.lean else FilteredArray
+        self._depth = depth if depth is not None else array.default_depth(MemoryController.latency)
         self._params = params
         self._protocol = BoardProtocol(params)
         self._patch_init, self._table_init = patch_init, table_init
@@ -163,7 +162,7 @@ class BoardTop(wiring.Component):
     def elaborate(self, platform):
         # one method per stage, in the order the board's signals are made (the Verilog keeps it);
         # the stages share their signals through ``w``
-        m, w = Module(), SimpleNamespace(filtered=self._cell.filtered)
+        m, w = Module(), SimpleNamespace(filtered=self._cell.filtered, lean=self._cell.lean)
         self._units(m, w)
         self._fetch(m, w)
         self._result_queue(m, w)
@@ -178,11 +177,15 @@ class BoardTop(wiring.Component):
         p = self._params
         R, S = p.rows, p.cols
         m.submodules.memctrl = mc = MemoryController(p, patch_init=self._patch_init, table_init=self._table_init,
-                                                     rays=self._rays)
+                                                     rays=self._rays, exact_read=w.lean)
         marker_layout = data.StructLayout({
             "valid": 1, "counters": 1, "identify": 1, "fresh": 1, "rows": R, "cols": S,
         })
-        if w.filtered:
+        if w.lean:
+            m.submodules.array = array = LeanArray(p.bits, R, S, fmt=self._cell.format, depth=self._depth,
+                                                   mark_shape=marker_layout,
+                                                   address_bits=self._protocol.address_width)
+        elif w.filtered:
             m.submodules.array = array = FilteredArray(p.bits, R, S, fmt=self._cell.format, depth=self._depth,
                                                        mark_shape=marker_layout)
         else:
@@ -265,19 +268,22 @@ class BoardTop(wiring.Component):
         # delivers in order and late when tests wait for the exact unit); without a credit the
         # issue slot and the markers wait: cycles lost, counted as board cycles
         array_credit = Signal(init=1)
+        drain = Signal()        # lean: a WRITE_PATCH waits until no tag can re-read the memory
         lost = Signal()
         if w.filtered:
             inside = Signal(range(self._depth + 1))
+            if w.lean:
+                m.d.comb += drain.eq(cur_valid & (op == Op.WRITE_PATCH) & (inside != 0))
             m.d.comb += [array_credit.eq(inside < self._depth), mc.enable.eq(array_credit),
-                         lost.eq(~array_credit & (~mc.free | (cur_valid & needs_result)))]
+                         lost.eq((~array_credit & (~mc.free | (cur_valid & needs_result))) | drain)]
             m.d.sync += inside.eq(inside + (mc.issue | (w.cur_step & needs_result)) - w.array.delivered)
         m.d.comb += [
-            w.cur_step.eq(cur_valid & (~needs_result | (w.credit & array_credit))),
+            w.cur_step.eq(cur_valid & (~needs_result | (w.credit & array_credit)) & ~drain),
             w.cur_done.eq(w.cur_step),
         ]
 
         m.d.comb += [
-            mc.patch_write.valid.eq(cur_valid & (op == Op.WRITE_PATCH)),
+            mc.patch_write.valid.eq(cur_valid & (op == Op.WRITE_PATCH) & ~drain),
             mc.patch_write.payload.eq(cur.arg.write_patch),
             mc.table_write.valid.eq(cur_valid & (op == Op.WRITE_VOXEL)),
             mc.table_write.payload.eq(cur.arg.write_voxel),
@@ -348,6 +354,10 @@ class BoardTop(wiring.Component):
             array.receivers.eq(w.receivers),
             array.shooters.eq(w.shooters),
         ]
+        if w.lean:          # the exact unit re-reads an undecided test's record
+            m.d.comb += array.address.eq(mc.record_address)
+            m.d.comb += [mc.exact_patch.addr.eq(array.patch_read.addr), mc.exact_patch.en.eq(array.patch_read.en),
+                         array.patch_read.data.eq(mc.exact_patch.data)]
         if w.filtered:      # the masks and markers as seen by the records issued with them
             m.d.comb += [
                 array.row_mask.eq(_delay(m, w.row_valid, self.memory_latency, "row_mask")),

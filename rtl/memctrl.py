@@ -60,9 +60,12 @@ class MemoryController(wiring.Component):
                      cell lowers it when its array has no credit (the broadcast stalls).
     ``rays_patch``, ``rays_table``  with ``rays``: a second read port of each memory, the block
                      sequencer's (rays made on the board; the table's transparent to its writes).
+    ``record_address``  Out: the patch address of the record on ``records``.
+    ``exact_patch``  with ``exact_read``: another read port of the patch memory, the lean array's
+                     shared exact unit's (it re-reads the record of an undecided test).
     """
 
-    def __init__(self, params, *, patch_init=(), table_init=(), rays=False):
+    def __init__(self, params, *, patch_init=(), table_init=(), rays=False, exact_read=False):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         if not isinstance(params, BoardParams):
             raise ParameterError(f"memory controller needs BoardParams, not {params!r}")
@@ -86,12 +89,16 @@ class MemoryController(wiring.Component):
             "step": Out(1),
             "free": Out(1),
             "enable": In(1, init=1),
-        } | ({"rays_patch": Out(ReadPort.Signature(addr_width=proto.address_width,
-                                                  shape=unsigned(patch_layout(params.bits).size))),
+            "record_address": Out(proto.address_width),
+        } | ({"rays_patch": Out(self._patch_port()),
               "rays_table": Out(ReadPort.Signature(addr_width=proto.voxel_width, shape=proto.table_entry_layout))}
-             if rays else {}))
-        self._rays = rays
+             if rays else {}) | ({"exact_patch": Out(self._patch_port())} if exact_read else {}))
+        self._rays, self._exact_read = rays, exact_read
         self._MustUse__silence = False
+
+    def _patch_port(self):
+        return ReadPort.Signature(addr_width=self._protocol.address_width,
+                                  shape=unsigned(patch_layout(self._params.bits).size))
 
     @property
     def params(self):
@@ -117,11 +124,15 @@ class MemoryController(wiring.Component):
         patch_r = patches.read_port()
         table_w = table.write_port()
         table_r = table.read_port(transparent_for=(table_w,))
+        extra = []
         if self._rays:
+            extra += [(self.rays_patch, patches.read_port()),
+                      (self.rays_table, table.read_port(transparent_for=(table_w,)))]
+        if self._exact_read:
+            extra.append((self.exact_patch, patches.read_port()))
+        for port, memory_port in extra:
             # assigned, not connected: a memory of one entry has 0 address bits, the protocol's 1
-            for port, memory_port in ((self.rays_patch, patches.read_port()),
-                                      (self.rays_table, table.read_port(transparent_for=(table_w,)))):
-                m.d.comb += [memory_port.addr.eq(port.addr), memory_port.en.eq(port.en), port.data.eq(memory_port.data)]
+            m.d.comb += [memory_port.addr.eq(port.addr), memory_port.en.eq(port.en), port.data.eq(memory_port.data)]
 
         m.d.comb += [
             patch_w.addr.eq(self.patch_write.payload.address),
@@ -167,9 +178,11 @@ class MemoryController(wiring.Component):
 
         # memory read (1 cycle), then the broadcast register (1 cycle)
         read_valid = Signal()
-        m.d.sync += read_valid.eq(self.issue)
+        read_address = Signal(proto.address_width)
+        m.d.sync += [read_valid.eq(self.issue), read_address.eq(address)]
         m.d.sync += [
             self.records.valid.eq(read_valid),
             self.records.payload.eq(patch_r.data),
+            self.record_address.eq(read_address),
         ]
         return m

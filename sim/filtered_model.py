@@ -29,8 +29,8 @@ from ..exact import blocked_block
 from ..filtered import filtered_tests
 
 __all__ = ["BufferedFifo", "FilteredIntersectorModel", "Trace", "DATAPATH_LATENCY", "EXACT_LATENCY",
-           "board_clock", "STEP_PLAIN", "STEP_BUBBLE", "STEP_RECORD", "STEP_MARKER", "default_array_depth",
-           "ISSUE_TO_HANDOFF"]
+           "board_clock", "STEP_PLAIN", "STEP_BUBBLE", "STEP_RECORD", "STEP_MARKER", "STEP_DRAIN",
+           "default_array_depth", "ISSUE_TO_HANDOFF"]
 
 #: cycles from a test's acceptance to the hand-off's input: units 4, filters 3, filtered cell 5
 DATAPATH_LATENCY = 12
@@ -138,8 +138,9 @@ ISSUE_TO_HANDOFF = 2 + DATAPATH_LATENCY
 
 
 #: a board step for :func:`board_clock`: no credit needed (WRITE_*, BEGIN_BLOCK, LOAD_*), an
-#: empty voxel's bubble (a credit, nothing issued), a record (``undecided`` tests), a marker
-STEP_PLAIN, STEP_BUBBLE, STEP_RECORD, STEP_MARKER = 0, 1, 2, 3
+#: empty voxel's bubble (a credit, nothing issued), a record (``undecided`` tests), a marker, a
+#: step that waits until the array is empty (the lean board's WRITE_PATCH)
+STEP_PLAIN, STEP_BUBBLE, STEP_RECORD, STEP_MARKER, STEP_DRAIN = 0, 1, 2, 3, 4
 _NONE, _MARK = -2, -1          # in the issue line and the pending FIFO: nothing, a marker
 
 
@@ -193,7 +194,8 @@ def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_h
         item = _NONE
         if i < n_steps:
             kind = kinds[i]
-            if kind != STEP_PLAIN and inside >= depth:
+            waits = inside > 0 if kind == STEP_DRAIN else (kind != STEP_PLAIN and inside >= depth)
+            if waits:
                 lost[i] += 1
                 waiting = True
             else:

@@ -40,7 +40,7 @@ from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKi
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
 from . import kernel
-from .filtered_model import (EXACT_LATENCY, STEP_BUBBLE, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock,
+from .filtered_model import (EXACT_LATENCY, STEP_BUBBLE, STEP_DRAIN, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock,
                              default_array_depth)
 from .lean_model import LEAN_EXACT_LATENCY, default_lean_depth
 
@@ -206,6 +206,9 @@ class BoardModel:
             undecided += list(u) if count else [0]
         elif op in (Op.END_BLOCK, Op.READ_COUNTERS, Op.IDENTIFY):
             kinds.append(STEP_MARKER)
+            undecided.append(0)
+        elif op is Op.WRITE_PATCH and self.cell.lean:       # no tag may re-read the old record
+            kinds.append(STEP_DRAIN)
             undecided.append(0)
         else:
             kinds.append(STEP_PLAIN)

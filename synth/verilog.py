@@ -18,7 +18,8 @@ Units (``UNITS``):
 default format d_k exact and w_k at 18 bits);
 ``lean`` the lean cell of :mod:`blockray.rtl.lean` (``array``: :class:`LeanArray` with its
 shared exact unit and end-point memory, its patch memory's read port a top-level port;
-``processor``: the 1 x 1 LeanArray; ``cell``: the filtered cell at the lean format, 9 x 9 bits).
+``processor``: the 1 x 1 LeanArray; ``cell``: the filtered cell at the lean format, 9 x 9 bits;
+``board``: ``BoardTop(cell=Cell("lean"))``, the array's read port on the patch memory).
 
     text = unit_verilog("array", BoardParams(rows=2, cols=2, bits=16))
     text = unit_verilog("processor", target="ecp5")    # products on registered MULT18X18D
@@ -72,10 +73,6 @@ def _check_unit(unit):
     return unit
 
 
-#: units built with the lean cell (rtl/lean.py): the R x S array (``processor``: its 1 x 1) and the cell
-LEAN_UNITS = ("processor", "cell", "array")
-
-
 def _lean_unit(unit, params, fmt):
     from ..rtl.filtered import FilteredProcessor
     from ..rtl.lean import LeanArray
@@ -88,14 +85,16 @@ def _lean_unit(unit, params, fmt):
 def _filtered_unit(unit, params, cell):
     from ..rtl.filtered import FilteredArray, FilteredIntersector, FilteredProcessor
     fmt = cell.format
+    if unit == "board":             # the lean board too: its array re-reads the patch memory
+        from ..rtl.board import BoardTop
+        _check_memory(params)
+        return BoardTop(params, cell=cell)
+    if cell.lean:
+        return _lean_unit(unit, params, fmt)
     if unit == "processor":
         return FilteredIntersector(params.bits, fmt)
     if unit == "array":
         return FilteredArray(params.bits, params.rows, params.cols, fmt=fmt)
-    if unit == "board":
-        from ..rtl.board import BoardTop
-        _check_memory(params)
-        return BoardTop(params, cell=cell)
     return FilteredProcessor(fmt)
 
 
@@ -106,12 +105,7 @@ def build_unit(unit, params=None, cell=Cell()):
     params = BoardParams() if params is None else params
     if not isinstance(params, BoardParams):
         raise ParameterError(f"synthesis parameters must be BoardParams, not {params!r}")
-    if check_cell(cell).lean and unit not in LEAN_UNITS:
-        raise ParameterError(f"the lean cell is built for units {', '.join(LEAN_UNITS)}, not {unit!r}",
-                             parameter="cell")
-    cell = cell.at(params.bits)
-    if cell.lean:
-        return _lean_unit(unit, params, cell.format)
+    cell = check_cell(cell).at(params.bits)
     if cell.filtered:
         return _filtered_unit(unit, params, cell)
     if unit == "processor":

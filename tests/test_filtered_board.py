@@ -21,6 +21,7 @@ from blockray.cell import Cell
 from blockray.errors import ParameterError
 from blockray.filtered import FilterFormat
 from blockray.params import BoardParams
+from blockray.protocol import WritePatch
 from blockray.rtl.board import BoardTop
 from blockray.rtl.filtered import FilteredArray
 from blockray.sim.drive import amaranth_cycle
@@ -32,8 +33,8 @@ from board_host import BatchRun, check_run
 from board_scenes import make_batch
 
 
-def run_filtered(params, commands, *, fmt, depth, seed):
-    dut = BoardTop(params, cell=Cell("filtered", fmt), depth=depth)
+def run_filtered(params, commands, *, fmt, depth, seed, kind="filtered"):
+    dut = BoardTop(params, cell=Cell(kind, fmt), depth=depth)
     top = Module()
     top.domains.sync = ClockDomain()
     top.submodules.board = dut
@@ -51,18 +52,21 @@ def run_filtered(params, commands, *, fmt, depth, seed):
     return run.log
 
 
-@pytest.mark.parametrize("seed,rows,cols,fmt,depth", [
-    (201, 2, 2, FilterFormat(3, 3), None),          # many undecided tests: the credits run out
-    (202, 2, 3, FilterFormat(3, 3), 6),             # small credits: the broadcast stalls often
-    (203, 3, 2, FilterFormat(4, 5), 9),
-    (204, 2, 2, None, None),                        # the default format: (almost) all decided
+@pytest.mark.parametrize("seed,rows,cols,fmt,depth,kind", [
+    (201, 2, 2, FilterFormat(3, 3), None, "filtered"),      # many undecided tests: the credits run out
+    (202, 2, 3, FilterFormat(3, 3), 6, "filtered"),         # small credits: the broadcast stalls often
+    (203, 3, 2, FilterFormat(4, 5), 9, "filtered"),
+    (204, 2, 2, None, None, "filtered"),                    # the default format: (almost) all decided
+    (205, 2, 2, FilterFormat(3, 3), None, "lean"),          # the tags re-read the patch memory
+    (206, 2, 3, FilterFormat(3, 3), 6, "lean"),
+    (207, 3, 2, FilterFormat(3, 3, 5), None, "lean"),       # the row units from 5-bit inputs
 ])
-def test_filtered_board_equals_model(seed, rows, cols, fmt, depth):
+def test_filtered_board_equals_model(seed, rows, cols, fmt, depth, kind):
     print(f"seed={seed}")
     params, cmds = make_batch(seed, rows=rows, cols=cols, bits=8)
     fmt = fmt or FilterFormat(9, 18)                # d_k exact at B = 8, w_k at 18 bits
-    model = functools.partial(BoardModel, cell=Cell("filtered", fmt), depth=depth)
-    log = run_filtered(params, cmds, fmt=fmt, depth=depth, seed=seed)
+    model = functools.partial(BoardModel, cell=Cell(kind, fmt), depth=depth)
+    log = run_filtered(params, cmds, fmt=fmt, depth=depth, seed=seed, kind=kind)
     expect = check_run(params, cmds, log, model=lambda p, t: model(p, t))[0]
     # the blocked words are the exact board's, whatever the filter left undecided
     exact, filtered = BoardModel(params).execute(cmds), model(params).execute(cmds)
@@ -73,6 +77,36 @@ def test_filtered_board_equals_model(seed, rows, cols, fmt, depth):
     if fmt == FilterFormat(3, 3):
         assert lost > 0, "the test should make the array's credits run out"
     assert any(kind == "counters" for kind, _ in expect.values())
+
+
+def _blocks(cmds):
+    """(begin, end) command indices of each BEGIN_BLOCK .. END_BLOCK in ``cmds``."""
+    begins = [i for i, c in enumerate(cmds) if c.op.name == "BEGIN_BLOCK"]
+    return [(b, next(i for i in range(b, len(cmds)) if cmds[i].op.name == "END_BLOCK")) for b in begins]
+
+
+def test_lean_board_rewrites_patches_after_the_array_drains():
+    """The block with the most blocked tests again, and right behind it every patch rewritten as
+    a point (which blocks nothing) while its undecided tests still wait for the lean exact unit.
+    That unit re-reads their records from the patch memory, so each WRITE_PATCH waits until the
+    array is empty (lost cycles, in the model too); bits and cycles equal the model's, the
+    blocked words the exact board's (without the wait they read the points)."""
+    seed, fmt = 209, FilterFormat(3, 3)       # its block with the most blocked bits needs the exact unit
+    print(f"seed={seed}")
+    params, cmds = make_batch(seed, rows=2, cols=2, bits=8)
+    exact = BoardModel(params).execute(cmds)
+    blocks = _blocks(cmds)
+    b, e = max(blocks, key=lambda be: bin(exact.words[blocks.index(be)]).count("1"))
+    rewrite = len(cmds) + e + 1 - b
+    cmds = cmds + cmds[b:e + 1] + [WritePatch(a, 0) for a in range(params.patch_depth)] + cmds[b:e + 1]
+    model = functools.partial(BoardModel, cell=Cell("lean", fmt))
+    log = run_filtered(params, cmds, fmt=fmt, depth=None, seed=seed, kind="lean")
+    check_run(params, cmds, log, model=lambda p, t: model(p, t))
+    lean, exact = model(params).execute(cmds), BoardModel(params).execute(cmds)
+    assert lean.words == exact.words and exact.words[-2] != 0 and exact.words[-1] == 0
+    waited = lean.starts[rewrite + 1] - lean.starts[rewrite] - 1
+    print(f"the rewrite waited {waited} cycles for the array to drain")
+    assert waited > 0
 
 
 def test_filtered_board_latencies_and_parameters():

@@ -69,14 +69,17 @@ def test_cell_errors_name_the_option(capsys):
 
 
 @pytest.mark.cocotb
-def test_verilator_filtered_equals_exact(scene, exact):
-    """The filtered board's Verilog under Verilator (host driver, byte link): the exact cell's
-    radiosity bit for bit, the filter narrow enough (3 x 3 bits) that the shared exact unit and
-    the credits are exercised."""
-    got = _render(scene, "verilator", cell=Cell("filtered", FilterFormat(3, 3)))
+@pytest.mark.parametrize("kind", ["filtered", "lean"])
+def test_verilator_filtered_equals_exact(scene, exact, kind):
+    """The filtered or lean board's Verilog under Verilator (host driver, byte link): the exact
+    cell's radiosity bit for bit and the model's board cycles, the filter narrow enough (3 x 3
+    bits) that the shared exact unit and the credits are exercised."""
+    cell = Cell(kind, FilterFormat(3, 3))
+    got, model = _render(scene, "verilator", cell=cell), _render(scene, "model", cell=cell)
     assert np.array_equal(got.radiosity, exact.radiosity)
     assert got.report["tests_issued"] == exact.report["tests_issued"]
-    print(f"board_cycles per board: verilator filtered {got.report['board_cycles_per_board']}, "
+    assert got.report["board_cycles_per_board"] == model.report["board_cycles_per_board"]
+    print(f"board_cycles per board: verilator {kind} {got.report['board_cycles_per_board']}, "
           f"exact {exact.report['board_cycles_per_board']}")
 
 

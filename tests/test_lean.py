@@ -410,9 +410,19 @@ def test_model_board_lean_equals_exact(rtl_room):
     print("board_cycles exact", exact.report["board_cycles"], "lean 3x3", lean.report["board_cycles"])
 
 
-def test_the_lean_board_is_refused_with_one_line():
-    with pytest.raises(ParameterError, match="lean cell has no board"):
-        BoardTop(BoardParams(bits=8, rows=2, cols=2), cell=Cell("lean"))
+def test_lean_board_latencies_and_its_verilog():
+    """The lean board's credits and latencies are the model's; ``blockray synth board --cell lean``
+    builds it, its patch memory with the exact unit's read port."""
+    from blockray.synth.verilog import unit_verilog
+    from blockray.timing import BoardTiming
+    params = BoardParams(rows=2, cols=2, bits=8, patch_depth=4, voxel_depth=2)
+    board = BoardTop(params, cell=Cell("lean"))
+    Fragment.get(board, None)
+    assert board.cell == Cell("lean", FilterFormat(9, 9))
+    assert board.timing == BoardTiming.for_cell(Cell("lean"))
+    assert board.array_depth == default_lean_depth() == LeanArray.default_depth(board.memory_latency)
+    text = unit_verilog("board", params, cell=Cell("lean"))
+    assert "module blockray_board" in text and "exact_patch" in text
 
 
 @pytest.mark.slow           # a Verilator build of minutes
