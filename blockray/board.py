@@ -222,14 +222,13 @@ class CountingBoard(Board):
                                  f"{p.rows} x {p.cols} array ({option('rows')}/{option('cols')}); the host must split it")
         return Rb, Sb
 
-    def _add_batch(self, batch, finish=None):
+    def _add_batch(self, batch):
         """Account one batch: per-board board cycles ``batch`` (P,); the machine waits for the
-        slowest board and the drain of its last END_BLOCK (``finish`` (P,): when each board's
-        last result is formed, counted from its first cycle, where the drain depends on the
-        data; by default its board cycles and ``drain_latency``)."""
+        slowest board and the drain of its last END_BLOCK (``drain_latency``: what the host
+        knows from the counters; a filtering cell's last result may leave its array later)."""
         if batch.any():
             self._cycles_b += batch
-            self._cycles += int(batch.max()) + self.timing.drain_latency if finish is None else int(finish.max())
+            self._cycles += int(batch.max()) + self.timing.drain_latency
 
     def counters(self):
         p = self.params

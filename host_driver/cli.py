@@ -364,8 +364,8 @@ def _add_fabric_option(p):
     p.add_argument("--fabric-units", type=_unit_list, default=(), metavar="UNIT[,UNIT]",
                    help="with --target ecp5: the array-edge units whose products are LUT multipliers instead "
                         "of DSPs (shooter: the column units, receiver: the row units, cell: the cells, exact: "
-                        "the filtered array's shared exact unit), for arrays whose DSP rows are too full to "
-                        "route; default none")
+                        "the filtered array's shared exact unit, rounded: the lean row units' w_k), for arrays "
+                        "whose DSP rows are too full to route; default none")
 
 
 def _add_cell_option(p, render=False):
@@ -526,6 +526,10 @@ def _bitstream_parser(sub):
                         voxel_depth=(None, "default: up to 32**3, as the block RAMs allow"))
     g.add_argument("--core", default="board", choices=["board", "echo"],
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
+    g.add_argument("--cell", default="exact", choices=["exact", "lean"],
+                   help="the processor cell: exact (default) or lean (the certified filter in the cells, "
+                        "undecided tests re-read by one shared exact unit; docs/processor.md)")
+    _add_fabric_option(g)
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=DEFAULT_BAUD, help=f"UART baud rate (default {DEFAULT_BAUD})")
     t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
@@ -540,12 +544,14 @@ def _bitstream_parser(sub):
 def _cmd_bitstream(args):
     from ..synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS, build_bitstream, largest_fit
     from ..synth.nextpnr import ROUTER, write_report
+    from ..cell import Cell
     params = _board_params(rows=args.rows or DEFAULT_ROWS, cols=args.cols or DEFAULT_COLS, bits=args.bits)
     params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(
         params, out=args.out, platform=args.platform, core=args.core, freq=args.freq or DEFAULT_FREQ_MHZ,
-        baud=args.baud, seed=args.seed, router=args.router or ROUTER, workdir=args.workdir))
+        baud=args.baud, seed=args.seed, router=args.router or ROUTER, workdir=args.workdir,
+        cell=Cell(args.cell), fabric_units=args.fabric_units))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]

@@ -340,7 +340,9 @@ class ModelBoard(CountingBoard):
     def _add_filtered_batch(self, batch, cycles):
         """The filtered board's cycles of a batch: each board's command stream on its clock
         (:func:`~blockray.sim.filtered_model.board_clock`: cycles lost waiting for the array's
-        credits, when its last result leaves the array), from every record's undecided tests."""
+        credits), from every record's undecided tests. The batch ends with the host's
+        READ_COUNTERS, whose wait for a credit precedes its snapshot: the batch's (its own cycle is
+        the next batch's, as on the board, :mod:`blockray.host_driver.board.driver`)."""
         q, f = self.quantised, self.cell.format
         loads = -(-(batch.rows + batch.cols) // POINTS_PER_LOAD)
         step_off = np.vstack([np.zeros((1, cycles.shape[1]), np.int64), np.cumsum(cycles, axis=0)])
@@ -349,12 +351,12 @@ class ModelBoard(CountingBoard):
             q.shooters, ends, batch.col_off, batch.shooter_patch, batch.shooter_sample,
             batch.row_off, end_of_row, batch.vox_off, batch.voxels,
             self._start, self._count, self._V, self._n, loads, f.d_bits, f.w_bits, step_off, f.w_input_bits or 0)
-        total, finish = cycles.sum(axis=0), np.zeros(len(self.memories), np.int64)
+        total = cycles.sum(axis=0)
         for b, steps in enumerate(step_off[-1]):
-            lost, marks = board_clock(kinds[b, :steps], undecided[b, :steps], self.depth, _exact_latency(self.cell))
+            lost, _ = board_clock(np.append(kinds[b, :steps], STEP_MARKER), np.append(undecided[b, :steps], 0),
+                                  self.depth, _exact_latency(self.cell))
             total[b] += lost.sum()
-            finish[b] = marks[-1] + 1 if len(marks) else 0
-        self._add_batch(total, finish=finish)
+        self._add_batch(total)
 
     # -- the model of each board ----------------------------------------------------------------------
 

@@ -34,13 +34,15 @@ import time
 from pathlib import Path
 
 from ..atomic import write_file
+from ..cell import Cell, check_cell
 from ..errors import ParameterError, ToolError, option
 from ..link import DEFAULT_BAUD
 from ..params import BoardParams
 from ..paths import check_output_file
 from ..records import patch_layout
 from .nextpnr import (_ABC_FALLBACK, DEVICES, PACKAGE, ROUTER, _cells_resources, _machine, _run, _workdir,
-                      _versions, dsp_estimate, nextpnr_command, run_nextpnr, tool_error)
+                      _versions, dsp_estimate, lean_dsp_estimate, nextpnr_command, run_nextpnr, tool_error)
+from .target import ECP5Target
 from .tools import last_error
 from .yosys import yosys_command
 
@@ -123,7 +125,24 @@ def _device(platform):
     return DEVICES[PLATFORMS[platform][1]]
 
 
-def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ, baud=DEFAULT_BAUD):
+#: MULT18X18D of the block sequencer (the next voxel's index, the samples' addresses): the 1 x 2
+#: board takes 85 (docs/ulx3s.md), its array 72
+SEQUENCER_DSPS = 13
+
+
+def _board_dsps(params, cell, fabric_units):
+    """The MULT18X18D estimate of the board core: its array with ``cell`` (exact or lean) and
+    the block sequencer."""
+    if check_cell(cell).lean:
+        return lean_dsp_estimate(params.bits, params.rows, params.cols, fabric_units) + SEQUENCER_DSPS
+    if cell.filtered:
+        raise ParameterError("the filtered cell has no bitstream (its arrays do not route at -6: "
+                             "docs/synthesis.md); use --cell exact or lean", parameter="cell")
+    return dsp_estimate(params.bits, params.rows, params.cols, fabric_units) + SEQUENCER_DSPS
+
+
+def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ, baud=DEFAULT_BAUD,
+              cell=Cell(), fabric_units=()):
     """Refuse, before any tool runs, what cannot fit. Returns the estimates (dict)."""
     dev = _device(platform)
     if core not in CORES:
@@ -132,7 +151,8 @@ def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_M
         raise ParameterError(f"must be from 10 to 200 MHz, not {freq!r}", parameter="freq")
     divisor = divisor_for(freq, baud)
     brams = bram_estimate(params, core=core)
-    dsps = dsp_estimate(params.bits, params.rows, params.cols) if core == "board" else 0
+    ECP5Target(fabric_units)                        # names an unknown unit
+    dsps = _board_dsps(params, cell, fabric_units) if core == "board" else 0
     if dsps > dev["dsps"]:
         raise ParameterError(f"{option('rows')}: {params.rows} (with {option('cols')} {params.cols}): a {params.rows} "
                              f"x {params.cols} array at {option('bits')} {params.bits} needs {dsps} MULT18X18D, the "
@@ -203,20 +223,22 @@ def closing_freq(fmax_mhz, baud, workdir):
     return None
 
 
-def _platform(name):
+def _platform(name, fabric_units=()):
     import amaranth_boards.ulx3s as boards
-    from .target import ECP5Target
 
     base = getattr(boards, PLATFORMS[name][0])
+    target = ECP5Target(fabric_units)
 
     class Platform(base):
-        # the flags blockray.rtl.processor reads: products on registered MULT18X18D
-        mult18x18d = ECP5Target.mult18x18d
-        fabric_units = frozenset()
-    return Platform()
+        # the flags the RTL reads: products on registered MULT18X18D, carry cells for the
+        # lean cells' bit heaps, and the units whose products stay in the fabric
+        mult18x18d, ccu2c = target.mult18x18d, target.ccu2c
+    platform = Platform()
+    platform.fabric_units = target.fabric_units
+    return platform
 
 
-def _core(core, params):
+def _core(core, params, cell=Cell()):
     """The link's test core, or the board core with the block sequencer (``--traversal board``
     on ``--board ulx3s``; it takes the block commands too)."""
     if core == "echo":
@@ -227,15 +249,18 @@ def _core(core, params):
     except ImportError:
         raise ParameterError(f"{option('core')}: board: this tree has no board core with byte streams "
                              f"(blockray.rtl.core.BoardCore); build {option('core')} echo", parameter="core") from None
-    return BoardCore(params, rays=True)
+    return BoardCore(params, rays=True, cell=cell)
 
 
 def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ,
-                    baud=DEFAULT_BAUD, seed=1, router=ROUTER, threads=1, workdir=None):
-    """Build the bitstream ``out`` (.bit) of ``core`` on ``platform``; returns the report dict.
-    Raises ParameterError (before any tool runs) for what cannot fit."""
+                    baud=DEFAULT_BAUD, seed=1, router=ROUTER, threads=1, workdir=None, cell=Cell(),
+                    fabric_units=()):
+    """Build the bitstream ``out`` (.bit) of ``core`` on ``platform``, the board's array of
+    ``cell`` (exact or lean) with ``fabric_units`` (:class:`~blockray.synth.target.ECP5Target`);
+    returns the report dict. Raises ParameterError (before any tool runs) for what cannot fit."""
     params = BoardParams() if params is None else params
-    estimate = check_fit(params, platform=platform, core=core, freq=freq, baud=baud)
+    estimate = check_fit(params, platform=platform, core=core, freq=freq, baud=baud, cell=cell,
+                         fabric_units=fabric_units)
     out = Path(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -244,10 +269,11 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
     check_output_file(out, "--out")         # creates nothing: a failed build leaves no empty .bit
     with _workdir(workdir) as tmp:
         return _build(params, out, platform, core, tmp, estimate, freq=freq, baud=baud,
-                      tools={"seed": seed, "router": router, "threads": threads})
+                      tools={"seed": seed, "router": router, "threads": threads},
+                      array={"cell": check_cell(cell).at(params.bits), "fabric_units": tuple(fabric_units)})
 
 
-def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, tools):
+def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, tools, array):
     """The bitstream in ``tmp``; ``tools``: nextpnr's ``seed``, ``router`` and ``threads``."""
     from ..rtl.ulx3s import ULX3STop
 
@@ -256,10 +282,10 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
     seconds = {}
     pll = pll_config(freq, tmp)
     divisor = divisor_for(pll.f_out_mhz, baud)
-    core = _core(core_name, params)
+    core = _core(core_name, params, array["cell"])
     top = ULX3STop(core, pll=pll, divisor=divisor, fifo_depth=FIFO_DEPTH, payload=FRAME_PAYLOAD,
                    window=FRAME_WINDOW)
-    platform = _platform(platform_name)
+    platform = _platform(platform_name, array["fabric_units"])
     name = "blockray_ulx3s"
     plan = platform.build(top, name=name, do_build=False,
                           script_after_synth=f"tee -q -o {name}.stat.json stat -json")
@@ -269,7 +295,8 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
         "core": core_name,
         # the board core is built with the block sequencer (rays made on the board; IDENTIFY version 3)
         "params": {**{k: getattr(params, k) for k in ("rows", "cols", "bits", "patch_depth", "voxel_depth")},
-                   "rays": True} if core_name == "board" else {},
+                   "rays": True, "cell": str(array["cell"]),
+                   "fabric_units": sorted(array["fabric_units"])} if core_name == "board" else {},
         "clock": {"target_mhz": float(freq), "pll_mhz": pll.f_out_mhz, "pll": pll.__dict__},
         "uart": {"baud": baud, "divisor": divisor, "actual_baud": round(pll.f_out_mhz * 1e6 / divisor),
                  "fifo_depth": FIFO_DEPTH, "frame_payload": FRAME_PAYLOAD, "frame_window": FRAME_WINDOW},

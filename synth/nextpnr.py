@@ -106,6 +106,20 @@ def dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     return cells + receiver + shooter
 
 
+def lean_dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
+    """MULT18X18D count of an R x S lean array (rtl/lean.py) at B = ``bits``: a cell's nine 9 x 9
+    products (none with ``cell``: carry chains), a row unit's 18 cross terms of w_k (none with
+    ``rounded``) and its 3 products of pQ, a column unit's 3 products, and the shared exact unit
+    (:class:`~blockray.rtl.lean.LeanExact`: a column unit, a row unit and an exact cell; none
+    with ``exact``)."""
+    one = dsp_estimate(bits)                            # an exact cell with its row and column unit
+    cross, pq = dsp_estimate(bits, 1, 0, ("cell",)), dsp_estimate(bits, 0, 1)
+    row = 0 if "receiver" in fabric_units else (pq if "rounded" in fabric_units else cross)
+    cells = 0 if "cell" in fabric_units else rows * cols * 9
+    shooter = 0 if "shooter" in fabric_units else cols * pq
+    return cells + rows * row + shooter + (0 if "exact" in fabric_units else one)
+
+
 def check_speed(speed, device, parameter="speed"):
     """The speed grade to use: ``speed`` (6, 7 or 8) or, when None, the default of ``device``;
     an error names ``parameter``."""

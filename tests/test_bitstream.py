@@ -29,6 +29,8 @@ def no_tools(monkeypatch):
     (["--platform", "de10-nano"], "--platform"),
     (["--bits", "30"], "--bits"),
     (["--freq", "500"], "--freq"),
+    (["--cell", "lean", "--rows", "2", "--cols", "16", "--fabric-units", "cell"], "--rows"),   # 205 DSPs
+    (["--cell", "lean", "--rows", "2", "--cols", "4", "--fabric-units", "cell,lut"], "--fabric-units"),
 ])
 def test_refused_before_the_tools(options, option, no_tools, tmp_path, capsys):
     assert main(["bitstream", *options, "--out", str(tmp_path / "x.bit")]) == 2
@@ -102,8 +104,27 @@ def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
     assert (p.rows, p.cols) == (bitstream.DEFAULT_ROWS, bitstream.DEFAULT_COLS) == (1, 2)
     assert (p.patch_depth, p.voxel_depth) == (bitstream.DEFAULT_PATCH_DEPTH, bitstream.DEFAULT_VOXEL_DEPTH)
     assert seen["router"] == "router1" and seen["freq"] == bitstream.DEFAULT_FREQ_MHZ
+    assert seen["cell"].kind == "exact" and seen["fabric_units"] == ()
     assert main(["bitstream", "--rows", "2", "--cols", "2", "--router", "router2", "--out", str(tmp_path / "y.bit")]) == 0
     assert (seen["params"].rows, seen["params"].cols, seen["router"]) == (2, 2, "router2")
+
+
+def test_lean_board_core_and_platform():
+    """``--cell lean``: the board core's array is lean; the platform has the carry cells and the
+    fabric units the RTL reads; the DSP estimate is the lean array's and the sequencer's (Yosys
+    counted 171 on the lean 2 x 16 board with carry-chain cells and row units, estimate 169)."""
+    from blockray.cell import Cell
+    from blockray.synth.nextpnr import lean_dsp_estimate
+    params = BoardParams(rows=2, cols=4, bits=16, patch_depth=256, voxel_depth=64)
+    assert bitstream._core("board", params, Cell("lean")).board.cell.lean
+    assert not bitstream._core("board", params).board.cell.filtered
+    platform = bitstream._platform("ulx3s-85f", ("cell", "rounded"))
+    assert platform.ccu2c and platform.mult18x18d and platform.fabric_units == {"cell", "rounded"}
+    assert bitstream._platform("ulx3s-85f").fabric_units == frozenset()
+    fit = bitstream.check_fit(params.with_(cols=8), cell=Cell("lean"), fabric_units=("cell", "rounded"))
+    assert fit["dsps"] == lean_dsp_estimate(16, 2, 8, ("cell", "rounded")) + 13 == 2 * 6 + 8 * 6 + 48 + 13
+    assert lean_dsp_estimate(16, 2, 8, ("cell",)) == 144          # Yosys's count of the lean 2 x 8
+    assert lean_dsp_estimate(16, 2, 8, ("cell", "rounded")) == 108
 
 
 @pytest.mark.synth

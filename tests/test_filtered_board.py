@@ -21,7 +21,7 @@ from blockray.cell import Cell
 from blockray.errors import ParameterError
 from blockray.filtered import FilterFormat
 from blockray.params import BoardParams
-from blockray.protocol import WritePatch
+from blockray.protocol import ReadCounters, WritePatch
 from blockray.rtl.board import BoardTop
 from blockray.rtl.filtered import FilteredArray
 from blockray.sim.drive import amaranth_cycle
@@ -124,12 +124,13 @@ def test_filtered_board_latencies_and_parameters():
             build(params, cell="filtered")
 
 
-@pytest.mark.parametrize("fmt", [FilterFormat(3, 3), FilterFormat(6, 8)])
-def test_model_board_equals_command_streams(fmt):
+@pytest.mark.parametrize("fmt,depth", [(FilterFormat(3, 3), None), (FilterFormat(6, 8), None),
+                                       (FilterFormat(3, 3), 3)])       # the READ_COUNTERS waits
+def test_model_board_equals_command_streams(fmt, depth):
     """ModelBoard with the filtered cell gathers a batch at once (compiled: the undecided tests of
-    every record, each board's clock); it equals each board's command stream run through
-    BoardModel with that cell: bits, cycles per board and the batch's finish; its bits equal
-    the exact cell's."""
+    every record, each board's clock); it equals each board's command stream, with the host's
+    READ_COUNTERS behind it, run through BoardModel with that cell: bits, and cycles per board
+    up to that snapshot (its wait for a credit included); its bits equal the exact cell's."""
     from blockray.samples import SampleScheme
     from board_scenes import BoxGrid, random_blocks, scattered_scene as random_scene
 
@@ -137,7 +138,8 @@ def test_model_board_equals_command_streams(fmt):
     scene = random_scene(5)
     boards = {}
     for cell in (Cell(), Cell("filtered", fmt)):
-        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3, bits=None), partition="deal", cell=cell)
+        board = ModelBoard(BoardParams(rows=4, cols=3, boards=3, bits=None), partition="deal", cell=cell,
+                           depth=depth if cell.filtered else None)
         board.prepare(scene, samples)
         grid = BoxGrid(scene.patch_vertices, 3, margin=board.margin)
         board.load(grid)
@@ -147,14 +149,12 @@ def test_model_board_equals_command_streams(fmt):
     board, bits = boards["filtered"]
     np.testing.assert_array_equal(bits.flat, boards["exact"][1].flat)
     c = board.counters()
-    stream = [cmd for b in blocks for cmd in board.memory.block_commands(b)]
-    finish = 0
+    stream = [cmd for b in blocks for cmd in board.memory.block_commands(b)] + [ReadCounters()]
     for b in range(board.params.boards):
         res = board.board_model(b).execute(stream)
-        assert res.cycles == c["board_cycles_per_board"][b]
+        assert res.counters[-1]["cycles"] == c["board_cycles_per_board"][b]
         assert res.tests_issued == c["tests_issued_per_board"][b]
-        finish = max(finish, res.marks[-1] + 1)
-    assert c["board_cycles"] == finish
+    assert c["board_cycles"] == max(c["board_cycles_per_board"]) + board.timing.drain_latency
     lost = c["board_cycles"] - boards["exact"][0].counters()["board_cycles"]
     print(f"{fmt}: board_cycles exact cell {boards['exact'][0].counters()['board_cycles']}, filtered "
           f"{c['board_cycles']}")

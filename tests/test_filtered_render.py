@@ -84,16 +84,18 @@ def test_verilator_filtered_equals_exact(scene, exact, kind):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("board", ["model", "verilator"])
-def test_cornell_filtered_equals_exact(tmp_path, board):
-    """``blockray render cornell --board BOARD --cell filtered``: the per-patch radiosity of the
-    exact cell's model, byte for byte."""
+@pytest.mark.parametrize("kind", ["filtered", "lean"])
+def test_cornell_filtered_equals_exact(tmp_path, kind):
+    """``blockray render cornell --cell KIND`` on ``--board model`` and ``verilator``: the
+    per-patch radiosity of the exact cell's model byte for byte, and the RTL's board cycles the
+    model's."""
     out = {}
-    for cell, name in (("exact", "model"), ("filtered", board)):
-        csv, report = tmp_path / f"{cell}.csv", tmp_path / f"{cell}.json"
+    for cell, name in (("exact", "model"), (kind, "model"), (kind, "verilator")):
+        csv, report = tmp_path / f"{cell}-{name}.csv", tmp_path / f"{cell}-{name}.json"
         assert main(["render", "cornell", "--board", name, "--cell", cell, "--quiet", "--patches", str(csv),
                      "--report", str(report)]) == 0
-        out[cell] = (csv.read_bytes(), json.loads(report.read_text()))
-    assert out["filtered"][0] == out["exact"][0]
-    print(f"board_cycles: exact {out['exact'][1]['board_cycles']}, filtered ({board}) "
-          f"{out['filtered'][1]['board_cycles']}")
+        out[cell, name] = (csv.read_bytes(), json.loads(report.read_text()))
+    exact, model, rtl = out["exact", "model"], out[kind, "model"], out[kind, "verilator"]
+    assert model[0] == exact[0] and rtl[0] == exact[0]
+    assert rtl[1]["board_cycles_per_board"] == model[1]["board_cycles_per_board"]
+    print(f"board_cycles: exact {exact[1]['board_cycles']}, {kind} {model[1]['board_cycles']}")
