@@ -370,8 +370,9 @@ def _add_fabric_option(p):
 
 def _add_cell_option(p, render=False):
     p.add_argument("--cell", default="exact", metavar="exact|filtered|lean",
-                   help="the processor cell: exact (default) or filtered (certified narrow filter, undecided "
-                        "tests to an exact unit shared by the array" +
+                   help="the processor cell: exact (default), filtered (certified narrow filter, undecided "
+                        "tests to an exact unit shared by the array) or lean (only the filter in the cells; "
+                        "the shared exact unit re-reads the patch" +
                         ("; --board model, model-link, amaranth, verilator)" if render else ")"))
     p.add_argument("--filter-bits", default=None, metavar="D[:W[:I]]",
                    help="with --cell filtered or lean: mantissa bits of P - V_k and of w_k (2 to 18; default "
