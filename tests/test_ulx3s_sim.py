@@ -47,6 +47,32 @@ def test_small_scene_equals_the_model(tmp_path, traversal):
     assert sim.report["rays"] > 0
 
 
+def test_lean_board_equals_the_model(tmp_path):
+    """``--cell lean`` (``blockray bitstream --cell lean``'s core): rays made on the board, a
+    3 x 3-bit filter so that the shared exact unit re-reads the patch memory often. Radiosity and
+    tests are the model's. The commands arrive at the UART's pace, so the array drains between
+    them: each board's cycles lie between the exact cell's and the lean model's (which assumes a
+    full command stream; docs/board-protocol.md)."""
+    from blockray.cell import Cell
+    from blockray.filtered import FilterFormat
+    from scenes import room_scene
+    scene, params, cell = room_scene(tmp_path, 1.5), BoardParams(rows=2, cols=2, boards=1), Cell("lean", FilterFormat(3, 3))
+    kw = dict(params=params, bits=10, samples=4, max_shots=2, voxels=3, traversal="board")
+    exact, model = render(scene, backend="model", **kw), render(scene, backend="model", cell=cell, **kw)
+    board = BoardDriver(params.with_(bits=10), name="ulx3s-sim", cell=cell,
+                        transport=lambda p, b: ulx3s_sim_transport(p, b, cell=cell))
+    try:
+        sim = render(scene, board=board, cell=cell, **kw)
+    finally:
+        board.close()
+    assert np.array_equal(model.radiosity, sim.radiosity) and np.array_equal(exact.radiosity, sim.radiosity)
+    for key in ("tests_issued", "tests_useful", "blocks", "rays", "load_cycles_per_board"):
+        assert model.report[key] == sim.report[key], key
+    cycles = [r.report["board_cycles_per_board"][0] for r in (exact, sim, model)]
+    print("board cycles: exact cell, lean through the UART, lean model", cycles)
+    assert cycles[0] <= cycles[1] <= cycles[2] and cycles[0] < cycles[2]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("traversal", ["block", "board"])
 def test_cornell_equals_the_model(traversal):

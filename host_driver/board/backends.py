@@ -184,20 +184,22 @@ register(Backend("verilator", "the board's Verilog under Verilator, clocked by a
                  "design, cached", _driven("verilator", _verilator), waveform=True, host_timing=True, cells=_CELLS))
 
 
-def _ulx3s_sim(p, b, *, vcd, host, faults=None):
+def _ulx3s_sim(p, b, *, vcd, host, faults=None, **cell):
     from .ulx3s import ulx3s_sim_transport
-    return ulx3s_sim_transport(p, b, vcd=vcd, host=host, faults=faults)
+    return ulx3s_sim_transport(p, b, vcd=vcd, host=host, faults=faults, **cell)
 
 
-def _ulx3s(params, *, partition, vcd, host, port=(), baud=None, faults=None):
+def _ulx3s(params, *, partition, vcd, host, port=(), baud=None, faults=None, **cell):
     from .ulx3s import ulx3s_board
-    return ulx3s_board(params, port, baud=baud, partition=partition, faults=faults)
+    return ulx3s_board(params, port, baud=baud, partition=partition, faults=faults, **cell)
 
 
+# the cells `blockray bitstream` builds
 register(Backend("ulx3s-sim", "the ULX3S top level, UART and framed link included, under Verilator "
-                 "(bit-identical to model; --link-faults)", _driven("ulx3s-sim", _ulx3s_sim), faults=True))
+                 "(bit-identical to model; --link-faults)", _driven("ulx3s-sim", _ulx3s_sim), faults=True,
+                 cells=("exact", "lean")))
 register(Backend("ulx3s", "a ULX3S-85F board on a serial port (--port, --baud; docs/ulx3s.md)", _ulx3s,
-                 serial=True, faults=True))
+                 serial=True, faults=True, cells=("exact", "lean")))
 
 
 def help_text():

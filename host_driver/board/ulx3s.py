@@ -9,6 +9,7 @@ board's back-end (``--board ulx3s``, registered in host_driver/board/backends.py
 fails there, in seconds) and takes the boards' memories and B from their IDENTIFY replies.
 """
 
+from ...cell import Cell
 from ...errors import ParameterError, option
 from ...protocol import BoardProtocol
 from ...params import MIN_BITS
@@ -23,7 +24,7 @@ CAPACITY_HINT = ("rebuild the bitstream with larger memories (blockray bitstream
                  "(--max-edge)")
 
 
-def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link=None, faults=None):
+def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link=None, faults=None, cell=Cell()):
     """The host driver over ULX3S boards, one behind each of ``ports`` (``params.boards`` of them).
 
     Every link is opened and reset first, then every board is asked for its configuration
@@ -31,7 +32,9 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link
     answers; R and S are ``params``' (the driver checks every board against the whole
     configuration before it uploads). ``open_link(port, baud=)``: the transport of one port
     (default :func:`ulx3s_transport`; with ``faults``, a
-    :class:`~blockray.host_driver.board.framed.LinkFaults`, it gets ``faults=`` and ``board=`` too)."""
+    :class:`~blockray.host_driver.board.framed.LinkFaults`, it gets ``faults=`` and ``board=`` too).
+    ``cell``: the bitstream's processor cell (``blockray bitstream --cell``), for the drain the
+    host counts after each batch."""
     from .driver import BoardDriver
     open_link = open_link or ulx3s_transport
     ports = (ports,) if isinstance(ports, str) else tuple(ports or ())
@@ -54,7 +57,7 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link
         raise
     expect = params.with_(bits=params.bits or built["bits"], patch_depth=built["patch_depth"],
                           voxel_depth=built["voxel_depth"])
-    return BoardDriver(expect, fit=False, name="ulx3s", partition=partition, hint=CAPACITY_HINT,
+    return BoardDriver(expect, fit=False, name="ulx3s", partition=partition, hint=CAPACITY_HINT, cell=cell,
                        transport=lambda p, b: links[b])
 
 
@@ -64,13 +67,13 @@ def ulx3s_transport(port, *, baud=DEFAULT_BAUD, faults=None, board=0):
     return SerialTransport(port, baud=baud, faults=faults, board=board)
 
 
-def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, faults=None, fifo_depth=2048):
-    """The board core for ``params`` behind the UART and the framed link under Verilator (bit
-    time ``SIM_DIVISOR`` cycles); ``faults``: as :func:`ulx3s_transport`. ``vcd``/``host`` are not
-    supported (the link sets the host's timing)."""
+def ulx3s_sim_transport(params, board=0, *, vcd=None, host=None, faults=None, fifo_depth=2048, cell=Cell()):
+    """The board core for ``params`` with ``cell`` behind the UART and the framed link under
+    Verilator (bit time ``SIM_DIVISOR`` cycles); ``faults``: as :func:`ulx3s_transport`.
+    ``vcd``/``host`` are not supported (the link sets the host's timing)."""
     from ...rtl.core import BoardCore
     if vcd is not None or host is not None:
         raise ParameterError(f"{option('backend')} ulx3s-sim: the UART sets the host's timing; no {option('vcd')} "
                              f"or {option('host')}")
-    return UartSimTransport(BoardCore(params, rays=True), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
+    return UartSimTransport(BoardCore(params, rays=True, cell=cell), divisor=SIM_DIVISOR, fifo_depth=fifo_depth, faults=faults,
                             board=board, name="blockray_ulx3s_sim")
