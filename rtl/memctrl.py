@@ -60,9 +60,9 @@ class MemoryController(wiring.Component):
                      cell lowers it when its array has no credit (the broadcast stalls).
     ``rays_patch``, ``rays_table``  with ``rays``: a second read port of each memory, the block
                      sequencer's (rays made on the board; the table's transparent to its writes).
-    ``record_address``  Out: the patch address of the record on ``records``.
-    ``exact_patch``  with ``exact_read``: another read port of the patch memory, the lean array's
-                     shared exact unit's (it re-reads the record of an undecided test).
+    ``exact_patch``, ``record_address``  with ``exact_read``: another read port of the patch
+                     memory, the lean array's shared exact unit's (it re-reads the record of an
+                     undecided test), and the patch address of the record on ``records``.
     """
 
     def __init__(self, params, *, patch_init=(), table_init=(), rays=False, exact_read=False):
@@ -89,10 +89,11 @@ class MemoryController(wiring.Component):
             "step": Out(1),
             "free": Out(1),
             "enable": In(1, init=1),
-            "record_address": Out(proto.address_width),
         } | ({"rays_patch": Out(self._patch_port()),
               "rays_table": Out(ReadPort.Signature(addr_width=proto.voxel_width, shape=proto.table_entry_layout))}
-             if rays else {}) | ({"exact_patch": Out(self._patch_port())} if exact_read else {}))
+             if rays else {})
+           | ({"exact_patch": Out(self._patch_port()), "record_address": Out(proto.address_width)}
+              if exact_read else {}))
         self._rays, self._exact_read = rays, exact_read
         self._MustUse__silence = False
 
@@ -178,11 +179,12 @@ class MemoryController(wiring.Component):
 
         # memory read (1 cycle), then the broadcast register (1 cycle)
         read_valid = Signal()
-        read_address = Signal(proto.address_width)
-        m.d.sync += [read_valid.eq(self.issue), read_address.eq(address)]
+        m.d.sync += read_valid.eq(self.issue)
         m.d.sync += [
             self.records.valid.eq(read_valid),
             self.records.payload.eq(patch_r.data),
-            self.record_address.eq(read_address),
         ]
+        if self._exact_read:        # the address travels beside the record
+            read_address = Signal(proto.address_width)
+            m.d.sync += [read_address.eq(address), self.record_address.eq(read_address)]
         return m

@@ -69,7 +69,6 @@ class ExecResult:
     busy: int = 0                                     # cycles that issued a patch record
     counters: list = field(default_factory=list)     # one dict per READ_COUNTERS (cycles, busy, tests_issued, tests_useful)
     results: list = field(default_factory=list)      # every result in order, as BoardResult
-    marks: list = field(default_factory=list)        # filtered cell: cycle each result left the array
 
 
 def result_word(bits):
@@ -218,7 +217,7 @@ class BoardModel:
         """The cycles lost waiting for the filtered array's credits: in the total, in each
         command's start and in each READ_COUNTERS snapshot (its own wait included: it precedes
         the snapshot)."""
-        lost, res.marks = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
+        lost, _ = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
                                       self.depth, _exact_latency(self.cell))
         before = np.concatenate([[0], np.cumsum(lost)])
         snapshots = iter(res.counters)

@@ -133,12 +133,11 @@ SEQUENCER_DSPS = 13
 def _board_dsps(params, cell, fabric_units):
     """The MULT18X18D estimate of the board core: its array with ``cell`` (exact or lean) and
     the block sequencer."""
-    if check_cell(cell).lean:
-        return lean_dsp_estimate(params.bits, params.rows, params.cols, fabric_units) + SEQUENCER_DSPS
-    if cell.filtered:
+    if check_cell(cell).filtered and not cell.lean:
         raise ParameterError("the filtered cell has no bitstream (its arrays do not route at -6: "
                              "docs/synthesis.md); use --cell exact or lean", parameter="cell")
-    return dsp_estimate(params.bits, params.rows, params.cols, fabric_units) + SEQUENCER_DSPS
+    estimate = lean_dsp_estimate if cell.lean else dsp_estimate
+    return estimate(params.bits, params.rows, params.cols, fabric_units) + SEQUENCER_DSPS
 
 
 def check_fit(params, *, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ, baud=DEFAULT_BAUD,

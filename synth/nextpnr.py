@@ -112,12 +112,13 @@ def lean_dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     ``rounded``) and its 3 products of pQ, a column unit's 3 products, and the shared exact unit
     (:class:`~blockray.rtl.lean.LeanExact`: a column unit, a row unit and an exact cell; none
     with ``exact``)."""
-    one = dsp_estimate(bits)                            # an exact cell with its row and column unit
-    cross, pq = dsp_estimate(bits, 1, 0, ("cell",)), dsp_estimate(bits, 0, 1)
-    row = 0 if "receiver" in fabric_units else (pq if "rounded" in fabric_units else cross)
+    exact = dsp_estimate(bits)                          # an exact cell with its row and column unit
+    row_unit, col_unit = dsp_estimate(bits, 1, 0, ("cell",)), dsp_estimate(bits, 0, 1)
+    pq = col_unit                                       # pQ's 3 products are a column unit's 3
+    row = 0 if "receiver" in fabric_units else (pq if "rounded" in fabric_units else row_unit)
     cells = 0 if "cell" in fabric_units else rows * cols * 9
-    shooter = 0 if "shooter" in fabric_units else cols * pq
-    return cells + rows * row + shooter + (0 if "exact" in fabric_units else one)
+    shooter = 0 if "shooter" in fabric_units else cols * col_unit
+    return cells + rows * row + shooter + (0 if "exact" in fabric_units else exact)
 
 
 def check_speed(speed, device, parameter="speed"):
