@@ -249,9 +249,17 @@ class CountingBoard(Board):
             "blocks": self._blocks,
             "rays": self._rays,
             "bits": p.bits,
+            "cell": self._cell_name(),
             "drain_latency": self.timing.drain_latency if self.timing else None,
             "quantisation": self.quantised.report() if self.quantised else None,
         }
+
+    def _cell_name(self):
+        """The boards' processor cell with its filter's format (``--board ulx3s``: the bitstream's)."""
+        cell = getattr(self, "cell", None)
+        if cell is None:
+            return None
+        return str(cell if self.params.bits is None else cell.at(self.params.bits))
 
     def _reset_counters(self):
         P = self.params.boards

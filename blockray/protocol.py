@@ -37,12 +37,14 @@ from amaranth.hdl import Shape, unsigned
 from amaranth.lib import data
 from amaranth.utils import bits_for, ceil_log2
 
+from .cell import CELLS, Cell, check_cell
 from .errors import CapacityError, ParameterError
+from .filtered import FilterFormat
 from .params import BoardParams
 from .records import leaves, pack, pack_bytes, patch_layout, point_layout, unpack
 
 __all__ = ["Op", "POINTS_PER_LOAD", "MAGIC", "VERSION", "ResultKind", "COUNTERS", "COUNTER_WIDTH",
-           "IDENTITY_FIELDS", "RAYS_VERSION", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
+           "IDENTITY_FIELDS", "CELL_FIELDS", "cell_identity", "identity_cell", "RAYS_VERSION", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
            "LoadShooter", "LoadPoints", "Voxel", "EndBlock", "ReadCounters", "Identify", "COMMANDS",
            "BoardProtocol", "BoardResult", "ResultReader", "fit_params", "check_capacity", "describe"]
 
@@ -65,11 +67,12 @@ class Op(enum.IntEnum):
 #: ceil((R + S) / POINTS_PER_LOAD) of them)
 POINTS_PER_LOAD = 4
 #: IDENTIFY's ``magic`` and ``version``: the host checks both before it trusts a board
+#: (version 4 added the cell fields; a board of versions 2 and 3 cannot say its cell)
 MAGIC = 0xB10C
-VERSION = 2
+VERSION = 4
 #: the ``version`` a board built with the block sequencer answers: the same fields and commands,
 #: and it takes the commands of rays made on the board too (:mod:`blockray.board_rays`)
-RAYS_VERSION = 3
+RAYS_VERSION = 5
 
 
 class ResultKind(enum.IntEnum):
@@ -85,7 +88,29 @@ COUNTERS = ("cycles", "busy", "tests_issued", "tests_useful", "stalls")
 COUNTER_WIDTH = 48
 #: IDENTIFY's result fields and widths
 IDENTITY_FIELDS = {"magic": 16, "version": 8, "rows": 8, "cols": 8, "bits": 8,
-                   "patch_depth": 32, "voxel_depth": 32}
+                   "patch_depth": 32, "voxel_depth": 32,
+                   "cell": 8, "d_bits": 8, "w_bits": 8, "w_input_bits": 8}
+#: IDENTIFY's fields that say the processor cell (:func:`identity_cell` reads them back)
+CELL_FIELDS = ("cell", "d_bits", "w_bits", "w_input_bits")
+
+
+def cell_identity(cell):
+    """IDENTIFY's cell fields of ``cell`` (its format chosen): the kind's index in
+    :data:`~blockray.cell.CELLS` and the filter's mantissa widths (0: none)."""
+    f = cell.format
+    return {"cell": CELLS.index(cell.kind), "d_bits": f.d_bits if f else 0, "w_bits": f.w_bits if f else 0,
+            "w_input_bits": (f.w_input_bits or 0) if f else 0}
+
+
+def identity_cell(identity):
+    """The :class:`~blockray.cell.Cell` an IDENTIFY result names (its format chosen)."""
+    kind = identity["cell"]
+    if kind >= len(CELLS):
+        raise ParameterError(f"IDENTIFY names cell {kind}, not one of 0..{len(CELLS) - 1} ({', '.join(CELLS)})",
+                             parameter="cell")
+    if CELLS[kind] == "exact":
+        return Cell()
+    return Cell(CELLS[kind], FilterFormat(identity["d_bits"], identity["w_bits"], identity["w_input_bits"] or None))
 
 
 # -- typed command records ------------------------------------------------------------------------
@@ -311,12 +336,13 @@ class BoardProtocol:
     def params(self):
         return self._params
 
-    def identity(self, *, rays=False):
+    def identity(self, *, rays=False, cell=Cell()):
         """The IDENTIFY result's fields for this configuration; ``rays``: of a board that makes
-        its rays (version :data:`RAYS_VERSION`)."""
+        its rays (version :data:`RAYS_VERSION`); ``cell``: its processor :class:`~blockray.cell.Cell`
+        (the filter's format at this B)."""
         p = self._params
         return {"magic": MAGIC, "version": RAYS_VERSION if rays else VERSION, "rows": p.rows, "cols": p.cols, "bits": p.bits,
-                "patch_depth": p.patch_depth, "voxel_depth": p.voxel_depth}
+                "patch_depth": p.patch_depth, "voxel_depth": p.voxel_depth, **cell_identity(check_cell(cell).at(p.bits))}
 
     # -- the internal command record --------------------------------------------------------------
 
@@ -637,7 +663,8 @@ def describe(params):
             "`data.counters` (READ_COUNTERS):", "",
             _table(proto.counters_layout, "data.counters", res_offset), "",
             f"`data.identity` (IDENTIFY; magic {MAGIC:#06x}, version {VERSION}, {RAYS_VERSION} with the block "
-            f"sequencer):", "",
+            f"sequencer; `cell` is the index in {', '.join(CELLS)}, and `d_bits`, `w_bits`, `w_input_bits` "
+            f"the filter's mantissa widths, 0 for none):", "",
             _table(proto.identity_layout, "data.identity", res_offset)]
     return "\n".join(out) + "\n"
 

@@ -414,7 +414,7 @@ class BoardTop(wiring.Component):
         with m.Elif(done.identify):
             m.d.comb += [
                 result.kind.eq(ResultKind.IDENTITY),
-                result.data.identity.eq(proto.identity_layout.const(proto.identity(rays=self._rays))),
+                result.data.identity.eq(proto.identity_layout.const(proto.identity(rays=self._rays, cell=self._cell))),
             ]
         with m.Else():
             m.d.comb += [

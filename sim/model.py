@@ -188,7 +188,7 @@ class BoardModel:
                                      "tests_issued": res.tests_issued, "tests_useful": res.tests_useful})
                 res.results.append(BoardResult(ResultKind.COUNTERS, counters=res.counters[-1]))
             elif op is Op.IDENTIFY:
-                res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity(rays=self.rays)))
+                res.results.append(BoardResult(ResultKind.IDENTITY, identity=self.protocol.identity(rays=self.rays, cell=self.cell)))
             res.cycles += t.cost(op, count)
         if filtered:
             self._add_lost_cycles(res, commands, kinds, undecided, ends)

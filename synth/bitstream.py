@@ -292,7 +292,7 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
     report = {
         "platform": platform_name, "device": dev["part"], "package": PACKAGE, "speed_grade": f"-{SPEED}",
         "core": core_name,
-        # the board core is built with the block sequencer (rays made on the board; IDENTIFY version 3)
+        # the board core is built with the block sequencer (rays made on the board; IDENTIFY version 5)
         "params": {**{k: getattr(params, k) for k in ("rows", "cols", "bits", "patch_depth", "voxel_depth")},
                    "rays": True, "cell": str(array["cell"]),
                    "fabric_units": sorted(array["fabric_units"])} if core_name == "board" else {},

@@ -164,6 +164,9 @@ class _Liar(ModelTransport):
     ({"version": 1}, TransportError, "protocol version"),
     ({"rows": 4}, CapacityError, "rows 4 \\(host 2\\)"),
     ({"patch_depth": 7}, CapacityError, "patch_depth 7"),
+    ({"cell": 2, "d_bits": 9, "w_bits": 9}, CapacityError, "cell lean d9w9 \\(host exact; (--)?cell\\)$"),
+    ({"cell": 1, "d_bits": 15, "w_bits": 18}, CapacityError, "cell filtered d15w18 \\(host exact"),
+    ({"cell": 3}, TransportError, "IDENTIFY names cell 3, not one of 0..2"),
 ])
 def test_driver_checks_the_identity(scene, fields, error, match):
     """IDENTIFY comes first: a board of another protocol or configuration is refused before the

@@ -13,6 +13,7 @@ import tty
 import numpy as np
 import pytest
 
+from blockray.cell import Cell
 from blockray.host_driver.cli import main
 from blockray.framing import BOARD_LINK, Endpoint
 from blockray.host_driver.board.backends import build_board
@@ -115,29 +116,39 @@ def test_framed_link_over_a_pty(pty_pair):
 class ModelPtyBoard(PtyBoard):
     """A ULX3S on the master side of a pty, answered by the bit-exact model built for ``params``
     (the bitstream's configuration) behind the board's half of the framed link; ``rays``: built
-    with the block sequencer (IDENTIFY version 3, as ``blockray bitstream`` builds it)."""
+    with the block sequencer (IDENTIFY version 5, as ``blockray bitstream`` builds it)."""
 
-    def __init__(self, fd, params, *, rays=True):
+    def __init__(self, fd, params, *, rays=True, cell=Cell()):
         from blockray.host_driver.board.simulated import ModelTransport
         super().__init__(fd, seed=0)
-        self.model = ModelTransport(params, rays=rays)
+        self.model = ModelTransport(params, rays=rays, **({"cell": cell} if cell.filtered else {}))
 
     def core(self, commands):
         return self.model.run(commands, whole=False)
+
+
+def _board_on_a_pty(pty_pair, **built_with):
+    master, name = pty_pair
+    tty.setraw(master)
+    built = BoardParams(rows=2, cols=2, boards=1, bits=14, patch_depth=20000, voxel_depth=4096)
+    board = ModelPtyBoard(master, built, **built_with)
+    board.start()
+    yield name, built
+    board.stop = True
+    board.join(timeout=5)
 
 
 @pytest.fixture(params=[True], ids=["rays"])
 def ulx3s_on_a_pty(pty_pair, request):
     """A board built as its bitstream (B = 14, its own memories; with the block sequencer unless
     the test asks otherwise, ``indirect``) on a pty."""
-    master, name = pty_pair
-    tty.setraw(master)
-    built = BoardParams(rows=2, cols=2, boards=1, bits=14, patch_depth=20000, voxel_depth=4096)
-    board = ModelPtyBoard(master, built, rays=request.param)
-    board.start()
-    yield name, built
-    board.stop = True
-    board.join(timeout=5)
+    yield from _board_on_a_pty(pty_pair, rays=request.param)
+
+
+@pytest.fixture
+def lean_ulx3s_on_a_pty(pty_pair):
+    """The same board built with the lean cell (``blockray bitstream --cell lean``)."""
+    yield from _board_on_a_pty(pty_pair, cell=Cell("lean"))
 
 
 @pytest.mark.parametrize("ulx3s_on_a_pty", [True, False], ids=["rays", "no-rays"], indirect=True)
@@ -168,7 +179,7 @@ def test_ulx3s_board_refuses_another_configuration(ulx3s_on_a_pty, capsys):
 
 
 def test_ulx3s_board_makes_its_rays(ulx3s_on_a_pty):
-    """A bitstream built with the block sequencer answers IDENTIFY version 3, so ``--board ulx3s``
+    """A bitstream built with the block sequencer answers IDENTIFY version 5, so ``--board ulx3s``
     takes ``--traversal board``: the render equals the model's with the same traversal."""
     name, _ = ulx3s_on_a_pty
     scene = load_scene("cornell")
@@ -176,7 +187,7 @@ def test_ulx3s_board_makes_its_rays(ulx3s_on_a_pty):
     options = RenderOptions.of(backend="ulx3s", port=name, **run)
     with build_board(options.board) as board:
         real = render(scene, board, options)
-        assert [i["version"] for i in board.identities] == [3]
+        assert [i["version"] for i in board.identities] == [5]
     model = render(scene, backend="model", bits=14, **run)
     assert np.array_equal(real.radiosity, model.radiosity)
     for key in ("tests", "tests_issued", "board_cycles", "rays", "blocks"):
@@ -185,7 +196,7 @@ def test_ulx3s_board_makes_its_rays(ulx3s_on_a_pty):
 
 @pytest.mark.parametrize("ulx3s_on_a_pty", [False], ids=["no-rays"], indirect=True)
 def test_ulx3s_board_without_the_sequencer_refuses_board_rays(ulx3s_on_a_pty, capsys):
-    """A bitstream without the block sequencer (IDENTIFY version 2) renders block rays, and
+    """A bitstream without the block sequencer (IDENTIFY version 4) renders block rays, and
     ``--traversal board`` is refused before any ray command is sent."""
     name, _ = ulx3s_on_a_pty
     code = main(["render", "cornell", "--board", "ulx3s", "--port", name, "--boards", "1", "--rows", "2",
@@ -193,4 +204,32 @@ def test_ulx3s_board_without_the_sequencer_refuses_board_rays(ulx3s_on_a_pty, ca
     err = capsys.readouterr().err.strip().splitlines()
     errors = [line for line in err if line.startswith("blockray: error:")]     # (B = 14 warns of cornell)
     assert code == 2 and len(errors) == 1 and "needs a board that makes its rays" in errors[0], err
-    assert "IDENTIFY version 3" in errors[0] and "not ulx3s" in errors[0], err
+    assert "IDENTIFY version 5" in errors[0] and "not ulx3s" in errors[0], err
+
+
+def test_ulx3s_board_takes_its_cell_from_identify(lean_ulx3s_on_a_pty):
+    """A lean bitstream says its cell in IDENTIFY: ``--board ulx3s`` without ``--cell`` counts the
+    lean board's cycles, and the render equals ``--board model --cell lean``'s, cycles included."""
+    name, _ = lean_ulx3s_on_a_pty
+    scene = load_scene("cornell")
+    run = dict(rows=2, cols=2, boards=1, samples=4, max_shots=2, voxels=4)
+    with build_board(RenderOptions.of(backend="ulx3s", port=name, **run).board) as board:
+        real = render(scene, board, RenderOptions.of(backend="ulx3s", port=name, **run))
+        assert board.cell == Cell("lean").at(14)
+    assert real.report["cell"] == "lean d9w9"
+    model = render(scene, backend="model", bits=14, cell=Cell("lean"), **run)
+    assert np.array_equal(real.radiosity, model.radiosity)
+    for key in ("tests", "tests_issued", "board_cycles", "board_cycles_per_board", "rays", "blocks"):
+        assert real.report[key] == model.report[key], key
+
+
+def test_ulx3s_board_refuses_another_cell(ulx3s_on_a_pty, capsys):
+    """An exact bitstream asked for the lean cell is refused before anything is uploaded, with
+    the cell named as IDENTIFY gave it."""
+    name, _ = ulx3s_on_a_pty
+    code = main(["render", "cornell", "--board", "ulx3s", "--port", name, "--boards", "1", "--rows", "2",
+                 "--cols", "2", "--cell", "lean", "--max-shots", "1", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    errors = [line for line in err if line.startswith("blockray: error:")]     # (B = 14 warns of cornell)
+    assert code == 2 and errors == ["blockray: error: board 0 was built for another configuration: "
+                                    "cell exact (host lean d9w9; --cell)"], err

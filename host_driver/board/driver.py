@@ -33,8 +33,8 @@ from ...errors import CapacityError, ParameterError, option
 from ...fixedpoint import DEFAULT_MAX_ERROR
 from ...memory import BoardMemories, check_partition
 from ...params import BoardParams
-from ...protocol import (MAGIC, RAYS_VERSION, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind, check_capacity,
-                        fit_params)
+from ...protocol import (CELL_FIELDS, MAGIC, RAYS_VERSION, VERSION, BoardProtocol, Identify, ReadCounters, ResultKind,
+                        check_capacity, fit_params, identity_cell)
 from .framed import integrity_report
 from .transport import TransportError
 
@@ -212,14 +212,17 @@ class BoardDriver(CountingBoard):
         """Send IDENTIFY to every board; check each answers with the protocol's magic and version
         and the configuration the host expects. Returns the identities (``version``
         :data:`~blockray.protocol.RAYS_VERSION`: the board makes its rays)."""
-        want = self.protocol.identity()
+        want = self.protocol.identity(cell=self.cell)
         out = self.identities_of(self.transports, self.protocol)
         self._bytes_sent += len(self.protocol.encode(Identify())) * len(self.transports)
         self._bytes_received += self.protocol.result_bytes(ResultKind.IDENTITY) * len(self.transports)
         for b, ident in enumerate(out):
-            diff = ", ".join(f"{k} {ident[k]} (host {want[k]})" for k in want if k != "version" and ident[k] != want[k])
+            diff = [f"{k} {ident[k]} (host {want[k]})" for k in want
+                    if k not in ("version", *CELL_FIELDS) and ident[k] != want[k]]
+            if any(ident[k] != want[k] for k in CELL_FIELDS):      # the cell sets the board's cycles
+                diff.append(f"cell {identity_cell(ident)} (host {identity_cell(want)}; {option('cell')})")
             if diff:
-                raise CapacityError(f"board {b} was built for another configuration: {diff}")
+                raise CapacityError(f"board {b} was built for another configuration: {', '.join(diff)}")
         return out
 
     @staticmethod
@@ -242,6 +245,10 @@ class BoardDriver(CountingBoard):
                 raise TransportError(f"board {b}: magic {ident['magic']:#06x} version {ident['version']} is not a "
                                      f"blockray board of protocol version {VERSION} or {RAYS_VERSION} (magic "
                                      f"{MAGIC:#06x})")
+            try:
+                identity_cell(ident)
+            except ParameterError as e:
+                raise TransportError(f"board {b}: {e}") from None
             out.append(ident)
         return out
 

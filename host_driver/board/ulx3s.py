@@ -6,12 +6,13 @@ Both open one board's link for the host driver (``transport(params, board)`` of
 ``IDENTIFY`` and checks the bitstream's configuration before it uploads anything. The real
 board's back-end (``--board ulx3s``, registered in host_driver/board/backends.py) is
 :func:`ulx3s_board`: it opens every board's serial link first (a missing port or a silent board
-fails there, in seconds) and takes the boards' memories and B from their IDENTIFY replies.
+fails there, in seconds) and takes the boards' memories, B and processor cell from their IDENTIFY
+replies.
 """
 
 from ...cell import Cell
 from ...errors import ParameterError, option
-from ...protocol import BoardProtocol
+from ...protocol import BoardProtocol, identity_cell
 from ...params import MIN_BITS
 from .serial_link import DEFAULT_BAUD, SerialTransport
 from .uart_sim import SIM_DIVISOR, UartSimTransport
@@ -24,7 +25,7 @@ CAPACITY_HINT = ("rebuild the bitstream with larger memories (blockray bitstream
                  "(--max-edge)")
 
 
-def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link=None, faults=None, cell=Cell()):
+def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link=None, faults=None, cell=None):
     """The host driver over ULX3S boards, one behind each of ``ports`` (``params.boards`` of them).
 
     Every link is opened and reset first, then every board is asked for its configuration
@@ -33,8 +34,9 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link
     configuration before it uploads). ``open_link(port, baud=)``: the transport of one port
     (default :func:`ulx3s_transport`; with ``faults``, a
     :class:`~blockray.host_driver.board.framed.LinkFaults`, it gets ``faults=`` and ``board=`` too).
-    ``cell``: the bitstream's processor cell (``blockray bitstream --cell``), for the drain the
-    host counts after each batch."""
+    ``cell``: the processor cell the host expects (``--cell``); None (the default) takes board 0's
+    (``blockray bitstream --cell``), as it takes B and the memories. The cell sets the drain the host
+    counts after each batch."""
     from .driver import BoardDriver
     open_link = open_link or ulx3s_transport
     ports = (ports,) if isinstance(ports, str) else tuple(ports or ())
@@ -57,6 +59,7 @@ def ulx3s_board(params, ports, *, baud=DEFAULT_BAUD, partition="deal", open_link
         raise
     expect = params.with_(bits=params.bits or built["bits"], patch_depth=built["patch_depth"],
                           voxel_depth=built["voxel_depth"])
+    cell = identity_cell(built) if cell is None else cell
     return BoardDriver(expect, fit=False, name="ulx3s", partition=partition, hint=CAPACITY_HINT, cell=cell,
                        transport=lambda p, b: links[b])
 
