@@ -44,7 +44,8 @@ from .params import BoardParams
 from .records import leaves, pack, pack_bytes, patch_layout, point_layout, unpack
 
 __all__ = ["Op", "POINTS_PER_LOAD", "MAGIC", "VERSION", "ResultKind", "COUNTERS", "COUNTER_WIDTH",
-           "IDENTITY_FIELDS", "CELL_FIELDS", "cell_identity", "identity_cell", "RAYS_VERSION", "Command", "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
+           "IDENTITY_FIELDS", "CELL_FIELDS", "cell_identity", "identity_cell", "RAYS_VERSION", "Command",
+           "WritePatch", "WriteVoxel", "BeginBlock", "LoadReceiver",
            "LoadShooter", "LoadPoints", "Voxel", "EndBlock", "ReadCounters", "Identify", "COMMANDS",
            "BoardProtocol", "BoardResult", "ResultReader", "fit_params", "check_capacity", "describe"]
 
