@@ -44,7 +44,7 @@ from .nextpnr import (_ABC_FALLBACK, DEVICES, PACKAGE, ROUTER, _cells_resources,
                       _versions, dsp_estimate, lean_dsp_estimate, nextpnr_command, run_nextpnr, tool_error)
 from .target import ECP5Target
 from .tools import last_error
-from .yosys import yosys_command
+from .yosys import LUT_MULTIPLIERS, yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
            "DEFAULT_ROWS", "DEFAULT_COLS", "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
@@ -272,6 +272,19 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
                       array={"cell": check_cell(cell).at(params.bits), "fabric_units": tuple(fabric_units)})
 
 
+#: the array's modules in the board's netlist: only its fabric units' products are generic ``$mul``
+#: there (the others are MULT18X18D instances); the sequencer's stay on DSPs
+ARRAY_MODULES = "*.array*"
+
+
+def array_lut_multipliers(name, fabric_units):
+    """The platform's Yosys overrides that put the array's generic products (``fabric_units``) on
+    Booth LUT multipliers, as ``blockray synth`` does; without them synth_ecp5 maps them to DSPs."""
+    if not fabric_units:
+        return {}
+    return {"script_after_read": f"{LUT_MULTIPLIERS.format(top=name)} {ARRAY_MODULES}"}
+
+
 def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, tools, array):
     """The bitstream in ``tmp``; ``tools``: nextpnr's ``seed``, ``router`` and ``threads``."""
     from ..rtl.ulx3s import ULX3STop
@@ -286,7 +299,7 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
                    window=FRAME_WINDOW)
     platform = _platform(platform_name, array["fabric_units"])
     name = "blockray_ulx3s"
-    plan = platform.build(top, name=name, do_build=False,
+    plan = platform.build(top, name=name, do_build=False, **array_lut_multipliers(name, array["fabric_units"]),
                           script_after_synth=f"tee -q -o {name}.stat.json stat -json")
     plan.extract(str(tmp))
     report = {

@@ -132,6 +132,35 @@ def test_lean_board_core_and_platform():
 
 
 @pytest.mark.synth
+def test_the_bitstreams_fabric_units_leave_no_product_to_the_dsps(tmp_path):
+    """``--fabric-units exact`` (or shooter, receiver) makes the array's products generic ``$mul``
+    cells; the bitstream's Yosys script turns those, and only those, into LUT multipliers, so
+    synth_ecp5 cannot put them on MULT18X18D (the DSP estimate leaves them out). The
+    sequencer's products stay for the DSPs."""
+    import subprocess
+    from amaranth.back import rtlil
+    from blockray.cell import Cell
+    from blockray.synth.yosys import yosys_command
+    assert bitstream.array_lut_multipliers("top", ()) == {}
+    params = BoardParams(rows=1, cols=2, bits=12, patch_depth=64, voxel_depth=16)
+    platform = bitstream._platform("ulx3s-85f", ("cell", "exact"))
+    (tmp_path / "core.il").write_text(rtlil.convert(bitstream._core("board", params, Cell("lean")), name="top",
+                                                    platform=platform))
+    script = bitstream.array_lut_multipliers("top", platform.fabric_units)["script_after_read"]
+
+    def products(then):
+        out = subprocess.run(yosys_command() + ["-p", f"read_rtlil core.il; {then}; select -list t:$mul"],
+                             cwd=tmp_path, capture_output=True, text=True, check=True).stdout
+        return [line for line in out.splitlines() if line.startswith("top.") and "/$" in line]
+
+    before = products("hierarchy -top top; proc")
+    assert any(".array.resolve.exact." in name for name in before)        # the exact unit's, generic
+    after = products(script)
+    assert after and not any(".array" in name for name in after)           # the sequencer's stay
+    assert any(".sequencer" in name for name in after)
+
+
+@pytest.mark.synth
 def test_a_failing_yosys_is_one_line_exit_2_after_the_abc_fallback(monkeypatch, tmp_path, capsys):
     """Yosys 0.70's ABC9 assert (on some netlists) is worked around with classic abc; when that
     fails too: one line naming the tool, its status, its last ERROR line and the log kept in
