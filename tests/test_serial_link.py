@@ -213,8 +213,9 @@ def test_ulx3s_board_takes_its_cell_from_identify(lean_ulx3s_on_a_pty):
     name, _ = lean_ulx3s_on_a_pty
     scene = load_scene("cornell")
     run = dict(rows=2, cols=2, boards=1, samples=4, max_shots=2, voxels=4)
-    with build_board(RenderOptions.of(backend="ulx3s", port=name, **run).board) as board:
-        real = render(scene, board, RenderOptions.of(backend="ulx3s", port=name, **run))
+    options = RenderOptions.of(backend="ulx3s", port=name, **run)
+    with build_board(options.board) as board:
+        real = render(scene, board, options)
         assert board.cell == Cell("lean").at(14)
     assert real.report["cell"] == "lean d9w9"
     model = render(scene, backend="model", bits=14, cell=Cell("lean"), **run)
