@@ -430,9 +430,9 @@ class ArrayResolve(wiring.Component):
     ``i`` (valid only): an item and, for a record, ``undecided`` (bit r * S + s: the tests the
     exact unit must decide) with the exact terms of every column and row. Every item enters the
     *pending* FIFO; a record with undecided tests enters the *queue* with its terms. The
-    *server* takes the queue head's undecided tests one per cycle (lowest index first) into the
-    exact Processor; its answers are gathered per record, and a record's answer vector enters
-    the *answers* FIFO with its last test's answer. ``o`` (always taken) delivers the pending
+    *server* takes the queue head's undecided tests one per :attr:`exact_interval` cycles (lowest
+    index first) into the exact Processor; its answers are gathered per record, and a record's
+    answer vector enters the *answers* FIFO with its last test's answer. ``o`` (always taken) delivers the pending
     head: a marker or a record without undecided tests at once, else with the answers head.
 
     In order because the queue, the server, the Processor and the answers are in order. Every
@@ -445,7 +445,8 @@ class ArrayResolve(wiring.Component):
     ``answers``), the queue ``head``, the server's state ``started`` (the head's first test is
     out) and ``remaining`` (its tests still to serve, when started), ``gathered`` (the answers of
     the record being gathered), and beside the exact unit the Processor.latency stages of
-    ``which`` (a test's bit in its record) and ``final`` (its record's last test).
+    ``which`` (a test's bit in its record) and ``final`` (its record's last test); ``serve``
+    (a test goes to the exact unit) and ``wait`` (cycles until it takes the next).
     """
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit=None):
@@ -461,6 +462,8 @@ class ArrayResolve(wiring.Component):
         self.head = Signal(self._queued, name="head")
         self.started, self.remaining = Signal(name="started"), Signal(RS, name="remaining")
         self.gathered = Signal(RS, name="gathered")
+        self.serve = Signal(name="serve")
+        self.wait = Signal(range(max(2, self.exact_interval)), name="wait")
         self.which = [Signal(RS, name=f"which_{n + 1}") for n in range(self.exact_latency)]
         self.final = [Signal(name=f"final_{n + 1}") for n in range(self.exact_latency)]
         super().__init__({
@@ -472,6 +475,8 @@ class ArrayResolve(wiring.Component):
 
     #: the exact unit's latency (valid in, result_valid out)
     exact_latency = Processor.latency
+    #: cycles from one test into the exact unit to the next (the server waits between them)
+    exact_interval = 1
 
     def _default_exact_unit(self):
         return Processor(self._bits, unit="exact")
@@ -497,6 +502,18 @@ class ArrayResolve(wiring.Component):
             exact.valid.eq(valid), exact.first.eq(1),
         ]
 
+    def _exact_free(self, m):
+        """The exact unit takes a test this cycle: always, or ``exact_interval`` cycles after
+        the last (``wait`` counts them down)."""
+        if self.exact_interval == 1:
+            return 1
+        wait = self.wait
+        with m.If(self.serve):
+            m.d.sync += wait.eq(self.exact_interval - 1)
+        with m.Elif(wait != 0):
+            m.d.sync += wait.eq(wait - 1)
+        return wait == 0
+
     def elaborate(self, platform):
         m = Module()
         R, S, RS = self._rows, self._cols, self._rows * self._cols
@@ -514,21 +531,23 @@ class ArrayResolve(wiring.Component):
             queue.w_data.eq(entry), queue.w_en.eq(self.i.valid & (self.i.payload.undecided != 0)),
         ]
 
-        # the server: the head's undecided tests, lowest index first, one per cycle
+        # the server: the head's undecided tests, lowest index first, one per exact_interval cycles
         head, started, remaining = self.head, self.started, self.remaining
         current = Signal(RS)
         onehot = Signal(RS)
         last = Signal()
+        serve = self.serve
         m.d.comb += [
             head.eq(queue.r_data),
             current.eq(Mux(started, remaining, head.undecided)),
             onehot.eq(current & -current),
             last.eq((current & ~onehot) == 0),
-            queue.r_en.eq(queue.r_rdy & last),
+            serve.eq(queue.r_rdy & self._exact_free(m)),
+            queue.r_en.eq(serve & last),
         ]
-        with m.If(queue.r_rdy):
+        with m.If(serve):
             m.d.sync += [remaining.eq(current & ~onehot), started.eq(~last)]
-        self._feed(m, exact, head.terms, onehot, queue.r_rdy)
+        self._feed(m, exact, head.terms, onehot, serve)
 
         # the answers: gathered per record, pushed with its last test's answer
         which = _delay_through(m, onehot, self.which)
@@ -579,6 +598,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
     carry_chain_cells = False
 
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1)):
+        self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
         self._configure(bits, fmt, depth if depth is not None else self.default_depth())
         self._rows, self._cols = rows, cols
         self._mark_shape = mark_shape
@@ -594,6 +614,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
             "mark_data_out": Out(mark_shape),
             **self._extra_members(),
         })
+        self._MustUse__silence = False
 
     def _extra_members(self):
         """Ports a subclass adds after these."""

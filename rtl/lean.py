@@ -32,7 +32,8 @@ from .filtered import (ArrayResolve, FilteredArray, ReceiverFilter, _exponent, _
                        filter_terms_layout, sum_bits, sum_or)
 from .platform import product_platform
 from .lutdot import dot_product
-from .processor import _AXES, _VERTICES, Processor, ReceiverUnit, ShooterUnit, _combine, _delay, _dot_sums, _product
+from .processor import (_AXES, _VERTICES, ReceiverUnit, _combine, _crossing, _delay, _dot_sums, _product,
+                        _sign_and_zero)
 
 __all__ = ["LeanReceiver", "LeanRowUnit", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
            "DEFAULT_ADDRESS_BITS"]
@@ -167,18 +168,26 @@ class LeanRowUnit(ReceiverUnit):
 
 
 class LeanExact(wiring.Component):
-    """The lean array's shared exact unit: one undecided test per cycle, recomputed from its tag.
+    """The lean array's shared exact unit: one undecided test every :attr:`interval` cycles,
+    recomputed from its tag edge by edge on a third of the products of a full exact pipeline.
 
     Cycle 0: ``valid``, ``which`` (the test's bit r * S + s, one-hot) and ``terms`` (its tag:
     patch ``address``, end-point ``slot``); the patch memory (``patch_read``) and the end-point
     memory (``points_read``) are read at the tag's addresses. Cycle 1: P_s and Q_r picked from
-    the entry by ``which`` enter a ShooterUnit and a ReceiverUnit with the patch; cycle 5 their
-    terms enter an exact Processor; ``blocked`` with ``result_valid`` in cycle :attr:`latency`
-    = 1 + 4 + 4 = 9. ``first`` is accepted and ignored (the hand-off's exact-unit ports). All its
-    products answer to the fabric-units key ``exact`` (``--fabric-units exact``: on LUTs).
+    the entry by ``which`` are held with the patch. Cycles 2, 3, 4 (edge k = 0, 1, 2): w_k =
+    (Q - V_k) x (V_{k+1} - V_k) on six products, three cycles later s_k = (P - V_k) . w_k on
+    three (:func:`~blockray.rtl.processor._dot_sums`), and in cycles 2 and 3 pP = n . (P - V0)
+    and pQ = n . (Q - V0) on one shared set of three. Edge k's sign and zero come out in cycle
+    8 + k; the decision (the Processor's: the plane crossed, all s_k >= 0 or all <= 0) is
+    ``blocked`` with ``result_valid`` in cycle :attr:`latency` = 11. ``first`` is accepted and
+    ignored (the hand-off's exact-unit ports). All its products answer to the fabric-units key
+    ``exact``. Why serial: undecided tests are about one in a thousand (docs/processor.md), so a
+    test per cycle bought 48 MULT18X18D the array cannot spare; this takes 18 at B <= 17.
     """
 
-    latency = 1 + ShooterUnit.latency + Processor.latency
+    #: cycles between tests (the hand-off feeds no faster: :attr:`ArrayResolve.exact_interval`)
+    interval = 3
+    latency = 2 + 2 + 3 + 3 + 1
 
     def __init__(self, bits, rows, cols, address_bits, slots):
         self._bits, self._rows, self._cols = bits, rows, cols
@@ -195,38 +204,80 @@ class LeanExact(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         B, R, S = self._bits, self._rows, self._cols
-        m.submodules.shooter = shooter = ShooterUnit(B, unit="exact")
-        m.submodules.receiver = receiver = ReceiverUnit(B, unit="exact")
-        m.submodules.cell = cell = Processor(B, unit="exact")
+        w = Widths(B)
         m.d.comb += [
             self.patch_read.addr.eq(self.terms.address), self.patch_read.en.eq(1),
             self.points_read.addr.eq(self.terms.slot), self.points_read.en.eq(1),
         ]
+        # cycle 1: the test's points and patch held for its three edges
         valid1 = _delay(m, self.valid, 1, "valid")
         which1 = _delay(m, self.which, 1, "which")
         entry = self._entry(self.points_read.data)
-        point = point_layout(B)
-        p, q = Signal(point), Signal(point)
-        m.d.comb += [
-            p.eq(sum_or(Mux(sum_or(which1[r * S + s] for r in range(R)), entry.shooters[s].as_value(), 0)
-                        for s in range(S))),
-            q.eq(sum_or(Mux(sum_or(which1[r * S + s] for s in range(S)), entry.receivers[r].as_value(), 0)
-                        for r in range(R))),
-            shooter.point.eq(p), shooter.patch.eq(self.patch_read.data), shooter.valid.eq(valid1),
-            receiver.point.eq(q), receiver.patch.eq(self.patch_read.data), receiver.valid.eq(valid1),
-            cell.shooter.eq(shooter.terms), cell.receiver.eq(receiver.terms),
-            cell.valid.eq(shooter.terms_valid), cell.first.eq(1),
-            self.blocked.eq(cell.blocked), self.result_valid.eq(cell.result_valid),
-        ]
+        p, q = Signal(point_layout(B), name="p_held"), Signal(point_layout(B), name="q_held")
+        patch = Signal(patch_layout(B), name="patch_held")
+        with m.If(valid1):
+            m.d.sync += [
+                p.eq(sum_or(Mux(sum_or(which1[r * S + s] for r in range(R)), entry.shooters[s].as_value(), 0)
+                            for s in range(S))),
+                q.eq(sum_or(Mux(sum_or(which1[r * S + s] for s in range(S)), entry.receivers[r].as_value(), 0)
+                            for r in range(R))),
+                patch.eq(self.patch_read.data),
+            ]
+        phase = [_delay(m, self.valid, 2 + k, f"edge{k}") for k in range(3)]     # cycles 2, 3, 4
+        vertex = [patch[v] for v in _VERTICES]
+        vk = Mux(phase[1], vertex[1].as_value(), Mux(phase[2], vertex[2].as_value(), vertex[0].as_value()))
+        vk1 = Mux(phase[1], vertex[2].as_value(), Mux(phase[2], vertex[0].as_value(), vertex[1].as_value()))
+        vk, vk1 = point_layout(B)(vk), point_layout(B)(vk1)
+        platform = product_platform(platform, "exact")
+        negative, zero = self._edges(m, w, p, q, vk, vk1, platform)       # edge k's in cycle 8 + k
+        crossing = self._planes(m, w, p, q, patch, phase, platform)        # in cycle 10
+        # cycle 10: edge 2's sign beside edges 1's and 0's, registered one and two cycles back
+        neg = [_delay(m, negative, 2 - k, f"neg{k}") for k in range(3)]
+        nil = [_delay(m, zero, 2 - k, f"zero{k}") for k in range(3)]
+        nonneg = ~neg[0] & ~neg[1] & ~neg[2]
+        nonpos = (neg[0] | nil[0]) & (neg[1] | nil[1]) & (neg[2] | nil[2])
+        m.d.sync += self.blocked.eq(crossing & (nonneg | nonpos))
+        m.d.comb += self.result_valid.eq(_delay(m, self.valid, self.latency, "result"))
         return m
+
+    @staticmethod
+    def _edges(m, w, p, q, vk, vk1, platform):
+        """Edge k's (s_k < 0, s_k == 0) six cycles after its vertices ``vk``, ``vk1``."""
+        dq, e, d = (Signal(vector_layout(w.diff), name=n) for n in ("dq", "e", "d"))
+        for c in _AXES:
+            m.d.comb += [dq[c].eq(q[c] - vk[c]), e[c].eq(vk1[c] - vk[c]), d[c].eq(p[c] - vk[c])]
+        w3 = Signal(vector_layout(w.cross), name="w_3")
+        for i, c in enumerate(_AXES):           # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}
+            a, b = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
+            plus = _product(m, dq[a], e[b], w.cross, f"w_{c}_plus_2", platform)
+            minus = _product(m, dq[b], e[a], w.cross, f"w_{c}_minus_2", platform)
+            m.d.sync += w3[c].eq(plus - minus)
+        d3 = _delay(m, d, 3, "d")
+        sums = _dot_sums(m, [(d3[c], w3[c]) for c in _AXES], w.orient, "s", platform)
+        return _sign_and_zero(m, sums, w.orient, "s_6")
+
+    @staticmethod
+    def _planes(m, w, p, q, patch, phase, platform):
+        """sign(pP) sign(pQ) < 0 in cycle 10: pP from edge 0's cycle, pQ from edge 1's, on one
+        set of products."""
+        x = Signal(vector_layout(w.diff), name="x")
+        for c in _AXES:
+            m.d.comb += x[c].eq(Mux(phase[1], q[c] - patch.v0[c], p[c] - patch.v0[c]))
+        side = Signal(signed(w.orient), name="side_3")          # pP in cycle 5, pQ in cycle 6
+        m.d.comb += side.eq(_combine(_dot_sums(m, [(x[c], patch.normal[c]) for c in _AXES], w.orient, "pl",
+                                               platform), w.orient))
+        before = _delay(m, side, 1, "side")
+        return _delay(m, _crossing(before, side), 4, "crossing")
 
 
 class LeanResolve(ArrayResolve):
     """The lean array's in-order hand-off: :class:`~blockray.rtl.filtered.ArrayResolve` with a
     record's tag (:func:`tag_layout`) queued in place of exact terms, and :class:`LeanExact`
-    (latency 9) as the exact unit, which ``exact_unit`` gives (its owner wires its read ports)."""
+    (latency 11, a test every 3 cycles) as the exact unit, which ``exact_unit`` gives (its owner
+    wires its read ports)."""
 
     exact_latency = LeanExact.latency
+    exact_interval = LeanExact.interval
 
     def __init__(self, bits, rows, cols, mark_shape, depth, *, exact_unit, address_bits):
         self._address_bits = address_bits
@@ -241,7 +292,7 @@ class LeanResolve(ArrayResolve):
 
 class LeanArray(FilteredArray):
     """R x S lean cells: :class:`~blockray.rtl.filtered.FilteredArray`'s ports and cycle
-    contract (the hand-off's exact unit takes 9 cycles, not 4), plus ``address`` (the record's
+    contract (the hand-off's exact unit takes 11 cycles, not 4, and a test every 3), plus ``address`` (the record's
     patch address, sampled with ``valid``) and ``patch_read`` (a registered read port of the
     patch memory the records come from, for the exact unit). The owner keeps at most
     :attr:`depth` items inside (credits) and must not overwrite a patch whose record is inside.
@@ -249,7 +300,7 @@ class LeanArray(FilteredArray):
     The end-point memory has :attr:`depth` entries: every record writes its S + R points at the
     next slot (mod depth) as it enters; with at most depth items inside, a record's entry stays
     until it is delivered. Default filter the lean cell's (:meth:`Cell.format_at <blockray.cell.Cell.format_at>`); default depth
-    :meth:`default_depth` (the filtered array's, plus the exact unit's 9 cycles and 4: a record
+    :meth:`default_depth` (the filtered array's, plus the exact unit's 11 cycles and 4: a record
     with undecided tests every few records costs no cycle)."""
 
     #: with ``--fabric-units cell`` on ECP5 the cells' three products and their sum per edge are

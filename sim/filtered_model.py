@@ -162,7 +162,8 @@ def _fifo_step(buf, k, head, n, rdy, rdata, w_en, w_data, r_en):
 
 
 @njit(cache=True)
-def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_handoff=ISSUE_TO_HANDOFF):
+def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_handoff=ISSUE_TO_HANDOFF,
+                exact_interval=1):
     """The filtered board's cycles when the host keeps the command stream full: every cycle is a
     board cycle, a step of the current command or one lost waiting for the array's credits.
 
@@ -171,8 +172,9 @@ def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_h
     not delivered < ``depth``), the ``issue_to_handoff`` cycles from issue to the array's hand-off
     (:data:`ISSUE_TO_HANDOFF` on the board) and :class:`blockray.rtl.filtered.ArrayResolve`: its
     three ``SyncFIFOBuffered`` (0 pending, 1 queue, 2 answers), the server (the queue head's
-    undecided tests one per cycle into the exact unit) and the exact unit (``exact_latency``: the
-    filtered array's Processor, :data:`EXACT_LATENCY`; the lean array's, 9).
+    undecided tests into the exact unit, one per ``exact_interval`` cycles) and the exact unit
+    (``exact_latency``: the filtered array's Processor, :data:`EXACT_LATENCY`, a test a cycle;
+    the lean array's LeanExact, 11, a test every 3 cycles).
     Returns ``lost`` (N,): the cycles lost before each step, and ``marks``: the cycle (counted
     from the first step) each marker left the array.
     """
@@ -187,6 +189,7 @@ def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_h
     exact = np.full(exact_latency, -1, np.int64)                # `last` of each test fed, -1 none
     pos = epos = 0
     started, remaining = False, 0
+    wait = 0                                                    # cycles until the exact unit takes a test
     inside = cycle = 0
     i = 0
     waiting = False                                             # the step waits for a credit
@@ -208,7 +211,7 @@ def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_h
         line[pos] = item
         pos = (pos + 1) % issue_to_handoff
         # the server and the pending head, from this cycle's registers
-        feeding = rdy[1]
+        feeding = rdy[1] and wait == 0
         last = False
         current = 0
         if feeding:
@@ -228,6 +231,9 @@ def board_clock(kinds, undecided, depth, exact_latency=EXACT_LATENCY, issue_to_h
         _fifo_step(buf, 2, head, n, rdy, rdata, leaving == 1, 1, deliver and needs)
         if feeding:
             started, remaining = not last, current - 1
+            wait = exact_interval - 1
+        elif wait > 0:
+            wait -= 1
         inside += (item != _NONE) - deliver
         cycle += 1
         if not waiting:

@@ -7,8 +7,8 @@ recomputes from the patch and the end points); an undecided test of an unloaded 
 is not resolved and reads 0 (the board masks it out). So the loaded bits are the exact cell's by
 construction. Timing: :func:`blockray.sim.filtered_model.board_clock`, the cycle-by-cycle mirror
 of the hand-off the lean array shares with the filtered array, with the lean exact unit's
-latency (:data:`LEAN_EXACT_LATENCY` = 9: the patch and end-point read, the units' 4 cycles, the
-Processor's 4) and the array's 12 cycles from its input to the hand-off.
+latency (:data:`LEAN_EXACT_LATENCY` = 11) and interval (:data:`LEAN_EXACT_INTERVAL` = 3: a test
+every 3 cycles) and the array's 12 cycles from its input to the hand-off.
 
     model = LeanArrayModel(bits, rows, cols, fmt=None, depth=None)
     trace = model.run(steps, vertices, normals)
@@ -27,12 +27,15 @@ from ..exact import blocked_block
 from ..filtered import filtered_block
 from .filtered_model import DATAPATH_LATENCY, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
-__all__ = ["LEAN_EXACT_LATENCY", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel", "record_answers",
+__all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel", "record_answers",
            "default_lean_depth"]
 
-#: the lean exact unit's latency: tag in, the patch memory and end-point memory read (1), the
-#: shooter and receiver units (4), the exact Processor (4)
-LEAN_EXACT_LATENCY = 1 + 4 + 4
+#: the lean exact unit's latency (rtl/lean.py LeanExact): tag in, the patch memory and end-point
+#: memory read (1), the points held (1), its three edges a cycle apart (2), each edge's w_k (3)
+#: and s_k (3), the decision (1)
+LEAN_EXACT_LATENCY = 2 + 2 + 3 + 3 + 1
+#: cycles between two tests into the lean exact unit (one edge a cycle)
+LEAN_EXACT_INTERVAL = 3
 #: credits the lean array has beyond the filtered array's: its exact unit's latency and 4
 LEAN_EXTRA_DEPTH = LEAN_EXACT_LATENCY + 4
 
@@ -120,7 +123,7 @@ class LeanArrayModel:
             else:
                 raise TypeError(f"a lean array step is a Gap, Mark or Record, not {step!r}")
         lost, marks = board_clock(np.array(kinds, np.int64), np.array(counts, np.int64), self.depth,
-                                  LEAN_EXACT_LATENCY, DATAPATH_LATENCY)
+                                  LEAN_EXACT_LATENCY, DATAPATH_LATENCY, LEAN_EXACT_INTERVAL)
         cycle = np.arange(len(steps)) + np.cumsum(lost)
         return LeanTrace(cycle, marks, hits, blocked, np.array(undecided_counts, np.int64),
                          int(marks[-1]) + 1 if len(marks) else int(cycle[-1]) + 1 if len(cycle) else 0)

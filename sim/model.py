@@ -42,12 +42,15 @@ from ..timing import BoardTiming
 from . import kernel
 from .filtered_model import (EXACT_LATENCY, STEP_BUBBLE, STEP_DRAIN, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock,
                              default_array_depth)
-from .lean_model import LEAN_EXACT_LATENCY, default_lean_depth
+from .lean_model import LEAN_EXACT_INTERVAL, LEAN_EXACT_LATENCY, default_lean_depth
 
 
-def _exact_latency(cell):
-    """The shared exact unit's latency of a filtering cell (filtered: a Processor; lean: LeanExact)."""
-    return LEAN_EXACT_LATENCY if cell.lean else EXACT_LATENCY
+def _exact_unit(cell):
+    """:func:`board_clock`'s shared exact unit of a filtering cell (filtered: a Processor, a test
+    a cycle; lean: LeanExact), as keyword arguments."""
+    if cell.lean:
+        return {"exact_latency": LEAN_EXACT_LATENCY, "exact_interval": LEAN_EXACT_INTERVAL}
+    return {"exact_latency": EXACT_LATENCY, "exact_interval": 1}
 
 
 def _array_depth(cell):
@@ -218,7 +221,7 @@ class BoardModel:
         command's start and in each READ_COUNTERS snapshot (its own wait included: it precedes
         the snapshot)."""
         lost, _ = board_clock(np.array(kinds, dtype=np.int64), np.array(undecided, dtype=np.int64),
-                                      self.depth, _exact_latency(self.cell))
+                                      self.depth, **_exact_unit(self.cell))
         before = np.concatenate([[0], np.cumsum(lost)])
         snapshots = iter(res.counters)
         begin = 0
@@ -353,7 +356,7 @@ class ModelBoard(CountingBoard):
         total = cycles.sum(axis=0)
         for b, steps in enumerate(step_off[-1]):
             lost, _ = board_clock(np.append(kinds[b, :steps], STEP_MARKER), np.append(undecided[b, :steps], 0),
-                                  self.depth, _exact_latency(self.cell))
+                                  self.depth, **_exact_unit(self.cell))
             total[b] += lost.sum()
         self._add_batch(total)
 

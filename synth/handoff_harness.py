@@ -242,7 +242,7 @@ class ExactStandIn(wiring.Component):
 
 
 class LeanStandIn(ExactStandIn):
-    """:class:`~blockray.rtl.lean.LeanExact`'s ports and latency (9): a test is its record's tag
+    """:class:`~blockray.rtl.lean.LeanExact`'s ports and latency (11): a test is its record's tag
     (``terms``: patch address, end-point slot) and its bit ``which``; it answers the tag's
     address bit at the test's index, XOR the slot's low bit (so a test answered for another
     test's bit or another record's tag is caught). ``fault`` as :class:`ExactStandIn`'s."""
@@ -274,7 +274,8 @@ class ArrayHandoffHarness(wiring.Component):
     accumulators do. Properties: the n-th item delivered has sequence number n (in order, none
     lost or duplicated) and its marker flag; a solver-chosen item's delivered bits are, per test,
     the filter's when decided, else the exact unit's answer for that test's own row and column
-    terms; no deadlock (with items inside, one is delivered within RS * depth + 8 cycles);
+    terms; no deadlock (with items inside, one is delivered within RS * depth * the exact unit's
+    interval + its latency + 4 cycles);
     covers: full, and delivering while full. ``invariants``: the assertions that make these
     inductive (:meth:`_invariants`); ``fault``: a broken exact unit (:class:`ExactStandIn`)."""
 
@@ -283,7 +284,7 @@ class ArrayHandoffHarness(wiring.Component):
         from blockray.rtl.filtered import ArrayResolve
         from blockray.rtl.lean import LeanResolve
         self.depth, self.tag_bits, self.rows, self.cols, self.invariants = depth, tag_bits, rows, cols, invariants
-        if lean:            # the lean array's: tags to LeanExact (latency 9); address bits = the tests
+        if lean:            # the lean array's: tags to LeanExact (latency 11, a test every 3 cycles); address bits = the tests
             self.exact = LeanStandIn(rows, cols, rows * cols, depth, fault)
             self.dut = LeanResolve(bits, rows, cols, unsigned(tag_bits), depth, exact_unit=lambda: self.exact,
                                    address_bits=rows * cols)
@@ -333,7 +334,7 @@ class ArrayHandoffHarness(wiring.Component):
                 with m.If(~mark):
                     m.d.comb += Assert(out.blocked == expected, "wrong answer")
 
-        _progress(m, inside, deliver, RS * self.depth + self.dut.exact_latency + 4,
+        _progress(m, inside, deliver, RS * self.depth * self.dut.exact_interval + self.dut.exact_latency + 4,
                   "deadlock: items inside and nothing delivered")
         m.d.comb += [Cover(inside == self.depth), Cover((inside == self.depth) & deliver & (out.blocked != 0))]
         return m
@@ -348,10 +349,11 @@ class ArrayHandoffHarness(wiring.Component):
           queue, the exact unit (its last test, marked ``final``), the answers FIFO;
         * the server: a queue head has undecided tests; once started, it is serving the head,
           some of its tests are out (the lowest ones) and some remain;
-        * a record's tests leave the server back to back, lowest first: a test in the exact unit
-          (one bit of ``which``) that is not its record's last has the next one, a higher bit,
-          right behind it (or the server, started, still holds it), and answers are gathered,
-          from lower bits, only while the next one comes out;
+        * a record's tests leave the server the exact unit's interval I apart, lowest first: a
+          test in the exact unit (one bit of ``which``) that is not its record's last has the
+          next one, a higher bit, I stages behind it (or the server, started, still holds it and
+          feeds it when ``wait`` has counted down), and answers are gathered, from lower bits,
+          only while the next one is in the last I stages;
         * no FIFO written when it cannot take it; every delivered record has its right answer.
 
         Items deep in the pending FIFO cannot be named (its memory): the induction depth covers
@@ -396,15 +398,22 @@ class ArrayHandoffHarness(wiring.Component):
         with m.If(started):
             m.d.comb += Assert(fifos["queue"].r_rdy & (remaining != 0) & ((remaining & ~undecided) == 0)
                                & (served != 0) & (served < lowest))
-        # stage n's next test: the one in stage n - 1, or for the newest stage the server's next
-        behind = list(zip([started] + exact.stages, [lowest] + dut.which))
-        for valid, final, which, (next_valid, next_which) in zip(exact.stages, dut.final, dut.which, behind):
+        # stage j's next test: the one in stage j - I (I, the exact unit's interval), or, for the
+        # I newest stages, the server's next, which it feeds when ``wait`` has counted down
+        interval = dut.exact_interval
+        for j, (valid, final, which) in enumerate(zip(exact.stages, dut.final, dut.which), start=1):
             with m.If(valid):
                 m.d.comb += Assert((which != 0) & ((which & (which - 1)) == 0), "not one test")
+            if j > interval:
+                following = exact.stages[j - 1 - interval] & (which < dut.which[j - 1 - interval])
+            else:
+                following = started & (dut.wait == interval - j) & (which < lowest)
             with m.If(valid & ~final):
-                m.d.comb += Assert(next_valid & (which < next_which), "a record's tests not back to back")
+                m.d.comb += Assert(following, "a record's tests not an interval apart")
         with m.If(dut.gathered != 0):
-            m.d.comb += Assert(exact.stages[-1] & (dut.gathered < dut.which[-1]), "answers gathered from no record")
+            m.d.comb += Assert(sum_or(v & (dut.gathered < w) for v, w in
+                                      zip(exact.stages[-interval:], dut.which[-interval:])),
+                               "answers gathered from no record")
 
 
 # unbounded: k-induction on a small configuration (1 x 2 tests per record, so the server serves a

@@ -113,7 +113,7 @@ def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
 def test_lean_board_core_and_platform():
     """``--cell lean``: the board core's array is lean; the platform has the carry cells and the
     fabric units the RTL reads; the DSP estimate is the lean array's and the sequencer's (Yosys
-    counted 171 on the lean 2 x 16 board with carry-chain cells and row units, estimate 169)."""
+    counted 2 more than it on a lean 2 x 16 board with carry-chain cells and row units)."""
     from blockray.cell import Cell
     from blockray.synth.nextpnr import lean_dsp_estimate
     params = BoardParams(rows=2, cols=4, bits=16, patch_depth=256, voxel_depth=64)
@@ -126,9 +126,10 @@ def test_lean_board_core_and_platform():
     assert platform.ccu2c and platform.mult18x18d and platform.fabric_units == {"cell", "rounded"}
     assert bitstream._platform("ulx3s-85f").fabric_units == frozenset()
     fit = bitstream.check_fit(params.with_(cols=8), cell=Cell("lean"), fabric_units=("cell", "rounded"))
-    assert fit["dsps"] == lean_dsp_estimate(16, 2, 8, ("cell", "rounded")) + 13 == 2 * 6 + 8 * 6 + 48 + 13
-    assert lean_dsp_estimate(16, 2, 8, ("cell",)) == 144          # Yosys's count of the lean 2 x 8
-    assert lean_dsp_estimate(16, 2, 8, ("cell", "rounded")) == 108
+    assert fit["dsps"] == lean_dsp_estimate(16, 2, 8, ("cell", "rounded")) + 13 == 2 * 6 + 8 * 6 + 18 + 13
+    assert lean_dsp_estimate(16, 2, 8, ("cell",)) == 114          # Yosys's count of the lean 2 x 8
+    assert lean_dsp_estimate(16, 2, 8, ("cell", "rounded")) == 78
+    assert lean_dsp_estimate(16) - lean_dsp_estimate(16, fabric_units=("exact",)) == 18     # LeanExact's
 
 
 @pytest.mark.synth
@@ -154,7 +155,7 @@ def test_the_bitstreams_fabric_units_leave_no_product_to_the_dsps(tmp_path):
         return [line for line in out.splitlines() if line.startswith("top.") and "/$" in line]
 
     before = products("hierarchy -top top; proc")
-    assert any(".array.resolve.exact." in name for name in before)        # the exact unit's, generic
+    assert any(".array.resolve.exact" in name for name in before)         # the exact unit's, generic
     after = products(script)
     assert after and not any(".array" in name for name in after)           # the sequencer's stay
     assert any(".sequencer" in name for name in after)

@@ -27,7 +27,7 @@ from blockray.rtl.lean import LeanArray, LeanExact, LeanReceiver, LeanRowUnit
 from blockray.rtl.processor import ReceiverUnit
 from blockray.rtl.lutdot import bit_heap, dot_product
 from blockray.sim.cocotb_support import build_verilator, run_cocotb
-from blockray.sim.lean_model import LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
+from blockray.sim.lean_model import LEAN_EXACT_INTERVAL, LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
 
 from board_scenes import crossing_patches, random_points
 from lean_bench import LeanBench, StepDriver
@@ -142,9 +142,9 @@ def test_row_unit_with_carry_chains_equals_the_receiver_unit():
 
 
 def test_model_constants_are_the_rtls():
-    assert LEAN_EXACT_LATENCY == LeanExact.latency == 9
-    assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 31
-    assert default_lean_depth() == LeanArray.default_depth(2) == 33       # behind the board's memory
+    assert LEAN_EXACT_LATENCY == LeanExact.latency == 11 and LEAN_EXACT_INTERVAL == LeanExact.interval == 3
+    assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 33
+    assert default_lean_depth() == LeanArray.default_depth(2) == 35       # behind the board's memory
 
 
 @pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4)),
