@@ -432,8 +432,9 @@ class ArrayResolve(wiring.Component):
     *pending* FIFO; a record with undecided tests enters the *queue* with its terms. The
     *server* takes the queue head's undecided tests one per :attr:`exact_interval` cycles (lowest
     index first) into the exact Processor; its answers are gathered per record, and a record's
-    answer vector enters the *answers* FIFO with its last test's answer. ``o`` (always taken) delivers the pending
-    head: a marker or a record without undecided tests at once, else with the answers head.
+    answer vector enters the *answers* FIFO with its last test's answer. ``o`` (always taken)
+    delivers the pending head: a marker or a record without undecided tests at once, else with
+    the answers head.
 
     In order because the queue, the server, the Processor and the answers are in order. Every
     FIFO has ``depth`` entries; the owner's credits keep at most ``depth`` items inside.

@@ -32,8 +32,8 @@ from .filtered import (ArrayResolve, FilteredArray, ReceiverFilter, _exponent, _
                        filter_terms_layout, sum_bits, sum_or)
 from .platform import product_platform
 from .lutdot import dot_product
-from .processor import (_AXES, _VERTICES, ReceiverUnit, _combine, _crossing, _delay, _dot_sums, _product,
-                        _sign_and_zero)
+from .processor import (_AXES, _VERTICES, ReceiverUnit, _combine, _cross_product, _crossing, _delay, _dot_sums,
+                        _product, _sign_and_zero)
 
 __all__ = ["LeanReceiver", "LeanRowUnit", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
            "DEFAULT_ADDRESS_BITS"]
@@ -246,12 +246,7 @@ class LeanExact(wiring.Component):
         dq, e, d = (Signal(vector_layout(w.diff), name=n) for n in ("dq", "e", "d"))
         for c in _AXES:
             m.d.comb += [dq[c].eq(q[c] - vk[c]), e[c].eq(vk1[c] - vk[c]), d[c].eq(p[c] - vk[c])]
-        w3 = Signal(vector_layout(w.cross), name="w_3")
-        for i, c in enumerate(_AXES):           # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}
-            a, b = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
-            plus = _product(m, dq[a], e[b], w.cross, f"w_{c}_plus_2", platform)
-            minus = _product(m, dq[b], e[a], w.cross, f"w_{c}_minus_2", platform)
-            m.d.sync += w3[c].eq(plus - minus)
+        w3 = _cross_product(m, dq, e, w.cross, "w", platform)
         d3 = _delay(m, d, 3, "d")
         sums = _dot_sums(m, [(d3[c], w3[c]) for c in _AXES], w.orient, "s", platform)
         return _sign_and_zero(m, sums, w.orient, "s_6")
@@ -316,7 +311,6 @@ class LeanArray(FilteredArray):
         self._address_bits = address_bits
         super().__init__(bits, rows, cols, fmt=Cell("lean", fmt).format_at(bits),
                          depth=depth if depth is not None else self.default_depth(), mark_shape=mark_shape)
-        self._MustUse__silence = False
 
     def _extra_members(self):
         return {"address": In(self._address_bits),

@@ -268,6 +268,19 @@ def _combine(groups, width):
     return total
 
 
+def _cross_product(m, a, b, width, name, platform=None):
+    """``a x b`` (vectors of :func:`~blockray.records.vector_layout`) modulo 2**``width`` a
+    component, three cycles after the operand expressions: (a x b)_c = a_{c+1} b_{c+2} -
+    a_{c+2} b_{c+1}, six :func:`_product` then their differences registered."""
+    out = Signal(vector_layout(width), name=f"{name}_3")
+    for i, c in enumerate(_AXES):
+        x, y = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
+        plus = _product(m, a[x], b[y], width, f"{name}_{c}_plus_2", platform)
+        minus = _product(m, a[y], b[x], width, f"{name}_{c}_minus_2", platform)
+        m.d.sync += out[c].eq(plus - minus)
+    return out
+
+
 def _sign_and_zero(m, groups, width, name):
     """(s < 0, s == 0) of ``s = sum(term << shift)`` modulo 2**width, ``groups`` = ``{shift:
     term}`` (:func:`_dot_sums`). The sign is the top bit of the joined sum (one carry chain).
@@ -384,24 +397,11 @@ class ReceiverUnit(_TermsUnit):
                     e0[k][c].eq(self.patch[following][c] - self.patch[vertex][c]),
                 ]
 
-        # (a x b)_c = a_{c+1} b_{c+2} - a_{c+2} b_{c+1}: products exact in 2B+2 bits
         platform = product_platform(platform, self._unit)
-        plus2, minus2 = [], []
-        for k in range(3):
-            for i, c in enumerate(_AXES):
-                a, b = _AXES[(i + 1) % 3], _AXES[(i + 2) % 3]
-                plus2.append(_product(m, dq0[k][a], e0[k][b], w.cross, f"w{k}_{c}_plus_2", platform))
-                minus2.append(_product(m, dq0[k][b], e0[k][a], w.cross, f"w{k}_{c}_minus_2", platform))
+        w3 = [_cross_product(m, dq0[k], e0[k], w.cross, f"w{k}", platform) for k in range(3)]   # |w| <= 2 L**2
         sums3 = _dot_sums(m, [(dq0[0][c], self.patch.normal[c]) for c in _AXES], w.orient, "pq", platform)
-
-        w3 = Signal(data.ArrayLayout(vector_layout(w.cross), 3), name="w_3")
-        for k in range(3):
-            for i, c in enumerate(_AXES):
-                m.d.sync += w3[k][c].eq(plus2[3 * k + i] - minus2[3 * k + i])   # |w| <= 2 L**2
-        m.d.sync += [
-            self.terms.w.eq(w3),
-            self.terms.pq.eq(_combine(sums3, w.orient)),
-        ]
+        m.d.sync += [self.terms.w[k].eq(w3[k]) for k in range(3)]
+        m.d.sync += self.terms.pq.eq(_combine(sums3, w.orient))
         m.d.comb += self.terms_valid.eq(_delay(m, self.valid, self.latency, "valid"))
         return m
 
