@@ -32,7 +32,7 @@ from .filtered import (ArrayResolve, FilteredArray, ReceiverFilter, _exponent, _
                        filter_terms_layout, sum_bits, sum_or)
 from .platform import product_platform
 from .lutdot import dot_product
-from .processor import (_AXES, _VERTICES, ReceiverUnit, _combine, _cross_product, _crossing, _delay, _dot_sums,
+from .processor import (_AXES, _VERTICES, ReceiverUnit, _combine, _cross_product, _delay, _dot_sums,
                         _product, _sign_and_zero)
 
 __all__ = ["LeanReceiver", "LeanRowUnit", "LeanExact", "LeanResolve", "LeanArray", "tag_layout",
@@ -174,15 +174,16 @@ class LeanExact(wiring.Component):
     Cycle 0: ``valid``, ``which`` (the test's bit r * S + s, one-hot) and ``terms`` (its tag:
     patch ``address``, end-point ``slot``); the patch memory (``patch_read``) and the end-point
     memory (``points_read``) are read at the tag's addresses. Cycle 1: P_s and Q_r picked from
-    the entry by ``which`` are held with the patch. Cycles 2, 3, 4 (edge k = 0, 1, 2): w_k =
-    (Q - V_k) x (V_{k+1} - V_k) on six products, three cycles later s_k = (P - V_k) . w_k on
-    three (:func:`~blockray.rtl.processor._dot_sums`), and in cycles 2 and 3 pP = n . (P - V0)
-    and pQ = n . (Q - V0) on one shared set of three. Edge k's sign and zero come out in cycle
-    8 + k; the decision (the Processor's: the plane crossed, all s_k >= 0 or all <= 0) is
-    ``blocked`` with ``result_valid`` in cycle :attr:`latency` = 11. ``first`` is accepted and
-    ignored (the hand-off's exact-unit ports). All its products answer to the fabric-units key
-    ``exact``. Why serial: undecided tests are about one in a thousand (docs/processor.md), so a
-    test per cycle bought 48 MULT18X18D the array cannot spare; this takes 18 at B <= 17.
+    the entry by ``which`` are held with the patch's vertices. Cycles 2, 3, 4 (edge k = 0, 1, 2):
+    w_k = (Q - V_k) x (V_{k+1} - V_k) on six products, three cycles later s_k = (P - V_k) . w_k
+    on three (:func:`~blockray.rtl.processor._dot_sums`). Edge k's sign and zero come out in
+    cycle 8 + k; the decision (all s_k >= 0 or all <= 0) is ``blocked`` with ``result_valid`` in
+    cycle :attr:`latency` = 11. The planes' test is not recomputed: a cell decides every test
+    whose planes do not cross (its ``crossing`` is exact), so every test handed here crosses.
+    ``first`` is accepted and ignored (the hand-off's exact-unit ports). All its products answer
+    to the fabric-units key ``exact``. Why serial: undecided tests are about one in a thousand
+    (docs/processor.md), so a test per cycle bought 48 MULT18X18D the array cannot spare; this
+    takes 12 at B <= 17.
     """
 
     #: cycles between tests (the hand-off feeds no faster: :attr:`ArrayResolve.exact_interval`)
@@ -214,29 +215,26 @@ class LeanExact(wiring.Component):
         which1 = _delay(m, self.which, 1, "which")
         entry = self._entry(self.points_read.data)
         p, q = Signal(point_layout(B), name="p_held"), Signal(point_layout(B), name="q_held")
-        patch = Signal(patch_layout(B), name="patch_held")
+        vertex = [Signal(point_layout(B), name=f"v{k}_held") for k in range(3)]
         with m.If(valid1):
             m.d.sync += [
                 p.eq(sum_or(Mux(sum_or(which1[r * S + s] for r in range(R)), entry.shooters[s].as_value(), 0)
                             for s in range(S))),
                 q.eq(sum_or(Mux(sum_or(which1[r * S + s] for s in range(S)), entry.receivers[r].as_value(), 0)
                             for r in range(R))),
-                patch.eq(self.patch_read.data),
+                *(v.eq(self.patch_read.data[name]) for v, name in zip(vertex, _VERTICES)),
             ]
         phase = [_delay(m, self.valid, 2 + k, f"edge{k}") for k in range(3)]     # cycles 2, 3, 4
-        vertex = [patch[v] for v in _VERTICES]
         vk = Mux(phase[1], vertex[1].as_value(), Mux(phase[2], vertex[2].as_value(), vertex[0].as_value()))
         vk1 = Mux(phase[1], vertex[2].as_value(), Mux(phase[2], vertex[0].as_value(), vertex[1].as_value()))
         vk, vk1 = point_layout(B)(vk), point_layout(B)(vk1)
-        platform = product_platform(platform, "exact")
-        negative, zero = self._edges(m, w, p, q, vk, vk1, platform)       # edge k's in cycle 8 + k
-        crossing = self._planes(m, w, p, q, patch, phase, platform)        # in cycle 10
+        negative, zero = self._edges(m, w, p, q, vk, vk1, product_platform(platform, "exact"))   # cycle 8 + k
         # cycle 10: edge 2's sign beside edges 1's and 0's, registered one and two cycles back
         neg = [_delay(m, negative, 2 - k, f"neg{k}") for k in range(3)]
         nil = [_delay(m, zero, 2 - k, f"zero{k}") for k in range(3)]
         nonneg = ~neg[0] & ~neg[1] & ~neg[2]
         nonpos = (neg[0] | nil[0]) & (neg[1] | nil[1]) & (neg[2] | nil[2])
-        m.d.sync += self.blocked.eq(crossing & (nonneg | nonpos))
+        m.d.sync += self.blocked.eq(nonneg | nonpos)
         m.d.comb += self.result_valid.eq(_delay(m, self.valid, self.latency, "result"))
         return m
 
@@ -250,19 +248,6 @@ class LeanExact(wiring.Component):
         d3 = _delay(m, d, 3, "d")
         sums = _dot_sums(m, [(d3[c], w3[c]) for c in _AXES], w.orient, "s", platform)
         return _sign_and_zero(m, sums, w.orient, "s_6")
-
-    @staticmethod
-    def _planes(m, w, p, q, patch, phase, platform):
-        """sign(pP) sign(pQ) < 0 in cycle 10: pP from edge 0's cycle, pQ from edge 1's, on one
-        set of products."""
-        x = Signal(vector_layout(w.diff), name="x")
-        for c in _AXES:
-            m.d.comb += x[c].eq(Mux(phase[1], q[c] - patch.v0[c], p[c] - patch.v0[c]))
-        side = Signal(signed(w.orient), name="side_3")          # pP in cycle 5, pQ in cycle 6
-        m.d.comb += side.eq(_combine(_dot_sums(m, [(x[c], patch.normal[c]) for c in _AXES], w.orient, "pl",
-                                               platform), w.orient))
-        before = _delay(m, side, 1, "side")
-        return _delay(m, _crossing(before, side), 4, "crossing")
 
 
 class LeanResolve(ArrayResolve):

@@ -110,11 +110,11 @@ def lean_dsp_estimate(bits, rows=1, cols=1, fabric_units=()):
     """MULT18X18D count of an R x S lean array (rtl/lean.py) at B = ``bits``: a cell's nine 9 x 9
     products (none with ``cell``: carry chains), a row unit's 18 cross terms of w_k (none with
     ``rounded``) and its 3 products of pQ, a column unit's 3 products, and the shared exact unit
-    (:class:`~blockray.rtl.lean.LeanExact`: one edge's 6 cross terms, the 3 products of s_k and
-    the 3 of pP and pQ; none with ``exact``)."""
+    (:class:`~blockray.rtl.lean.LeanExact`: one edge's 6 cross terms and the 3 products of s_k;
+    none with ``exact``)."""
     row_unit, col_unit = dsp_estimate(bits, 1, 0, ("cell",)), dsp_estimate(bits, 0, 1)
     pq = col_unit                                       # pQ's 3 products are a column unit's 3
-    exact = (row_unit - pq) // 3 + 2 * col_unit         # a third of a row unit's cross terms
+    exact = (row_unit - pq) // 3 + col_unit             # a third of a row unit's cross terms, s_k's 3
     row = 0 if "receiver" in fabric_units else (pq if "rounded" in fabric_units else row_unit)
     cells = 0 if "cell" in fabric_units else rows * cols * 9
     shooter = 0 if "shooter" in fabric_units else cols * col_unit
