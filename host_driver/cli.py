@@ -452,6 +452,10 @@ def _synth_parser(sub):
     p.add_argument("--from-placement", metavar="DIR",
                    help="route the placement a --no-route run kept in DIR with --router, without Yosys or "
                         "placing again; the report is that run's with the routed Fmax")
+    p.add_argument("--dsp-floorplan", metavar="balanced|FILE.json",
+                   help="lock each unit's multipliers to DSP sites before placing: balanced (the 85k's three "
+                        "DSP rows filled evenly) or a plan file ({\"34\": [[\"shooter_0\", 1], ...]}: each "
+                        "unit's row and first site; synth/floorplan.py, docs/synthesis.md)")
     _add_tool_options(p)
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
     p.set_defaults(func=_cmd_synth)
@@ -477,7 +481,8 @@ def _cmd_synth(args):
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
         seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or ROUTER,
         fabric_units=args.fabric_units, cell=cell,
-        also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route))
+        also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route,
+        dsp_floorplan=args.dsp_floorplan))
     write_report(args.report, report)
     _print_synth(args, report)
     return 0

@@ -51,6 +51,7 @@ from .. import hdl
 from ..atomic import write_file
 from ..errors import ParameterError, ToolError
 from ..params import BoardParams
+from .floorplan import check_floorplan, lock_dsps
 from .target import FABRIC_UNITS, target_platform
 from .tools import last_error, tool_command
 from ..cell import Cell, check_cell
@@ -275,7 +276,7 @@ def _check_router(router):
 
 def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, freq=100.0, seed=1,
                  threads=2, workdir=None, place=True, router=ROUTER, fabric_units=(), cell=Cell(),
-                 also_speeds=(), route=True):
+                 also_speeds=(), route=True, dsp_floorplan=None):
     """Synthesise (and place and route) ``unit`` for ``params``; returns the report dict.
 
     ``workdir`` keeps the intermediate files (Verilog, netlist, logs) there; default a temporary
@@ -293,7 +294,9 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     ``placement``: nextpnr's pre-routing estimate of Fmax; ``fmax_mhz`` None). Compare within that
     list: nextpnr times a restored design slower than right after routing (the B = 6 processor:
     147.6 against 156.7 MHz at -6; docs/synthesis.md). A run of its own at another grade places
-    and routes for that grade's delays, and may do better.
+    and routes for that grade's delays, and may do better. ``dsp_floorplan``: ``"balanced"`` or a
+    plan file locks the multipliers to DSP sites before placing (:mod:`blockray.synth.floorplan`;
+    the report's ``dsp_floorplan``).
     """
     _check_router(router)
     if not route and (workdir is None or also_speeds):
@@ -305,6 +308,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if device not in DEVICES:
         raise ParameterError(f"device must be one of {', '.join(DEVICES)}, not {device!r}", parameter="device")
     speed = check_speed(speed, device)
+    check_floorplan(dsp_floorplan, device, target)
     others = {check_speed(g, device, "also_speed") for g in also_speeds} - {speed}
     retime = [speed] + sorted(others) if also_speeds else []       # the routed grade first
     if not (isinstance(freq, (int, float)) and freq > 0):
@@ -335,7 +339,7 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     if not route:
         pnr.update(write=PLACED, stage="place")
     with _workdir(workdir) as tmp:
-        _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr)
+        _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr, dsp_floorplan)
         if not route and report["nextpnr"].get("returncode") == 0:
             _keep_placement(report, tmp, pnr)
         if retime and report["fmax_mhz"] is not None:
@@ -402,8 +406,9 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
     return cells, seconds, mapper
 
 
-def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
-    """Yosys and, if it fits and ``place``, nextpnr with the options ``pnr`` (:func:`nextpnr_args`)."""
+def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr, dsp_floorplan=None):
+    """Yosys and, if it fits and ``place``, nextpnr with the options ``pnr`` (:func:`nextpnr_args`),
+    the multipliers first locked by ``dsp_floorplan`` (:func:`~blockray.synth.floorplan.lock_dsps`)."""
     # 1. the bare unit: its own resources (IOs do not matter to Yosys's counts)
     name = f"blockray_{unit}"
     component = build_unit(unit, params, cell)
@@ -451,6 +456,8 @@ def _ecp5(report, unit, params, dev, tmp, place, ecp5, cell, pnr):
             f"{k} {total[k]} > {available[k]}" for k in limits)
         return report
 
+    if dsp_floorplan is not None:
+        report["dsp_floorplan"] = lock_dsps(tmp / f"{top}.json", dsp_floorplan, pnr["device"])
     cmd = nextpnr_command() + nextpnr_args(f"{top}.json", **pnr)
     run_nextpnr(cmd, tmp, report, seconds, seed=pnr["seed"], router=pnr["router"], speed=pnr["speed"])
     return report
