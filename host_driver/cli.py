@@ -452,13 +452,17 @@ def _synth_parser(sub):
     p.add_argument("--from-placement", metavar="DIR",
                    help="route the placement a --no-route run kept in DIR with --router, without Yosys or "
                         "placing again; the report is that run's with the routed Fmax")
+    _add_floorplan_option(p)
+    _add_tool_options(p)
+    p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
+    p.set_defaults(func=_cmd_synth)
+
+
+def _add_floorplan_option(p):
     p.add_argument("--dsp-floorplan", metavar="balanced|FILE.json",
                    help="lock each unit's multipliers to DSP sites before placing: balanced (the 85k's three "
                         "DSP rows filled evenly) or a plan file ({\"34\": [[\"shooter_0\", 1], ...]}: each "
                         "unit's row and first site; synth/floorplan.py, docs/synthesis.md)")
-    _add_tool_options(p)
-    p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
-    p.set_defaults(func=_cmd_synth)
 
 
 def _speed(text):
@@ -536,6 +540,7 @@ def _bitstream_parser(sub):
                    help="the processor cell: exact (default) or lean (the certified filter in the cells, "
                         "undecided tests re-read by one shared exact unit; docs/processor.md)")
     _add_fabric_option(g)
+    _add_floorplan_option(g)
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=DEFAULT_BAUD, help=f"UART baud rate (default {DEFAULT_BAUD})")
     t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
@@ -557,7 +562,7 @@ def _cmd_bitstream(args):
     report = _naming_option(lambda: build_bitstream(
         params, out=args.out, platform=args.platform, core=args.core, freq=args.freq or DEFAULT_FREQ_MHZ,
         baud=args.baud, seed=args.seed, router=args.router or ROUTER, workdir=args.workdir,
-        cell=Cell(args.cell), fabric_units=args.fabric_units))
+        cell=Cell(args.cell), fabric_units=args.fabric_units, dsp_floorplan=args.dsp_floorplan))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]

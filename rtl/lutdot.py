@@ -22,7 +22,11 @@ registers, as ``_product``.
 
 from amaranth.hdl import Cat, Const, Instance, Module, Signal, signed
 
-__all__ = ["dot_product", "bit_heap"]
+__all__ = ["dot_product", "bit_heap", "OWN_REGISTER"]
+
+#: the attribute of registers Yosys must not merge with identical ones (synth/yosys.py
+#: ``OWN_REGISTERS`` gives their flip-flops ``keep``)
+OWN_REGISTER = "blockray_own"
 
 
 # a term of the heap: ("and", a, b), ("nand", a, b), ("wire", x), ("one",)
@@ -176,9 +180,13 @@ def dot_product(m, pairs, width, name, platform=None, first_stage_levels=None):
     """sum(a * b for a, b in pairs) modulo 2**width as a ``signed(width)`` register, three cycles
     after the operand expressions (see the module doc); a pair ``(a, b, True)`` is subtracted."""
     mode = getattr(platform, "ccu2c", False)
+    # each heap its own operand registers: the cells of a row (column) take the same broadcast
+    # operands, and Yosys would merge their registers into one far from most of them
+    attrs = {OWN_REGISTER: 1} if mode else {}
     regs = []
     for i, (a, b, *minus) in enumerate(pairs):
-        ra, rb = Signal(a.shape(), name=f"{name}_a{i}"), Signal(b.shape(), name=f"{name}_b{i}")
+        ra = Signal(a.shape(), name=f"{name}_a{i}", attrs=attrs)
+        rb = Signal(b.shape(), name=f"{name}_b{i}", attrs=attrs)
         m.d.sync += [ra.eq(a), rb.eq(b)]
         regs.append((ra, rb, *minus))
     s = Signal(signed(width), name=name)

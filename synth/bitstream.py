@@ -44,7 +44,8 @@ from .nextpnr import (_ABC_FALLBACK, DEVICES, PACKAGE, ROUTER, _cells_resources,
                       _versions, dsp_estimate, lean_dsp_estimate, nextpnr_command, run_nextpnr, tool_error)
 from .target import ECP5Target
 from .tools import last_error
-from .yosys import LUT_MULTIPLIERS, yosys_command
+from .floorplan import check_floorplan, lock_dsps
+from .yosys import LUT_MULTIPLIERS, OWN_REGISTERS, yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
            "DEFAULT_ROWS", "DEFAULT_COLS", "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
@@ -253,13 +254,16 @@ def _core(core, params, cell=Cell()):
 
 def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", freq=DEFAULT_FREQ_MHZ,
                     baud=DEFAULT_BAUD, seed=1, router=ROUTER, threads=1, workdir=None, cell=Cell(),
-                    fabric_units=()):
+                    fabric_units=(), dsp_floorplan=None):
     """Build the bitstream ``out`` (.bit) of ``core`` on ``platform``, the board's array of
     ``cell`` (exact or lean) with ``fabric_units`` (:class:`~blockray.synth.target.ECP5Target`);
-    returns the report dict. Raises ParameterError (before any tool runs) for what cannot fit."""
+    returns the report dict. ``dsp_floorplan``: ``"balanced"`` or a plan file locks the
+    multipliers to DSP sites before placing (:mod:`blockray.synth.floorplan`). Raises
+    ParameterError (before any tool runs) for what cannot fit."""
     params = BoardParams() if params is None else params
     estimate = check_fit(params, platform=platform, core=core, freq=freq, baud=baud, cell=cell,
                          fabric_units=fabric_units)
+    check_floorplan(dsp_floorplan, PLATFORMS[platform][1])
     out = Path(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -268,7 +272,7 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
     check_output_file(out, "--out")         # creates nothing: a failed build leaves no empty .bit
     with _workdir(workdir) as tmp:
         return _build(params, out, platform, core, tmp, estimate, freq=freq, baud=baud,
-                      tools={"seed": seed, "router": router, "threads": threads},
+                      tools={"seed": seed, "router": router, "threads": threads, "dsp_floorplan": dsp_floorplan},
                       array={"cell": check_cell(cell).at(params.bits), "fabric_units": tuple(fabric_units)})
 
 
@@ -277,16 +281,19 @@ def build_bitstream(params=None, *, out, platform="ulx3s-85f", core="board", fre
 ARRAY_MODULES = "*.array*"
 
 
-def array_lut_multipliers(name, fabric_units):
-    """The platform's Yosys overrides that put the array's generic products (``fabric_units``) on
-    Booth LUT multipliers, as ``blockray synth`` does; without them synth_ecp5 maps them to DSPs."""
-    if not fabric_units:
-        return {}
-    return {"script_after_read": f"{LUT_MULTIPLIERS.format(top=name)} {ARRAY_MODULES}"}
+def array_yosys_steps(name, fabric_units):
+    """The platform's Yosys steps after reading the design: the cells' operand registers kept apart
+    (``OWN_REGISTERS``), then the array's generic products (``fabric_units``) on Booth LUT
+    multipliers, as ``blockray synth`` does; without those synth_ecp5 maps them to DSPs."""
+    steps = OWN_REGISTERS.format(top=name)
+    if fabric_units:
+        steps += f"; {LUT_MULTIPLIERS.format(top=name)} {ARRAY_MODULES}"
+    return {"script_after_read": steps}
 
 
 def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, tools, array):
-    """The bitstream in ``tmp``; ``tools``: nextpnr's ``seed``, ``router`` and ``threads``."""
+    """The bitstream in ``tmp``; ``tools``: nextpnr's ``seed``, ``router`` and ``threads``, and the
+    ``dsp_floorplan``."""
     from ..rtl.ulx3s import ULX3STop
 
     dev_key = PLATFORMS[platform_name][1]
@@ -299,7 +306,7 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
                    window=FRAME_WINDOW)
     platform = _platform(platform_name, array["fabric_units"])
     name = "blockray_ulx3s"
-    plan = platform.build(top, name=name, do_build=False, **array_lut_multipliers(name, array["fabric_units"]),
+    plan = platform.build(top, name=name, do_build=False, **array_yosys_steps(name, array["fabric_units"]),
                           script_after_synth=f"tee -q -o {name}.stat.json stat -json")
     plan.extract(str(tmp))
     report = {
@@ -340,6 +347,8 @@ def _build(params, out, platform_name, core_name, tmp, estimate, *, freq, baud, 
             f"{k} {res[k]} > {available[k]}" for k in limits)}
         return report
 
+    if tools.get("dsp_floorplan") is not None:
+        report["dsp_floorplan"] = lock_dsps(tmp / f"{name}.json", tools["dsp_floorplan"], dev_key)
     nice = [shutil.which("nice")] if shutil.which("nice") else []
     cmd = nice + nextpnr_command() + [
         f"--{dev_key}", "--package", PACKAGE, "--speed", SPEED, "--json", f"{name}.json", "--lpf", f"{name}.lpf",

@@ -46,15 +46,25 @@ def _natural(name):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
+def _unit_of(name):
+    """The unit of a cell: the module just below the array (``...array.receiver_0``) or, outside an
+    array, below the harness (``dut.sequencer``); else its module's path."""
+    parts = name.split(".")[:-1]
+    for root in ("array", "dut"):
+        if root in parts:
+            i = len(parts) - 1 - parts[::-1].index(root)
+            return parts[i + 1] if i + 1 < len(parts) else "(top)"
+    return ".".join(parts) or "(top)"
+
+
 def dsp_units(cells):
-    """{unit: [MULT18X18D cell names, sorted]} of a netlist's ``cells``; a unit is the module just
-    below the harness's ``dut`` (``(top)`` for the unit's own multipliers)."""
+    """{unit: [MULT18X18D cell names, sorted]} of a netlist's ``cells`` (:func:`_unit_of`: the
+    harness's ``dut.receiver_0``, a board's ``core.board.array.resolve``: ``receiver_0``,
+    ``resolve``; ``(top)`` for multipliers of the harnessed unit itself)."""
     units = {}
     for name, cell in cells.items():
         if cell["type"] == "MULT18X18D":
-            parts = name.split(".")
-            unit = parts[1] if len(parts) > 2 and parts[0] == "dut" else "(top)"
-            units.setdefault(unit, []).append(name)
+            units.setdefault(_unit_of(name), []).append(name)
     return {u: sorted(names, key=_natural) for u, names in units.items()}
 
 

@@ -57,7 +57,7 @@ from .tools import last_error, tool_command
 from ..cell import Cell, check_cell
 from .verilog import build_unit, UNITS
 from .wrap import LfsrHarness
-from .yosys import LUT_MULTIPLIERS, synth_stats, yosys_command
+from .yosys import LUT_MULTIPLIERS, OWN_REGISTERS, synth_stats, yosys_command
 
 __all__ = ["DEVICES", "SPEEDS", "PACKAGE", "ROUTER", "nextpnr_command", "nextpnr_args", "check_speed", "dsp_estimate",
            "dsp_registers", "synth_report", "time_routed", "write_report"]
@@ -389,6 +389,7 @@ def _yosys_ecp5(text, top, tmp, tag, netlist, lut_multipliers=False):
     (tmp / f"{tag}.v").write_text(text)
     start = time.perf_counter()
     prefix, nodsp = (LUT_MULTIPLIERS.format(top=top) + "; ", " -nodsp") if lut_multipliers else ("", "")
+    prefix = OWN_REGISTERS.format(top=top) + "; " + prefix
     for mapper, synth in (("abc9", f"synth_ecp5{nodsp} -top {top}"),
                           ("abc", _ABC_FALLBACK.format(top=top).replace("synth_ecp5", "synth_ecp5" + nodsp))):
         script = f"read_verilog {tag}.v; {prefix}{synth}; tee -q -o {tag}.stat.json stat -json"

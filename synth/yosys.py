@@ -25,12 +25,17 @@ from .. import hdl
 
 from ..errors import ToolError
 from .tools import last_error, tool_command
+from ..rtl.lutdot import OWN_REGISTER
 
 __all__ = ["SynthStats", "yosys_command", "synth_stats", "LUT_MULTIPLIERS", "booth_verilog"]
 
 #: the Yosys passes that turn every ``$mul`` cell left in a netlist (the generic products of the
 #: ECP5 target's fabric units) into Booth-encoded adder logic, run before ``synth_ecp5 -nodsp``
 LUT_MULTIPLIERS = "hierarchy -top {top}; proc; booth"
+
+#: before ``synth_ecp5``: the flip-flops of registers marked :data:`~blockray.rtl.lutdot.OWN_REGISTER`
+#: get ``keep``, which ``opt_merge`` respects, so identical registers in different cells stay apart
+OWN_REGISTERS = "hierarchy -top {top}; proc; setattr -set keep 1 a:%s %%ci1:+$dff[Q] t:$dff %%i" % OWN_REGISTER
 
 
 @dataclass(frozen=True)

@@ -141,13 +141,13 @@ def test_the_bitstreams_fabric_units_leave_no_product_to_the_dsps(tmp_path):
     import subprocess
     from amaranth.back import rtlil
     from blockray.cell import Cell
-    from blockray.synth.yosys import yosys_command
-    assert bitstream.array_lut_multipliers("top", ()) == {}
+    from blockray.synth.yosys import OWN_REGISTERS, yosys_command
+    assert bitstream.array_yosys_steps("top", ()) == {"script_after_read": OWN_REGISTERS.format(top="top")}
     params = BoardParams(rows=1, cols=2, bits=12, patch_depth=64, voxel_depth=16)
     platform = bitstream._platform("ulx3s-85f", ("cell", "exact"))
     (tmp_path / "core.il").write_text(rtlil.convert(bitstream._core("board", params, Cell("lean")), name="top",
                                                     platform=platform))
-    script = bitstream.array_lut_multipliers("top", platform.fabric_units)["script_after_read"]
+    script = bitstream.array_yosys_steps("top", platform.fabric_units)["script_after_read"]
 
     def products(then):
         out = subprocess.run(yosys_command() + ["-p", f"read_rtlil core.il; {then}; select -list t:$mul"],

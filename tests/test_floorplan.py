@@ -10,7 +10,7 @@ import pytest
 
 from blockray.errors import ParameterError
 from blockray.host_driver.cli import main
-from blockray.synth.floorplan import DSP_COLUMNS, DSP_ROWS, balanced_plan, lock_dsps, read_plan, site
+from blockray.synth.floorplan import DSP_COLUMNS, DSP_ROWS, balanced_plan, dsp_units, lock_dsps, read_plan, site
 
 from clirun import assert_one_line_error, cli
 
@@ -94,6 +94,20 @@ def test_lock_dsps_writes_a_bel_for_every_multiplier(tmp_path):
     assert row == [site(2 + i, 34) for i in range(6)]
 
 
+def test_units_of_harness_and_board_netlists():
+    cells = {n: {"type": "MULT18X18D"} for n in [
+        "dut.receiver_0.pq_0_p17_dsp", "dut.resolve.exact.w_1_dsp", "dut.p_0_dsp",
+        "core.board.array.shooter_2.pp_1_dsp", "core.board.array.resolve.exact.s_0_dsp",
+        "core.board.sequencer.step.m_0_dsp", "dut.array.receiver_1.w_2_dsp", "dut.sequencer.m_1_dsp"]}
+    cells["dut.cell_0_0.lut"] = {"type": "LUT4"}
+    assert dsp_units(cells) == {
+        "receiver_0": ["dut.receiver_0.pq_0_p17_dsp"], "resolve": ["core.board.array.resolve.exact.s_0_dsp",
+                                                                   "dut.resolve.exact.w_1_dsp"],
+        "(top)": ["dut.p_0_dsp"], "shooter_2": ["core.board.array.shooter_2.pp_1_dsp"],
+        "core.board.sequencer.step": ["core.board.sequencer.step.m_0_dsp"],
+        "receiver_1": ["dut.array.receiver_1.w_2_dsp"], "sequencer": ["dut.sequencer.m_1_dsp"]}
+
+
 def test_plan_file_and_its_errors(tmp_path):
     path = _netlist(tmp_path, {"receiver_0": 4, "shooter_0": 2})
     plan = tmp_path / "plan.json"
@@ -125,6 +139,9 @@ def test_cli_refuses_a_bad_floorplan_before_any_tool(tmp_path, capsys):
                              "--report", tmp_path / "r.json"])
     assert_one_line_error(code, err, "--dsp-floorplan", "85k")
     assert not (tmp_path / "r.json").exists()
+    code, err = cli(capsys, ["bitstream", "--dsp-floorplan", str(bad), "--out", tmp_path / "b.bit"])
+    assert_one_line_error(code, err, "--dsp-floorplan", "not a DSP floorplan")
+    assert not (tmp_path / "b.bit").exists()
 
 
 @pytest.mark.synth
