@@ -36,8 +36,10 @@ __all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "Gap", "Mark", "Record",
 LEAN_EXACT_LATENCY = 2 + 2 + 3 + 3 + 1
 #: cycles between two tests into the lean exact unit (one edge a cycle)
 LEAN_EXACT_INTERVAL = 3
-#: credits the lean array has beyond the filtered array's: its exact unit's latency and 4
-LEAN_EXTRA_DEPTH = LEAN_EXACT_LATENCY + 4
+#: credits for a burst of undecided tests (rtl/lean.py ``LeanArray.burst_credits``)
+LEAN_BURST_DEPTH = 32
+#: credits the lean array has beyond the filtered array's: its exact unit's latency, 4 and a burst's
+LEAN_EXTRA_DEPTH = LEAN_EXACT_LATENCY + 4 + LEAN_BURST_DEPTH
 
 
 def default_lean_depth(extra_latency=2):

@@ -143,8 +143,8 @@ def test_row_unit_with_carry_chains_equals_the_receiver_unit():
 
 def test_model_constants_are_the_rtls():
     assert LEAN_EXACT_LATENCY == LeanExact.latency == 11 and LEAN_EXACT_INTERVAL == LeanExact.interval == 3
-    assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 33
-    assert default_lean_depth() == LeanArray.default_depth(2) == 35       # behind the board's memory
+    assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 65
+    assert default_lean_depth() == LeanArray.default_depth(2) == 67       # behind the board's memory
 
 
 @pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4)),
