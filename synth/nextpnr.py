@@ -316,7 +316,8 @@ def synth_report(unit, params=None, *, target="ecp5", device="85k", speed=None, 
     params = BoardParams() if params is None else params
     check_cell(cell)                                     # not a Cell: fails here, before any tool
     report = {"unit": unit, "cell": cell.kind, "filter_format": None if cell.format is None else str(cell.format),
-              "params": _params_dict(unit, params), "target": target,
+              "params": _params_dict(unit, params),
+              "processors": params.rows * params.cols if unit in ("array", "board") else 1, "target": target,
               "tools": _versions(), "machine": _machine()}
 
     if target == "generic":

@@ -161,4 +161,4 @@ def test_nextpnr_places_the_multipliers_where_the_plan_locks_them(tmp_path):
         units.setdefault(name.split(".")[1] if name.count(".") > 1 else "(top)", set()).add(bel)
     assert units == {unit: {site(start + i, y) for i in range(len(units[unit]))}
                      for y, row in plan.items() for unit, start in row}
-    assert len(placed) == report["resources"]["dsps"]
+    assert len(placed) == report["resources"]["dsps"] and report["processors"] == 2

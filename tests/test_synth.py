@@ -40,7 +40,7 @@ def processor_report(tmp_path_factory):
 def test_processor_report(processor_report):
     r = processor_report
     print(json.dumps({k: r[k] for k in ("resources", "harness", "fmax_mhz", "seconds")}))
-    assert r["unit"] == "processor" and r["params"] == {"bits": BITS}
+    assert r["unit"] == "processor" and r["params"] == {"bits": BITS} and r["processors"] == 1
     assert r["device"] == "LFE5U-85F" and r["package"] == "CABGA381"
     assert r["speed"] == 6 and r["part"] == "LFE5U-85F-6" and r["nextpnr"]["speed"] == 6   # the ULX3S's grade
     res = r["resources"]
