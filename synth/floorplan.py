@@ -147,25 +147,25 @@ def _bels(plan, units, source):
 
 def check_floorplan(plan, device, target="ecp5"):
     """Refuse, before any tool runs, a ``plan`` (None, ``"balanced"`` or a plan file) that cannot
-    apply: another target or part, or a file that is not a plan."""
+    apply: another target or part, or a file that is not a plan. Returns a plan file's
+    :func:`read_plan`, else None."""
     if plan is None:
-        return
+        return None
     if target != "ecp5" or device not in FLOORPLAN_DEVICES:
         raise ParameterError(f"dsp_floorplan: the DSP sites are known for the ecp5 target's "
                              f"{', '.join(FLOORPLAN_DEVICES)} only, not {target} {device}", parameter="dsp_floorplan")
-    if plan != "balanced":
-        read_plan(plan)
+    return None if plan == "balanced" else read_plan(plan)
 
 
 def lock_dsps(netlist, plan="balanced", device="85k"):
     """Lock the MULT18X18D of the Yosys JSON ``netlist`` (rewritten in place) to the sites of
     ``plan`` (``"balanced"``: :func:`balanced_plan`; else a plan file, :func:`read_plan`).
     Returns the plan used and the multipliers per row."""
-    check_floorplan(plan, device)
+    layout = check_floorplan(plan, device)
     design = json.loads(Path(netlist).read_text())
     top = next(m for m in design["modules"].values() if m.get("attributes", {}).get("top"))
     units = dsp_units(top["cells"])
-    layout = balanced_plan(units) if plan == "balanced" else read_plan(plan)
+    layout = balanced_plan(units) if layout is None else layout
     for name, bel in _bels(layout, units, "balanced" if plan == "balanced" else plan).items():
         top["cells"][name]["attributes"]["BEL"] = bel
     Path(netlist).write_text(json.dumps(design))
