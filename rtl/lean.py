@@ -173,12 +173,13 @@ class LeanExact(wiring.Component):
 
     Cycle 0: ``valid``, ``which`` (the test's bit r * S + s, one-hot) and ``terms`` (its tag:
     patch ``address``, end-point ``slot``); the patch memory (``patch_read``) and the end-point
-    memory (``points_read``) are read at the tag's addresses. Cycle 1: P_s and Q_r picked from
-    the entry by ``which`` are held with the patch's vertices. Cycles 2, 3, 4 (edge k = 0, 1, 2):
-    w_k = (Q - V_k) x (V_{k+1} - V_k) on six products, three cycles later s_k = (P - V_k) . w_k
-    on three (:func:`~blockray.rtl.processor._dot_sums`). Edge k's sign and zero come out in
-    cycle 8 + k; the decision (all s_k >= 0 or all <= 0) is ``blocked`` with ``result_valid`` in
-    cycle :attr:`latency` = 11. The planes' test is not recomputed: a cell decides every test
+    memory (``points_read``) are read at the tag's addresses. Cycle 1: both reads registered as
+    they are. Cycle 2: P_s and Q_r picked from the entry by ``which`` are held with the patch's
+    vertices. Cycles 3, 4, 5 (edge k = 0, 1, 2): w_k = (Q - V_k) x (V_{k+1} - V_k) on six
+    products, three cycles later s_k = (P - V_k) . w_k on three
+    (:func:`~blockray.rtl.processor._dot_sums`). Edge k's sign and zero come out in cycle 9 + k;
+    the decision (all s_k >= 0 or all <= 0) is ``blocked`` with ``result_valid`` in cycle
+    :attr:`latency` = 12. The planes' test is not recomputed: a cell decides every test
     whose planes do not cross (its ``crossing`` is exact), so every test handed here crosses.
     ``first`` is accepted and ignored (the hand-off's exact-unit ports). All its products answer
     to the fabric-units key ``exact``. Why serial: undecided tests are about one in a thousand
@@ -188,7 +189,7 @@ class LeanExact(wiring.Component):
 
     #: cycles between tests (the hand-off feeds no faster: :attr:`ArrayResolve.exact_interval`)
     interval = 3
-    latency = 2 + 2 + 3 + 3 + 1
+    latency = 3 + 2 + 3 + 3 + 1
 
     def __init__(self, bits, rows, cols, address_bits, slots):
         self._bits, self._rows, self._cols = bits, rows, cols
@@ -210,26 +211,30 @@ class LeanExact(wiring.Component):
             self.patch_read.addr.eq(self.terms.address), self.patch_read.en.eq(1),
             self.points_read.addr.eq(self.terms.slot), self.points_read.en.eq(1),
         ]
-        # cycle 1: the test's points and patch held for its three edges
-        valid1 = _delay(m, self.valid, 1, "valid")
-        which1 = _delay(m, self.which, 1, "which")
-        entry = self._entry(self.points_read.data)
+        # cycle 1: the memories' outputs registered as they are (a block RAM's output is late in
+        # its cycle: picking P_s straight from it was the lean 2 x 8's critical path)
+        entry = Signal(self._entry, name="entry_read")
+        patch = Signal(self.patch_read.data.shape(), name="patch_read_held")
+        m.d.sync += [entry.eq(self.points_read.data), patch.eq(self.patch_read.data)]
+        # cycle 2: the test's points and patch held for its three edges
+        valid2 = _delay(m, self.valid, 2, "valid")
+        which2 = _delay(m, self.which, 2, "which")
         p, q = Signal(point_layout(B), name="p_held"), Signal(point_layout(B), name="q_held")
         vertex = [Signal(point_layout(B), name=f"v{k}_held") for k in range(3)]
-        with m.If(valid1):
+        with m.If(valid2):
             m.d.sync += [
-                p.eq(sum_or(Mux(sum_or(which1[r * S + s] for r in range(R)), entry.shooters[s].as_value(), 0)
+                p.eq(sum_or(Mux(sum_or(which2[r * S + s] for r in range(R)), entry.shooters[s].as_value(), 0)
                             for s in range(S))),
-                q.eq(sum_or(Mux(sum_or(which1[r * S + s] for s in range(S)), entry.receivers[r].as_value(), 0)
+                q.eq(sum_or(Mux(sum_or(which2[r * S + s] for s in range(S)), entry.receivers[r].as_value(), 0)
                             for r in range(R))),
-                *(v.eq(self.patch_read.data[name]) for v, name in zip(vertex, _VERTICES)),
+                *(v.eq(patch[name]) for v, name in zip(vertex, _VERTICES)),
             ]
-        phase = [_delay(m, self.valid, 2 + k, f"edge{k}") for k in range(3)]     # cycles 2, 3, 4
+        phase = [_delay(m, self.valid, 3 + k, f"edge{k}") for k in range(3)]     # cycles 3, 4, 5
         vk = Mux(phase[1], vertex[1].as_value(), Mux(phase[2], vertex[2].as_value(), vertex[0].as_value()))
         vk1 = Mux(phase[1], vertex[2].as_value(), Mux(phase[2], vertex[0].as_value(), vertex[1].as_value()))
         vk, vk1 = point_layout(B)(vk), point_layout(B)(vk1)
-        negative, zero = self._edges(m, w, p, q, vk, vk1, product_platform(platform, "exact"))   # cycle 8 + k
-        # cycle 10: edge 2's sign beside edges 1's and 0's, registered one and two cycles back
+        negative, zero = self._edges(m, w, p, q, vk, vk1, product_platform(platform, "exact"))   # cycle 9 + k
+        # cycle 11: edge 2's sign beside edges 1's and 0's, registered one and two cycles back
         neg = [_delay(m, negative, 2 - k, f"neg{k}") for k in range(3)]
         nil = [_delay(m, zero, 2 - k, f"zero{k}") for k in range(3)]
         nonneg = ~neg[0] & ~neg[1] & ~neg[2]
@@ -253,7 +258,7 @@ class LeanExact(wiring.Component):
 class LeanResolve(ArrayResolve):
     """The lean array's in-order hand-off: :class:`~blockray.rtl.filtered.ArrayResolve` with a
     record's tag (:func:`tag_layout`) queued in place of exact terms, and :class:`LeanExact`
-    (latency 11, a test every 3 cycles) as the exact unit, which ``exact_unit`` gives (its owner
+    (latency 12, a test every 3 cycles) as the exact unit, which ``exact_unit`` gives (its owner
     wires its read ports)."""
 
     exact_latency = LeanExact.latency
@@ -272,7 +277,7 @@ class LeanResolve(ArrayResolve):
 
 class LeanArray(FilteredArray):
     """R x S lean cells: :class:`~blockray.rtl.filtered.FilteredArray`'s ports and cycle
-    contract (the hand-off's exact unit takes 11 cycles, not 4, and a test every 3), plus ``address`` (the record's
+    contract (the hand-off's exact unit takes 12 cycles, not 4, and a test every 3), plus ``address`` (the record's
     patch address, sampled with ``valid``) and ``patch_read`` (a registered read port of the
     patch memory the records come from, for the exact unit). The owner keeps at most
     :attr:`depth` items inside (credits) and must not overwrite a patch whose record is inside.
@@ -280,7 +285,7 @@ class LeanArray(FilteredArray):
     The end-point memory has :attr:`depth` entries: every record writes its S + R points at the
     next slot (mod depth) as it enters; with at most depth items inside, a record's entry stays
     until it is delivered. Default filter the lean cell's (:meth:`Cell.format_at <blockray.cell.Cell.format_at>`); default depth
-    :meth:`default_depth` (the filtered array's, plus the exact unit's 11 cycles and 4: a record
+    :meth:`default_depth` (the filtered array's, plus the exact unit's 12 cycles and 4: a record
     with undecided tests every few records costs no cycle; plus :attr:`burst_credits`)."""
 
     #: with ``--fabric-units cell`` on ECP5 the cells' three products and their sum per edge are
@@ -288,9 +293,10 @@ class LeanArray(FilteredArray):
     carry_chain_cells = True
     #: credits for a burst of undecided tests (a record grazing a shooter patch's rays leaves many):
     #: the records behind keep entering while the exact unit works through it. On cornell, lean
-    #: 2 x 8: utilisation 0.830 without, 0.847 with 32 (docs/synthesis.md); the end-point memory
-    #: stays in the same block RAMs
-    burst_credits = 32
+    #: 2 x 8: utilisation 0.830 without, 0.847 with 31 (docs/synthesis.md). 31 keeps the array's
+    #: depth at 65: a SyncFIFOBuffered of 65 holds 64 in LUT RAM; at 66 Yosys put the hand-off's
+    #: queue in block RAM, and its late read became the 2 x 8's critical path (59.7 MHz routed)
+    burst_credits = 31
 
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1),
                  address_bits=DEFAULT_ADDRESS_BITS):

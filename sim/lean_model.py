@@ -7,7 +7,7 @@ recomputes from the patch and the end points); an undecided test of an unloaded 
 is not resolved and reads 0 (the board masks it out). So the loaded bits are the exact cell's by
 construction. Timing: :func:`blockray.sim.filtered_model.board_clock`, the cycle-by-cycle mirror
 of the hand-off the lean array shares with the filtered array, with the lean exact unit's
-latency (:data:`LEAN_EXACT_LATENCY` = 11) and interval (:data:`LEAN_EXACT_INTERVAL` = 3: a test
+latency (:data:`LEAN_EXACT_LATENCY` = 12) and interval (:data:`LEAN_EXACT_INTERVAL` = 3: a test
 every 3 cycles) and the array's 12 cycles from its input to the hand-off.
 
     model = LeanArrayModel(bits, rows, cols, fmt=None, depth=None)
@@ -31,13 +31,13 @@ __all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "Gap", "Mark", "Record",
            "record_answers", "default_lean_depth"]
 
 #: the lean exact unit's latency (rtl/lean.py LeanExact): tag in, the patch memory and end-point
-#: memory read (1), the points held (1), its three edges a cycle apart (2), each edge's w_k (3)
+#: memory read (1), the reads registered (1), the points held (1), its three edges a cycle apart (2), each edge's w_k (3)
 #: and s_k (3), the decision (1)
-LEAN_EXACT_LATENCY = 2 + 2 + 3 + 3 + 1
+LEAN_EXACT_LATENCY = 3 + 2 + 3 + 3 + 1
 #: cycles between two tests into the lean exact unit (one edge a cycle)
 LEAN_EXACT_INTERVAL = 3
 #: credits for a burst of undecided tests (rtl/lean.py ``LeanArray.burst_credits``)
-LEAN_BURST_DEPTH = 32
+LEAN_BURST_DEPTH = 31
 #: credits the lean array has beyond the filtered array's: its exact unit's latency, 4 and a burst's
 LEAN_EXTRA_DEPTH = LEAN_EXACT_LATENCY + 4 + LEAN_BURST_DEPTH
 

@@ -242,7 +242,7 @@ class ExactStandIn(wiring.Component):
 
 
 class LeanStandIn(ExactStandIn):
-    """:class:`~blockray.rtl.lean.LeanExact`'s ports and latency (11): a test is its record's tag
+    """:class:`~blockray.rtl.lean.LeanExact`'s ports and latency (12): a test is its record's tag
     (``terms``: patch address, end-point slot) and its bit ``which``; it answers the tag's
     address bit at the test's index, XOR the slot's low bit (so a test answered for another
     test's bit or another record's tag is caught). ``fault`` as :class:`ExactStandIn`'s."""
@@ -284,7 +284,7 @@ class ArrayHandoffHarness(wiring.Component):
         from blockray.rtl.filtered import ArrayResolve
         from blockray.rtl.lean import LeanResolve
         self.depth, self.tag_bits, self.rows, self.cols, self.invariants = depth, tag_bits, rows, cols, invariants
-        if lean:            # the lean array's: tags to LeanExact (latency 11, a test every 3 cycles); address bits = the tests
+        if lean:            # the lean array's: tags to LeanExact (latency 12, a test every 3 cycles); address bits = the tests
             self.exact = LeanStandIn(rows, cols, rows * cols, depth, fault)
             self.dut = LeanResolve(bits, rows, cols, unsigned(tag_bits), depth, exact_unit=lambda: self.exact,
                                    address_bits=rows * cols)
@@ -357,7 +357,7 @@ class ArrayHandoffHarness(wiring.Component):
         * no FIFO written when it cannot take it; every delivered record has its right answer.
 
         Items deep in the pending FIFO cannot be named (its memory): the induction depth covers
-        the 11 cycles such an item can take to reach the head. Tying more to the shadow (the
+        the 12 cycles such an item can take to reach the head. Tying more to the shadow (the
         answers head, each stage's answer, the queue head's operands) does not shorten that and
         doubles the solver's time.
         """

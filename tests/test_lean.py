@@ -142,7 +142,7 @@ def test_row_unit_with_carry_chains_equals_the_receiver_unit():
 
 
 def test_model_constants_are_the_rtls():
-    assert LEAN_EXACT_LATENCY == LeanExact.latency == 11 and LEAN_EXACT_INTERVAL == LeanExact.interval == 3
+    assert LEAN_EXACT_LATENCY == LeanExact.latency == 12 and LEAN_EXACT_INTERVAL == LeanExact.interval == 3
     assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 65
     assert default_lean_depth() == LeanArray.default_depth(2) == 67       # behind the board's memory
 

@@ -1,5 +1,5 @@
 """Formal properties of the lean array's tag queue (rtl/lean.py ``LeanResolve``: ArrayResolve with
-a record's tag queued instead of exact terms, and LeanExact's latency of 11 and a test every 3
+a record's tag queued instead of exact terms, and LeanExact's latency of 12 and a test every 3
 cycles), checked with
 SymbiYosys and Boolector through :class:`blockray.synth.handoff_harness.ArrayHandoffHarness`
 (``lean=True``) and its stand-in :class:`~blockray.synth.handoff_harness.LeanStandIn`, which
@@ -7,7 +7,7 @@ answers each test from its own tag and bit. Properties (the filtered array's, do
 the n-th item delivered is the n-th entered (in order, none lost or duplicated) with its marker
 flag; a solver-chosen record's bits are, per test, the filter's when decided, else the exact
 unit's answer for that test's own tag and bit; no deadlock (an item delivered within
-RS x depth x 3 + 15 cycles while any is inside); covers: full, and delivering while full.
+RS x depth x 3 + 16 cycles while any is inside); covers: full, and delivering while full.
 """
 
 import pytest
@@ -15,10 +15,10 @@ import pytest
 from blockray.synth.formal import prove
 from blockray.synth.handoff_harness import ARRAY_PROOF, MEMORIES_AS_FLOPS, ArrayHandoffHarness
 
-#: a record's first answer leaves the exact unit 11 cycles after its tag heads the queue, its
-#: second 3 cycles later: 24 cycles fill the hand-off with records of two undecided tests and
+#: a record's first answer leaves the exact unit 12 cycles after its tag heads the queue, its
+#: second 3 cycles later: 25 cycles fill the hand-off with records of two undecided tests and
 #: deliver while full
-LEAN_BMC_DEPTH = 24
+LEAN_BMC_DEPTH = 25
 #: the induction must outlast an item's way from deep in the pending FIFO to delivery behind
 #: records served 3 cycles a test: depth 27 fails (a wrong answer from an unreachable start), 34
 #: passes
@@ -34,7 +34,7 @@ def _check(tmp_path, harness, mode, depth, timeout=1800):
 
 @pytest.mark.parametrize("mode", [pytest.param("bmc", marks=pytest.mark.slow), "cover"])     # bmc: ~3 min
 def test_tag_queue_properties_bounded(tmp_path, mode):
-    """LeanResolve (1 x 2 tests per record, depth 4) under every input sequence of 24 cycles."""
+    """LeanResolve (1 x 2 tests per record, depth 4) under every input sequence of 25 cycles."""
     result = _check(tmp_path, ArrayHandoffHarness(lean=True), mode, LEAN_BMC_DEPTH)
     assert result.passed, f"sby {result.status}:\n{result.log[-3000:]}"
 
