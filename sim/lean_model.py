@@ -31,8 +31,8 @@ __all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "Gap", "Mark", "Record",
            "record_answers", "default_lean_depth"]
 
 #: the lean exact unit's latency (rtl/lean.py LeanExact): tag in, the patch memory and end-point
-#: memory read (1), the reads registered (1), the points held (1), its three edges a cycle apart (2), each edge's w_k (3)
-#: and s_k (3), the decision (1)
+#: memory read (1), the reads registered (1), the points held (1), its three edges a cycle apart
+#: (2), each edge's w_k (3) and s_k (3), the decision (1)
 LEAN_EXACT_LATENCY = 3 + 2 + 3 + 3 + 1
 #: cycles between two tests into the lean exact unit (one edge a cycle)
 LEAN_EXACT_INTERVAL = 3
