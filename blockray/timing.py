@@ -52,6 +52,8 @@ CELL_LATENCY = 4        # Processor (cell), including the OR into the accumulato
 #: the filtered array (rtl/filtered.py FilteredArray) when no test of a record waits for its exact
 #: unit: units 4, filters 3, filtered cell 5, the in-order hand-off's FIFO 2, the accumulator 1
 FILTERED_LATENCY = 15
+#: the lean array: the filtered array's and the register before its hand-off (rtl/lean.py)
+LEAN_LATENCY = FILTERED_LATENCY + 1
 
 
 @dataclass(frozen=True)
@@ -84,12 +86,13 @@ class BoardTiming:
         products, partial sums, the sum joining the pieces) + processor (4: operand registers,
         partial products, partial sums, the joined sum with the decision and OR).
 
-        A filtering cell (filtered, lean): the filtered array's least latency (:data:`FILTERED_LATENCY`); its
-        data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
+        A filtering cell: the filtered array's least latency (:data:`FILTERED_LATENCY`; lean:
+        :data:`LEAN_LATENCY`, one more for the register before its hand-off); its data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
         array's credits run out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
         """
         if check_cell(cell).filtered:            # filtered, lean: the same datapath and hand-off
-            return cls(processor_latency=FILTERED_LATENCY, memory_latency=memory_latency)
+            latency = LEAN_LATENCY if cell.lean else FILTERED_LATENCY
+            return cls(processor_latency=latency, memory_latency=memory_latency)
         return cls(processor_latency=UNIT_LATENCY + CELL_LATENCY, memory_latency=memory_latency)
 
     @property

@@ -132,7 +132,7 @@ class BoardTop(wiring.Component):
         """Cycles from the array's input to the accumulators (the filtered array's least: a
         record with no undecided test, to its delivery and the accumulator's register)."""
         if self._cell.filtered:
-            return FilteredArray.latency + 3
+            return (LeanArray if self._cell.lean else FilteredArray).latency + 3
         return self._array_timing.latency
 
     @property

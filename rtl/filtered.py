@@ -597,6 +597,8 @@ class FilteredArray(_FilteredCells, wiring.Component):
 
     #: the cells' products as CCU2C bit heaps when in the ECP5 fabric (the lean array's)
     carry_chain_cells = False
+    #: registers between the cells' decisions and the hand-off (0 or 1; in :attr:`latency`)
+    handoff_stages = 0
 
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1)):
         self._MustUse__silence = True       # no "created but never used" warning on a rejected parameter
@@ -662,8 +664,12 @@ class FilteredArray(_FilteredCells, wiring.Component):
         receivers = [self._receiver_edge(m, r) for r in range(R)]
 
         m.submodules.resolve = resolve = self._resolve()
-        hand = resolve.i.payload
-        L = self.latency
+        hand = Signal(resolve.i.payload.shape(), name="hand")
+        hand_valid = Signal(name="hand_valid")
+        # the lean array's register: its cells' decisions reach the queue across the part
+        handoff = m.d.sync if self.handoff_stages else m.d.comb
+        handoff += [resolve.i.payload.eq(hand), resolve.i.valid.eq(hand_valid)]
+        L = self.latency - self.handoff_stages
         valid = _delay(m, self.valid, L, "valid")
         row_mask = _delay(m, self.row_mask, L, "row_mask")
         col_mask = _delay(m, self.col_mask, L, "col_mask")
@@ -687,7 +693,7 @@ class FilteredArray(_FilteredCells, wiring.Component):
             hand.item.first.eq(_delay(m, self.first, L, "first")),
             hand.item.mark.eq(mark),
             hand.item.mark_data.eq(_delay(m, self.mark_data, L, "mark_data")),
-            resolve.i.valid.eq(valid | mark),
+            hand_valid.eq(valid | mark),
         ]
 
         out = resolve.o.payload

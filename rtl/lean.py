@@ -277,7 +277,8 @@ class LeanResolve(ArrayResolve):
 
 class LeanArray(FilteredArray):
     """R x S lean cells: :class:`~blockray.rtl.filtered.FilteredArray`'s ports and cycle
-    contract (the hand-off's exact unit takes 12 cycles, not 4, and a test every 3), plus ``address`` (the record's
+    contract (a register before the hand-off, :attr:`latency` 13; its exact unit takes 12 cycles, not 4,
+    and a test every 3), plus ``address`` (the record's
     patch address, sampled with ``valid``) and ``patch_read`` (a registered read port of the
     patch memory the records come from, for the exact unit). The owner keeps at most
     :attr:`depth` items inside (credits) and must not overwrite a patch whose record is inside.
@@ -285,18 +286,24 @@ class LeanArray(FilteredArray):
     The end-point memory has :attr:`depth` entries: every record writes its S + R points at the
     next slot (mod depth) as it enters; with at most depth items inside, a record's entry stays
     until it is delivered. Default filter the lean cell's (:meth:`Cell.format_at <blockray.cell.Cell.format_at>`); default depth
-    :meth:`default_depth` (the filtered array's, plus the exact unit's 12 cycles and 4: a record
-    with undecided tests every few records costs no cycle; plus :attr:`burst_credits`)."""
+    :meth:`default_depth` (the filtered array's, plus the hand-off register, the exact unit's 12
+    cycles and 4: a record with undecided tests every few records costs no cycle; plus
+    :attr:`burst_credits`)."""
 
     #: with ``--fabric-units cell`` on ECP5 the cells' three products and their sum per edge are
     #: one bit heap on CCU2C carry chains (rtl/lutdot.py), not Yosys's LUT multipliers
     carry_chain_cells = True
     #: credits for a burst of undecided tests (a record grazing a shooter patch's rays leaves many):
     #: the records behind keep entering while the exact unit works through it. On cornell, lean
-    #: 2 x 8: utilisation 0.830 without, 0.847 with 31 (docs/synthesis.md). 31 keeps the array's
-    #: depth at 65: a SyncFIFOBuffered of 65 holds 64 in LUT RAM; at 66 Yosys put the hand-off's
-    #: queue in block RAM, and its late read became the 2 x 8's critical path (59.7 MHz routed)
-    burst_credits = 31
+    #: 2 x 8: utilisation 0.830 without, 0.847 with 31 (docs/synthesis.md). 30 and the hand-off
+    #: register keep the array's depth at 65: a SyncFIFOBuffered of 65 holds 64 in LUT RAM; at 66
+    #: Yosys put the hand-off's queue in block RAM, and its late read became the 2 x 8's critical
+    #: path (59.7 MHz routed)
+    burst_credits = 30
+    #: the cells' ``decided`` of a 2 x 8 reach the hand-off queue's write enable across the part
+    #: (its critical path, 71.8 MHz routed at seed 1); a register there costs a cycle of latency
+    handoff_stages = 1
+    latency = FilteredArray.latency + handoff_stages
 
     def __init__(self, bits, rows, cols, *, fmt=None, depth=None, mark_shape=unsigned(1),
                  address_bits=DEFAULT_ADDRESS_BITS):
@@ -314,7 +321,7 @@ class LeanArray(FilteredArray):
 
     @classmethod
     def default_depth(cls, extra_latency=0):
-        return FilteredArray.default_depth(extra_latency) + LeanExact.latency + 4 + cls.burst_credits
+        return FilteredArray.default_depth(extra_latency) + cls.handoff_stages + LeanExact.latency + 4 + cls.burst_credits
 
     def _receiver_edge(self, m, r):
         if self._fmt.w_input_bits is None:          # w_k exact, then rounded by the filter
@@ -345,6 +352,6 @@ class LeanArray(FilteredArray):
                      exact.points_read.data.eq(read.data)]
         m.d.comb += [self.patch_read.addr.eq(exact.patch_read.addr), self.patch_read.en.eq(exact.patch_read.en),
                      exact.patch_read.data.eq(self.patch_read.data)]
-        L = self.latency
+        L = self.latency - self.handoff_stages
         m.d.comb += [hand.terms.slot.eq(_delay(m, slot, L, "slot")),
                      hand.terms.address.eq(_delay(m, self.address, L, "address"))]

@@ -27,7 +27,7 @@ from ..exact import blocked_block
 from ..filtered import filtered_block
 from .filtered_model import DATAPATH_LATENCY, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
-__all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel",
+__all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "LEAN_HANDOFF_STAGES", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel",
            "record_answers", "default_lean_depth"]
 
 #: the lean exact unit's latency (rtl/lean.py LeanExact): tag in, the patch memory and end-point
@@ -37,9 +37,14 @@ LEAN_EXACT_LATENCY = 3 + 2 + 3 + 3 + 1
 #: cycles between two tests into the lean exact unit (one edge a cycle)
 LEAN_EXACT_INTERVAL = 3
 #: credits for a burst of undecided tests (rtl/lean.py ``LeanArray.burst_credits``)
-LEAN_BURST_DEPTH = 31
-#: credits the lean array has beyond the filtered array's: its exact unit's latency, 4 and a burst's
-LEAN_EXTRA_DEPTH = LEAN_EXACT_LATENCY + 4 + LEAN_BURST_DEPTH
+LEAN_BURST_DEPTH = 30
+#: the register between the cells' decisions and the hand-off (``LeanArray.handoff_stages``)
+LEAN_HANDOFF_STAGES = 1
+#: the lean array's input to its hand-off: the filtered array's datapath and that register
+LEAN_DATAPATH_LATENCY = DATAPATH_LATENCY + LEAN_HANDOFF_STAGES
+#: credits the lean array has beyond the filtered array's: the hand-off register, its exact
+#: unit's latency, 4 and a burst's
+LEAN_EXTRA_DEPTH = LEAN_HANDOFF_STAGES + LEAN_EXACT_LATENCY + 4 + LEAN_BURST_DEPTH
 
 
 def default_lean_depth(extra_latency=2):
@@ -125,7 +130,7 @@ class LeanArrayModel:
             else:
                 raise TypeError(f"a lean array step is a Gap, Mark or Record, not {step!r}")
         lost, marks = board_clock(np.array(kinds, np.int64), np.array(counts, np.int64), self.depth,
-                                  LEAN_EXACT_LATENCY, DATAPATH_LATENCY, LEAN_EXACT_INTERVAL)
+                                  LEAN_EXACT_LATENCY, LEAN_DATAPATH_LATENCY, LEAN_EXACT_INTERVAL)
         cycle = np.arange(len(steps)) + np.cumsum(lost)
         return LeanTrace(cycle, marks, hits, blocked, np.array(undecided_counts, np.int64),
                          int(marks[-1]) + 1 if len(marks) else int(cycle[-1]) + 1 if len(cycle) else 0)

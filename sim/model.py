@@ -40,16 +40,17 @@ from ..protocol import POINTS_PER_LOAD, BoardProtocol, BoardResult, Op, ResultKi
 from ..records import patch_layout, unpack_array
 from ..timing import BoardTiming
 from . import kernel
-from .filtered_model import (EXACT_LATENCY, STEP_BUBBLE, STEP_DRAIN, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock,
-                             default_array_depth)
-from .lean_model import LEAN_EXACT_INTERVAL, LEAN_EXACT_LATENCY, default_lean_depth
+from .filtered_model import (EXACT_LATENCY, ISSUE_TO_HANDOFF, STEP_BUBBLE, STEP_DRAIN, STEP_MARKER, STEP_PLAIN, STEP_RECORD,
+                             board_clock, default_array_depth)
+from .lean_model import LEAN_EXACT_INTERVAL, LEAN_EXACT_LATENCY, LEAN_HANDOFF_STAGES, default_lean_depth
 
 
 def _exact_unit(cell):
     """:func:`board_clock`'s shared exact unit of a filtering cell (filtered: a Processor, a test
-    a cycle; lean: LeanExact), as keyword arguments."""
+    a cycle; lean: LeanExact, behind the hand-off register), as keyword arguments."""
     if cell.lean:
-        return {"exact_latency": LEAN_EXACT_LATENCY, "exact_interval": LEAN_EXACT_INTERVAL}
+        return {"exact_latency": LEAN_EXACT_LATENCY, "exact_interval": LEAN_EXACT_INTERVAL,
+                "issue_to_handoff": ISSUE_TO_HANDOFF + LEAN_HANDOFF_STAGES}
     return {"exact_latency": EXACT_LATENCY, "exact_interval": 1}
 
 

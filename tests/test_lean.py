@@ -21,13 +21,16 @@ from blockray.exact import blocked_block, blocked_reference, patch_normals
 from blockray.filtered import FilterFormat, rounded_receiver_filter_terms
 from blockray.host_driver.render.render import render
 from blockray.params import BoardParams
+from blockray.timing import LEAN_LATENCY, BoardTiming
 from blockray.records import pack_array, patch_columns, patch_layout, point_columns, point_layout
 from blockray.rtl.board import BoardTop
+from blockray.rtl.filtered import FilteredArray
 from blockray.rtl.lean import LeanArray, LeanExact, LeanReceiver, LeanRowUnit
 from blockray.rtl.processor import ReceiverUnit
 from blockray.rtl.lutdot import bit_heap, dot_product
 from blockray.sim.cocotb_support import build_verilator, run_cocotb
-from blockray.sim.lean_model import LEAN_EXACT_INTERVAL, LEAN_EXACT_LATENCY, Gap, LeanArrayModel, Mark, Record, default_lean_depth
+from blockray.sim.lean_model import (LEAN_EXACT_INTERVAL, LEAN_EXACT_LATENCY, LEAN_HANDOFF_STAGES, Gap, LeanArrayModel, Mark, Record,
+                                     default_lean_depth)
 
 from board_scenes import crossing_patches, random_points
 from lean_bench import LeanBench, StepDriver
@@ -145,6 +148,9 @@ def test_model_constants_are_the_rtls():
     assert LEAN_EXACT_LATENCY == LeanExact.latency == 12 and LEAN_EXACT_INTERVAL == LeanExact.interval == 3
     assert LeanArrayModel(8, 2, 2).depth == LeanArray.default_depth() == 65
     assert default_lean_depth() == LeanArray.default_depth(2) == 67       # behind the board's memory
+    # the register before the hand-off: one cycle more than the filtered array, in the board's timing too
+    assert LEAN_HANDOFF_STAGES == LeanArray.handoff_stages == LeanArray.latency - FilteredArray.latency == 1
+    assert BoardTiming.for_cell(Cell("lean")).processor_latency == LEAN_LATENCY == LeanArray.latency + 3
 
 
 @pytest.mark.parametrize("bits,fmt", [(6, FilterFormat(3, 3)), (16, None), (16, FilterFormat(3, 4)),
