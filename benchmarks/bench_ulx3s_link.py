@@ -45,7 +45,10 @@ from blockray.host_driver.traverse.voxel import VoxelGrid
 from blockray.host_driver.traverse.cost import default_voxels
 from blockray.params import BoardParams
 from blockray.samples import SampleScheme
-from blockray.synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS
+from blockray.synth.bitstream import BOARD_BUILDS, DEFAULT_FREQ_MHZ
+
+#: the exact cell's bitstream (``blockray bitstream --cell exact``), whose link docs/ulx3s.md measures
+EXACT = BOARD_BUILDS["exact"]
 
 GRANT_BATCH = 32
 
@@ -76,7 +79,7 @@ class Counting(ModelTransport):
         return out
 
 
-def measure(scene_name, shooters, seed, rows=DEFAULT_ROWS, cols=DEFAULT_COLS):
+def measure(scene_name, shooters, seed, rows=EXACT.rows, cols=EXACT.cols):
     """Bytes on one board's link for the block rays, as the credited link before the framing carried them."""
     scene = builtin.load(scene_name)
     samples = SampleScheme(8)
@@ -121,8 +124,9 @@ def main():
     ap.add_argument("--clock", type=float, default=DEFAULT_FREQ_MHZ,
                     help=f"board clock, MHz (default {DEFAULT_FREQ_MHZ:g}: blockray bitstream's)")
     ap.add_argument("--baud", type=int, default=DEFAULT_BAUD)
-    ap.add_argument("--rows", type=int, default=DEFAULT_ROWS, help=f"array rows (default {DEFAULT_ROWS}: the bitstream's)")
-    ap.add_argument("--cols", type=int, default=DEFAULT_COLS, help=f"array columns (default {DEFAULT_COLS})")
+    ap.add_argument("--rows", type=int, default=EXACT.rows,
+                    help=f"array rows (default {EXACT.rows}: the exact bitstream's)")
+    ap.add_argument("--cols", type=int, default=EXACT.cols, help=f"array columns (default {EXACT.cols})")
     ap.add_argument("--faults", type=float, default=None, metavar="RATE",
                     help="instead: the framed link with no faults and with RATE faults per byte each way, side by side")
     ap.add_argument("--traversal", default="block", choices=["block", "board"],

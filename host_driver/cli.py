@@ -61,7 +61,8 @@ def _add_tool_options(g):
     """The options of every run of the FPGA tools (Yosys, nextpnr)."""
     g.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
     g.add_argument("--router", default=None, choices=["router1", "router2"],
-                   help="nextpnr router (default: ROUTER of synth/nextpnr.py, router1)")
+                   help="nextpnr router (default: ROUTER of synth/nextpnr.py, router1; blockray bitstream: "
+                        "router2 with --cell lean)")
     g.add_argument("--workdir", metavar="DIR", help="keep the tools' files (Verilog, netlist) and logs here")
 
 
@@ -360,12 +361,12 @@ def _add_unit_options(p):
                         bits=(d.bits, None), patch_depth=(d.patch_depth, None), voxel_depth=(d.voxel_depth, None))
 
 
-def _add_fabric_option(p):
+def _add_fabric_option(p, default="none"):
     p.add_argument("--fabric-units", type=_unit_list, default=(), metavar="UNIT[,UNIT]",
                    help="with --target ecp5: the array-edge units whose products are LUT multipliers instead "
                         "of DSPs (shooter: the column units, receiver: the row units, cell: the cells, exact: "
                         "the filtered array's shared exact unit, rounded: the lean row units' w_k), for arrays "
-                        "whose DSP rows are too full to route; default none")
+                        f"whose DSP rows are too full to route, or none; default {default}")
 
 
 def _add_cell_option(p, render=False):
@@ -387,7 +388,8 @@ def _cell(args):
 
 
 def _unit_list(text):
-    return tuple(u.strip() for u in text.split(",") if u.strip())
+    """``--fabric-units``: the units, or none (``none`` or an empty list)."""
+    return tuple(u.strip() for u in text.split(",") if u.strip() and u.strip() != "none")
 
 
 def _unit_params(args):
@@ -458,11 +460,16 @@ def _synth_parser(sub):
     p.set_defaults(func=_cmd_synth)
 
 
-def _add_floorplan_option(p):
-    p.add_argument("--dsp-floorplan", metavar="balanced|FILE.json",
+def _plan(text):
+    """``--dsp-floorplan``: None for none."""
+    return None if text in (None, "none") else text
+
+
+def _add_floorplan_option(p, default="none"):
+    p.add_argument("--dsp-floorplan", metavar="balanced|none|FILE.json",
                    help="lock each unit's multipliers to DSP sites before placing: balanced (the 85k's three "
                         "DSP rows filled evenly) or a plan file ({\"34\": [[\"shooter_0\", 1], ...]}: each "
-                        "unit's row and first site; synth/floorplan.py, docs/synthesis.md)")
+                        f"unit's row and first site; synth/floorplan.py, docs/synthesis.md); default {default}")
 
 
 def _speed(text):
@@ -486,7 +493,7 @@ def _cmd_synth(args):
         seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or ROUTER,
         fabric_units=args.fabric_units, cell=cell,
         also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route,
-        dsp_floorplan=args.dsp_floorplan))
+        dsp_floorplan=_plan(args.dsp_floorplan)))
     write_report(args.report, report)
     _print_synth(args, report)
     return 0
@@ -530,17 +537,21 @@ def _bitstream_parser(sub):
     p.add_argument("--platform", default="ulx3s-85f", help="FPGA board (ulx3s-85f)")
     g = p.add_argument_group("board")
     _add_config_options(g, _positive_int,
-                        rows=(None, "default: the array that routes at -6 (DEFAULT_ROWS x DEFAULT_COLS of "
-                                    "synth/bitstream.py, docs/ulx3s.md)"), cols=(None, "default: see --rows"),
+                        rows=(None, "default: the largest array of the cell that routed at -6 (BOARD_BUILDS "
+                                    "of synth/bitstream.py: lean 1 x 4, exact 1 x 2; docs/ulx3s.md)"),
+                        cols=(None, "default: see --rows"),
                         bits=(16, None), patch_depth=(None, "default: the most the block RAMs hold"),
                         voxel_depth=(None, "default: up to 32**3, as the block RAMs allow"))
     g.add_argument("--core", default="board", choices=["board", "echo"],
                    help="board: the blockray board (default); echo: the link's test core (link bring-up)")
-    g.add_argument("--cell", default="exact", choices=["exact", "lean"],
-                   help="the processor cell: exact (default) or lean (the certified filter in the cells, "
-                        "undecided tests re-read by one shared exact unit; docs/processor.md)")
-    _add_fabric_option(g)
-    _add_floorplan_option(g)
+    g.add_argument("--cell", default=None, choices=["exact", "lean"],
+                   help="the processor cell: lean (default: the certified filter in the cells, undecided "
+                        "tests re-read by one shared exact unit; docs/processor.md) or exact")
+    _add_fabric_option(g, default="cell with --cell lean, none with exact")
+    _add_floorplan_option(g, default="balanced with --cell lean, none with exact")
+    # not given: the cell's build (BOARD_BUILDS); lean: --fabric-units cell --dsp-floorplan balanced
+    # --router router2 (none turns the first two off)
+    p.set_defaults(fabric_units=None)
     t = p.add_argument_group("link and clock")
     t.add_argument("--baud", type=_positive_int, default=DEFAULT_BAUD, help=f"UART baud rate (default {DEFAULT_BAUD})")
     t.add_argument("--freq", type=_positive_float, default=None, metavar="MHZ",
@@ -553,16 +564,20 @@ def _bitstream_parser(sub):
 
 
 def _cmd_bitstream(args):
-    from ..synth.bitstream import DEFAULT_COLS, DEFAULT_FREQ_MHZ, DEFAULT_ROWS, build_bitstream, largest_fit
-    from ..synth.nextpnr import ROUTER, write_report
+    from ..synth.bitstream import BOARD_BUILDS, DEFAULT_CELL, DEFAULT_FREQ_MHZ, build_bitstream, largest_fit
+    from ..synth.nextpnr import write_report
     from ..cell import Cell
-    params = _board_params(rows=args.rows or DEFAULT_ROWS, cols=args.cols or DEFAULT_COLS, bits=args.bits)
+    cell = args.cell or DEFAULT_CELL
+    build = BOARD_BUILDS[cell if args.core == "board" else "exact"]      # echo: no array, router1
+    plan = build.dsp_floorplan if args.dsp_floorplan is None else args.dsp_floorplan
+    params = _board_params(rows=args.rows or build.rows, cols=args.cols or build.cols, bits=args.bits)
     params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(
         params, out=args.out, platform=args.platform, core=args.core, freq=args.freq or DEFAULT_FREQ_MHZ,
-        baud=args.baud, seed=args.seed, router=args.router or ROUTER, workdir=args.workdir,
-        cell=Cell(args.cell), fabric_units=args.fabric_units, dsp_floorplan=args.dsp_floorplan))
+        baud=args.baud, seed=args.seed, router=args.router or build.router, workdir=args.workdir, cell=Cell(cell),
+        fabric_units=build.fabric_units if args.fabric_units is None else args.fabric_units,
+        dsp_floorplan=_plan(plan)))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]

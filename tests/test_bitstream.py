@@ -22,7 +22,8 @@ def no_tools(monkeypatch):
 
 
 @pytest.mark.parametrize("options,option", [
-    (["--rows", "4", "--cols", "4"], "--rows"),               # 408 DSPs > 156
+    (["--cell", "exact", "--rows", "4", "--cols", "4"], "--rows"),   # 408 DSPs > 156
+    (["--rows", "4", "--cols", "8"], "--rows"),               # lean: 4 x 24 + 8 x 6 + 12 + 13 = 169 DSPs
     (["--patch-depth", "100000"], "--patch-depth"),           # block RAMs
     (["--voxel-depth", "1000000", "--patch-depth", "4096"], "--voxel-depth"),
     (["--baud", "7000000"], "--baud"),                        # 45 MHz / 7 Mbaud: 7.1 % off
@@ -92,7 +93,9 @@ def test_timing_not_met_is_an_error(monkeypatch, tmp_path, capsys):
 
 
 def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
-    """No --rows/--cols: the array docs/ulx3s.md routed at -6 (1 x 2), with router1 and the capped memories."""
+    """No options: the largest board docs/ulx3s.md routed at -6 (the lean 1 x 4, its cells on
+    carry chains, the DSPs balanced, router2) with the capped memories; --cell exact: the exact
+    1 x 2 with router1; each option given overrides its default, ``none`` included."""
     seen = {}
 
     def built(params, **kw):
@@ -100,14 +103,23 @@ def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
         return {"device": "LFE5U-85F", "speed_grade": "-6", "core": "board", "params": {}, "resources": {"luts": 1},
                 "fits": True, "fmax_mhz": 63.3, "timing_met": True, "clock": {"pll_mhz": 45.0}, "bitstream": {}}
     monkeypatch.setattr(bitstream, "build_bitstream", built)
-    assert main(["bitstream", "--out", str(tmp_path / "x.bit")]) == 0
+
+    def run(*options):
+        assert main(["bitstream", *options, "--out", str(tmp_path / "x.bit")]) == 0
+        return (seen["params"].rows, seen["params"].cols, seen["cell"].kind, seen["fabric_units"],
+                seen["dsp_floorplan"], seen["router"])
+    assert run() == (1, 4, "lean", ("cell",), "balanced", "router2")
+    assert (bitstream.DEFAULT_ROWS, bitstream.DEFAULT_COLS, bitstream.DEFAULT_CELL) == (1, 4, "lean")
     p = seen["params"]
-    assert (p.rows, p.cols) == (bitstream.DEFAULT_ROWS, bitstream.DEFAULT_COLS) == (1, 2)
     assert (p.patch_depth, p.voxel_depth) == (bitstream.DEFAULT_PATCH_DEPTH, bitstream.DEFAULT_VOXEL_DEPTH)
-    assert seen["router"] == "router1" and seen["freq"] == bitstream.DEFAULT_FREQ_MHZ
-    assert seen["cell"].kind == "exact" and seen["fabric_units"] == ()
-    assert main(["bitstream", "--rows", "2", "--cols", "2", "--router", "router2", "--out", str(tmp_path / "y.bit")]) == 0
-    assert (seen["params"].rows, seen["params"].cols, seen["router"]) == (2, 2, "router2")
+    assert seen["freq"] == bitstream.DEFAULT_FREQ_MHZ
+    assert run("--cell", "exact") == (1, 2, "exact", (), None, "router1")
+    assert run("--rows", "2", "--cols", "2", "--cell", "exact", "--router", "router2")[:3] == (2, 2, "exact")
+    assert seen["router"] == "router2"
+    assert run("--fabric-units", "none", "--dsp-floorplan", "none", "--router", "router1") == (
+        1, 4, "lean", (), None, "router1")
+    assert run("--fabric-units", "cell,rounded", "--cols", "2")[1:4] == (2, "lean", ("cell", "rounded"))
+    assert run("--core", "echo")[3:] == ((), None, "router1")           # the link alone: no array to plan
 
 
 def test_lean_board_core_and_platform():
@@ -203,11 +215,11 @@ def test_echo_bitstream_builds(tmp_path):
 @pytest.mark.synth
 @pytest.mark.slow
 def test_board_bitstream_builds(tmp_path):
-    """The smallest board (1 x 1, B = 8, small memories) with the link and, as every board
+    """The smallest exact board (1 x 1, B = 8, small memories) with the link and, as every board
     ``blockray bitstream`` builds, the block sequencer (rays made on the board): fits, meets the
     default clock (15 MHz) at -6. Needs the board core with byte streams (issue 12)."""
     out, report_path = tmp_path / "board.bit", tmp_path / "r.json"
-    assert main(["bitstream", "--rows", "1", "--cols", "1", "--bits", "8", "--patch-depth", "256",
+    assert main(["bitstream", "--cell", "exact", "--rows", "1", "--cols", "1", "--bits", "8", "--patch-depth", "256",
                  "--voxel-depth", "64", "--out", str(out), "--report", str(report_path)]) == 0
     report = json.loads(report_path.read_text())
     assert report["fits"] and report["timing_met"] and report["params"]["rays"]
