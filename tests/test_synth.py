@@ -298,3 +298,27 @@ def test_filtered_array_terms_wait_in_block_ram():
     delayed = 2 * shooter_terms_layout(6).size + receiver_terms_layout(6).size
     assert report["resources"]["brams"] >= delayed // 36
     assert report["resources"]["ffs"] < 7 * delayed + 2000
+
+
+def test_lean_synth_defaults_are_what_the_lean_arrays_route_with(monkeypatch, tmp_path):
+    """``--cell lean`` on ECP5 without the options: cells on carry chains, the DSPs balanced on
+    the 85k (none on a part without a DSP plan), router2; the exact cell keeps none of them; an
+    option given (``none`` included) wins."""
+    import blockray.synth.nextpnr as nextpnr
+    seen = {}
+
+    def report(unit, params, **kw):
+        seen.update(kw)
+        return {"unit": unit, "params": {}, "resources": {}, "fits": None}
+    monkeypatch.setattr(nextpnr, "synth_report", report)
+    monkeypatch.setattr(nextpnr, "write_report", lambda path, r: None)
+
+    def run(*options):
+        assert main(["synth", "array", "--rows", "1", "--cols", "2", *options, "--report", str(tmp_path / "r.json")]) == 0
+        return seen["fabric_units"], seen["dsp_floorplan"], seen["router"]
+    assert run("--cell", "lean") == (("cell",), "balanced", "router2")
+    assert run("--cell", "lean", "--device", "25k") == (("cell",), None, "router2")
+    assert run("--cell", "lean", "--target", "generic")[:2] == ((), None)
+    assert run() == ((), None, "router1")
+    assert run("--cell", "lean", "--fabric-units", "none", "--dsp-floorplan", "none", "--router", "router1") == (
+        (), None, "router1")
