@@ -87,8 +87,9 @@ class BoardTiming:
         partial products, partial sums, the joined sum with the decision and OR).
 
         A filtering cell: the filtered array's least latency (:data:`FILTERED_LATENCY`; lean:
-        :data:`LEAN_LATENCY`, one more for the register before its hand-off); its data-dependent cycles (records waiting for the shared exact unit, cycles lost when the
-        array's credits run out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
+        :data:`LEAN_LATENCY`, one more for the register before its hand-off); its data-dependent
+        cycles (records waiting for the shared exact unit, cycles lost when the array's credits run
+        out) come on top (:func:`blockray.sim.filtered_model.board_clock`).
         """
         if check_cell(cell).filtered:            # filtered, lean: the same datapath and hand-off
             latency = LEAN_LATENCY if cell.lean else FILTERED_LATENCY
