@@ -552,7 +552,7 @@ def _bitstream_parser(sub):
     g = p.add_argument_group("board")
     _add_config_options(g, _positive_int,
                         rows=(None, "default: the largest array of the cell that routed at -6 (BOARD_BUILDS "
-                                    "of synth/bitstream.py: lean 1 x 4, exact 1 x 2; docs/ulx3s.md)"),
+                                    "of synth/bitstream.py: lean 1 x 6, exact 1 x 2; docs/ulx3s.md)"),
                         cols=(None, "default: see --rows"),
                         bits=(16, None), patch_depth=(None, "default: the most the block RAMs hold"),
                         voxel_depth=(None, "default: up to 32**3, as the block RAMs allow"))

@@ -69,10 +69,10 @@ class BoardBuild:
 
 
 #: per cell, the largest board that routed at -6 with the default memories (docs/ulx3s.md). Lean:
-#: 1 x 4, its cells on carry chains, its multipliers locked to the DSP rows evenly, router2 (the
+#: 1 x 6, its cells on carry chains, its multipliers locked to the DSP rows evenly, router2 (the
 #: lean 2 x 4 board's router2 stalled near 8 600 overused wires). Exact: 1 x 2 with router1 (the
 #: 2 x 2 had not routed after 2 hours of router2 or 50 minutes of router1)
-BOARD_BUILDS = {"lean": BoardBuild(1, 4, ("cell",), "balanced", "router2"), "exact": BoardBuild(1, 2)}
+BOARD_BUILDS = {"lean": BoardBuild(1, 6, ("cell",), "balanced", "router2"), "exact": BoardBuild(1, 2)}
 #: the default board's cell: the lean board is the fastest that routes (docs/ulx3s.md)
 DEFAULT_CELL = "lean"
 DEFAULT_ROWS, DEFAULT_COLS = BOARD_BUILDS[DEFAULT_CELL].rows, BOARD_BUILDS[DEFAULT_CELL].cols

@@ -93,7 +93,7 @@ def test_timing_not_met_is_an_error(monkeypatch, tmp_path, capsys):
 
 
 def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
-    """No options: the largest board docs/ulx3s.md routed at -6 (the lean 1 x 4, its cells on
+    """No options: the largest board docs/ulx3s.md routed at -6 (the lean 1 x 6, its cells on
     carry chains, the DSPs balanced, router2) with the capped memories; --cell exact: the exact
     1 x 2 with router1; each option given overrides its default, ``none`` included."""
     seen = {}
@@ -108,8 +108,8 @@ def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
         assert main(["bitstream", *options, "--out", str(tmp_path / "x.bit")]) == 0
         return (seen["params"].rows, seen["params"].cols, seen["cell"].kind, seen["fabric_units"],
                 seen["dsp_floorplan"], seen["router"])
-    assert run() == (1, 4, "lean", ("cell",), "balanced", "router2")
-    assert (bitstream.DEFAULT_ROWS, bitstream.DEFAULT_COLS, bitstream.DEFAULT_CELL) == (1, 4, "lean")
+    assert run() == (1, 6, "lean", ("cell",), "balanced", "router2")
+    assert (bitstream.DEFAULT_ROWS, bitstream.DEFAULT_COLS, bitstream.DEFAULT_CELL) == (1, 6, "lean")
     p = seen["params"]
     assert (p.patch_depth, p.voxel_depth) == (bitstream.DEFAULT_PATCH_DEPTH, bitstream.DEFAULT_VOXEL_DEPTH)
     assert seen["freq"] == bitstream.DEFAULT_FREQ_MHZ
@@ -117,7 +117,7 @@ def test_default_board_is_the_one_that_routes(monkeypatch, tmp_path):
     assert run("--rows", "2", "--cols", "2", "--cell", "exact", "--router", "router2")[:3] == (2, 2, "exact")
     assert seen["router"] == "router2"
     assert run("--fabric-units", "none", "--dsp-floorplan", "none", "--router", "router1") == (
-        1, 4, "lean", (), None, "router1")
+        1, 6, "lean", (), None, "router1")
     assert run("--fabric-units", "cell,rounded", "--cols", "2")[1:4] == (2, "lean", ("cell", "rounded"))
     assert run("--core", "echo")[3:] == ((), None, "router1")           # the link alone: no array to plan
 
