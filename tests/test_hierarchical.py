@@ -134,6 +134,31 @@ def test_link_factors_within_their_tolerance_change_the_leaves_by_less(monkeypat
     assert 0 < change < share * 1e-3
 
 
+def test_element_factors_of_links_both_ways_are_each_links_own():
+    """element_factors computes a pair linked both ways once: every link's F equals its own pair
+    kernel call divided by its receiver's area, bit for bit, on split elements of a rotated,
+    rounded closed box (links both ways, one way, and repeated)."""
+    from blockray.host_driver.radiosity import formfactor
+    from blockray.host_driver.render.hierarchical import Hierarchy, element_factors
+    seed = 2811
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    box, _ = closed_box(2, 3.0)
+    scene = make_scene(np.round(box @ (q * np.sign(np.diag(r))).T + 0.37, 7))
+    h = Hierarchy(scene, ElementPoints(SampleScheme(4), 2))
+    h.split(rng.choice(len(h), 6, replace=False))
+    n = len(h)
+    recv, src = rng.integers(0, n, 1500), rng.integers(0, n, 1500)
+    recv, src = np.concatenate([recv, src[:900], recv[:100]]), np.concatenate([src, recv[:900], src[:100]])
+    keep = recv != src
+    recv, src = recv[keep], src[keep]
+    got = element_factors(h, recv, src, 1e-7)
+    want = np.array([formfactor.pair_factors(h.vertices(src[m:m + 1]), h.vertices(recv[m:m + 1]), tolerance=1e-7)[0]
+                     for m in range(len(recv))]) / h.areas[recv]
+    assert (want > 0).sum() > 100 and np.array_equal(got, want)
+
+
 def test_perpendicular_squares():
     scene = two_squares(rectangle(np.zeros(3), Z, X, 1, 1))       # the y = 0 plane, facing +y
     result = render(scene, backend="golden", solver="hierarchical", epsilon=1e-3, tolerance=1e-10)
