@@ -2,7 +2,7 @@
 the bit-exact model side by side on the same batches, and full renders.
 
     python benchmarks/bench_rtl_render.py [--shooters 20]                 # speed, three routes
-    python benchmarks/bench_rtl_render.py --full [--scene cornell]        # + full renders: native, model
+    python benchmarks/bench_rtl_render.py --full [--scene cornell] [--cell lean]   # + full renders: native, model
     python benchmarks/bench_rtl_render.py --no-speed --clock [--library LIB ...]   # one idle board's clock
 
 Part 1 loads the Cornell box on P = 8 boards of 8 x 8 processors at its B and sends the
@@ -26,7 +26,7 @@ board cycles per second (the model's ``board_cycles_per_board`` summed over the 
 
 Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
 with ``--board verilator`` and ``--board model``, checks that the radiosity and every counter are
-equal and prints both wall times, the native render's CPU seconds (all threads: on a shared
+equal and prints both wall times (``--cell``: the processor cell of both), the native render's CPU seconds (all threads: on a shared
 machine, what it would take alone) and the native board cycles per second.
 
 Part 3 (``--clock``) clocks one idle board of the Cornell box's fitted design (8 x 8, its B and
@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from blockray.cell import Cell
 from blockray.host_driver.scene import builtin
 from blockray.host_driver.board.backends import make_board
 from blockray.host_driver.board.driver import BoardDriver
@@ -170,13 +171,13 @@ def host_codec(params, scene, samples, columns):
               f"({1e3 * dec / rays:.3f} ms a result)", flush=True)
 
 
-def full(scene_name):
+def full(scene_name, cell):
     scene = builtin.load(scene_name)
     runs = {}
-    print(f"load average {os.getloadavg()[0]:.1f} at the start", flush=True)
+    print(f"load average {os.getloadavg()[0]:.1f} at the start; cell {cell.kind}", flush=True)
     for board in ("verilator", "model"):
         t0, c0 = time.perf_counter(), time.process_time()
-        runs[board] = render(scene, backend=board, params=BoardParams(bits=None))
+        runs[board] = render(scene, backend=board, params=BoardParams(bits=None), cell=cell)
         runs[board + " wall"] = time.perf_counter() - t0
         runs[board + " cpu"] = time.process_time() - c0
     v, m = runs["verilator"], runs["model"]
@@ -197,18 +198,18 @@ def full(scene_name):
           f"{clock / board:,.0f} clock cycles/s per board, over the report's board phase ({board:.0f} s)")
 
 
-def clock(libraries, cycles, repeat):
+def clock(libraries, cycles, repeat, cell):
     from blockray.host_driver.board.native import native_build
     from blockray.sim.native import NativeBoard, NativeBuild, NativeRunError
 
     scene, samples, params, _ = _cornell()
-    board = _loaded(make_board("model-link", params), scene, samples)
+    board = _loaded(make_board("model-link", params, cell=cell), scene, samples)
     params = board.board_params             # fitted to the records and voxels each board holds, as part 1's
     board.close()
-    current = native_build(params)
+    current = native_build(params, cell=cell)
     builds = {"this RTL": current}
     builds.update({str(lib): NativeBuild(Path(lib), Path(lib).parent, False, 0.0, True) for lib in libraries})
-    print(f"load average {os.getloadavg()[0]:.1f}; one idle {params.rows} x {params.cols} board, B = {params.bits}, "
+    print(f"load average {os.getloadavg()[0]:.1f}; one idle {params.rows} x {params.cols} {cell.kind} board, B = {params.bits}, "
           f"{cycles} cycles; this RTL's build {current.seconds:.0f} s{' (cached)' if current.cached else ''}")
     for _ in range(repeat):
         for name, build in builds.items():
@@ -235,13 +236,15 @@ def main():
     ap.add_argument("--library", action="append", default=[], help="--clock: another build's libblockray_native.so")
     ap.add_argument("--cycles", type=int, default=40000, help="--clock: cycles per measurement")
     ap.add_argument("--repeat", type=int, default=3, help="--clock: measurements per build")
+    ap.add_argument("--cell", default="exact", choices=["exact", "lean"], help="--full, --clock: the processor cell")
     args = ap.parse_args()
+    cell = Cell(args.cell)
     if not args.no_speed:
         speed(args.shooters, args.routes.split(","))
     if args.full:
-        full(args.scene)
+        full(args.scene, cell)
     if args.clock:
-        clock(args.library, args.cycles, args.repeat)
+        clock(args.library, args.cycles, args.repeat, cell)
 
 
 if __name__ == "__main__":
