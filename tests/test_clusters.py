@@ -358,10 +358,9 @@ def test_room_balance_with_a_fraction_per_receiver_leaf(monkeypatch):
     """The built-in room from max edge 2 at epsilon 1e-3 (cluster links under tables and chairs):
     absorbed is emitted power within 0.6% per channel, from B, E, rho and A alone. Measured: one
     visible fraction per cluster link for all its receivers +0.86%; one per leaf from all K source
-    samples +0.28%, from every SOURCE_STEP = 2nd +0.51%, every 4th +0.92%, every 8th -0.29% to
-    +0.36% (the rays' noise), from one sample its source member chooses (CLUSTER_SOURCES = 1, the
-    default) +0.54%; the uniform progressive solve of this mesh +3.6%, the uniform Jacobi solve's
-    within 0.05% (docs/hierarchical.md).
+    samples +0.28%, from every SOURCE_STEP = 2nd (the default) +0.51%, every 4th +0.92%, every 8th
+    -0.29% to +0.36% (the rays' noise); the uniform progressive solve of this mesh +3.6%, the
+    uniform Jacobi solve's within 0.05% (docs/hierarchical.md).
 
     On the way, each round's entries kept from the last cast, found in order
     (hierarchical._kept_entries), are the ones a search of their keys finds."""

@@ -40,9 +40,7 @@ FILE = "checkpoint.npz"
 #: seconds between two checkpoints of a running solve (the first: the first step this long after
 #: the solve starts)
 INTERVAL = 30.0
-#: the file's format (3: a hierarchical render's cluster entries cast from samples chosen by their
-#: source member, so a render resumed from format 2 would cast its new entries otherwise)
-FORMAT = 3
+FORMAT = 2
 _STATE = ("B", "U", "energy", "history", "row_sums", "columns")
 #: a hierarchical render's arrays (host_driver/render/hierarchical.py, ``solve_state``)
 HIERARCHICAL = ("patch", "node", "level", "parent", "child", "recv", "src", "F", "vis", "partial", "B", "history",

@@ -67,6 +67,7 @@ visibility estimate's own error included; refused beyond closure.MAX_CORRECTION)
 balance and tests take it as any scene), and a CSV row per leaf with its input triangle and level.
 """
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -108,12 +109,6 @@ CERTAIN_WEIGHT = 0.5
 #: leaves) start at every SOURCE_STEP-th of the source's K samples: on the room from max edge 1 at
 #: 1e-3 half the samples give the same error for half those rays (docs/hierarchical.md).
 SOURCE_STEP = 2
-
-#: A cluster link's receiver leaf takes this many rays, from source samples chosen by the drawn
-#: source member alone, so every leaf lit through one member shares its block rays' columns. On
-#: cornell from max edge 100 at 1e-3: 2.3x fewer rays and 1.5x fewer board cycles than K /
-#: SOURCE_STEP rays a leaf from samples chosen per entry, for 6% more error (docs/hierarchical.md).
-CLUSTER_SOURCES = 1
 
 #: Share of the refinement threshold a link's unoccluded factor may misplace: the absolute
 #: tolerance of its ``A_r F_rs`` (:func:`factor_tolerance`).
@@ -277,24 +272,21 @@ class LinkCaster:
     def counters(self):
         return self.board.counters()
 
-    def cast(self, links, ends=None, sources=None, key=None):
+    def cast(self, links, ends=None, sources=None):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits (``ends``: the
         receiver samples every link's rays end at, instead of :meth:`_groups`' rule; ``sources``:
-        how many of the source's K samples they start at, :meth:`_sources` if None; ``key``: per
-        link, what the source samples' offset is hashed from with the source, instead of the
-        receiver: links of one source and key share their block rays' columns)."""
+        how many of the source's K samples they start at, all K if None)."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
-        key = links.recv if key is None else key
         for ends, which in (self._groups(links) if ends is None else [(ends, np.arange(len(links)))]):
             if ends:
-                n_src = sources or self._sources(ends)
-                fractions = lambda m: self._sample_fractions(links.recv[m], links.src[m], key[m], ends, n_src)
+                fractions = functools.partial(self._sample_fractions, ends=ends,
+                                              sources=sources or self._sources(ends))
                 chunk = self.CHUNK // ends
             else:
-                fractions, chunk = lambda m: self._centroid_fractions(links.recv[m], links.src[m]), self.CHUNK
+                fractions, chunk = self._centroid_fractions, self.CHUNK
             for a in range(0, len(which), chunk):
                 part = which[a:a + chunk]
-                vis[part], partial[part] = fractions(part)
+                vis[part], partial[part] = fractions(links.recv[part], links.src[part])
         links.vis, links.partial = vis, partial
 
     def _sources(self, ends):
@@ -328,10 +320,9 @@ class LinkCaster:
         n = counted.sum(axis=1)
         return n_clear / n, (n_clear > 0) & (n_clear < n)
 
-    def _sample_fractions(self, recv, src, key, ends, sources):
+    def _sample_fractions(self, recv, src, ends, sources):
         """``sources`` x ``ends`` rays per link, ``sources`` of the source's K samples (all, or evenly
-        spaced from an offset hashed from the source and ``key``, the receiver unless :meth:`cast` was
-        given one: :func:`end_samples` with the ends swapped) to ``ends`` of the
+        spaced from a hashed offset: :func:`end_samples` with the ends swapped) to ``ends`` of the
         receiver's K samples (:func:`end_samples`), each weighed by the point-to-point kernel
         ``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane): the
         weighted clear share is the ratio of the occluded to the unoccluded factor, over both
@@ -341,7 +332,7 @@ class LinkCaster:
         part sees, and closed scenes gain energy.)"""
         h, K, n = self.h, self.h.points.K, len(recv)
         with self.phases.timed("formfactor"):
-            take = end_samples(src, key, K, sources)
+            take = end_samples(src, recv, K, sources)
             ws = np.take_along_axis(self._sample_weights(src), take[:, :, None], axis=1)
             wr = np.take_along_axis(self._sample_weights(recv), end_samples(recv, src, K, ends)[:, :, None], axis=1)
             # (n, end, sample): both ends strictly in front of the other element's plane
@@ -452,15 +443,14 @@ class SetCaster:
         self.rays = self.blocks = 0
         self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
 
-    def cast(self, links, ends=None, sources=None, key=None):
+    def cast(self, links, ends=None, sources=None):
         from ..cluster.cluster import _results
         h, sets = self.h, len(self.per_set)
         part = self.owner[h.patch[links.recv]]
         mine = [np.flatnonzero(part == k) for k in range(sets)]
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources,
-                                          None if key is None else key[m], pure=False)
+                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources, pure=False)
                        for m in mine]
             answers = _results(self.client, futures)
         links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -480,10 +470,10 @@ class SetCaster:
         return out
 
 
-def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, sources=None, key=None):
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, sources=None):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
     element points to ``max_level``, loaded with the grid) with rays ``job.link_rays`` (``ends``,
-    ``sources``, ``key``: :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
+    ``sources``: :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
     if job.threads is not None:
@@ -499,7 +489,7 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, 
                             link_rays=job.link_rays)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
-            caster.cast(links, ends, sources, key)
+            caster.cast(links, ends, sources)
         else:
             links.vis, links.partial = np.zeros(0), np.zeros(0, dtype=bool)
         return links.vis, links.partial, caster.rays, caster.blocks, board.counters()
@@ -802,8 +792,8 @@ def cast_clusters(caster, tree, clinks, known=None):
     """Set ``clinks.rvis`` (each receiver leaf's visible fraction: clusters.receiver_entries on the
     current leaves), ``rkey``, ``vis`` (the leaves' fractions weighted by what each can receive) and
     ``partial``. An entry of ``known`` (cluster links cast before) keeps its fraction; the others
-    get CLUSTER_SOURCES rays to the leaf from the link's drawn source member
-    (clusters.source_members), from samples chosen by that member alone. Leaves that face away, and links whose source members all do,
+    get the rays of the element link to the leaf from the link's drawn source member
+    (clusters.source_members). Leaves that face away, and links whose source members all do,
     carry nothing and count as clear."""
     h, n = caster.h, len(clinks)
     if not n:
@@ -832,9 +822,7 @@ def cast_clusters(caster, tree, clinks, known=None):
     cast = np.flatnonzero(~found & (src >= 0) & (weight > 0))
     if len(cast):
         pairs = Links(element[cast], src[cast], np.zeros(len(cast)))
-        # a receiver leaf's rays (the link's light is spread over its leaves) from samples chosen by
-        # the source member alone: the leaves it lights share their block rays' columns
-        caster.cast(pairs, ends=1, sources=CLUSTER_SOURCES, key=np.zeros(len(cast), np.int64))
+        caster.cast(pairs, ends=1)          # a receiver leaf's rays: the link's light is spread over its leaves
         rvis[cast] = pairs.vis
     total = np.bincount(link, weight, minlength=n)
     clinks.vis = np.where(total > 0, np.bincount(link, weight * rvis, minlength=n) / np.where(total > 0, total, 1), 1.0)
