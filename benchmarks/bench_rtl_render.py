@@ -25,9 +25,10 @@ decoding the results, while no board runs), the simulated clock cycles per secon
 board cycles per second (the model's ``board_cycles_per_board`` summed over the P boards).
 
 Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
-with ``--board verilator`` and ``--board model``, checks that the radiosity and every counter are
-equal and prints both wall times (``--cell``: the processor cell of both), the native render's CPU seconds (all threads: on a shared
-machine, what it would take alone) and the native board cycles per second.
+with ``--board verilator`` and ``--board model`` (``--cell``: the processor cell of both), checks
+that the radiosity and every counter are equal and prints both wall times, the native render's
+CPU seconds (all threads: on a shared machine, what it would take alone) and the native board
+cycles per second.
 
 Part 3 (``--clock``) clocks one idle board of the Cornell box's fitted design (8 x 8, its B and
 memory depths: part 1's build) in the native harness for ``--cycles`` cycles and prints its clock
