@@ -510,13 +510,13 @@ def _lean_build(args, cell):
     """``blockray synth``'s defaults for the options not given: with ``--cell lean`` on ECP5 what
     the lean arrays route with (the bitstream's lean build: cells on carry chains, router2, the
     DSPs balanced on the 85k), else no fabric units, no plan and ROUTER."""
-    from ..synth.bitstream import BOARD_BUILDS, BoardBuild
+    from dataclasses import replace
+    from ..synth.bitstream import BOARD_BUILDS
     from ..synth.floorplan import FLOORPLAN_DEVICES
     if not (cell.lean and args.target == "ecp5"):
-        return BoardBuild(0, 0)
+        return BOARD_BUILDS["exact"]            # no fabric units, no plan, ROUTER
     lean = BOARD_BUILDS["lean"]
-    return BoardBuild(0, 0, lean.fabric_units, lean.dsp_floorplan if args.device in FLOORPLAN_DEVICES else None,
-                      lean.router)
+    return lean if args.device in FLOORPLAN_DEVICES else replace(lean, dsp_floorplan=None)
 
 
 def _route_placement(args):

@@ -27,8 +27,8 @@ from ..exact import blocked_block
 from ..filtered import filtered_block
 from .filtered_model import DATAPATH_LATENCY, STEP_MARKER, STEP_PLAIN, STEP_RECORD, board_clock, default_array_depth
 
-__all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "LEAN_HANDOFF_STAGES", "Gap", "Mark", "Record", "LeanTrace", "LeanArrayModel",
-           "record_answers", "default_lean_depth"]
+__all__ = ["LEAN_EXACT_INTERVAL", "LEAN_EXACT_LATENCY", "LEAN_HANDOFF_STAGES", "Gap", "Mark", "Record", "LeanTrace",
+           "LeanArrayModel", "record_answers", "default_lean_depth"]
 
 #: the lean exact unit's latency (rtl/lean.py LeanExact): tag in, the patch memory and end-point
 #: memory read (1), the reads registered (1), the points held (1), its three edges a cycle apart

@@ -49,7 +49,8 @@ from .floorplan import check_floorplan, lock_dsps
 from .yosys import LUT_MULTIPLIERS, OWN_REGISTERS, yosys_command
 
 __all__ = ["PLATFORMS", "CORES", "DEFAULT_FREQ_MHZ", "DEFAULT_PATCH_DEPTH", "DEFAULT_VOXEL_DEPTH", "bram_estimate",
-           "DEFAULT_ROWS", "DEFAULT_COLS", "DEFAULT_CELL", "BOARD_BUILDS", "BoardBuild", "check_fit", "largest_fit", "pll_config", "closing_freq", "build_bitstream"]
+           "DEFAULT_ROWS", "DEFAULT_COLS", "DEFAULT_CELL", "BOARD_BUILDS", "BoardBuild", "check_fit", "largest_fit",
+           "pll_config", "closing_freq", "build_bitstream"]
 
 #: boards we can build for: platform name -> (amaranth-boards class name, device key of DEVICES)
 PLATFORMS = {"ulx3s-85f": ("ULX3S_85F_Platform", "85k")}
