@@ -328,19 +328,21 @@ def _caster(scene, points, link_rays, voxels=4):
     return h, LinkCaster(h, board, grid, rows=3, cols=5, phases=Phases(), link_rays=link_rays)
 
 
-def test_one_end_links_add_up_to_the_receivers_visible_factor():
-    """``spread`` casts a link from a source that does not emit to one of its receiver's samples,
-    a different one per link, from every SOURCE_STEP-th of its source's samples: over the leaves
-    of a split receiver (32 leaves, 64 links, one end each) the occluded factor ``sum A_l F_l v_l / A`` is the receiver's own (the midpoint rule of
+@pytest.mark.parametrize("emits", [False, True])
+def test_few_end_links_add_up_to_the_receivers_visible_factor(emits):
+    """``spread`` casts a link from a source that does not emit to one of its receiver's samples
+    (from one that does, to EMITTER_ENDS), a different one per link, from every SOURCE_STEP-th of
+    its source's samples: over the leaves of a split receiver (32 leaves, 64 links) the occluded
+    factor ``sum A_l F_l v_l / A`` is the receiver's own (the midpoint rule of
     :func:`strip_shadow_factor`) within 5% over 16 seeds of drawn points."""
-    from blockray.host_driver.render.hierarchical import Links, element_factors, SOURCE_STEP
+    from blockray.host_driver.render.hierarchical import EMITTER_ENDS, Links, element_factors, SOURCE_STEP
     edge = 0.35
     lit = _strip_shadow(edge)
     dark = make_scene(lit.patch_vertices, reflectance=lit.reflectance, emission=np.zeros_like(lit.emission))
     truth = strip_shadow_factor(edge)
     got, rays = [], []
     for seed in range(16):
-        h, caster = _caster(dark, ElementPoints(SampleScheme(8, seed=seed), 2), "spread")
+        h, caster = _caster(lit if emits else dark, ElementPoints(SampleScheme(8, seed=seed), 2), "spread")
         h.split([2, 3])
         h.split(np.flatnonzero(h.parent >= 0))
         leaves = h.leaves()[np.isin(h.patch[h.leaves()], [2, 3])]
@@ -351,16 +353,16 @@ def test_one_end_links_add_up_to_the_receivers_visible_factor():
         rays.append(caster.rays)
     got = np.array(got)
     print(f"seeds 0-15, truth {truth:.5f}: {got.mean() / truth - 1:+.4f} (sd {got.std() / truth:.4f}), rays {rays[0]}")
-    assert rays == [64 * 8 // SOURCE_STEP] * 16
+    assert rays == [64 * (EMITTER_ENDS if emits else 1) * 8 // SOURCE_STEP] * 16
     assert abs(got.mean() / truth - 1) < 0.05
 
 
-def test_spread_gives_an_emitters_links_every_sample():
-    """``spread``: K x K rays for a link whose source emits, K / SOURCE_STEP for every other;
-    ``samples``: K x K."""
-    from blockray.host_driver.render.hierarchical import Links, element_factors, SOURCE_STEP
+def test_spread_gives_an_emitters_links_more_ends():
+    """``spread``: K / SOURCE_STEP source samples to EMITTER_ENDS receiver samples for a link whose
+    source emits, to one for every other; ``samples``: K x K."""
+    from blockray.host_driver.render.hierarchical import EMITTER_ENDS, Links, element_factors, SOURCE_STEP
     scene = _strip_shadow(0.35)
-    for rule, rays in (("spread", 2 * 64 + 2 * 8 // SOURCE_STEP), ("samples", 4 * 64)):
+    for rule, rays in (("spread", (2 * EMITTER_ENDS + 2) * 8 // SOURCE_STEP), ("samples", 4 * 64)):
         h, caster = _caster(scene, ElementPoints(SampleScheme(8), 0), rule)
         recv, src = np.array([2, 3, 0, 1]), np.array([0, 1, 2, 3])     # emitter -> receiver, and back
         caster.cast(Links(recv, src, element_factors(h, recv, src)))
@@ -459,6 +461,22 @@ def test_model_and_golden_same_blocked_bits(link_rays, sample_points):
     assert 0 < (a.vis < 1).sum() and ((a.vis > 0) & (a.vis < 1)).any()
     assert np.array_equal(a.recv, b.recv) and np.array_equal(a.vis, b.vis)
     assert np.array_equal(results[0].radiosity, results[1].radiosity)
+
+
+def test_fill_packing_same_bits_in_fewer_blocks():
+    """The hierarchical solver packs a source element's rows in Z-order of their ends' voxels
+    (``fill``, its default) unless ``packing`` says otherwise: the same rays and radiosity to the
+    bit as the paper's per-voxel blocks, in fewer blocks and board cycles (cornell, from max edge
+    200 with cluster links)."""
+    from blockray.host_driver.scene.builtin import load_scene
+    scene = load_scene("cornell", max_edge=200.0)
+    runs = {p: render(scene, backend="model", solver="hierarchical", epsilon=1e-2, tolerance=1e-4, packing=p)
+            for p in (None, "voxel")}
+    fill, voxel = runs[None].report, runs["voxel"].report
+    print({k: (fill[k], voxel[k]) for k in ("packing", "rays", "blocks", "board_cycles", "tests")})
+    assert (fill["packing"], voxel["packing"]) == ("fill", "voxel") and fill["cluster_links"] > 0
+    assert np.array_equal(runs[None].radiosity, runs["voxel"].radiosity) and fill["rays"] == voxel["rays"]
+    assert fill["blocks"] < voxel["blocks"] and fill["board_cycles"] < voxel["board_cycles"]
 
 
 @pytest.mark.parametrize("flat,parameter", [({"epsilon": 0}, "epsilon"), ({"min_area": -1.0}, "min_area"),

@@ -20,9 +20,21 @@ def test_flat_names_go_to_their_groups():
     assert o.board.backend == "golden"
     assert o.board.params == BoardParams(rows=4, cols=8, boards=2, bits=None)
     assert o.board.partition == "deal" and o.board.cell == Cell("exact")
-    assert (o.ray.samples.count, o.ray.voxels, o.ray.traversal, o.ray.packing) == (4, 5, "ray", "voxel")
+    assert (o.ray.samples.count, o.ray.voxels, o.ray.traversal, o.packing) == (4, 5, "ray", "voxel")
     assert (o.solve.solver, o.solve.tolerance, o.solve.max_iterations, o.solve.max_shots) == ("jacobi", 1e-5, 7, None)
     assert (o.run.sets, o.run.threads, o.run.distributed) == (2, 3, True)
+
+
+def test_packing_given_wins_else_the_solvers():
+    """``packing`` None: the paper's per-voxel blocks for the uniform solvers, ``fill`` for the
+    hierarchical one; a packing given is kept, and a bad one names its parameter."""
+    assert RenderOptions.of(solver="jacobi").packing == "voxel"
+    assert RenderOptions.of(solver="hierarchical").packing == "fill"
+    assert RenderOptions.of(solver="hierarchical", packing="voxel").packing == "voxel"
+    assert RenderOptions.of(solver="progressive", packing="fill").packing == "fill"
+    with pytest.raises(ParameterError) as e:
+        RenderOptions.of(packing="tight")
+    assert e.value.parameter == "packing"
 
 
 def test_frozen_and_no_unknown_names():

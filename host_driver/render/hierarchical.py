@@ -20,11 +20,12 @@ initial links join every pair of input triangles that can exchange light
 points of its source to each of the K of its receiver, and weigh by the point-to-point kernel
 ``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane); the visible
 fraction is the weighted clear share, an estimate of the occluded over the unoccluded factor over
-both elements' areas. ``spread`` (the default): the same for a link whose source emits; every
-other link's rays run from K / SOURCE_STEP of its source's samples to one of its receiver's, each
-chosen per link (:func:`end_samples`), so a leaf's many links together still cover both
-elements: 7x fewer rays on the room with all K source samples, and no worse a balance; half
-of them again halves those rays at the same error (docs/hierarchical.md). ``centroid``: K rays
+both elements' areas. ``spread`` (the default): a link's rays run from K / SOURCE_STEP of its
+source's samples to one of its receiver's (EMITTER_ENDS of them if the source emits), each chosen
+per link (:func:`end_samples`), so a leaf's many links together still cover both elements: 7x
+fewer rays on the room than K x K with all K source samples, and no worse a balance; half of them
+again halves those rays at the same error; an emitter's links at K x K cost cornell 2.8x the rays
+for the same error (docs/hierarchical.md). ``centroid``: K rays
 from the source's samples to the receiver's centroid (or, where that centroid is not strictly in front of the
 source's plane, from the receiver's samples to the source's centroid), the clear share of those
 whose sample lies strictly in front of the far element's plane: 8x fewer rays, but the centroid
@@ -82,7 +83,7 @@ from ..radiosity.elements import ElementPoints, children_of
 from .clusters import (ClusterLinks, Transfer, build_tree, entry_keys, leaf_weights, link_clusters, power_bounds,
                        receiver_entries, source_members, split_pairs)
 from ..scene.scene import Scene
-from ..traverse.visibility import Phases
+from ..traverse.visibility import Phases, _morton
 from ..traverse.voxel import VoxelGrid
 from ..traverse.cost import default_voxels
 
@@ -105,10 +106,15 @@ ANDERSON = 5
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
 
-#: A link's rays to one receiver sample (``spread``'s non-emitter links, a cluster link's receiver
-#: leaves) start at every SOURCE_STEP-th of the source's K samples: on the room from max edge 1 at
-#: 1e-3 half the samples give the same error for half those rays (docs/hierarchical.md).
+#: A link's rays (``spread``, a cluster link's receiver leaves) start at every SOURCE_STEP-th of the
+#: source's K samples: on the room from max edge 1 at 1e-3 half the samples give the same error for
+#: half those rays (docs/hierarchical.md). Every 4th gains energy on the room (+0.9% against +0.5%).
 SOURCE_STEP = 2
+
+#: ``spread``: the receiver samples a link from an emitter ends at (every other link's end at one).
+#: Its rays carry the first bounce, so twice a plain link's; all K x K of them gave cornell the same
+#: error for 2.8x the rays (docs/hierarchical.md, "Rays a link").
+EMITTER_ENDS = 2
 
 #: Share of the refinement threshold a link's unoccluded factor may misplace: the absolute
 #: tolerance of its ``A_r F_rs`` (:func:`factor_tolerance`).
@@ -264,9 +270,9 @@ class LinkCaster:
     #: links cast per board batch (bounds the host's arrays)
     CHUNK = 65536
 
-    def __init__(self, h, board, grid, *, rows, cols, phases, link_rays="spread"):
+    def __init__(self, h, board, grid, *, rows, cols, phases, link_rays="spread", packing="fill"):
         self.h, self.board, self.grid, self.rows, self.cols, self.phases = h, board, grid, rows, cols, phases
-        self.link_rays = link_rays
+        self.link_rays, self.packing = link_rays, packing
         self.rays = self.blocks = 0
 
     def counters(self):
@@ -290,20 +296,21 @@ class LinkCaster:
         links.vis, links.partial = vis, partial
 
     def _sources(self, ends):
-        """The source samples a link's rays start at when they end at ``ends`` receiver samples."""
+        """The source samples a link's rays start at when they end at ``ends`` receiver samples:
+        all K to all K, else every SOURCE_STEP-th."""
         K = self.h.points.K
-        return K if ends > 1 else max(1, K // SOURCE_STEP)
+        return K if ends == K else max(1, K // SOURCE_STEP)
 
     def _groups(self, links):
         """``(ends, links)``: the receiver samples each link's rays end at (0: the centroid rule).
-        ``spread`` gives an emitter's links all K (they carry the first bounce, the most light a
-        link carries, as the uniform render's ``--emitter-factor`` gives them more rows) and every
-        other link one (from :meth:`_sources` of the source's)."""
+        ``spread`` gives an emitter's links EMITTER_ENDS (they carry the first bounce, the most light
+        a link carries, as the uniform render's ``--emitter-factor`` gives them more rows) and every
+        other link one, each from :meth:`_sources` of the source's."""
         K, every = self.h.points.K, np.arange(len(links))
         if self.link_rays != "spread":
             return [(K if self.link_rays == "samples" else 0, every)]
         emits = self.h.scene.emission[self.h.patch[links.src]].max(axis=1) > 0
-        return [(K, every[emits]), (1, every[~emits])]
+        return [(min(EMITTER_ENDS, K), every[emits]), (1, every[~emits])]
 
     def _centroid_fractions(self, recv, src):
         h, pts = self.h, self.h.points
@@ -385,18 +392,20 @@ class LinkCaster:
 
     def _blocks(self, caster, target, end_w, take):
         """The block rays of the rows (caster samples ``take[m]`` -> its end point): the rows grouped
-        by caster, samples taken and voxel of the end, runs of at most R of them times chunks of at
-        most S of the samples. Returns the BlockBatch, the row of each block row and the position
-        in ``take`` of each column."""
+        by caster and samples taken, in Z-order of their ends' voxels (``fill``) or also by that voxel
+        (``voxel``, the paper's block), runs of at most R of them times chunks of at most S of the
+        samples. Returns the BlockBatch, the row of each block row and the position in ``take`` of
+        each column."""
         h, pts, grid = self.h, self.h.points, self.grid
         V, n, k = h.scene.patch_vertices, len(caster), take.shape[1]
         with self.phases.timed("commands"):
             ends = np.einsum("np,npc->nc", end_w / float(pts.denominator), V[h.patch[target]])
-            voxel = grid.voxel_of(ends)
+            fill = self.packing == "fill"
+            voxel = _morton(grid.cell_of(ends)) if fill else grid.voxel_of(ends)
             order = np.lexsort((voxel, take[:, 0], caster))     # evenly spaced: the first names them all
             c, v, t = caster[order], voxel[order], take[order, 0]
             first = np.ones(n, dtype=bool)
-            first[1:] = (c[1:] != c[:-1]) | (v[1:] != v[:-1]) | (t[1:] != t[:-1])
+            first[1:] = (c[1:] != c[:-1]) | (t[1:] != t[:-1]) | (False if fill else v[1:] != v[:-1])
             pos = np.arange(n) - np.flatnonzero(first)[np.cumsum(first) - 1]
             run_start = np.flatnonzero(pos % self.rows == 0)
             run_len = np.diff(np.append(run_start, n))
@@ -430,13 +439,12 @@ class SetCaster:
     def __init__(self, cluster, h, board, grid, options, phases):
         from ..cluster.cluster import SetJob, _hold
         from ..cluster.scaleout import assign_sets
-        from ..traverse.visibility import _morton
         b, ray = options.board, options.ray
         (self.client, threads), self.h, self.phases = cluster, h, phases
         params = getattr(board, "params", None) or b.params
         quantised = getattr(board, "quantised", None)
         self.job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
-                          partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
+                          partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=options.packing,
                           stats_fraction=ray.stats_fraction, threads=threads, link_rays=options.solve.link_rays)
         self.owner = assign_sets(_morton(grid.cell_of(h.scene.centroids)), options.run.sets)
         self.scene_f, self.grid_f = _hold(self.client, h.scene), _hold(self.client, grid)
@@ -486,7 +494,7 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, 
         h = Hierarchy(scene, points)
         h.patch, h.node = patch, node
         caster = LinkCaster(h, board, grid, rows=job.params.rows, cols=job.params.cols, phases=Phases(),
-                            link_rays=job.link_rays)
+                            link_rays=job.link_rays, packing=job.packing)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
             caster.cast(links, ends, sources)
@@ -915,7 +923,7 @@ def render_hierarchical(scene, board, options, *, phases=None, checkpoint=None, 
     points, grid, voxels = prepare_board(scene, board, ray, solve, phases)
     if cluster is None:
         make_caster = lambda h: LinkCaster(h, board, grid, rows=params.rows, cols=params.cols, phases=phases,
-                                           link_rays=solve.link_rays)
+                                           link_rays=solve.link_rays, packing=options.packing)
     else:
         make_caster = lambda h: SetCaster(cluster, h, board, grid, options, phases)
     threshold = link_threshold(scene, solve.epsilon)
@@ -989,8 +997,8 @@ def _report(result, board, options, caster, rounds, voxels, phases, t0, c0):
     report = {
         "scene": scene.name, "source": scene.source, "patches": int(scene.patches), "solver": "hierarchical",
         "board": board.name, "samples": options.ray.samples.count, "voxels": int(voxels),
-        "estimator": estimator_of(options.ray), "epsilon": solve.epsilon, "min_area": solve.min_area,
-        "link_rays": solve.link_rays, "clustering": solve.clustering, "max_level": h.points.max_level,
+        "estimator": estimator_of(options.ray), "packing": options.packing, "epsilon": solve.epsilon,
+        "min_area": solve.min_area, "link_rays": solve.link_rays, "clustering": solve.clustering, "max_level": h.points.max_level,
         "tolerance": solve.tolerance, "links": len(result.links), "leaves": int(len(leaves)),
         "cluster_links": len(result.cluster_links), "clusters": 0 if result.tree is None else len(result.tree),
         "elements": int(len(h)), "elements_per_level": np.bincount(h.level).tolist(),

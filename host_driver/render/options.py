@@ -98,7 +98,7 @@ class BoardOptions:
 class RayOptions:
     """The voxel grid (``voxels`` per axis; None: the paper's cost model chooses), the shooter
     ``samples`` (a count or a :class:`~blockray.samples.SampleScheme`), the ``traversal`` and
-    ``packing`` of block rays, where each row ends on its receiver (``end_points``, a rule of
+    ``packing`` of block rays (None: the solver's, :attr:`RenderOptions.packing`), where each row ends on its receiver (``end_points``, a rule of
     host_driver/traverse/endpoints.py, with ``end_seed`` and ``end_draws`` rows per pair for ``draw``, on a
     lattice ``end_lattice`` times finer than the samples'), where the shooter's samples lie
     (``sample_points``: ``fixed``, one pattern for every patch; ``draw``, stratified and drawn per
@@ -108,7 +108,7 @@ class RayOptions:
     voxels: int = None
     samples: SampleScheme = 8
     traversal: str = "block"
-    packing: str = "voxel"
+    packing: str = None
     end_points: str = "centroid"
     end_seed: int = 0
     end_draws: int = 1
@@ -137,7 +137,8 @@ class RayOptions:
         sets = self.end_draws if self.sample_points == "rows" and _integer(self.end_draws) else 1
         object.__setattr__(self, "samples", SampleScheme(count, self.end_lattice, seed, sets))
         _one_of("traversal", self.traversal, TRAVERSALS)
-        _one_of("packing", self.packing, PACKINGS)
+        if self.packing is not None:
+            _one_of("packing", self.packing, PACKINGS)
         from ..traverse.endpoints import ENDS, MAX_DRAWS
         _one_of("end_points", self.end_points, ENDS)
         if self.end_lattice != 1 and self.end_points == "centroid" and self.sample_points == "fixed":
@@ -340,6 +341,16 @@ class RenderOptions:
         if b.cell.filtered:
             raise ParameterError(f"{option('cell')} {b.cell.kind} runs one set (not with {_DISTRIBUTED})",
                                  parameter="cell")
+
+    @property
+    def packing(self):
+        """The block packing in use: ``ray.packing`` if given; else the paper's blocks (the receivers
+        whose end points share a voxel) for the uniform solvers, and ``fill`` for the hierarchical
+        one, whose links of one source element end in few rows a voxel (1.5x fewer board cycles on
+        cornell and the room: docs/hierarchical.md, "Packing a link's rows")."""
+        if self.ray.packing is not None:
+            return self.ray.packing
+        return "fill" if self.solve.solver == "hierarchical" else "voxel"
 
     @classmethod
     def of(cls, **flat):

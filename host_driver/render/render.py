@@ -97,7 +97,7 @@ def _resume(scene, board, options, params, checkpoint):
     return checkpoint.bind(scene, {
         "board": board.name, "bits": b.params.bits, "voxels": ray.voxels, "samples": ray.samples.count,
         "solver": solve.solver, "tolerance": solve.tolerance, "max_shots": solve.max_shots,
-        "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": ray.packing,
+        "max_iterations": solve.max_iterations, "traversal": ray.traversal, "packing": options.packing,
         "end_points": ray.end_points, "end_seed": ray.end_seed, "end_draws": ray.end_draws,
         "emitter_factor": ray.emitter_factor,
         "end_lattice": ray.end_lattice, "sample_points": ray.sample_points, "sample_seed": ray.sample_seed,
@@ -140,7 +140,7 @@ def _render(scene, board, options, *, progress, echo, checkpoint):
 
     stats = TraversalStats(grid, sample_fraction=ray.stats_fraction)
     vis = Visibility(scene, board, grid, samples, rows=params.rows, cols=params.cols,
-                     traversal=ray.traversal, packing=ray.packing, phases=phases, stats=stats,
+                     traversal=ray.traversal, packing=options.packing, phases=phases, stats=stats,
                      ends=EndPoints(scene, samples, ray.end_points, ray.end_seed, ray.end_draws,
                                     ray.emitter_factor))
     # A patch may shoot more than once; its column of visible form factors does not change.
@@ -318,7 +318,7 @@ def _report(run, board_name, *, result, rays, blocks, columns, counters, seconds
         "board_params": {"rows": params.rows, "cols": params.cols, "boards": params.boards},
         "samples": ray.samples.count,
         "traversal": ray.traversal,
-        "packing": ray.packing,
+        "packing": run.options.packing,
         "estimator": estimator_of(ray),
         "end_points": _ends_label(ray),
         "sample_points": ray.sample_points + (f" (seed {ray.sample_seed})" if ray.samples.drawn else ""),
@@ -366,7 +366,7 @@ def _render_sets(run, grid, *, progress, echo):
     with phases.timed("cluster"), cluster_client(sets.scheduler, workers=sets.workers, sets=sets.sets,
                                                  echo=echo) as (client, threads):
         job = SetJob(board=b.backend, params=params if quantised is None else params.with_(bits=quantised.bits),
-                     partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=ray.packing,
+                     partition=b.partition, samples=ray.samples, traversal=ray.traversal, packing=options.packing,
                      stats_fraction=ray.stats_fraction, threads=threads, end_points=ray.end_points,
                      end_seed=ray.end_seed, end_draws=ray.end_draws, emitter_factor=ray.emitter_factor)
         owner, result, summaries, info = solve_sets(client, scene, grid, sets.sets,
