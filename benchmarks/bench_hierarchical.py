@@ -9,8 +9,8 @@ The reference is a uniform Jacobi solve on the golden board (``--reference-edge`
 same kind (``--check-edge``) is printed as the reference's own refinement error. Each run's error
 is the area-weighted L1 distance on the reference mesh, per channel (the largest of the three
 printed), relative to the reference's area-weighted mean: every reference patch takes the
-radiosity of the run's patch or leaf that holds its centroid. Rays and CPU seconds (the process's,
-every thread) are the render's report. The hierarchical runs start from the input triangles
+radiosity of the run's patch or leaf that holds its centroid. Rays, board cycles and CPU seconds (the
+process's, every thread) are the render's report. The hierarchical runs start from the input triangles
 (``--max-edge`` 1e9) or from the scene subdivided to each ``--hierarchical-edges``; the uniform
 runs from the scene subdivided to each edge length.
 """
@@ -75,7 +75,7 @@ def run(reference, name, edge, **options):
     scene = load_scene(name, max_edge=edge)
     result = render(scene, backend="model", **options)
     r = result.report
-    return {"patches": scene.patches, "rays": r["rays"], "cpu": r["cpu_seconds"]["total"],
+    return {"patches": scene.patches, "rays": r["rays"], "cycles": r["board_cycles"], "cpu": r["cpu_seconds"]["total"],
             "error": error(reference, result), "leaves": r.get("leaves", scene.patches),
             "links": r["links"] + r["cluster_links"] if "cluster_links" in r else r.get("links", ""),
             "balance": max((b for b in r.get("absorbed_balance") or [] if b is not None), key=abs, default=float("nan"))}
@@ -120,8 +120,8 @@ def main(argv=None):
     print(f"# reference: {ref['scene'].patches} patches, {args.reference_board}, jacobi 1e-6, {args.reference_samples} samples, {ref['seconds']:.0f} CPU s; "
           f"the same at max edge {args.check_edge:g} ({check['scene'].patches} patches) is {error(ref, fake):.4f} "
           f"from it", flush=True)
-    print("| solver | mesh | patches / leaves | links | rays | CPU s | error | balance |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| solver | mesh | patches / leaves | links | rays | board cycles | CPU s | error | balance |")
+    print("|---|---|---|---|---|---|---|---|---|")
     modes = args.link_rays.split(",")
     starts = [float(x) for x in args.hierarchical_edges.split(",")]
     modes = [(m, c == "on") for c in args.clustering.split(",") for m in modes]
@@ -131,7 +131,8 @@ def main(argv=None):
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
         rows["progressive"].append(r)
-        print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cpu']:.2f} | {r['error']:.4f} | "
+        print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cycles']} | {r['cpu']:.2f} | "
+              f"{r['error']:.4f} | "
               f"{r['balance']:+.2%} |", flush=True)
     for edge in starts:
         for mode in modes:
@@ -140,20 +141,20 @@ def main(argv=None):
                         link_rays=mode[0], clustering=mode[1])
                 rows[label(mode, edge)].append(r)
                 print(f"| {label(mode, edge)} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
-                      f"{r['cpu']:.2f} | {r['error']:.4f} | {r['balance']:+.2%} |", flush=True)
+                      f"{r['cycles']} | {r['cpu']:.2f} | {r['error']:.4f} | {r['balance']:+.2%} |", flush=True)
     print(f"# load average after: {os.getloadavg()}")
     if args.plot:
         plot(rows, args.plot, args.scene)
 
 
 def plot(rows, path, name):
-    """Error against rays and against CPU seconds, one line per solver."""
+    """Error against rays, board cycles (the machine's time) and CPU seconds, one line per solver."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import matplotlib.ticker
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
-    for ax, key, label in zip(axes, ("rays", "cpu"), ("rays", "CPU seconds")):
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, key, label in zip(axes, ("rays", "cycles", "cpu"), ("rays", "board cycles", "CPU seconds")):
         for (solver, runs), marker in zip(rows.items(), ("o-", "s-", "^-", "v-", "D-", "x-")):
             ax.loglog([r[key] for r in runs], [r["error"] for r in runs], marker, label=solver)
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())     # decade labels only

@@ -24,7 +24,7 @@ both elements' areas. ``spread`` (the default): a link's rays run from K / SOURC
 source's samples to one of its receiver's (EMITTER_ENDS of them if the source emits), each chosen
 per link (:func:`end_samples`), so a leaf's many links together still cover both elements: 7x
 fewer rays on the room than K x K with all K source samples, and no worse a balance; half of them
-again halves those rays at the same error; an emitter's links at K x K cost cornell 2.8x the rays
+again halves those rays at the same error; an emitter's links at K x K cost cornell 2.2x the rays
 for the same error (docs/hierarchical.md). ``centroid``: K rays
 from the source's samples to the receiver's centroid (or, where that centroid is not strictly in front of the
 source's plane, from the receiver's samples to the source's centroid), the clear share of those
@@ -112,9 +112,10 @@ CERTAIN_WEIGHT = 0.5
 SOURCE_STEP = 2
 
 #: ``spread``: the receiver samples a link from an emitter ends at (every other link's end at one).
-#: Its rays carry the first bounce, so twice a plain link's; all K x K of them gave cornell the same
-#: error for 2.8x the rays (docs/hierarchical.md, "Rays a link").
-EMITTER_ENDS = 2
+#: Its rays carry the first bounce: with 2, a large receiver half in an emitter's shadow came out
+#: 7% too bright (a ratio of few rays); K x K cost cornell 2.2x the rays of 4 for the same error
+#: (docs/hierarchical.md, "Rays a link from an emitter").
+EMITTER_ENDS = 4
 
 #: Share of the refinement threshold a link's unoccluded factor may misplace: the absolute
 #: tolerance of its ``A_r F_rs`` (:func:`factor_tolerance`).
