@@ -185,10 +185,10 @@ def _render_parser(sub):
     p.add_argument("--traversal", default="block", choices=["block", "ray", "board"],
                    help="block-ray traverse (default), per-ray 3D-DDA, or blocks made on the board (integer "
                         "block walk on the lattice; COLUMN/RECEIVERS commands on a driven board: model-link)")
-    p.add_argument("--packing", default=None, choices=["voxel", "fill"],
+    p.add_argument("--packing", default=None, choices=["voxel", "cube", "fill"],
                    help="receivers of a block: those whose end points share a voxel (the paper; the default of "
-                        "the uniform solvers) or runs of R receivers in Z-order of their voxels (fills every "
-                        "array row; the default of --solver hierarchical)")
+                        "the uniform solvers), runs of R receivers in Z-order of their voxels within a cube of 4 "
+                        "voxels a side (the default of --solver hierarchical) or without (fills every array row)")
     p.add_argument("--estimator", default=None, choices=list(ESTIMATORS),
                    help="how a pair's visibility is estimated, as one name: paper (the default: fixed samples to "
                         "the receivers' centroids) or balanced (--sample-points rows --end-points draw --end-lattice 8 "

@@ -464,20 +464,23 @@ def test_model_and_golden_same_blocked_bits(link_rays, sample_points):
     assert np.array_equal(results[0].radiosity, results[1].radiosity)
 
 
-def test_fill_packing_same_bits_in_fewer_blocks():
-    """The hierarchical solver packs a source element's rows in Z-order of their ends' voxels
-    (``fill``, its default) unless ``packing`` says otherwise: the same rays and radiosity to the
-    bit as the paper's per-voxel blocks, in fewer blocks and board cycles (cornell, from max edge
-    200 with cluster links)."""
+def test_packings_same_bits_cube_in_fewer_blocks():
+    """The hierarchical solver packs a source element's rows in Z-order of their ends' voxels, cut
+    where the cube of 4 voxels a side they end in changes (``cube``, its default) unless
+    ``packing`` says otherwise: the same rays and radiosity to the bit as the paper's per-voxel
+    blocks and as ``fill``, in fewer blocks and board cycles than the paper's (cornell, from max
+    edge 200 with cluster links)."""
     from blockray.host_driver.scene.builtin import load_scene
     scene = load_scene("cornell", max_edge=200.0)
     runs = {p: render(scene, backend="model", solver="hierarchical", epsilon=1e-2, tolerance=1e-4, packing=p)
-            for p in (None, "voxel")}
-    fill, voxel = runs[None].report, runs["voxel"].report
-    print({k: (fill[k], voxel[k]) for k in ("packing", "rays", "blocks", "board_cycles", "tests")})
-    assert (fill["packing"], voxel["packing"]) == ("fill", "voxel") and fill["cluster_links"] > 0
-    assert np.array_equal(runs[None].radiosity, runs["voxel"].radiosity) and fill["rays"] == voxel["rays"]
-    assert fill["blocks"] < voxel["blocks"] and fill["board_cycles"] < voxel["board_cycles"]
+            for p in (None, "voxel", "fill")}
+    cube, voxel = runs[None].report, runs["voxel"].report
+    print({p: {k: r.report[k] for k in ("packing", "rays", "blocks", "board_cycles", "tests")} for p, r in runs.items()})
+    assert (cube["packing"], voxel["packing"]) == ("cube", "voxel") and cube["cluster_links"] > 0
+    for other in ("voxel", "fill"):
+        assert np.array_equal(runs[None].radiosity, runs[other].radiosity) and cube["rays"] == runs[other].report["rays"]
+    assert runs["fill"].report["blocks"] <= cube["blocks"] < voxel["blocks"]
+    assert cube["board_cycles"] < voxel["board_cycles"]
 
 
 @pytest.mark.parametrize("flat,parameter", [({"epsilon": 0}, "epsilon"), ({"min_area": -1.0}, "min_area"),

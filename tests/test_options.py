@@ -26,10 +26,10 @@ def test_flat_names_go_to_their_groups():
 
 
 def test_packing_given_wins_else_the_solvers():
-    """``packing`` None: the paper's per-voxel blocks for the uniform solvers, ``fill`` for the
+    """``packing`` None: the paper's per-voxel blocks for the uniform solvers, ``cube`` for the
     hierarchical one; a packing given is kept, and a bad one names its parameter."""
     assert RenderOptions.of(solver="jacobi").packing == "voxel"
-    assert RenderOptions.of(solver="hierarchical").packing == "fill"
+    assert RenderOptions.of(solver="hierarchical").packing == "cube"
     assert RenderOptions.of(solver="hierarchical", packing="voxel").packing == "voxel"
     assert RenderOptions.of(solver="progressive", packing="fill").packing == "fill"
     with pytest.raises(ParameterError) as e:

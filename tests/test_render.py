@@ -132,7 +132,7 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
     # not change one blocked bit: the radiosity is identical to the last bit.
     scene = _occluded_room(tmp_path)
     runs = {}
-    for traversal, packing in (("block", "voxel"), ("block", "fill"), ("ray", "voxel")):
+    for traversal, packing in (("block", "voxel"), ("block", "cube"), ("block", "fill"), ("ray", "voxel")):
         res = render(scene, backend="model", voxels=4, max_shots=6, traversal=traversal, packing=packing)
         runs[traversal, packing] = res
     base = runs["block", "voxel"]
@@ -141,7 +141,7 @@ def test_block_grouping_and_traversal_do_not_change_the_answer(tmp_path):
         assert res.report["rays"] == base.report["rays"], key
         assert np.array_equal(res.radiosity, base.radiosity), key
     # filling the array's rows needs fewer blocks; one ray per block needs one block per ray
-    assert runs["block", "fill"].report["blocks"] < base.report["blocks"]
+    assert runs["block", "fill"].report["blocks"] <= runs["block", "cube"].report["blocks"] < base.report["blocks"]
     assert runs["ray", "voxel"].report["blocks"] == base.report["rays"]
     # the voxel grid does not matter either, and some rays really are blocked (not vacuous)
     from blockray.sim.model import ModelBoard

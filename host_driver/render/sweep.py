@@ -35,6 +35,7 @@ from ...errors import ParameterError, option, printable
 from ...params import MAX_BITS, MIN_BITS
 from ...samples import END_LATTICES
 from ..traverse.endpoints import ENDS
+from ..traverse.visibility import PACKINGS
 from .options import ESTIMATORS, LINK_RAYS, SAMPLE_POINTS, SOLVERS
 
 __all__ = ["SETTINGS", "RECIPES", "Setting", "parse_vary", "points", "Reference", "read_patches",
@@ -78,7 +79,7 @@ SETTINGS = {
     "board": Setting("--board", str, None),                # choices from the registry, when asked
     "cell": Setting("--cell", str, CELLS),
     "traversal": Setting("--traversal", str, ("block", "ray")),
-    "packing": Setting("--packing", str, ("voxel", "fill")),
+    "packing": Setting("--packing", str, PACKINGS),
     "estimator": Setting("--estimator", str, tuple(ESTIMATORS)),
     "end-points": Setting("--end-points", str, ENDS),
     "end-seed": Setting("--end-seed", int, check=lambda v: None if v >= 0 else "must not be negative"),

@@ -14,7 +14,10 @@ from ...board import BlockBatch, BlockBits, ranges
 __all__ = ["Phases", "Visibility", "visible_fraction", "TRAVERSALS", "PACKINGS"]
 
 TRAVERSALS = ("block", "ray", "board")
-PACKINGS = ("voxel", "fill")
+PACKINGS = ("voxel", "cube", "fill")
+#: ``cube`` packing: a block's receivers end in one cube of 2**CUBE voxels a side (the paper's
+#: block on a coarser grid of end points: fuller rows, bundles not much wider).
+CUBE = 2
 
 
 def _morton(ijk):
@@ -149,11 +152,15 @@ class Visibility:
             column = np.zeros(len(shooters), dtype=np.int64)
             change = shooters[1:] != shooters[:-1]
             column[1:] = np.cumsum(change if sets is None else change | (sets[1:] != sets[:-1]))
-            if self.packing == "fill":
-                # Fill every row: receivers in Morton order of their end voxels, cut into runs of R.
-                # A block then spans neighbouring voxels; its bundle is a little wider.
+            if self.packing != "voxel":
+                # Fill every row: receivers in Morton order of their end voxels, cut into runs of R
+                # (within a cube of voxels for ``cube``). A block then spans neighbouring voxels;
+                # its bundle is a little wider.
                 pair = np.lexsort((pair_morton, column))
                 first = np.concatenate([[True], column[pair][1:] != column[pair][:-1]])
+                if self.packing == "cube":
+                    cube = pair_morton[pair] >> (3 * CUBE)
+                    first[1:] |= cube[1:] != cube[:-1]
             else:
                 # The paper's block: the receivers whose end points share a voxel.
                 pair = np.lexsort((pair_voxel, column))
