@@ -475,10 +475,12 @@ def test_packings_same_bits_cube_in_fewer_blocks():
     runs = {p: render(scene, backend="model", solver="hierarchical", epsilon=1e-2, tolerance=1e-4, packing=p)
             for p in (None, "voxel", "fill")}
     cube, voxel = runs[None].report, runs["voxel"].report
-    print({p: {k: r.report[k] for k in ("packing", "rays", "blocks", "board_cycles", "tests")} for p, r in runs.items()})
+    print({p: {k: r.report[k] for k in ("packing", "rays", "blocks", "board_cycles", "tests")}
+           for p, r in runs.items()})
     assert (cube["packing"], voxel["packing"]) == ("cube", "voxel") and cube["cluster_links"] > 0
     for other in ("voxel", "fill"):
-        assert np.array_equal(runs[None].radiosity, runs[other].radiosity) and cube["rays"] == runs[other].report["rays"]
+        assert np.array_equal(runs[None].radiosity, runs[other].radiosity), other
+        assert cube["rays"] == runs[other].report["rays"], other
     assert runs["fill"].report["blocks"] <= cube["blocks"] < voxel["blocks"]
     assert cube["board_cycles"] < voxel["board_cycles"]
 

@@ -98,9 +98,10 @@ class BoardOptions:
 class RayOptions:
     """The voxel grid (``voxels`` per axis; None: the paper's cost model chooses), the shooter
     ``samples`` (a count or a :class:`~blockray.samples.SampleScheme`), the ``traversal`` and
-    ``packing`` of block rays (None: the solver's, :attr:`RenderOptions.packing`), where each row ends on its receiver (``end_points``, a rule of
-    host_driver/traverse/endpoints.py, with ``end_seed`` and ``end_draws`` rows per pair for ``draw``, on a
-    lattice ``end_lattice`` times finer than the samples'), where the shooter's samples lie
+    ``packing`` of block rays (None: the solver's, :attr:`RenderOptions.packing`), where each row
+    ends on its receiver (``end_points``, a rule of host_driver/traverse/endpoints.py, with
+    ``end_seed`` and ``end_draws`` rows per pair for ``draw``, on a lattice ``end_lattice`` times
+    finer than the samples'), where the shooter's samples lie
     (``sample_points``: ``fixed``, one pattern for every patch; ``draw``, stratified and drawn per
     patch from ``sample_seed``; ``rows``, drawn as ``end_draws`` sets stratified together, row d of
     a pair casting from set d; blockray/samples.py), ``emitter_factor`` times the rows for a pair
