@@ -347,8 +347,8 @@ class RenderOptions:
     def packing(self):
         """The block packing in use: ``ray.packing`` if given; else the paper's blocks (the receivers
         whose end points share a voxel) for the uniform solvers, and ``cube`` for the hierarchical
-        one, whose links of one source element end in few rows a voxel (1.4x fewer board cycles on
-        cornell and the room for the same host CPU: docs/hierarchical.md, "Packing")."""
+        one, whose links of one source element end in few rows a voxel (1.5x fewer board cycles on
+        cornell and the room for about the same host CPU: docs/hierarchical.md, "Packing")."""
         if self.ray.packing is not None:
             return self.ray.packing
         return "cube" if self.solve.solver == "hierarchical" else "voxel"
