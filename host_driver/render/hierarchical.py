@@ -83,7 +83,7 @@ from ..radiosity.elements import ElementPoints, children_of
 from .clusters import (ClusterLinks, Transfer, build_tree, entry_keys, leaf_weights, link_clusters, power_bounds,
                        receiver_entries, source_members, split_pairs)
 from ..scene.scene import Scene
-from ..traverse.visibility import CUBE, Phases, _morton
+from ..traverse.visibility import Phases, _morton, packed_runs
 from ..traverse.voxel import VoxelGrid
 from ..traverse.cost import default_voxels
 
@@ -393,27 +393,18 @@ class LinkCaster:
 
     def _blocks(self, caster, target, end_w, take):
         """The block rays of the rows (caster samples ``take[m]`` -> its end point): the rows grouped
-        by caster and samples taken, in Z-order of their ends' voxels, and also by the cube of
-        2**CUBE voxels a side their end lies in (``cube``) or by its voxel (``voxel``, the paper's
-        block; ``fill``: not), runs of at most R of them times chunks of at most S of the samples.
-        Returns the BlockBatch, the row of each block row and the position in ``take`` of each
-        column."""
+        by caster and samples taken, then packed by their ends' voxels (``packing``,
+        :func:`~blockray.host_driver.traverse.visibility.packed_runs`) into runs of at most R, times
+        chunks of at most S of the samples. Returns the BlockBatch, the row of each block row and the
+        position in ``take`` of each column."""
         h, pts, grid = self.h, self.h.points, self.grid
-        V, n, k = h.scene.patch_vertices, len(caster), take.shape[1]
+        V, k = h.scene.patch_vertices, take.shape[1]
         with self.phases.timed("commands"):
             ends = np.einsum("np,npc->nc", end_w / float(pts.denominator), V[h.patch[target]])
             cell = grid.cell_of(ends)
             voxel = grid.index_of(cell) if self.packing == "voxel" else _morton(cell)
-            order = np.lexsort((voxel, take[:, 0], caster))     # evenly spaced: the first names them all
-            c, v, t = caster[order], voxel[order], take[order, 0]
-            first = np.ones(n, dtype=bool)
-            first[1:] = (c[1:] != c[:-1]) | (t[1:] != t[:-1])
-            if self.packing != "fill":      # Morton codes share their high bits within a cube
-                v = v >> (3 * CUBE if self.packing == "cube" else 0)
-                first[1:] |= v[1:] != v[:-1]
-            pos = np.arange(n) - np.flatnonzero(first)[np.cumsum(first) - 1]
-            run_start = np.flatnonzero(pos % self.rows == 0)
-            run_len = np.diff(np.append(run_start, n))
+            # evenly spaced samples: the first names them all
+            order, run_start, run_len = packed_runs(voxel, self.packing, self.rows, caster, take[:, 0])
             chunk_start = np.arange(0, k, self.cols)
             chunk_len = np.minimum(self.cols, k - chunk_start)
             rows, cols = np.repeat(run_len, len(chunk_start)), np.tile(chunk_len, len(run_start))

@@ -30,6 +30,27 @@ def _morton(ijk):
     return code
 
 
+def packed_runs(key, packing, rows, *groups):
+    """How block rays pack their rows (one a receiver end point): sorted by ``groups`` (most
+    significant first), then by ``key``, the end's voxel (its Z-order code; its index for
+    ``voxel``), and cut into runs of at most ``rows`` that start anew where a group changes or,
+    unless ``fill``, the end's voxel (``voxel``) or its cube of 2**CUBE voxels a side (``cube``:
+    Z-order codes share their high bits within a cube). Returns that order and the runs' starts and
+    lengths in it."""
+    order = np.lexsort((key,) + groups[::-1])
+    n = len(order)
+    cuts = [g[order] for g in groups]
+    if packing != "fill":
+        cuts.append(key[order] >> (3 * CUBE if packing == "cube" else 0))
+    first = np.ones(n, dtype=bool)
+    first[1:] = False
+    for c in cuts:
+        first[1:] |= c[1:] != c[:-1]
+    pos = np.arange(n) - np.flatnonzero(first)[np.cumsum(first) - 1]
+    run_start = np.flatnonzero(pos % rows == 0)
+    return order, run_start, np.diff(np.append(run_start, n))
+
+
 class Phases:
     """Seconds spent per phase: wall clock (``seconds``) and CPU time of the whole process, every
     thread (``cpu``; on a shared machine the steadier measure of the host's own work)."""
@@ -152,25 +173,11 @@ class Visibility:
             column = np.zeros(len(shooters), dtype=np.int64)
             change = shooters[1:] != shooters[:-1]
             column[1:] = np.cumsum(change if sets is None else change | (sets[1:] != sets[:-1]))
-            if self.packing != "voxel":
-                # Fill every row: receivers in Morton order of their end voxels, cut into runs of R
-                # (within a cube of voxels for ``cube``). A block then spans neighbouring voxels;
-                # its bundle is a little wider.
-                pair = np.lexsort((pair_morton, column))
-                first = np.concatenate([[True], column[pair][1:] != column[pair][:-1]])
-                if self.packing == "cube":
-                    cube = pair_morton[pair] >> (3 * CUBE)
-                    first[1:] |= cube[1:] != cube[:-1]
-            else:
-                # The paper's block: the receivers whose end points share a voxel.
-                pair = np.lexsort((pair_voxel, column))
-                key = pair_voxel[pair]
-                first = np.concatenate([[True], (key[1:] != key[:-1]) | (column[pair][1:] != column[pair][:-1])])
-            # runs of at most R receivers within each group, times chunks of at most S samples
-            group_start = np.flatnonzero(first)
-            pos = np.arange(len(pair)) - group_start[np.cumsum(first) - 1]
-            run_start = np.flatnonzero(pos % self.rows == 0)
-            run_len = np.diff(np.append(run_start, len(pair)))
+            # Runs of at most R receivers of a column (the paper's block: those whose end points
+            # share a voxel; ``cube``, ``fill``: in Z-order across voxels, a little wider bundles),
+            # times chunks of at most S samples.
+            pair, run_start, run_len = packed_runs(pair_voxel if self.packing == "voxel" else pair_morton,
+                                                   self.packing, self.rows, column)
             chunk_start = np.arange(0, K, self.cols)
             chunk_len = np.minimum(self.cols, K - chunk_start)
             nr, nc = len(run_start), len(chunk_start)
