@@ -13,6 +13,11 @@ radiosity of the run's patch or leaf that holds its centroid. Rays, board cycles
 process's, every thread) are the render's report. The hierarchical runs start from the input triangles
 (``--max-edge`` 1e9) or from the scene subdivided to each ``--hierarchical-edges``; the uniform
 runs from the scene subdivided to each edge length.
+
+After the table it prints each hierarchical run against the uniform solve at the same error: the
+uniform rays, board cycles and CPU seconds interpolated as a power law between the two uniform
+runs (in order of rays) whose errors bracket the run's (:func:`at_equal_error`), over the
+hierarchical run's; runs outside the uniform errors are marked so, not extrapolated.
 """
 
 import argparse
@@ -130,7 +135,7 @@ def main(argv=None):
     rows = {"progressive": [], **{label(m, e): [] for e in starts for m in modes}}
     for edge in (float(x) for x in args.uniform_edges.split(",")):
         r = run(ref, args.scene, edge, solver="progressive", tolerance=args.tolerance)
-        rows["progressive"].append(r)
+        rows["progressive"].append(dict(r, mesh=f"max edge {edge:g}"))
         print(f"| progressive | max edge {edge:g} | {r['patches']} | | {r['rays']} | {r['cycles']} | {r['cpu']:.2f} | "
               f"{r['error']:.4f} | "
               f"{r['balance']:+.2%} |", flush=True)
@@ -139,12 +144,39 @@ def main(argv=None):
             for eps in (float(x) for x in args.epsilons.split(",")):
                 r = run(ref, args.scene, edge, solver="hierarchical", epsilon=eps, tolerance=args.tolerance / 10,
                         link_rays=mode[0], clustering=mode[1])
-                rows[label(mode, edge)].append(r)
+                rows[label(mode, edge)].append(dict(r, mesh=f"epsilon {eps:g}"))
                 print(f"| {label(mode, edge)} | epsilon {eps:g} | {r['leaves']} | {r['links']} | {r['rays']} | "
                       f"{r['cycles']} | {r['cpu']:.2f} | {r['error']:.4f} | {r['balance']:+.2%} |", flush=True)
     print(f"# load average after: {os.getloadavg()}")
+    print_equal_error(rows)
     if args.plot:
         plot(rows, args.plot, args.scene)
+
+
+def at_equal_error(uniform, error, key):
+    """``uniform``'s ``key`` (rays, cycles, cpu) at ``error``: the power law through the two runs,
+    neighbours in order of rays, whose errors bracket ``error`` (the first such pair); None when
+    no pair does."""
+    runs = sorted(uniform, key=lambda r: r["rays"])
+    for a, b in zip(runs, runs[1:]):
+        if min(a["error"], b["error"]) <= error <= max(a["error"], b["error"]) and a["error"] != b["error"]:
+            t = np.log(error / a["error"]) / np.log(b["error"] / a["error"])
+            return float(a[key] * (b[key] / a[key]) ** t)
+    return None
+
+
+def print_equal_error(rows):
+    """Each hierarchical run against the uniform solve at its error (:func:`at_equal_error`)."""
+    print("| solver | mesh | error | rays: uniform / hierarchical | board cycles | CPU s |")
+    print("|---|---|---|---|---|---|")
+    for solver, runs in rows.items():
+        for r in runs if solver != "progressive" else ():
+            cells = []
+            for key, fmt in (("rays", "{:.3g}"), ("cycles", "{:.3g}"), ("cpu", "{:.3g} s")):
+                u = at_equal_error(rows["progressive"], r["error"], key)
+                cells.append("outside the uniform errors" if u is None else
+                             f"{fmt.format(u)} / {fmt.format(r[key])} = **{u / r[key]:.1f}x**")
+            print(f"| {solver} | {r['mesh']} | {r['error']:.4f} | " + " | ".join(cells) + " |")
 
 
 def plot(rows, path, name):

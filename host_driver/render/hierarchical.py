@@ -21,19 +21,21 @@ points of its source to each of the K of its receiver, and weigh by the point-to
 ``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane); the visible
 fraction is the weighted clear share, an estimate of the occluded over the unoccluded factor over
 both elements' areas. ``spread`` (the default): a link's rays run from K / SOURCE_STEP of its
-source's samples to one of its receiver's (EMITTER_ENDS of them if the source emits), each chosen
-per link (:func:`end_samples`), so a leaf's many links together still cover both elements: 7x
-fewer rays on the room than K x K with all K source samples, and no worse a balance; half of them
-again halves those rays at the same error; an emitter's links at K x K cost cornell 2.2x the rays
-for the same error (docs/hierarchical.md). ``centroid``: K rays
+source's samples to one of its receiver's (EMITTER_ENDS to EMITTER_ENDS if the source emits),
+each chosen per link (:func:`end_samples`), so a leaf's many links together still cover both
+elements; a cluster link's receiver leaves take their source samples per block run instead
+(:func:`source_offsets`: fuller blocks). 7x fewer rays on the room than K x K with all K source
+samples, and no worse a balance; half of them again halves those rays at the same error; an
+emitter's links at K x K cost cornell 2.2x the rays for the same error (docs/hierarchical.md).
+``centroid``: K rays
 from the source's samples to the receiver's centroid (or, where that centroid is not strictly in front of the
 source's plane, from the receiver's samples to the source's centroid), the clear share of those
 whose sample lies strictly in front of the far element's plane: 8x fewer rays, but the centroid
 judges the whole receiver, and closed scenes gain energy where shadows cover part of a receiver.
 Sample points are one fixed pattern on every element, or drawn per element (``--sample-points
-draw``). The rays are grouped as the uniform render's: the rows cast from one element, their end
-points sorted by voxel, runs of at most R end points times chunks of at most S samples, one block
-ray each, so every back-end of the registry answers them unchanged.
+draw``). The rays are grouped as the uniform render's: the rows cast from one element with the
+same samples, their end points sorted by voxel, runs of at most R end points times chunks of at
+most S samples, one block ray each, so every back-end of the registry answers them unchanged.
 
 **Refinement oracle.** A link's transported power bound ``b = max_rgb B_s * F_rs * A_r`` (F
 unoccluded) is compared with ``epsilon`` times the scene's emitted power ``sum_j A_j max_rgb
@@ -83,7 +85,7 @@ from ..radiosity.elements import ElementPoints, children_of
 from .clusters import (ClusterLinks, Transfer, build_tree, entry_keys, leaf_weights, link_clusters, power_bounds,
                        receiver_entries, source_members, split_pairs)
 from ..scene.scene import Scene
-from ..traverse.visibility import Phases, _morton, packed_runs
+from ..traverse.visibility import Phases, _morton, packed_runs, within_groups
 from ..traverse.voxel import VoxelGrid
 from ..traverse.cost import default_voxels
 
@@ -106,15 +108,20 @@ ANDERSON = 5
 #: Share of the power bound a link of certain visibility counts in the oracle.
 CERTAIN_WEIGHT = 0.5
 
-#: A link's rays (``spread``, a cluster link's receiver leaves) start at every SOURCE_STEP-th of the
-#: source's K samples: on the room from max edge 1 at 1e-3 half the samples give the same error for
-#: half those rays (docs/hierarchical.md). Every 4th halves them again for 1.27x the board cycles.
+#: A one-end link's rays (``spread``: a non-emitter's element link, a cluster link's receiver leaf)
+#: start at every SOURCE_STEP-th of the source's K samples, from an offset hashed per link (an
+#: element link) or chosen per block run (a cluster link's receiver leaves: :func:`source_offsets`):
+#: on the room from max edge 1 at 1e-3 half the samples give the same error for half the rays.
+#: Every 4th halves them again, but the visibility is then noisy enough to gain the room 0.3% of
+#: energy and to put a leaf of a closed box more than closure.MAX_CORRECTION from closed
+#: (docs/hierarchical.md, "Source samples").
 SOURCE_STEP = 2
 
-#: ``spread``: the receiver samples a link from an emitter ends at (every other link's end at one).
-#: Its rays carry the first bounce: with 2, a large receiver half in an emitter's shadow came out
-#: 7% too bright (a ratio of few rays); K x K cost cornell 2.2x the rays of 4 for the same error
-#: (docs/hierarchical.md, "Rays a link from an emitter").
+#: ``spread``: an emitter's link runs from EMITTER_ENDS of its source's samples to EMITTER_ENDS of
+#: its receiver's (every other link ends at one). Its rays carry the first bounce: with 4 x 2 or
+#: 2 x 4, a large receiver half in an emitter's shadow came out 5-7% too bright (a ratio of few
+#: rays); K x K cost cornell 2.2x the rays of 4 x 4 for the same error (docs/hierarchical.md,
+#: "Rays a link from an emitter").
 EMITTER_ENDS = 4
 
 #: Share of the refinement threshold a link's unoccluded factor may misplace: the absolute
@@ -259,10 +266,43 @@ def end_samples(recv, src, K, ends):
     else ``ends`` evenly spaced samples from an offset hashed from the link's two elements, so the
     links of one receiver end all over it (the same on every board and Dask set)."""
     step = K // ends
-    mixed = ((np.asarray(recv, np.uint64) * np.uint64(0x9E3779B97F4A7C15))
-             ^ (np.asarray(src, np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)))
-    offset = ((mixed >> np.uint64(29)) % np.uint64(step)).astype(np.int64)
+    offset = ((_mix(recv, src) >> np.uint64(29)) % np.uint64(step)).astype(np.int64)
     return offset[:, None] + step * np.arange(ends)
+
+
+def _mix(a, b):
+    """A hash of two arrays of element ids (uint64)."""
+    return ((np.asarray(a, np.uint64) * np.uint64(0x9E3779B97F4A7C15))
+            ^ (np.asarray(b, np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)))
+
+
+def source_offsets(caster, code, rows, step):
+    """(n,): the offset of each one-end row's source samples (every ``step``-th from it), one per
+    run of the ``cube`` packing (:func:`packed_runs`: by caster, then by ``code``, the Z-order code
+    of the end's voxel), and a caster's runs, in an order hashed from it and their place, take the
+    offsets in turn from one hashed from the caster. A block's rows then share their source
+    samples, so a caster's rows do not split by offset (fewer, fuller blocks); its runs take every
+    offset alike (a source whose runs drew one offset gains energy) and not in the order of their
+    ends (neighbouring receivers on one part of the source put a receiver at a shadow's edge 6% too
+    bright): docs/hierarchical.md, "Source samples". The runs are the ``cube`` packing's whatever
+    the blocks' packing, so every packing casts the same rays; a row's samples depend on the rows
+    chosen with it, not on the boards or Dask sets they are then split over."""
+    order, run_start, run_len = packed_runs(code, "cube", rows, caster)
+    owner = caster[order[run_start]]
+    shuffled = np.lexsort((_mix(owner, _groups_rank(owner)), owner))
+    turn = np.empty(len(owner), dtype=np.int64)
+    turn[shuffled] = _groups_rank(owner[shuffled])
+    base = ((_mix(owner, 0) >> np.uint64(29)) % np.uint64(step)).astype(np.int64)
+    offset = np.empty(len(caster), dtype=np.int64)
+    offset[order] = np.repeat((base + turn) % step, run_len)
+    return offset
+
+
+def _groups_rank(sorted_ids):
+    """Each entry's place among the equal ids before it (``sorted_ids`` grouped)."""
+    first = np.ones(len(sorted_ids), dtype=bool)
+    first[1:] = sorted_ids[1:] != sorted_ids[:-1]
+    return within_groups(first)
 
 
 class LinkCaster:
@@ -279,28 +319,53 @@ class LinkCaster:
     def counters(self):
         return self.board.counters()
 
-    def cast(self, links, ends=None, sources=None):
+    def cast(self, links, ends=None, sources=None, offsets=None):
         """Set ``links.vis`` and ``links.partial`` from the board's blocked bits (``ends``: the
         receiver samples every link's rays end at, instead of :meth:`_groups`' rule; ``sources``:
-        how many of the source's K samples they start at, all K if None)."""
+        how many of the source's K samples they start at, :meth:`_sources` if None; ``offsets``:
+        where each link's source samples start, -1 or None for an offset hashed per link)."""
         vis, partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
-        for ends, which in (self._groups(links) if ends is None else [(ends, np.arange(len(links)))]):
+        offsets = np.full(len(links), -1, dtype=np.int64) if offsets is None else offsets
+        for ends, sources, which in self._plan(links, ends, sources):
+            which = which[np.argsort(links.src[which], kind="stable")]     # a source's rows in one chunk: its runs
             if ends:
-                fractions = functools.partial(self._sample_fractions, ends=ends,
-                                              sources=sources or self._sources(ends))
+                fractions = functools.partial(self._sample_fractions, ends=ends, sources=sources)
                 chunk = self.CHUNK // ends
             else:
                 fractions, chunk = self._centroid_fractions, self.CHUNK
             for a in range(0, len(which), chunk):
                 part = which[a:a + chunk]
-                vis[part], partial[part] = fractions(links.recv[part], links.src[part])
+                vis[part], partial[part] = fractions(links.recv[part], links.src[part], offsets=offsets[part])
         links.vis, links.partial = vis, partial
+
+    def offsets(self, links, ends=None, sources=None):
+        """(n,): where each link's source samples start (every K / sources-th from there) when its
+        rays end at one receiver sample and start at fewer than K (:func:`source_offsets`, over
+        these links together: computed before they are split over boards or Dask sets); -1 for
+        the others (:func:`end_samples`' offset hashed per link)."""
+        out = np.full(len(links), -1, dtype=np.int64)
+        K = self.h.points.K
+        for ends, sources, which in self._plan(links, ends, sources):
+            if ends == 1 and sources < K:
+                recv, src = links.recv[which], links.src[which]
+                with self.phases.timed("commands"):
+                    end = end_samples(recv, src, K, 1)
+                    points = self._end_points(recv, np.take_along_axis(self._sample_weights(recv), end[:, :, None], axis=1)[:, 0])
+                    out[which] = source_offsets(src, _morton(self.grid.cell_of(points)), self.rows, K // sources)
+        return out
+
+    def _plan(self, links, ends, sources):
+        """``(ends, sources, links)`` per group: :meth:`_groups`, or all with ``ends``."""
+        groups = self._groups(links) if ends is None else [(ends, np.arange(len(links)))]
+        return [(e, (sources or self._sources(e)) if e else 0, which) for e, which in groups]
 
     def _sources(self, ends):
         """The source samples a link's rays start at when they end at ``ends`` receiver samples:
-        all K to all K, else every SOURCE_STEP-th."""
+        all K to all K, EMITTER_ENDS to an emitter's EMITTER_ENDS, else every SOURCE_STEP-th."""
         K = self.h.points.K
-        return K if ends == K else max(1, K // SOURCE_STEP)
+        if ends == K:
+            return K
+        return min(EMITTER_ENDS, K) if ends > 1 else max(1, K // SOURCE_STEP)
 
     def _groups(self, links):
         """``(ends, links)``: the receiver samples each link's rays end at (0: the centroid rule).
@@ -313,7 +378,7 @@ class LinkCaster:
         emits = self.h.scene.emission[self.h.patch[links.src]].max(axis=1) > 0
         return [(min(EMITTER_ENDS, K), every[emits]), (1, every[~emits])]
 
-    def _centroid_fractions(self, recv, src):
+    def _centroid_fractions(self, recv, src, offsets=None):
         h, pts = self.h, self.h.points
         V, K = h.scene.patch_vertices, pts.K
         with self.phases.timed("formfactor"):
@@ -328,9 +393,10 @@ class LinkCaster:
         n = counted.sum(axis=1)
         return n_clear / n, (n_clear > 0) & (n_clear < n)
 
-    def _sample_fractions(self, recv, src, ends, sources):
+    def _sample_fractions(self, recv, src, ends, sources, offsets):
         """``sources`` x ``ends`` rays per link, ``sources`` of the source's K samples (all, or evenly
-        spaced from a hashed offset: :func:`end_samples` with the ends swapped) to ``ends`` of the
+        spaced from ``offsets`` (:meth:`offsets`) or, where that is -1, a hashed offset:
+        :func:`end_samples` with the ends swapped) to ``ends`` of the
         receiver's K samples (:func:`end_samples`), each weighed by the point-to-point kernel
         ``cos cos / r**2`` (0 where either end is not strictly in front of the other's plane): the
         weighted clear share is the ratio of the occluded to the unoccluded factor, over both
@@ -341,6 +407,8 @@ class LinkCaster:
         h, K, n = self.h, self.h.points.K, len(recv)
         with self.phases.timed("formfactor"):
             take = end_samples(src, recv, K, sources)
+            given = offsets >= 0
+            take[given] = offsets[given, None] + K // sources * np.arange(sources)
             ws = np.take_along_axis(self._sample_weights(src), take[:, :, None], axis=1)
             wr = np.take_along_axis(self._sample_weights(recv), end_samples(recv, src, K, ends)[:, :, None], axis=1)
             # (n, end, sample): both ends strictly in front of the other element's plane
@@ -391,6 +459,11 @@ class LinkCaster:
         self.blocks += len(batch)
         return clear
 
+    def _end_points(self, target, end_w):
+        """(n, 3) float end points of weights ``end_w`` (n, 3) on elements ``target``."""
+        V = self.h.scene.patch_vertices[self.h.patch[target]]
+        return np.einsum("np,npc->nc", end_w / float(self.h.points.denominator), V)
+
     def _blocks(self, caster, target, end_w, take):
         """The block rays of the rows (caster samples ``take[m]`` -> its end point): the rows grouped
         by caster and samples taken, then packed by their ends' voxels (``packing``,
@@ -400,7 +473,7 @@ class LinkCaster:
         h, pts, grid = self.h, self.h.points, self.grid
         V, k = h.scene.patch_vertices, take.shape[1]
         with self.phases.timed("commands"):
-            ends = np.einsum("np,npc->nc", end_w / float(pts.denominator), V[h.patch[target]])
+            ends = self._end_points(target, end_w)
             cell = grid.cell_of(ends)
             voxel = grid.index_of(cell) if self.packing == "voxel" else _morton(cell)
             # evenly spaced samples: the first names them all
@@ -444,17 +517,23 @@ class SetCaster:
                           stats_fraction=ray.stats_fraction, threads=threads, link_rays=options.solve.link_rays)
         self.owner = assign_sets(_morton(grid.cell_of(h.scene.centroids)), options.run.sets)
         self.scene_f, self.grid_f = _hold(self.client, h.scene), _hold(self.client, grid)
+        # source offsets over all the links cast together, as one LinkCaster's
+        self.plan = LinkCaster(h, None, grid, rows=params.rows, cols=params.cols, phases=phases,
+                               link_rays=options.solve.link_rays, packing=options.packing)
+        self.offsets = self.plan.offsets
         self.rays = self.blocks = 0
         self.per_set = [{"rays": 0, "blocks": 0, "counters": {}} for _ in range(options.run.sets)]
 
-    def cast(self, links, ends=None, sources=None):
+    def cast(self, links, ends=None, sources=None, offsets=None):
         from ..cluster.cluster import _results
         h, sets = self.h, len(self.per_set)
         part = self.owner[h.patch[links.recv]]
         mine = [np.flatnonzero(part == k) for k in range(sets)]
+        offsets = np.full(len(links), -1, dtype=np.int64) if offsets is None else offsets
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources, pure=False)
+                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources, offsets[m],
+                                          pure=False)
                        for m in mine]
             answers = _results(self.client, futures)
         links.vis, links.partial = np.empty(len(links)), np.empty(len(links), dtype=bool)
@@ -474,10 +553,10 @@ class SetCaster:
         return out
 
 
-def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, sources=None):
+def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, sources=None, offsets=None):
     """On a worker: the links ``(recv <- src)`` of one set cast on its own board (built, given the
     element points to ``max_level``, loaded with the grid) with rays ``job.link_rays`` (``ends``,
-    ``sources``: :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
+    ``sources``, ``offsets``: :meth:`LinkCaster.cast`'s): ``(vis, partial, rays, blocks, counters)``."""
     from ..board.backends import make_board
     from ...threads import available, set_threads
     if job.threads is not None:
@@ -493,7 +572,7 @@ def cast_on_set(scene, grid, job, max_level, patch, node, recv, src, ends=None, 
                             link_rays=job.link_rays, packing=job.packing)
         links = Links(recv, src, np.zeros(len(recv)))
         if len(links):
-            caster.cast(links, ends, sources)
+            caster.cast(links, ends, sources, offsets)
         else:
             links.vis, links.partial = np.zeros(0), np.zeros(0, dtype=bool)
         return links.vis, links.partial, caster.rays, caster.blocks, board.counters()
@@ -826,7 +905,8 @@ def cast_clusters(caster, tree, clinks, known=None):
     cast = np.flatnonzero(~found & (src >= 0) & (weight > 0))
     if len(cast):
         pairs = Links(element[cast], src[cast], np.zeros(len(cast)))
-        caster.cast(pairs, ends=1)          # a receiver leaf's rays: the link's light is spread over its leaves
+        # a receiver leaf's rays (the link's light is spread over its leaves), a member's samples per block run
+        caster.cast(pairs, ends=1, offsets=caster.offsets(pairs, 1))
         rvis[cast] = pairs.vis
     total = np.bincount(link, weight, minlength=n)
     clinks.vis = np.where(total > 0, np.bincount(link, weight * rvis, minlength=n) / np.where(total > 0, total, 1), 1.0)

@@ -46,9 +46,14 @@ def packed_runs(key, packing, rows, *groups):
     first[1:] = False
     for c in cuts:
         first[1:] |= c[1:] != c[:-1]
-    pos = np.arange(n) - np.flatnonzero(first)[np.cumsum(first) - 1]
-    run_start = np.flatnonzero(pos % rows == 0)
+    run_start = np.flatnonzero(within_groups(first) % rows == 0)
     return order, run_start, np.diff(np.append(run_start, n))
+
+
+def within_groups(first):
+    """Each position's index within its group, the groups starting where ``first`` is set
+    (``first[0]`` must be)."""
+    return np.arange(len(first)) - np.flatnonzero(first)[np.cumsum(first) - 1]
 
 
 class Phases:
