@@ -232,7 +232,7 @@ def _render_parser(sub):
                         "--epsilon, so the initial links grow about as s log s, not s**2 (default on)")
     p.add_argument("--min-area", type=_positive_float, default=None, metavar="AREA",
                    help="hierarchical: smallest element area (scene units squared; default: 3 levels below each "
-                        "input triangle)")
+                        "input triangle, fewer, with a warning, where the board's bits cannot hold 3)")
     p.add_argument("--tolerance", type=_positive_float, default=1e-3,
                    help="stop when unshot/emitted energy (progressive) or the residual (gathering) is below this")
     p.add_argument("--max-shots", type=_positive_int, default=None, help="progressive refinement: at most this many shots")

@@ -551,6 +551,30 @@ def test_bad_options_named(flat, parameter):
     assert e.value.parameter == parameter
 
 
+def test_default_levels_fall_back_to_what_the_bits_hold():
+    """Without --min-area the elements go 3 levels deep, or as deep as the board's bits hold: four
+    slivers of the room at max edge 0.18 (which the paper's figure-1 size renders) in the room's
+    extent degenerate at 20 bits with 3 levels, so 2 are taken and a LevelWarning says so; a
+    --min-area asking for 3 is refused naming it."""
+    from blockray.errors import CapacityError
+    from blockray.host_driver.render.hierarchical import LevelWarning
+    X, Y, Z = np.eye(3)
+    slivers = np.array([[[1.03125, 1.8140625, 5.0], [1.0425, 1.8, 5.0], [1.0416666666666667, 1.8, 5.0]],
+                        [[3.2, 0.7, 3.05], [3.29, 0.7, 2.9993749999999997], [3.29, 0.7, 3.0]],
+                        [[1.91, 0.7, 3.0], [1.91, 0.7, 2.999375], [2.0, 0.7, 3.05]],
+                        [[1.35, 1.43, 4.7], [1.35, 1.43, 4.7006578947368425], [1.3987500000000002, 1.43, 4.715625]]])
+    tris = np.concatenate([rectangle(np.zeros(3), X * 6, Z * 5, 1, 1),
+                           rectangle(np.array([2.0, 2.7, 2.0]), Z, X, 1, 1), slivers])
+    emission = np.zeros((len(tris), 3))
+    emission[2:4] = 5.0
+    scene = make_scene(tris, reflectance=0.5, emission=emission)
+    with pytest.warns(LevelWarning, match="2 element levels"):
+        result = render(scene, backend="model", solver="hierarchical", epsilon=1e-2)
+    assert result.report["max_level"] == 2 and np.isfinite(result.radiosity).all()
+    with pytest.raises(CapacityError, match="min_area"):
+        render(scene, backend="model", solver="hierarchical", epsilon=1e-2, min_area=float(scene.areas.max()) / 64)
+
+
 def test_min_area_too_deep_is_refused():
     scene = two_squares(rectangle(np.array([0, 0, 1.0]), Y, X, 1, 1))
     with pytest.raises(ParameterError) as e:

@@ -73,11 +73,12 @@ balance and tests take it as any scene), and a CSV row per leaf with its input t
 import functools
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...errors import CapacityError, ParameterError, SolveError, option
+from ...errors import CapacityError, ParameterError, SolveError, Spelled, option
 from ...exact_float import plane_signs, plane_signs_of
 from ..radiosity import formfactor
 from ...board import BlockBatch, BlockBits, ranges
@@ -89,7 +90,7 @@ from ..traverse.visibility import Phases, _morton, packed_runs, within_groups
 from ..traverse.voxel import VoxelGrid
 from ..traverse.cost import default_voxels
 
-__all__ = ["Hierarchy", "Links", "render_hierarchical", "leaf_scene", "write_leaves_csv", "max_level_for",
+__all__ = ["Hierarchy", "Links", "LevelWarning", "render_hierarchical", "leaf_scene", "write_leaves_csv", "max_level_for",
            "CERTAIN_WEIGHT", "LEAF_COLUMNS"]
 
 #: The scales' tolerance (largest ``|shot / target - 1|``) relative to the solve's: the power the
@@ -139,6 +140,10 @@ def max_level_for(scene, min_area):
     if largest <= min_area:
         return 0
     return int(math.floor(math.log(largest / min_area, 4) + 1e-12))
+
+
+class LevelWarning(Spelled, UserWarning):
+    """The default element levels did not fit the board's bits; fewer were taken."""
 
 
 @dataclass
@@ -809,17 +814,28 @@ class HierarchicalResult:
 
 def prepare_board(scene, board, ray, solve, phases):
     """Give ``board`` the scene with the element points as its samples and the voxel grid:
-    ``(points, grid, voxels)``. A ``min_area`` whose levels the board's bits cannot hold is a
-    CapacityError naming it."""
-    points = ElementPoints(ray.samples, max_level_for(scene, solve.min_area))
+    ``(points, grid, voxels)``. Without ``min_area`` the elements go 3 levels deep, or as deep as
+    the board's bits hold (a LevelWarning says so); a ``min_area`` whose levels the bits cannot
+    hold is a CapacityError naming it."""
+    levels = max_level_for(scene, solve.min_area)
     with phases.timed("prepare"):
-        try:
-            board.prepare(scene, points)
-        except CapacityError as e:
-            if not points.max_level:
-                raise
-            raise CapacityError(f"{e.spelled(option)}; {points.max_level} of them are the element levels "
-                                f"{option('min_area')} asks for (one bit each): use a larger {option('min_area')}") from None
+        while True:
+            points = ElementPoints(ray.samples, levels)
+            try:
+                board.prepare(scene, points)
+                break
+            except CapacityError as e:
+                if not levels:
+                    raise
+                if solve.min_area is not None:
+                    raise CapacityError(f"{e.spelled(option)}; {levels} of them are the element levels "
+                                        f"{option('min_area')} asks for (one bit each): use a larger "
+                                        f"{option('min_area')}") from None
+                levels -= 1
+    if levels < max_level_for(scene, solve.min_area):
+        warnings.warn(LevelWarning(f"{levels} element levels below each input triangle, not "
+                                   f"{max_level_for(scene, None)}: the scene's vertices leave the board's bits no "
+                                   f"more (give {option('min_area')} to choose)"))
     voxels = ray.voxels or default_voxels(scene.patches, parallelism=1)
     with phases.timed("voxelise"):
         grid = VoxelGrid(scene.patch_vertices, voxels, margin=board.margin)
