@@ -352,10 +352,10 @@ class LinkCaster:
         K = self.h.points.K
         for ends, sources, which in self._plan(links, ends, sources):
             if ends == 1 and sources < K:
-                recv, src = links.recv[which], links.src[which]
+                recv, src, pts = links.recv[which], links.src[which], self.h.points
                 with self.phases.timed("commands"):
-                    end = end_samples(recv, src, K, 1)
-                    points = self._end_points(recv, np.take_along_axis(self._sample_weights(recv), end[:, :, None], axis=1)[:, 0])
+                    end = self.h.node[recv] * pts.per_element + end_samples(recv, src, K, 1)[:, 0]
+                    points = self._end_points(recv, pts.weights_at(self.h.patch[recv], end))
                     out[which] = source_offsets(src, _morton(self.grid.cell_of(points)), self.rows, K // sources)
         return out
 
