@@ -21,8 +21,9 @@ does) through three boards:
 Every route's blocked bits and board cycles are checked against the model. It prints per route
 the build (cached or not), the set-up (start + memory load), the wall time of the batches, the
 part of it the host did not wait for a board (``host s``: the driver encoding the commands and
-decoding the results, while no board runs), the simulated clock cycles per second (all P boards advance together; max over the boards) and the
-board cycles per second (the model's ``board_cycles_per_board`` summed over the P boards).
+decoding the results, while no board runs), the simulated clock cycles per second (all P boards advance together; max over the boards),
+the clock cycles per CPU second of the boards' threads (summed over the boards: the model's cost
+whatever shares the cores) and the board cycles per second (the model's ``board_cycles_per_board`` summed over the P boards).
 
 Part 2 (``--full``) renders the whole scene (the CLI's defaults: progressive refinement to 1e-3)
 with ``--board verilator`` and ``--board model`` (``--cell``: the processor cell of both), checks
@@ -108,7 +109,7 @@ def speed(shooters, routes):
           f"{mc['board_cycles']} board cycles ({board_cycles} summed over the boards)")
     host_codec(params, scene, samples, columns)
     print(f"{'route':8} {'build s':>8} {'setup s':>8} {'batches s':>10} {'host s':>7} {'clock cycles/s':>15} "
-          f"{'board cycles/s':>15}")
+          f"{'per CPU s':>10} {'board cycles/s':>15}")
     for name in routes:
         t0 = time.perf_counter()
         board = _loaded(_boards(params)[name](), scene, samples)
@@ -116,11 +117,15 @@ def speed(shooters, routes):
         trs = getattr(board, "transports", [])
         c0 = max((t.cycles for t in trs), default=0)
         w0 = sum(getattr(t, "simulator_seconds", 0.0) for t in trs)
+        cpu0 = sum(_cpu(t) for t in trs)
+        s0 = sum(t.cycles for t in trs)
         t0 = time.perf_counter()
         bits = [board.run(blocks) for blocks in columns]
         wall = time.perf_counter() - t0
         cycles = max((t.cycles for t in trs), default=0) - c0
         host = wall - (sum(getattr(t, "simulator_seconds", 0.0) for t in trs) - w0)
+        cpu = sum(_cpu(t) for t in trs) - cpu0
+        per_cpu = f"{(sum(t.cycles for t in trs) - s0) / cpu:,.0f}" if cpu else "-"
         rc = board.counters()
         build = trs[0].build if trs else None
         board.close()
@@ -130,7 +135,13 @@ def speed(shooters, routes):
         built = "-" if build is None else f"{build.seconds:.0f}{' (cached)' if build.cached else ''}"
         clock = f"{cycles / wall:,.0f}" if trs else "-"
         print(f"{name:8} {built:>8} {setup:8.1f} {wall:10.2f} {host if trs else wall:7.2f} {clock:>15} "
-              f"{board_cycles / wall:15,.0f}", flush=True)
+              f"{per_cpu:>10} {board_cycles / wall:15,.0f}", flush=True)
+
+
+def _cpu(transport):
+    """The CPU seconds a native board's thread spent clocking it (0 for other transports)."""
+    board = getattr(transport, "_board", None)
+    return getattr(board, "cpu_seconds", 0.0)
 
 
 def host_codec(params, scene, samples, columns):
@@ -197,6 +208,9 @@ def full(scene_name, cell):
     board = r["seconds"]["board"]
     print(f"  {sum(r['board_cycles_per_board']) / board:,.0f} board cycles/s summed over the boards, "
           f"{clock / board:,.0f} clock cycles/s per board, over the report's board phase ({board:.0f} s)")
+    cpu = sum(t["simulator_cpu_seconds"] for t in transports)
+    print(f"  the boards' threads: {cpu:.0f} CPU s, "
+          f"{sum(t['simulated_clock_cycles'] for t in transports) / cpu:,.0f} clock cycles per CPU second")
 
 
 def clock(libraries, cycles, repeat, cell):
@@ -222,7 +236,8 @@ def clock(libraries, cycles, repeat, cell):
             except NativeRunError:
                 pass
             wall = time.perf_counter() - t0
-            print(f"  {name}: {board.cycles / wall:,.0f} clock cycles/s", flush=True)
+            print(f"  {name}: {board.cycles / wall:,.0f} clock cycles/s, {board.cycles / board.cpu_seconds:,.0f} "
+                  f"per CPU second", flush=True)
             board.close()
 
 

@@ -64,6 +64,8 @@ def test_a_room_of_a_few_hundred_patches_renders_as_the_model(room):
     for b, t in enumerate(transports):
         assert t["simulated_clock_cycles"] >= (model.report["board_cycles_per_board"][b]
                                                + model.report["load_cycles_per_board"][b])
+        # the board's thread CPU time: spent, and none of it outside the render's run
+        assert 0 < t["simulator_cpu_seconds"] <= got.report["cpu_seconds"]["total"]
 
 
 @pytest.mark.slow

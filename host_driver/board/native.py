@@ -141,7 +141,7 @@ class NativeTransport(_Buffered):
 
     def stats(self):
         return {"simulated_clock_cycles": int(self.cycles), "simulator_seconds": self.simulator_seconds,
-                "batches": self.batches}
+                "simulator_cpu_seconds": self._board.cpu_seconds, "batches": self.batches}
 
     def close(self):
         if self._board is None:

@@ -23,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -416,6 +417,7 @@ class NativeBoard:
         if records is not None and not (idle.never and backpressure.never):
             raise ValueError("records need a quiet host: host timing drives the byte stream, as sim/drive.py does")
         self._lib = load_library(build.library, _bind)
+        self.cpu_seconds = 0.0
         key = seed_words(seed)
         self.patience = patience
         self._h = self._lib.br_open((ctypes.c_uint32 * len(key))(*key), len(key),
@@ -438,7 +440,15 @@ class NativeBoard:
 
     def run(self, commands, want):
         """Queue ``commands`` and clock the board until it sent ``want`` result bytes (command
-        bytes it has not taken by then stay queued); returns them."""
+        bytes it has not taken by then stay queued); returns them. Adds the calling thread's CPU
+        time to :attr:`cpu_seconds` (the model's cost, whatever else shares the cores)."""
+        t0 = time.thread_time()
+        try:
+            return self._run(commands, want)
+        finally:
+            self.cpu_seconds += time.thread_time() - t0
+
+    def _run(self, commands, want):
         out = bytearray()
         got = ctypes.c_size_t()
         data = bytes(commands)
