@@ -384,6 +384,8 @@ class LinkCaster:
         return [(min(EMITTER_ENDS, K), every[emits]), (1, every[~emits])]
 
     def _centroid_fractions(self, recv, src, offsets=None):
+        """All K source samples to the receiver's centroid (``offsets`` unused: no sample is left
+        out; taken so both fraction rules share :meth:`cast`'s one call)."""
         h, pts = self.h, self.h.points
         V, K = h.scene.patch_vertices, pts.K
         with self.phases.timed("formfactor"):
