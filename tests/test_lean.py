@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from amaranth.hdl import Fragment, Module, Signal, signed
+from amaranth.hdl import Cat, Fragment, Module, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 from amaranth.sim import Simulator
@@ -149,7 +149,8 @@ class _UnitStreams(wiring.Component):
             m.submodules[f"unit{k}"] = Fragment.get(u, self.plat)
             m.d.comb += [u.point.eq(self.i.payload.point), u.patch.eq(self.i.payload.patch), u.valid.eq(self.i.valid),
                          self.o.payload[f"terms{k}"].eq(u.terms)]
-            m.d.sync += self.o.payload.apart.eq(self.o.payload.apart | (u.terms_valid != self.units[0].terms_valid))
+        differ = Cat(u.terms_valid != self.units[0].terms_valid for u in self.units[1:]).any()
+        m.d.sync += self.o.payload.apart.eq(self.o.payload.apart | differ)
         if hasattr(self.units[0], "plane_out"):
             m.d.comb += self.o.payload.plane.eq(self.units[0].plane_out)
         m.d.comb += [self.i.ready.eq(1), self.o.valid.eq(self.units[0].terms_valid)]
