@@ -139,9 +139,8 @@ def speed(shooters, routes):
 
 
 def _cpu(transport):
-    """The CPU seconds a native board's thread spent clocking it (0 for other transports)."""
-    board = getattr(transport, "_board", None)
-    return getattr(board, "cpu_seconds", 0.0)
+    """The CPU seconds a native board's thread spent clocking it (its stats; 0 for other transports)."""
+    return transport.stats().get("simulator_cpu_seconds", 0.0)
 
 
 def host_codec(params, scene, samples, columns):
