@@ -536,10 +536,10 @@ class SetCaster:
         h, sets = self.h, len(self.per_set)
         part = self.owner[h.patch[links.recv]]
         mine = [np.flatnonzero(part == k) for k in range(sets)]
-        offsets = np.full(len(links), -1, dtype=np.int64) if offsets is None else offsets
         with self.phases.timed("cluster"):
             futures = [self.client.submit(cast_on_set, self.scene_f, self.grid_f, self.job, h.points.max_level,
-                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources, offsets[m],
+                                          h.patch, h.node, links.recv[m], links.src[m], ends, sources,
+                                          None if offsets is None else offsets[m],
                                           pure=False)
                        for m in mine]
             answers = _results(self.client, futures)
